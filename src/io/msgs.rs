@@ -1,0 +1,55 @@
+//! ROS message types that ecm-lcd reads and writes, defined with serde because ros2-client
+//! ships no generated `std_msgs`/`sensor_msgs`. Field order is the wire order (CDR and
+//! ROS 1 serialisation both follow the `.msg` definition), so do not reorder fields.
+
+use serde::{Deserialize, Serialize};
+
+use crate::types::Stamp;
+
+/// `builtin_interfaces/Time`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Time {
+    pub sec: i32,
+    pub nanosec: u32,
+}
+
+impl From<Stamp> for Time {
+    fn from(s: Stamp) -> Self {
+        Time { sec: s.sec() as i32, nanosec: s.nsec() }
+    }
+}
+
+impl From<Time> for Stamp {
+    fn from(t: Time) -> Self {
+        Stamp::from_sec_nsec(t.sec as i64, t.nanosec)
+    }
+}
+
+/// `std_msgs/Header` (ROS 2 layout: no `seq`).
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Header {
+    pub stamp: Time,
+    pub frame_id: String,
+}
+
+/// `sensor_msgs/Image`.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Image {
+    pub header: Header,
+    pub height: u32,
+    pub width: u32,
+    pub encoding: String,
+    pub is_bigendian: u8,
+    pub step: u32,
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
+}
+
+/// `sensor_msgs/CompressedImage`.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CompressedImage {
+    pub header: Header,
+    pub format: String,
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
+}

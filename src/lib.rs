@@ -1,0 +1,23 @@
+//! ecm-lcd: loop-closure detection for visual SLAM with ECMobileNet global descriptors.
+//!
+//! Data flows one way, and the modules follow it:
+//! image ([`io`], [`preprocess`]) -> tensor -> network ([`model`]) -> descriptor ([`descriptor`])
+//! -> keyframe database and detector ([`detector`]) -> loop candidate -> publisher ([`ros`], CSV).
+//! [`pipeline`] wires those stages together for the offline commands and the node alike;
+//! [`eval`] measures the result against ground truth and [`synth`] makes test sequences.
+//! Nothing below [`ros`] needs DDS.
+
+pub mod config;
+pub mod descriptor;
+pub mod detector;
+pub mod eval;
+pub mod io;
+pub mod model;
+pub mod pipeline;
+pub mod preprocess;
+pub mod ros;
+pub mod runtime;
+pub mod synth;
+pub mod types;
+
+pub mod cli;

@@ -1,0 +1,1 @@
+//! The ROS 2 node: a thin layer over [`crate::pipeline`] on ros2-client.

@@ -1,0 +1,133 @@
+//! Small value types shared by every stage: time stamps, frames and loop candidates.
+
+use serde::{Deserialize, Serialize};
+use std::fmt;
+
+/// A time stamp in nanoseconds since the Unix epoch (ROS time). Integer so that stamps
+/// read from bags and messages round-trip exactly.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+pub struct Stamp {
+    pub nanos: i64,
+}
+
+impl Stamp {
+    pub const fn from_nanos(nanos: i64) -> Self {
+        Stamp { nanos }
+    }
+
+    /// From ROS `sec`/`nanosec` fields.
+    pub fn from_sec_nsec(sec: i64, nsec: u32) -> Self {
+        Stamp { nanos: sec * 1_000_000_000 + nsec as i64 }
+    }
+
+    /// From floating-point seconds (TUM text files); rounded to the nearest nanosecond.
+    pub fn from_secs_f64(secs: f64) -> Self {
+        Stamp { nanos: (secs * 1e9).round() as i64 }
+    }
+
+    /// Parses a decimal seconds string such as `1341847980.722988` exactly (no float rounding).
+    pub fn parse_secs(text: &str) -> Option<Self> {
+        let text = text.trim();
+        let (negative, digits) = match text.strip_prefix('-') {
+            Some(rest) => (true, rest),
+            None => (false, text),
+        };
+        let (whole, frac) = digits.split_once('.').unwrap_or((digits, ""));
+        if whole.is_empty() && frac.is_empty() {
+            return None;
+        }
+        if !whole.bytes().all(|b| b.is_ascii_digit()) || !frac.bytes().all(|b| b.is_ascii_digit()) {
+            return None;
+        }
+        let sec: i64 = if whole.is_empty() { 0 } else { whole.parse().ok()? };
+        let mut nanos: i64 = 0;
+        for (i, b) in frac.bytes().take(9).enumerate() {
+            nanos += (b - b'0') as i64 * 10i64.pow(8 - i as u32);
+        }
+        let total = sec.checked_mul(1_000_000_000)?.checked_add(nanos)?;
+        Some(Stamp { nanos: if negative { -total } else { total } })
+    }
+
+    pub fn as_secs_f64(self) -> f64 {
+        self.nanos as f64 * 1e-9
+    }
+
+    /// Whole seconds (ROS `sec`).
+    pub fn sec(self) -> i64 {
+        self.nanos.div_euclid(1_000_000_000)
+    }
+
+    /// Nanoseconds within the second (ROS `nanosec`).
+    pub fn nsec(self) -> u32 {
+        self.nanos.rem_euclid(1_000_000_000) as u32
+    }
+}
+
+impl fmt::Display for Stamp {
+    /// Seconds with nine decimals, e.g. `1341847980.722988000`.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}.{:09}", self.sec(), self.nsec())
+    }
+}
+
+/// One decoded camera image from any source, in source order.
+#[derive(Clone, Debug)]
+pub struct Frame {
+    /// Position in the source's replay order, from 0.
+    pub index: usize,
+    pub stamp: Stamp,
+    pub image: image::RgbImage,
+}
+
+/// A loop candidate: the query keyframe probably revisits the place of the matched one.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LoopCandidate {
+    pub query_id: u64,
+    pub query_stamp: Stamp,
+    pub match_id: u64,
+    pub match_stamp: Stamp,
+    /// Euclidean distance between the two descriptors.
+    pub distance: f32,
+    /// Similarity in [0, 1] derived from the distance (see [`crate::descriptor`]).
+    pub score: f32,
+    /// 0 for the best match of this query, 1 for the next, ...
+    pub rank: u32,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stamp_parses_exactly_and_prints_ros_fields() {
+        let s = Stamp::parse_secs("1341847980.722988").unwrap();
+        assert_eq!(s.sec(), 1341847980);
+        assert_eq!(s.nsec(), 722_988_000);
+        assert_eq!(s.to_string(), "1341847980.722988000");
+        assert_eq!(Stamp::from_sec_nsec(s.sec(), s.nsec()), s);
+        assert_eq!(Stamp::parse_secs("-0.5").unwrap().nanos, -500_000_000);
+        assert!(Stamp::parse_secs("12a.3").is_none());
+        assert!(Stamp::parse_secs("").is_none());
+    }
+}
+
+/// The network's last feature map for one image, channel-major `[C, H, W]`, on the CPU.
+/// Descriptors are computed from it (global pooling, spatial pooling, ...).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FeatureMap {
+    pub channels: usize,
+    pub height: usize,
+    pub width: usize,
+    pub data: Vec<f32>,
+}
+
+impl FeatureMap {
+    /// Global average pool: one mean per channel.
+    pub fn global_average(&self) -> Vec<f32> {
+        let plane = self.height * self.width;
+        self.data
+            .chunks_exact(plane)
+            .map(|c| c.iter().sum::<f32>() / plane as f32)
+            .collect()
+    }
+}
