@@ -18,3 +18,27 @@ pub fn init_threads(threads: Option<usize>) -> usize {
         n
     })
 }
+
+/// Candidate locations of the shared data folder (models, ImageNet samples, TUM frames):
+/// `$ECM_LCD_SHARED` alone when set, else `./../shared`, `./shared`, and the `shared` folder
+/// beside the source tree this binary was built from. Only existing folders are returned.
+pub fn shared_dirs() -> Vec<std::path::PathBuf> {
+    if let Some(d) = std::env::var_os("ECM_LCD_SHARED") {
+        let d = std::path::PathBuf::from(d);
+        return if d.is_dir() { vec![d] } else { vec![] };
+    }
+    let mut dirs: Vec<std::path::PathBuf> = Vec::new();
+    dirs.push("../shared".into());
+    dirs.push("shared".into());
+    dirs.push(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
+    let mut seen = Vec::new();
+    dirs.into_iter()
+        .filter(|d| d.is_dir())
+        .filter(|d| {
+            let canon = d.canonicalize().unwrap_or_else(|_| d.clone());
+            let new = !seen.contains(&canon);
+            seen.push(canon);
+            new
+        })
+        .collect()
+}

@@ -1,5 +1,8 @@
 //! Command-line interface: one sub-module per sub-command, each a thin shell over the library.
 
+pub mod bench;
+pub mod model;
+
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
@@ -15,6 +18,16 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Import MobileNetV2 weights from a TFLite model into safetensors.
+    ImportWeights(model::ImportArgs),
+    /// Parameter count and multiply-accumulates of a network.
+    ModelInfo(model::InfoArgs),
+    /// Top ImageNet classes of images (checks the weights).
+    Classify(model::ClassifyArgs),
+    /// The pooled 1280-d descriptor of images, as CSV.
+    Embed(model::EmbedArgs),
+    /// Benchmark: network forward time per thread count (a program that measures, not a test).
+    Bench(bench::BenchArgs),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -34,5 +47,11 @@ pub fn main() -> ExitCode {
 }
 
 fn run(command: Command) -> anyhow::Result<()> {
-    match command {}
+    match command {
+        Command::ImportWeights(args) => model::import_weights(args),
+        Command::ModelInfo(args) => model::model_info(args),
+        Command::Classify(args) => model::classify(args),
+        Command::Embed(args) => model::embed(args),
+        Command::Bench(args) => bench::run(args),
+    }
 }

@@ -1,4 +1,240 @@
 //! The networks: MobileNetV2 (reference and import target) and ECMobileNet (the paper's variant),
 //! their building blocks, the fast depthwise kernel, and weights import/load/save.
+//!
+//! Both networks are the same skeleton described by data ([`NetworkSpec`]: one row per bottleneck
+//! stage, as in the papers' tables): a 3x3 stride-2 stem, inverted-residual bottlenecks, a 1x1
+//! convolution to 1280 channels, global average pooling and an optional classifier.
+//! Layout is NCHW throughout; input is RGB scaled to [-1, 1].
 
+pub mod depthwise;
+pub mod embedder;
+pub mod ecmobilenet;
+pub mod layers;
+pub mod mobilenetv2;
 pub mod weights;
+
+use anyhow::{bail, Context};
+use candle_core::{Result, Tensor};
+use candle_nn::VarBuilder;
+use serde::Serialize;
+use std::fmt;
+use std::str::FromStr;
+
+use depthwise::Activation;
+use layers::{BlockShape, ConvKind, ConvUnit, InvertedResidual, Mode};
+
+/// Which network.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Arch {
+    MobileNetV2,
+    EcMobileNet,
+}
+
+impl Arch {
+    pub fn spec(self) -> &'static NetworkSpec {
+        match self {
+            Arch::MobileNetV2 => &mobilenetv2::MOBILENET_V2,
+            Arch::EcMobileNet => &ecmobilenet::EC_MOBILENET,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            Arch::MobileNetV2 => "mobilenetv2",
+            Arch::EcMobileNet => "ecmobilenet",
+        }
+    }
+}
+
+impl fmt::Display for Arch {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Arch {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> anyhow::Result<Self> {
+        match s.to_ascii_lowercase().replace(['-', '_'], "").as_str() {
+            "mobilenetv2" | "mnv2" => Ok(Arch::MobileNetV2),
+            "ecmobilenet" | "ecm" => Ok(Arch::EcMobileNet),
+            _ => bail!("unknown architecture '{s}' (expected ecmobilenet or mobilenetv2)"),
+        }
+    }
+}
+
+/// One row of a bottleneck table: expansion factor t, output channels c, repeats n, stride s
+/// (the stride of the first block of the stage; the others have stride 1).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct BottleneckRow {
+    pub t: usize,
+    pub c: usize,
+    pub n: usize,
+    pub s: usize,
+}
+
+/// A whole network as data.
+#[derive(Clone, Debug)]
+pub struct NetworkSpec {
+    pub arch: Arch,
+    pub stem_channels: usize,
+    pub rows: &'static [BottleneckRow],
+    pub head_channels: usize,
+    /// ECA kernel size for a bottleneck with this many hidden channels; `None`: no ECA.
+    pub eca_kernel: Option<fn(usize) -> usize>,
+}
+
+impl NetworkSpec {
+    /// The bottlenecks, one per block, in order.
+    pub fn blocks(&self) -> Vec<BlockShape> {
+        let mut input = self.stem_channels;
+        let mut blocks = Vec::new();
+        for row in self.rows {
+            for i in 0..row.n {
+                let hidden = input * row.t;
+                blocks.push(BlockShape {
+                    input,
+                    hidden,
+                    output: row.c,
+                    stride: if i == 0 { row.s } else { 1 },
+                    eca_kernel: self.eca_kernel.map(|k| k(hidden)),
+                });
+                input = row.c;
+            }
+        }
+        blocks
+    }
+
+    /// Trainable parameters (convolution weights, BatchNorm scale and shift, ECA kernels, the
+    /// classifier's weight and bias), as PyTorch counts them, and multiply-accumulates per image.
+    pub fn cost(&self, classes: Option<usize>, input_size: usize) -> ModelCost {
+        let (mut params, mut macs) = (0, 0);
+        let mut size = input_size.div_ceil(2);
+        // (params, macs) of a convolution followed by BatchNorm (gamma and beta).
+        let conv = |inp: usize, out: usize, k: usize, groups: usize, spatial: usize| {
+            let weights = out * (inp / groups) * k * k;
+            (weights + 2 * out, weights * spatial * spatial)
+        };
+        let mut add = |(p, m): (usize, usize)| {
+            params += p;
+            macs += m;
+        };
+        add(conv(3, self.stem_channels, 3, 1, size));
+        for b in self.blocks() {
+            if b.has_expansion() {
+                add(conv(b.input, b.hidden, 1, 1, size));
+            }
+            size = size.div_ceil(b.stride);
+            add(conv(b.hidden, b.hidden, 3, b.hidden, size));
+            if let Some(k) = b.eca_kernel {
+                add((k, k * b.hidden + b.hidden * size * size)); // 1-D conv + channel scaling
+            }
+            add(conv(b.hidden, b.output, 1, 1, size));
+        }
+        let last = self.blocks().last().map(|b| b.output).unwrap_or(self.stem_channels);
+        add(conv(last, self.head_channels, 1, 1, size));
+        if let Some(k) = classes {
+            params += self.head_channels * k + k;
+            macs += self.head_channels * k;
+        }
+        ModelCost { arch: self.arch, params, macs }
+    }
+}
+
+/// Size and arithmetic of a network.
+#[derive(Clone, Copy, Debug, Serialize, PartialEq, Eq)]
+pub struct ModelCost {
+    pub arch: Arch,
+    pub params: usize,
+    pub macs: usize,
+}
+
+/// A loaded network.
+#[derive(Clone, Debug)]
+pub struct Network {
+    pub spec: NetworkSpec,
+    stem: ConvUnit,
+    pub blocks: Vec<InvertedResidual>,
+    head: ConvUnit,
+    classifier: Option<candle_nn::Linear>,
+}
+
+impl Network {
+    /// Builds `spec` from `vb` (names in [`weights`]). `classes`: load a classifier of that many
+    /// outputs. `batch_norm`: keep BatchNorm layers (training form) instead of folding them.
+    pub fn load(spec: &NetworkSpec, vb: VarBuilder, classes: Option<usize>, batch_norm: bool) -> Result<Self> {
+        let stem = ConvUnit::load(
+            vb.pp("stem"),
+            (spec.stem_channels, 3, 3, 3),
+            ConvKind::Full { stride: 2 },
+            Activation::Relu6,
+            batch_norm,
+        )?;
+        let blocks = spec
+            .blocks()
+            .into_iter()
+            .enumerate()
+            .map(|(i, shape)| InvertedResidual::load(vb.pp(format!("blocks.{i}")), shape, batch_norm))
+            .collect::<Result<Vec<_>>>()?;
+        let last = blocks.last().map(|b| b.shape.output).unwrap_or(spec.stem_channels);
+        let head = ConvUnit::load(vb.pp("head"), (spec.head_channels, last, 1, 1), ConvKind::Pointwise, Activation::Relu6, batch_norm)?;
+        let classifier = classes.map(|k| candle_nn::linear(spec.head_channels, k, vb.pp("classifier"))).transpose()?;
+        Ok(Network { spec: spec.clone(), stem, blocks, head, classifier })
+    }
+
+    pub fn arch(&self) -> Arch {
+        self.spec.arch
+    }
+
+    pub fn classes(&self) -> Option<usize> {
+        self.classifier.as_ref().map(|c| c.weight().dim(0)).transpose().ok().flatten()
+    }
+
+    /// The last feature map, `[B, head_channels, S/32, S/32]`, for input `x` `[B, 3, S, S]`.
+    pub fn features(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
+        let mut y = self.stem.forward_t(x, mode)?;
+        for block in &self.blocks {
+            y = block.forward_t(&y, mode)?;
+        }
+        self.head.forward_t(&y, mode)
+    }
+
+    /// Calls `f(name, weight, bias)` for every parameter tensor group in inference form
+    /// (BatchNorm folded), with the names of [`weights`].
+    pub fn visit_units(&self, f: &mut dyn FnMut(&str, &Tensor, Option<&Tensor>)) -> Result<()> {
+        let unit = |f: &mut dyn FnMut(&str, &Tensor, Option<&Tensor>), name: &str, unit: &ConvUnit| -> Result<()> {
+            let folded = unit.folded()?;
+            f(name, folded.weight(), folded.bias());
+            Ok(())
+        };
+        unit(f, "stem", &self.stem)?;
+        for (i, block) in self.blocks.iter().enumerate() {
+            for (part, u) in block.units() {
+                unit(f, &format!("blocks.{i}.{part}"), u)?;
+            }
+            if let Some(eca) = block.eca() {
+                f(&format!("blocks.{i}.eca"), eca.weight(), None);
+            }
+        }
+        unit(f, "head", &self.head)?;
+        if let Some(c) = &self.classifier {
+            f("classifier", c.weight(), c.bias());
+        }
+        Ok(())
+    }
+
+    /// Class logits `[B, classes]`.
+    pub fn logits(&self, x: &Tensor, mode: Mode) -> anyhow::Result<Tensor> {
+        let classifier = self.classifier.as_ref().context("this network was loaded without a classifier")?;
+        let pooled = self.features(x, mode)?.mean((2, 3))?;
+        Ok(candle_core::Module::forward(classifier, &pooled)?)
+    }
+}
+
+/// Checks an input size: a positive multiple of 32.
+pub fn check_input_size(size: usize) -> anyhow::Result<usize> {
+    if size == 0 || size % 32 != 0 {
+        bail!("input size {size} is not a positive multiple of 32");
+    }
+    Ok(size)
+}

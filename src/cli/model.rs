@@ -1,0 +1,189 @@
+//! Model sub-commands: `import-weights`, `model-info`, `classify`, `embed`.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use serde::Serialize;
+
+use crate::model::embedder::Embedder;
+use crate::model::weights::{import, resolve};
+use crate::model::Arch;
+use crate::preprocess::read_image;
+
+/// Which weights and network every model-using command runs.
+#[derive(clap::Args, Debug, Clone)]
+pub struct NetworkArgs {
+    /// Weights file (safetensors, or a .tflite to import); default: see README "Weights".
+    #[arg(long)]
+    pub weights: Option<PathBuf>,
+    /// Network architecture: ecmobilenet or mobilenetv2.
+    #[arg(long, default_value = "ecmobilenet")]
+    pub arch: Arch,
+    /// Input size (a multiple of 32).
+    #[arg(long, default_value_t = 224)]
+    pub size: usize,
+    /// Run stock candle operations instead of the fast kernels (for verification).
+    #[arg(long)]
+    pub reference: bool,
+}
+
+impl NetworkArgs {
+    /// Resolves the weights, logs which ones run, and builds the embedder.
+    pub fn embedder(&self, with_classifier: bool) -> Result<(Embedder, resolve::Resolved)> {
+        let resolved = resolve::resolve(self.weights.as_deref())?;
+        let weights = resolved.weights.for_arch(self.arch)?;
+        log::info!("weights: {} -> {}", resolved.describe(), self.arch);
+        let mut embedder = Embedder::new(weights.network(with_classifier)?, self.size)?;
+        embedder.set_reference(self.reference);
+        Ok((embedder, resolved))
+    }
+}
+
+#[derive(clap::Args, Debug)]
+pub struct ImportArgs {
+    /// The TFLite model (MobileNetV2 1.0, e.g. mobilenet_v2_1.0_224_quant.tflite).
+    pub tflite: PathBuf,
+    /// Output safetensors file.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Architecture to write: mobilenetv2 as imported, or ecmobilenet initialised from it.
+    #[arg(long, default_value = "mobilenetv2")]
+    pub arch: Arch,
+}
+
+pub fn import_weights(args: ImportArgs) -> Result<()> {
+    let weights = import::import_tflite(&args.tflite)?.for_arch(args.arch)?;
+    weights.save(&args.output)?;
+    println!("wrote {} ({}, {} tensors) from {}", args.output.display(), weights.arch, weights.tensors.len(), args.tflite.display());
+    Ok(())
+}
+
+#[derive(clap::Args, Debug)]
+pub struct InfoArgs {
+    #[arg(long, default_value = "ecmobilenet")]
+    pub arch: Arch,
+    /// Classifier outputs (none: feature extractor only).
+    #[arg(long)]
+    pub classes: Option<usize>,
+    #[arg(long, default_value_t = 224)]
+    pub size: usize,
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub fn model_info(args: InfoArgs) -> Result<()> {
+    crate::model::check_input_size(args.size)?;
+    let cost = args.arch.spec().cost(args.classes, args.size);
+    if args.json {
+        println!("{}", serde_json::to_string(&cost)?);
+    } else {
+        let classes = args.classes.map(|k| k.to_string()).unwrap_or_else(|| "none".into());
+        println!("arch      {}\nclasses   {classes}\ninput     {}x{}", args.arch, args.size, args.size);
+        println!("params    {}\nmacs      {}", cost.params, cost.macs);
+        println!("blocks    {}", args.arch.spec().blocks().len());
+    }
+    Ok(())
+}
+
+#[derive(clap::Args, Debug)]
+pub struct ClassifyArgs {
+    #[command(flatten)]
+    pub network: NetworkArgs,
+    /// Labels file, one per line, index 0 first (default: the shared ImageNet labels).
+    #[arg(long)]
+    pub labels: Option<PathBuf>,
+    /// Number of classes to show.
+    #[arg(long, default_value_t = 5)]
+    pub top: usize,
+    #[arg(long)]
+    pub json: bool,
+    #[arg(required = true)]
+    pub images: Vec<PathBuf>,
+}
+
+#[derive(Serialize)]
+struct Ranked {
+    index: usize,
+    label: String,
+    prob: f32,
+}
+
+#[derive(Serialize)]
+struct Classified {
+    image: String,
+    top: Vec<Ranked>,
+}
+
+fn read_labels(path: Option<&Path>) -> Result<Vec<String>> {
+    let path = match path {
+        Some(p) => p.to_path_buf(),
+        None => match crate::runtime::shared_dirs().into_iter().map(|d| d.join("data/imagenet/imagenet_labels.txt")).find(|p| p.is_file()) {
+            Some(p) => p,
+            None => {
+                log::warn!("no ImageNet labels file found (pass --labels); showing class indexes");
+                return Ok(vec![]);
+            }
+        },
+    };
+    let text = std::fs::read_to_string(&path).with_context(|| format!("cannot read labels {}", path.display()))?;
+    Ok(text.lines().map(str::to_string).collect())
+}
+
+pub fn classify(mut args: ClassifyArgs) -> Result<()> {
+    // The classifier exists only in the MobileNetV2 import unless told otherwise.
+    if args.network.weights.is_none() && args.network.arch == Arch::EcMobileNet {
+        args.network.arch = Arch::MobileNetV2;
+    }
+    let (mut embedder, _) = args.network.embedder(true)?;
+    let labels = read_labels(args.labels.as_deref())?;
+    let mut results = Vec::new();
+    for path in &args.images {
+        let probs = embedder.probabilities(&read_image(path)?)?;
+        let mut order: Vec<usize> = (0..probs.len()).collect();
+        order.sort_by(|&a, &b| probs[b].total_cmp(&probs[a]));
+        let top = order
+            .into_iter()
+            .take(args.top)
+            .map(|i| Ranked { index: i, label: labels.get(i).cloned().unwrap_or_else(|| format!("class {i}")), prob: probs[i] })
+            .collect();
+        results.push(Classified { image: path.display().to_string(), top });
+    }
+    let mut out = std::io::stdout().lock();
+    if args.json {
+        writeln!(out, "{}", serde_json::to_string_pretty(&results)?)?;
+    } else {
+        for r in &results {
+            writeln!(out, "{}", r.image)?;
+            for t in &r.top {
+                writeln!(out, "  {:>6.3}  {:>4}  {}", t.prob, t.index, t.label)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+#[derive(clap::Args, Debug)]
+pub struct EmbedArgs {
+    #[command(flatten)]
+    pub network: NetworkArgs,
+    #[arg(required = true)]
+    pub images: Vec<PathBuf>,
+    /// Output CSV: `image,v0,...,v1279` (the globally pooled 1280-d descriptor per image).
+    #[arg(short, long)]
+    pub output: PathBuf,
+}
+
+pub fn embed(args: EmbedArgs) -> Result<()> {
+    let (mut embedder, _) = args.network.embedder(false)?;
+    let mut writer = csv::Writer::from_path(&args.output).with_context(|| format!("cannot write {}", args.output.display()))?;
+    for path in &args.images {
+        let pooled = embedder.feature_map(&read_image(path)?)?.global_average();
+        let mut record = vec![path.display().to_string()];
+        record.extend(pooled.iter().map(|v| v.to_string()));
+        writer.write_record(&record)?;
+    }
+    writer.flush()?;
+    println!("wrote {} descriptors of 1280 values to {}", args.images.len(), args.output.display());
+    Ok(())
+}

@@ -1,0 +1,47 @@
+//! Image -> feature map: the preprocessor and a network in inference mode, one image at a time.
+
+use anyhow::Result;
+use image::RgbImage;
+
+use super::layers::Mode;
+use super::Network;
+use crate::preprocess::Preprocessor;
+use crate::types::FeatureMap;
+
+/// Turns images into the network's last feature map (the input of every descriptor).
+pub struct Embedder {
+    pub network: Network,
+    preprocessor: Preprocessor,
+    mode: Mode,
+}
+
+impl Embedder {
+    /// `input_size`: a multiple of 32 (224 is what the weights were trained at).
+    pub fn new(network: Network, input_size: usize) -> Result<Self> {
+        super::check_input_size(input_size)?;
+        Ok(Embedder { network, preprocessor: Preprocessor::new(input_size), mode: Mode::Inference })
+    }
+
+    /// Use stock candle ops instead of the fast kernels (for verification).
+    pub fn set_reference(&mut self, reference: bool) {
+        self.mode = if reference { Mode::Reference } else { Mode::Inference };
+    }
+
+    pub fn input_size(&self) -> usize {
+        self.preprocessor.size()
+    }
+
+    pub fn feature_map(&mut self, image: &RgbImage) -> Result<FeatureMap> {
+        let x = self.preprocessor.tensor(image)?;
+        let y = self.network.features(&x, self.mode)?;
+        let (_, channels, height, width) = y.dims4()?;
+        Ok(FeatureMap { channels, height, width, data: y.flatten_all()?.to_vec1::<f32>()? })
+    }
+
+    /// Class probabilities (softmax of the classifier's logits).
+    pub fn probabilities(&mut self, image: &RgbImage) -> Result<Vec<f32>> {
+        let x = self.preprocessor.tensor(image)?;
+        let logits = self.network.logits(&x, self.mode)?;
+        Ok(candle_nn::ops::softmax_last_dim(&logits)?.flatten_all()?.to_vec1::<f32>()?)
+    }
+}

@@ -1,0 +1,36 @@
+//! Downloads a public file once, checks its SHA-256, and only then moves it into place, so a
+//! cache never holds a partial or wrong file.
+
+use std::io::Write;
+use std::path::Path;
+use std::time::Duration;
+
+use anyhow::{bail, Context, Result};
+
+/// Largest file we are willing to download (the weights are 3.6 MB).
+const MAX_BYTES: u64 = 64 << 20;
+
+/// Downloads `url` to `dest` if its SHA-256 is `sha256` (lower-case hex).
+pub fn fetch_verified(url: &str, sha256: &str, dest: &Path) -> Result<()> {
+    let config = ureq::Agent::config_builder().timeout_global(Some(Duration::from_secs(120))).build();
+    let agent = ureq::Agent::new_with_config(config);
+    let mut response = agent.get(url).call().with_context(|| format!("download of {url} failed"))?;
+    let bytes = response
+        .body_mut()
+        .with_config()
+        .limit(MAX_BYTES)
+        .read_to_vec()
+        .with_context(|| format!("download of {url} broke off"))?;
+    let got = super::resolve::sha256_hex(&bytes);
+    if got != sha256 {
+        bail!("download of {url} has SHA-256 {got}, expected {sha256}; not using it");
+    }
+    if let Some(dir) = dest.parent() {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    }
+    let part = dest.with_extension("part");
+    let mut file = std::fs::File::create(&part).with_context(|| format!("cannot write {}", part.display()))?;
+    file.write_all(&bytes).and_then(|_| file.sync_all()).with_context(|| format!("cannot write {}", part.display()))?;
+    std::fs::rename(&part, dest).with_context(|| format!("cannot move {} to {}", part.display(), dest.display()))?;
+    Ok(())
+}
