@@ -166,4 +166,31 @@ mod tests {
         }
         Ok(())
     }
+
+    /// Training form: BatchNorm uses batch statistics and every weight, ECA included, gets a gradient.
+    #[test]
+    fn training_mode_runs_and_backpropagates() -> Result<()> {
+        let dev = Device::Cpu;
+        let varmap = VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &dev);
+        let net = Network::load(&EC_MOBILENET, vb, Some(3), true)?;
+        let x = Tensor::randn(0f32, 1.0, (2, 3, 64, 64), &dev)?;
+        let logits = net.logits(&x, Mode::Train)?;
+        assert_eq!(logits.dims(), &[2, 3]);
+        let grads = logits.sqr()?.sum_all()?.backward()?;
+        let vars = varmap.data().lock().unwrap();
+        for name in ["blocks.0.eca.weight", "blocks.5.depthwise.weight", "blocks.5.depthwise.bn.weight", "stem.weight", "classifier.weight"] {
+            let var = vars.get(name).unwrap_or_else(|| panic!("no variable {name}"));
+            let g = grads.get(var.as_tensor()).unwrap_or_else(|| panic!("no gradient for {name}"));
+            assert!(g.abs()?.sum_all()?.to_scalar::<f32>()? > 0.0, "zero gradient for {name}");
+        }
+        // Inference form of the same network gives the same logits as the stock path.
+        let folded = crate::model::weights::inference_tensors(&net)?;
+        let inference = Network::load(&EC_MOBILENET, VarBuilder::from_tensors(folded, DType::F32, &dev), Some(3), false)?;
+        let a = inference.logits(&x, Mode::Inference)?;
+        let b = net.logits(&x, Mode::Reference)?;
+        let diff = (a - b)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+        assert!(diff < 1e-3, "folded vs BatchNorm inference: {diff}");
+        Ok(())
+    }
 }
