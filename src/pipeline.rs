@@ -1,1 +1,159 @@
-//! The whole per-frame path: image -> tensor -> descriptor -> keyframe selection -> detector -> loop candidates. Used by the offline commands and the ROS node alike.
+//! The whole per-frame path: image -> tensor -> feature map -> descriptor -> keyframe selection ->
+//! detector -> loop candidates. The offline commands (replay, eval, demo) and the ROS node all
+//! run frames through one [`Pipeline`], so they give the same answers.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use image::RgbImage;
+
+use crate::config::{ParamValue, Params};
+use crate::descriptor::Descriptor;
+use crate::detector::selection::{KeyframeSelector, Verdict};
+use crate::detector::{Detector, Match};
+use crate::model::embedder::Embedder;
+use crate::model::weights::resolve::{self, Resolved};
+use crate::model::Arch;
+use crate::types::{LoopCandidate, Stamp};
+
+/// Milliseconds spent per stage on one frame.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct Timings {
+    /// Resize, normalise and network forward.
+    pub network_ms: f64,
+    pub descriptor_ms: f64,
+    /// Database query and insertion.
+    pub detector_ms: f64,
+}
+
+/// What became of one frame.
+#[derive(Clone, Debug, Default)]
+pub struct Outcome {
+    /// The keyframe id, if the frame was taken as a keyframe.
+    pub keyframe: Option<u64>,
+    /// Loop candidates reported under the full policy.
+    pub candidates: Vec<LoopCandidate>,
+    /// The nearest eligible keyframe regardless of threshold and consistency (for evaluation).
+    pub best: Option<Match>,
+    pub timings: Timings,
+}
+
+/// Network, descriptor, keyframe selection and detector, configured by [`Params`].
+pub struct Pipeline {
+    embedder: Embedder,
+    params: Params,
+    descriptor: Descriptor,
+    selector: KeyframeSelector,
+    detector: Detector,
+    next_id: u64,
+    weights: Resolved,
+}
+
+impl Pipeline {
+    /// Resolves the weights (`weights`, else the usual chain) and builds the pipeline.
+    pub fn new(params: Params, weights: Option<&Path>) -> Result<Self> {
+        Self::with_weights(params, resolve::resolve(weights)?)
+    }
+
+    pub fn with_weights(params: Params, weights: Resolved) -> Result<Self> {
+        let arch: Arch = params.arch().parse()?;
+        let network = weights.weights.for_arch(arch)?.network(false)?;
+        log::info!("weights: {} -> {arch}, input {}², descriptor {}", weights.describe(), params.input_size(), params.descriptor_mode());
+        let embedder = Embedder::new(network, params.input_size()).context("network input size")?;
+        let descriptor = params.descriptor();
+        Ok(Pipeline {
+            embedder,
+            selector: KeyframeSelector::new(params.selection()),
+            detector: Detector::new(descriptor.clone(), params.detector()),
+            descriptor,
+            params,
+            next_id: 0,
+            weights,
+        })
+    }
+
+    pub fn params(&self) -> &Params {
+        &self.params
+    }
+
+    pub fn weights(&self) -> &Resolved {
+        &self.weights
+    }
+
+    pub fn descriptor(&self) -> &Descriptor {
+        &self.descriptor
+    }
+
+    pub fn detector(&self) -> &Detector {
+        &self.detector
+    }
+
+    /// Use stock candle ops instead of the fast kernels (verification).
+    pub fn set_reference(&mut self, reference: bool) {
+        self.embedder.set_reference(reference);
+    }
+
+    /// A keyframe whose id the tracker chose: no selection, always inserted.
+    pub fn process_keyframe(&mut self, id: u64, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
+        self.next_id = self.next_id.max(id + 1);
+        self.run(id, false, stamp, image)
+    }
+
+    /// A plain frame: keyframe selection decides; accepted frames get `id`.
+    pub fn process_frame(&mut self, id: u64, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
+        self.next_id = self.next_id.max(id + 1);
+        self.run(id, true, stamp, image)
+    }
+
+    /// A plain frame with the id taken from the pipeline's counter.
+    pub fn process_counted(&mut self, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
+        let id = self.next_id;
+        self.process_frame(id, stamp, image)
+    }
+
+    fn run(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
+        let mut outcome = Outcome::default();
+        if select && self.selector.offer(stamp) == Verdict::Reject {
+            return Ok(outcome);
+        }
+        let start = Instant::now();
+        let feature_map = self.embedder.feature_map(image)?;
+        let after_network = Instant::now();
+        let descriptor = self.descriptor.compute(&feature_map)?;
+        let after_descriptor = Instant::now();
+        outcome.timings.network_ms = (after_network - start).as_secs_f64() * 1e3;
+        outcome.timings.descriptor_ms = (after_descriptor - after_network).as_secs_f64() * 1e3;
+        if select && self.selector.needs_descriptor() && !self.selector.offer_descriptor(stamp, &descriptor)? {
+            return Ok(outcome);
+        }
+        outcome.best = self.detector.best_match(stamp, &descriptor)?;
+        outcome.candidates = self.detector.process(id, stamp, &descriptor)?;
+        outcome.keyframe = Some(id);
+        outcome.timings.detector_ms = after_descriptor.elapsed().as_secs_f64() * 1e3;
+        Ok(outcome)
+    }
+
+    /// Changes one parameter at run time, validated. Parameters fixed at start (`arch`,
+    /// `input_size`) and the descriptor mode once keyframes are stored (stored descriptors would
+    /// no longer be comparable) are refused with a reason; the old value stays.
+    pub fn set_param(&mut self, name: &str, value: ParamValue) -> std::result::Result<(), String> {
+        let mut params = self.params.clone();
+        params.set_at_runtime(name, value)?;
+        if params.descriptor_mode() != self.params.descriptor_mode() && !self.detector.db().is_empty() {
+            return Err(format!(
+                "descriptor.mode cannot change while {} keyframes with {} descriptors are stored",
+                self.detector.db().len(),
+                self.params.descriptor_mode()
+            ));
+        }
+        if params.descriptor_mode() != self.params.descriptor_mode() {
+            self.descriptor = params.descriptor();
+            self.detector = Detector::new(self.descriptor.clone(), params.detector());
+        }
+        self.detector.set_params(params.detector());
+        self.selector.set_params(params.selection());
+        self.params = params;
+        Ok(())
+    }
+}
