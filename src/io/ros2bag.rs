@@ -158,9 +158,17 @@ pub struct McapSource {
     done: bool,
 }
 
+/// Longest MCAP record we accept: a record in the file cannot be longer than the file, and
+/// one inside a compressed chunk is an image message, far below 256 MiB. Without a limit a
+/// corrupt length makes the reader try to allocate it and abort the process.
+const MIN_MCAP_RECORD_LIMIT: u64 = 256 << 20;
+
 fn open_mcap_reader(path: &Path) -> Result<mcap::io::MessageReader<BufReader<File>>> {
     let file = File::open(path).with_context(|| format!("cannot open MCAP file {}", path.display()))?;
-    Ok(mcap::io::MessageReader::new(BufReader::with_capacity(1 << 20, file)))
+    let file_len = file.metadata().with_context(|| format!("cannot stat MCAP file {}", path.display()))?.len();
+    let limit = usize::try_from(file_len.max(MIN_MCAP_RECORD_LIMIT)).unwrap_or(usize::MAX);
+    let options = mcap::sans_io::LinearReaderOptions::default().with_record_length_limit(limit);
+    Ok(mcap::io::MessageReader::new_with_options(BufReader::with_capacity(1 << 20, file), options))
 }
 
 impl McapSource {
@@ -425,6 +433,28 @@ mod tests {
             for (i, (frame, (stamp, image))) in read.iter().zip(frames(4)).enumerate() {
                 assert_eq!((frame.index, frame.stamp), (i, stamp));
                 assert_eq!(frame.image, image);
+            }
+        }
+    }
+
+    #[test]
+    fn corrupted_mcap_bytes_never_panic() {
+        let dir = tempfile::tempdir().unwrap();
+        let bag = dir.path().join("m");
+        write_ros2_bag(&bag, Ros2Storage::Mcap, "/cam", frames(2), WireEncoding::Bgr8).unwrap();
+        let good = std::fs::read(storage_file_of_bag_dir(&bag).unwrap()).unwrap();
+        let path = dir.path().join("fuzz.mcap");
+        let mut state = 0x9E37_79B9u32;
+        for round in 0..200 {
+            let mut bytes = good.clone();
+            for _ in 0..1 + round % 8 {
+                state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+                let at = (state as usize >> 4) % bytes.len();
+                bytes[at] = (state >> 24) as u8;
+            }
+            std::fs::write(&path, &bytes).unwrap();
+            if let Ok(source) = McapSource::open(&path, None) {
+                for _ in source {}
             }
         }
     }
