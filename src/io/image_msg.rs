@@ -11,6 +11,8 @@
 //!   compressed_image_transport writes it (`"jpeg"`, `"png"`, `"rgb8; jpeg compressed bgr8"`);
 //!   the decoded JPEG/PNG is already in true colour order, so no channel swap follows.
 //!   `compressedDepth` payloads are depth maps, not camera images, and are refused.
+//! - ROS 1 `time` seconds are unsigned; they are kept bit for bit in the `i32` of
+//!   `builtin_interfaces/Time`, so ROS 1 stamps after 2038-01-19 would read as negative.
 
 use anyhow::{bail, ensure, Context, Result};
 use byteorder::{BigEndian, LittleEndian};

@@ -120,6 +120,17 @@ pub(crate) fn choose_image_topic(bag: &str, topics: &[TopicInfo], wanted: Option
     Ok((chosen.clone(), kind))
 }
 
+/// Small distinct test frames one second apart from `first`.
+#[cfg(test)]
+pub(crate) fn test_frames(n: usize, width: u32, height: u32, first: crate::types::Stamp) -> Vec<(crate::types::Stamp, image::RgbImage)> {
+    (0..n)
+        .map(|i| {
+            let img = image::RgbImage::from_fn(width, height, |x, y| image::Rgb([(x * 30) as u8, (y * 40) as u8, (i * 20) as u8]));
+            (crate::types::Stamp::from_nanos(first.nanos + i as i64 * 1_000_000_000), img)
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -663,7 +663,7 @@ fn compress(data: &[u8], compression: Ros1Compression) -> Result<Vec<u8>> {
     Ok(match compression {
         Ros1Compression::None => data.to_vec(),
         Ros1Compression::Bz2 => {
-            let mut encoder = bzip2::write::BzEncoder::new(Vec::new(), bzip2::Compression::best());
+            let mut encoder = bzip2::write::BzEncoder::new(Vec::new(), bzip2::Compression::default());
             encoder.write_all(data)?;
             encoder.finish()?
         }
@@ -682,12 +682,7 @@ mod tests {
     use super::*;
 
     fn frames(n: usize) -> Vec<(Stamp, RgbImage)> {
-        (0..n)
-            .map(|i| {
-                let img = RgbImage::from_fn(8, 6, |x, y| image::Rgb([(x * 30) as u8, (y * 40) as u8, (i * 20) as u8]));
-                (Stamp::from_sec_nsec(1_341_847_980 + i as i64, 722_988_000), img)
-            })
-            .collect()
+        crate::io::test_frames(n, 8, 6, Stamp::from_sec_nsec(1_341_847_980, 722_988_000))
     }
 
     #[test]

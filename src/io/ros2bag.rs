@@ -407,12 +407,7 @@ mod tests {
     use super::*;
 
     fn frames(n: usize) -> Vec<(Stamp, RgbImage)> {
-        (0..n)
-            .map(|i| {
-                let img = RgbImage::from_fn(7, 5, |x, y| image::Rgb([(x * 30) as u8, (y * 40) as u8, (i * 20) as u8]));
-                (Stamp::from_sec_nsec(1_700_000_000 + i as i64, 123_456_789), img)
-            })
-            .collect()
+        crate::io::test_frames(n, 7, 5, Stamp::from_sec_nsec(1_700_000_000, 123_456_789))
     }
 
     #[test]
