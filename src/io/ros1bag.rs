@@ -412,8 +412,8 @@ impl Ros1BagSource {
             topics.entry(&conn.topic).or_insert_with(|| TopicInfo { name: conn.topic.clone(), type_name: conn.type_name.clone(), count: 0 });
         }
         for (conn, _) in &per_conn {
-            if let Some(c) = connections.get(conn) {
-                topics.get_mut(c.topic.as_str()).map(|t| t.count += 1);
+            if let Some(info) = connections.get(conn).and_then(|c| topics.get_mut(c.topic.as_str())) {
+                info.count += 1;
             }
         }
         let topics: Vec<TopicInfo> = topics.into_values().collect();
