@@ -1,1 +1,3 @@
 //! The ROS 2 node: a thin layer over [`crate::pipeline`] on ros2-client.
+
+pub mod msgs;
