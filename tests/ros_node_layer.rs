@@ -287,3 +287,63 @@ fn node_layer_over_dds() {
     assert_eq!(final_counters.param_changes, 1);
     println!("INNER-DONE {final_counters}");
 }
+
+/// The Python virtualenv with Cyclone DDS (created once under target/, reused afterwards).
+fn cyclone_python() -> std::path::PathBuf {
+    let venv = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-venv");
+    let python = venv.join("bin/python");
+    let has = |py: &std::path::Path| {
+        std::process::Command::new(py).args(["-c", "import cyclonedds.domain"]).output().is_ok_and(|o| o.status.success())
+    };
+    if !has(&python) {
+        let status = std::process::Command::new("python3").arg("-m").arg("venv").arg(&venv).status();
+        assert!(status.is_ok_and(|s| s.success()), "python3 -m venv {} failed", venv.display());
+        let status = std::process::Command::new(venv.join("bin/pip")).args(["install", "-q", "cyclonedds"]).status();
+        assert!(status.is_ok_and(|s| s.success()), "pip install cyclonedds failed");
+    }
+    assert!(has(&python), "cyclonedds not importable from {}", python.display());
+    python
+}
+
+#[test]
+fn cyclone_dds_peer_sends_images_and_receives_candidates() {
+    if !support_netns::inside() {
+        // Network-free preparation outside the namespace (PyPI must be reachable the first time).
+        cyclone_python();
+        let out = support_netns::rerun_in_private_netns("cyclone_dds_peer_sends_images_and_receives_candidates");
+        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "inner run failed:\n{text}");
+        assert!(text.contains("INNER-DONE"), "inner run did not complete:\n{text}");
+        return;
+    }
+    let _ = env_logger::builder().is_test(true).filter_level(log::LevelFilter::Info).try_init();
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.95 };
+    let counters = Arc::new(NodeCounters::default());
+    let stop = Arc::new(AtomicBool::new(false));
+    let settings = NodeSettings::default();
+    let node_thread = {
+        let (counters, stop) = (counters.clone(), stop.clone());
+        std::thread::spawn(move || run_node(&settings, Params::default(), None, Box::new(processor), counters, stop))
+    };
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros_support/cyclone_peer.py");
+    let out = std::process::Command::new(cyclone_python())
+        .arg(&script)
+        .args(["2", "10", "200", "10", "200"])
+        .output()
+        .expect("running the Cyclone DDS peer");
+    let text = String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    stop.store(true, Ordering::Relaxed);
+    let final_counters = node_thread.join().unwrap().unwrap();
+    assert!(out.status.success(), "peer failed:\n{text}");
+    let candidates: Vec<&str> = text.lines().filter(|l| l.starts_with("CANDIDATE ")).collect();
+    assert_eq!(
+        candidates,
+        vec!["CANDIDATE 1003 1001 0 1.000 502 500 cyclone_cam", "CANDIDATE 1004 1002 0 1.000 503 501 cyclone_cam"],
+        "{text}"
+    );
+    assert_eq!(final_counters.processed, 4, "{final_counters}");
+    assert_eq!(final_counters.malformed, 0);
+    assert_eq!(seen.lock().unwrap().calls.iter().filter(|c| c.0.is_none() && c.2 == 32).count(), 4);
+    println!("INNER-DONE {final_counters}");
+}

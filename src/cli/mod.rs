@@ -1,6 +1,9 @@
 //! Command-line interface: one sub-module per sub-command, each a thin shell over the library.
 
 use clap::{Parser, Subcommand};
+
+pub mod listen;
+pub mod play_keyframes;
 use std::process::ExitCode;
 
 #[derive(Parser, Debug)]
@@ -15,6 +18,10 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Tracker stand-in: publish the frames of a replay source as ROS 2 keyframes or images.
+    PlayKeyframes(play_keyframes::Args),
+    /// Print the loop candidates published on a topic, as CSV.
+    Listen(listen::Args),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -34,5 +41,8 @@ pub fn main() -> ExitCode {
 }
 
 fn run(command: Command) -> anyhow::Result<()> {
-    match command {}
+    match command {
+        Command::PlayKeyframes(args) => play_keyframes::run(args),
+        Command::Listen(args) => listen::run(args),
+    }
 }

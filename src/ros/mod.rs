@@ -8,6 +8,7 @@ pub mod args;
 pub mod msgs;
 pub mod node;
 pub mod params;
+pub mod peer;
 pub mod queue;
 
 pub use node::{run_node, CountersSnapshot, InputQos, KeyframeProcessor, NodeCounters, NodeSettings};
