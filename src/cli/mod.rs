@@ -3,6 +3,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod listen;
+pub mod node;
 pub mod play_keyframes;
 use std::process::ExitCode;
 
