@@ -34,7 +34,9 @@ use ecm_lcd::io::msgs::{CompressedImage, Header, Image};
 use ecm_lcd::ros::msgs::{self, Keyframe, LoopCandidate};
 use ecm_lcd::ros::{run_node, KeyframeProcessor, NodeCounters, NodeSettings};
 use ecm_lcd::types::{self, Stamp};
-use ros2_client::rcl_interfaces::{SetParametersRequest, SetParametersResponse};
+use ros2_client::rcl_interfaces::{
+    DescribeParametersRequest, DescribeParametersResponse, SetParametersRequest, SetParametersResponse,
+};
 use ros2_client::{
     Context, Name, NodeName, NodeOptions, Parameter, ParameterValue, QosProfile, ServiceMapping, ServiceTypeName,
 };
@@ -177,6 +179,15 @@ fn node_layer_over_dds() {
             &Name::new("/t/ecm_lcd", "set_parameters").unwrap(),
             &ServiceTypeName::new("rcl_interfaces", "SetParameters"),
             service_qos.clone(),
+            service_qos.clone(),
+        )
+        .unwrap();
+    let describe_client = peer
+        .create_client::<DescribeParametersRequest, DescribeParametersResponse>(
+            ServiceMapping::Enhanced,
+            &Name::new("/t/ecm_lcd", "describe_parameters").unwrap(),
+            &ServiceTypeName::new("rcl_interfaces", "DescribeParameters"),
+            service_qos.clone(),
             service_qos,
         )
         .unwrap();
@@ -265,6 +276,18 @@ fn node_layer_over_dds() {
     assert!(!ok, "{reason}");
     let (ok, reason) = call("detector.min_score", ParameterValue::Double(0.5));
     assert!(ok, "{reason}");
+    // describe_parameters carries the table's description and range.
+    let described = futures::executor::block_on(async {
+        describe_client.wait_for_service(&peer).await;
+        let req = DescribeParametersRequest { names: vec!["detector.min_score".into(), "use_sim_time".into()] };
+        let id = describe_client.async_send_request(req).await.unwrap();
+        describe_client.async_receive_response(id).await.unwrap()
+    });
+    let spec = ecm_lcd::config::param_spec("detector.min_score").unwrap();
+    assert_eq!(described.values[0].description, spec.description);
+    assert_eq!(described.values[0].floating_point_range.len(), 1);
+    assert_eq!(described.values[0].r#type, 3); // PARAMETER_DOUBLE
+    assert_eq!(described.values[1].r#type, 1); // PARAMETER_BOOL
     // With the lower threshold a grey of 100 now matches 10 and 200 (scores 0.65, 0.61).
     kf_pub.publish(keyframe(50, 300, 100)).unwrap();
     let got = collect(5, Duration::from_secs(10));

@@ -7,6 +7,7 @@
 pub mod args;
 pub mod msgs;
 pub mod node;
+pub mod param_services;
 pub mod params;
 pub mod peer;
 pub mod queue;

@@ -7,7 +7,8 @@
 //! message is dropped and counted); a spinner thread serves discovery and the parameter services.
 //! Malformed messages (bytes that do not deserialise, unknown encoding, `step*height != data` length,
 //! empty image, undecodable JPEG/PNG) are logged with their index on the topic, counted and skipped.
-//! Parameters are declared from [`crate::config::param_specs`]; a `set_parameters` request is validated
+//! Parameters are declared from [`crate::config::param_specs`] and served by [`super::param_services`]
+//! (descriptions and ranges included); a `set_parameters` request is validated
 //! against the table (a refused value keeps the old one and the reply carries the reason) and then
 //! reaches the processor through the queue's control lane, before the next keyframe.
 //! QoS: inputs reliable, keep last 10 (default) or sensor data (best effort, keep last 5) with
@@ -27,6 +28,7 @@ use std::time::{Duration, Instant};
 
 use super::args::RosArgs;
 use super::msgs::{self, Keyframe, LoopCandidate};
+use super::param_services::ParamServices;
 use super::params;
 use super::queue::{DropOldestQueue, Next};
 use crate::config::{ParamValue, Params};
@@ -189,7 +191,8 @@ pub fn run_node(
     let live = Arc::new(Mutex::new(initial.clone()));
     let queue: Arc<DropOldestQueue<Queued, ParamChange>> = Arc::new(DropOldestQueue::new(settings.queue_capacity));
 
-    let mut options = NodeOptions::new().enable_rosout(true);
+    // The parameter services are ours (see `param_services`): they describe parameters from the table.
+    let mut options = NodeOptions::new().enable_rosout(true).start_parameter_services(false);
     for (name, value) in params::declarations(&initial)? {
         options = options.declare_parameter(name, value);
     }
@@ -283,6 +286,8 @@ pub fn run_node(
     poll.registry().register(&mut kf_sub, kf_token, Interest::READABLE).context("polling keyframes")?;
     poll.registry().register(&mut img_sub, img_token, Interest::READABLE).context("polling images")?;
     poll.registry().register(&mut cmp_sub, cmp_token, Interest::READABLE).context("polling compressed images")?;
+    let mut services = ParamServices::create(&mut node, &fqn)?;
+    services.register(poll.registry(), 10).context("polling the parameter services")?;
     let mut events = Events::with_capacity(16);
     let mut indices = [0u64; 3];
     let mut last_status = (Instant::now(), counters.snapshot());
@@ -336,6 +341,7 @@ pub fn run_node(
             }
             indices[2] += 1;
         }
+        services.serve(&node, &live);
         if last_status.0.elapsed() >= settings.status_period {
             let now = counters.snapshot();
             if now != last_status.1 {
