@@ -1,6 +1,464 @@
 //! Detector, keyframe-selection and descriptor parameters, read from a ROS 2 params file (`config/ecm_lcd.yaml`) so the node and the offline commands share one file.
+//!
+//! The parameter table ([`param_specs`]) is data: name, type, default, range and description of every
+//! parameter, so the ROS node declares each parameter from it and the file loader and [`Params::set`]
+//! validate against it. ROS 2 parameter names are flat; nested dictionaries in the file are flattened with
+//! dots (`detector: {top_k: 3}` is `detector.top_k`), as ROS does.
+//!
+//! File form (ROS 2 params file):
+//! ```yaml
+//! ecm_lcd:
+//!   ros__parameters:
+//!     detector.top_k: 1
+//! ```
+//! Interpretation of the node key, following ROS 2: `/**` matches every node, `/**/NAME` matches the node
+//! `NAME` in any namespace, a key without a leading slash names the node in any namespace, and a key
+//! `/ns/NAME` names a namespaced node (it matches a bare `NAME` given to [`Params::load`]; when a fully
+//! qualified `/ns/NAME` is given, it must match exactly). Every matching section is applied in file order,
+//! later values overriding earlier ones; sections for other nodes are ignored. Integers are accepted for
+//! double parameters (ROS itself would refuse `1` for a double; accepting it avoids a pointless trap).
+//!
+//! The detector's threshold is given as a score (`detector.min_score`) unless `detector.max_distance` is
+//! set (non-zero), which then wins; the score-to-distance mapping is the descriptor mode's
+//! ([`crate::descriptor::Descriptor::score`]).
 
+use crate::descriptor::{Descriptor, DescriptorMode, DEFAULT_CHANNELS};
+use crate::detector::selection::SelectionParams;
+use crate::detector::{DetectorParams, Threshold};
+use anyhow::Context;
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::fmt;
+use std::path::Path;
+use std::sync::LazyLock;
+
+/// The ROS 2 node name, and the node key of `config/ecm_lcd.yaml`.
+pub const NODE_NAME: &str = "ecm_lcd";
+
+/// Network architectures the model module builds.
+pub const ARCHES: &[&str] = &["ecmobilenet", "mobilenetv2"];
+
+/// A parameter's ROS 2 type.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ParamKind {
+    Bool,
+    Integer,
+    Double,
+    String,
+}
+
+impl fmt::Display for ParamKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            ParamKind::Bool => "bool",
+            ParamKind::Integer => "integer",
+            ParamKind::Double => "double",
+            ParamKind::String => "string",
+        })
+    }
+}
+
+/// Allowed values, in ROS 2 descriptor terms: an inclusive range with a step (0 = continuous; otherwise a
+/// value must be `min + n * step` or `max`), or a list of allowed strings.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ParamRange {
+    Any,
+    Integer { min: i64, max: i64, step: u64 },
+    Double { min: f64, max: f64, step: f64 },
+    OneOf(&'static [&'static str]),
+}
+
+/// One parameter's declaration.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ParamSpec {
+    pub name: &'static str,
+    pub kind: ParamKind,
+    pub default: ParamValue,
+    pub range: ParamRange,
+    pub description: &'static str,
+    /// Read-only parameters are fixed when the node starts (changing them would need a new network or
+    /// invalidate the keyframe database); the others may change at run time.
+    pub read_only: bool,
+}
+
+impl ParamSpec {
+    /// Checks `value` against the type and range; returns it in this parameter's type (an integer given
+    /// for a double becomes a double) or the reason it is refused.
+    pub fn validate(&self, value: ParamValue) -> Result<ParamValue, String> {
+        let value = match (self.kind, value) {
+            (ParamKind::Double, ParamValue::Integer(i)) => ParamValue::Double(i as f64),
+            (_, value) => value,
+        };
+        if value.kind() != self.kind {
+            return Err(format!("{} must be a {}, got the {} {value}", self.name, self.kind, value.kind()));
+        }
+        match (self.range, &value) {
+            (ParamRange::Integer { min, max, step }, ParamValue::Integer(v)) => {
+                let in_range = min <= *v && *v <= max;
+                // In range, `v - min` cannot overflow.
+                let on_step = step == 0 || *v == max || (in_range && (*v - min) as u64 % step == 0);
+                if !in_range || !on_step {
+                    let steps = if step > 1 { format!(" in steps of {step}") } else { String::new() };
+                    return Err(format!("{} must be in [{min}, {max}]{steps}, got {v}", self.name));
+                }
+            }
+            (ParamRange::Double { min, max, step }, ParamValue::Double(v)) => {
+                let on_step = step == 0.0 || *v == max || (((*v - min) / step).round() * step + min - v).abs() < 1e-9;
+                if !v.is_finite() || *v < min || *v > max || !on_step {
+                    return Err(format!("{} must be in [{min}, {max}], got {v}", self.name));
+                }
+            }
+            (ParamRange::OneOf(allowed), ParamValue::String(s)) => {
+                if !allowed.contains(&s.as_str()) {
+                    return Err(format!("{} must be one of {}, got {s:?}", self.name, allowed.join(", ")));
+                }
+            }
+            _ => {}
+        }
+        Ok(value)
+    }
+}
+
+fn double(name: &'static str, default: f64, min: f64, max: f64, description: &'static str) -> ParamSpec {
+    ParamSpec {
+        name,
+        kind: ParamKind::Double,
+        default: ParamValue::Double(default),
+        range: ParamRange::Double { min, max, step: 0.0 },
+        description,
+        read_only: false,
+    }
+}
+
+fn integer(name: &'static str, default: i64, min: i64, max: i64, description: &'static str) -> ParamSpec {
+    ParamSpec {
+        name,
+        kind: ParamKind::Integer,
+        default: ParamValue::Integer(default),
+        range: ParamRange::Integer { min, max, step: 1 },
+        description,
+        read_only: false,
+    }
+}
+
+fn one_of(name: &'static str, default: &'static str, allowed: &'static [&'static str], description: &'static str) -> ParamSpec {
+    ParamSpec {
+        name,
+        kind: ParamKind::String,
+        default: ParamValue::String(default.to_string()),
+        range: ParamRange::OneOf(allowed),
+        description,
+        read_only: true,
+    }
+}
+
+/// Upper bound of count-like parameters: large enough for any sequence, small enough to catch typos.
+const MAX_COUNT: i64 = 1_000_000;
+
+static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
+    vec![
+        one_of("arch", "ecmobilenet", ARCHES, "Network: ecmobilenet (the paper's) or mobilenetv2 (the baseline)."),
+        ParamSpec {
+            name: "input_size",
+            kind: ParamKind::Integer,
+            default: ParamValue::Integer(224),
+            range: ParamRange::Integer { min: 32, max: 1024, step: 32 },
+            description: "Square network input side in pixels (a multiple of 32; 224 gives a 7x7 feature map).",
+            read_only: true,
+        },
+        one_of(
+            "descriptor.mode",
+            DescriptorMode::default().name(),
+            &DescriptorMode::NAMES,
+            "Global descriptor: paper (the paper's 128-d), l2 (normalised 1280-d pool), spatial (global + 2x2 regions).",
+        ),
+        double(
+            "detector.min_score",
+            0.95,
+            0.0,
+            1.0,
+            "A loop is accepted when the match score (in [0, 1], 1 = identical) is at least this.",
+        ),
+        double(
+            "detector.max_distance",
+            0.0,
+            0.0,
+            1.0e3,
+            "If non-zero, a loop is accepted when the descriptor distance is at most this (overrides min_score).",
+        ),
+        integer(
+            "detector.min_history",
+            10,
+            0,
+            MAX_COUNT,
+            "No loop is searched until the database holds at least this many keyframes.",
+        ),
+        integer(
+            "detector.exclude_recent.count",
+            5,
+            0,
+            MAX_COUNT,
+            "The most recent this-many keyframes are never matched.",
+        ),
+        double(
+            "detector.exclude_recent.seconds",
+            10.0,
+            0.0,
+            1.0e6,
+            "Keyframes less than this many seconds older than the query are never matched.",
+        ),
+        integer("detector.top_k", 1, 1, 100, "At most this many loop candidates per keyframe."),
+        integer(
+            "detector.consistency.queries",
+            1,
+            1,
+            100,
+            "A loop is reported only when this many consecutive keyframes agree on it (1 = off).",
+        ),
+        integer(
+            "detector.consistency.window",
+            2,
+            0,
+            MAX_COUNT,
+            "Matches agree when they are at most this many keyframes apart in the database.",
+        ),
+        integer(
+            "selection.every_nth",
+            1,
+            1,
+            MAX_COUNT,
+            "A keyframe is at least this many frames after the previous one (1 = off).",
+        ),
+        double(
+            "selection.min_period",
+            0.5,
+            0.0,
+            1.0e4,
+            "A keyframe is at least this many seconds after the previous one (0 = off).",
+        ),
+        double(
+            "selection.novelty_max_score",
+            1.0,
+            0.0,
+            1.0,
+            "A keyframe's score against the previous keyframe is at most this (1 = off; needs the descriptor).",
+        ),
+    ]
+});
+
+/// Every parameter ecm-lcd reads, in declaration order.
+pub fn param_specs() -> &'static [ParamSpec] {
+    &PARAM_SPECS
+}
+
+/// The declaration of one parameter.
+pub fn param_spec(name: &str) -> Option<&'static ParamSpec> {
+    param_specs().iter().find(|spec| spec.name == name)
+}
+
+/// A complete, validated set of parameter values.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Params {
+    values: BTreeMap<&'static str, ParamValue>,
+}
+
+impl Default for Params {
+    fn default() -> Self {
+        Params { values: param_specs().iter().map(|spec| (spec.name, spec.default.clone())).collect() }
+    }
+}
+
+impl Params {
+    /// Defaults overridden by the sections of the ROS 2 params file `path` that apply to `node_name`
+    /// (see the module doc for the matching rules).
+    pub fn load(path: &Path, node_name: &str) -> anyhow::Result<Params> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading params file {}", path.display()))?;
+        Params::from_yaml_str(&text, node_name).with_context(|| format!("in params file {}", path.display()))
+    }
+
+    /// As [`Params::load`], from the file's text.
+    pub fn from_yaml_str(text: &str, node_name: &str) -> anyhow::Result<Params> {
+        let document: serde_yaml_ng::Value = serde_yaml_ng::from_str(text).context("not valid YAML")?;
+        let nodes = document.as_mapping().context("the top level must map node names to `ros__parameters`")?;
+        let mut params = Params::default();
+        let mut keys_seen = Vec::new();
+        let mut matched = false;
+        for (key, section) in nodes {
+            let key = key.as_str().with_context(|| format!("node key {key:?} is not a string"))?;
+            keys_seen.push(key.to_string());
+            if !node_key_matches(key, node_name) {
+                continue;
+            }
+            matched = true;
+            let parameters = section
+                .get("ros__parameters")
+                .with_context(|| format!("node section {key:?} has no `ros__parameters`"))?;
+            let mut flat = Vec::new();
+            flatten(parameters, String::new(), &mut flat).with_context(|| format!("node section {key:?}"))?;
+            for (name, value) in flat {
+                let value = param_value_from_yaml(&value)
+                    .with_context(|| format!("parameter `{name}` in node section {key:?}"))?;
+                params
+                    .set(&name, value)
+                    .map_err(|reason| anyhow::anyhow!("{reason} (node section {key:?})"))?;
+            }
+        }
+        if !matched {
+            anyhow::bail!("no section applies to node {node_name:?} (node keys found: {keys_seen:?})");
+        }
+        Ok(params)
+    }
+
+    /// Sets one parameter after validation; a refused value leaves the old one and says why.
+    /// Read-only parameters may be set here (files, command line); see [`Params::set_at_runtime`].
+    pub fn set(&mut self, name: &str, value: ParamValue) -> Result<(), String> {
+        let spec = param_spec(name).ok_or_else(|| format!("unknown parameter `{name}`"))?;
+        let value = spec.validate(value)?;
+        self.values.insert(spec.name, value);
+        Ok(())
+    }
+
+    /// As [`Params::set`], but refuses read-only parameters (for a running node's `set_parameters`).
+    pub fn set_at_runtime(&mut self, name: &str, value: ParamValue) -> Result<(), String> {
+        match param_spec(name) {
+            Some(spec) if spec.read_only => Err(format!("parameter `{name}` is read-only while running")),
+            _ => self.set(name, value),
+        }
+    }
+
+    /// Sets one parameter from text (`--param name=value` on a command line), typed by the table.
+    pub fn set_from_str(&mut self, name: &str, text: &str) -> Result<(), String> {
+        let spec = param_spec(name).ok_or_else(|| format!("unknown parameter `{name}`"))?;
+        let text = text.trim();
+        let value = match spec.kind {
+            ParamKind::Bool => ParamValue::Bool(text.parse().map_err(|_| format!("{name} must be true or false, got {text:?}"))?),
+            ParamKind::Integer => ParamValue::Integer(text.parse().map_err(|_| format!("{name} must be an integer, got {text:?}"))?),
+            ParamKind::Double => ParamValue::Double(text.parse().map_err(|_| format!("{name} must be a number, got {text:?}"))?),
+            ParamKind::String => ParamValue::String(text.to_string()),
+        };
+        self.set(name, value)
+    }
+
+    /// The current value of a parameter; `None` for an unknown name.
+    pub fn get(&self, name: &str) -> Option<ParamValue> {
+        self.values.get(name).cloned()
+    }
+
+    fn double(&self, name: &str) -> f64 {
+        match self.values.get(name) {
+            Some(ParamValue::Double(v)) => *v,
+            other => unreachable!("parameter {name} is validated as a double, holds {other:?}"),
+        }
+    }
+
+    /// Count-like integers; the table's ranges keep them non-negative.
+    fn count(&self, name: &str) -> usize {
+        match self.values.get(name) {
+            Some(ParamValue::Integer(v)) => usize::try_from(*v).unwrap_or(0),
+            other => unreachable!("parameter {name} is validated as an integer, holds {other:?}"),
+        }
+    }
+
+    fn string(&self, name: &str) -> &str {
+        match self.values.get(name) {
+            Some(ParamValue::String(v)) => v,
+            other => unreachable!("parameter {name} is validated as a string, holds {other:?}"),
+        }
+    }
+
+    /// `arch`: one of [`ARCHES`].
+    pub fn arch(&self) -> &str {
+        self.string("arch")
+    }
+
+    /// `input_size`: the square network input side, a multiple of 32.
+    pub fn input_size(&self) -> usize {
+        self.count("input_size")
+    }
+
+    pub fn descriptor_mode(&self) -> DescriptorMode {
+        // The table's allowed strings are exactly the mode names.
+        self.string("descriptor.mode").parse().unwrap_or_default()
+    }
+
+    /// The descriptor for the network's 1280 channels.
+    pub fn descriptor(&self) -> Descriptor {
+        Descriptor::new(self.descriptor_mode(), DEFAULT_CHANNELS)
+    }
+
+    pub fn detector(&self) -> DetectorParams {
+        let max_distance = self.double("detector.max_distance");
+        let threshold = if max_distance > 0.0 {
+            Threshold::MaxDistance(max_distance as f32)
+        } else {
+            Threshold::MinScore(self.double("detector.min_score") as f32)
+        };
+        DetectorParams {
+            threshold,
+            min_history: self.count("detector.min_history"),
+            exclude_recent_count: self.count("detector.exclude_recent.count"),
+            exclude_recent_secs: self.double("detector.exclude_recent.seconds"),
+            top_k: self.count("detector.top_k"),
+            consistency_queries: self.count("detector.consistency.queries"),
+            consistency_window: self.count("detector.consistency.window"),
+        }
+    }
+
+    /// Selection rules; the novelty score is turned into a distance with the descriptor mode's mapping.
+    pub fn selection(&self) -> SelectionParams {
+        let max_score = self.double("selection.novelty_max_score") as f32;
+        let novelty_min_distance = if max_score >= 1.0 { 0.0 } else { self.descriptor().distance_for_score(max_score) };
+        SelectionParams {
+            every_nth: self.count("selection.every_nth"),
+            min_period_secs: self.double("selection.min_period"),
+            novelty_min_distance,
+        }
+    }
+}
+
+/// Whether the params-file node key `key` applies to the node `node_name` (module doc).
+fn node_key_matches(key: &str, node_name: &str) -> bool {
+    let base = node_name.rsplit('/').next().unwrap_or(node_name);
+    if key == "/**" || key.strip_prefix("/**/") == Some(base) {
+        return true;
+    }
+    match key.strip_prefix('/') {
+        None => key == base,
+        Some(_) if node_name.starts_with('/') => key == node_name,
+        Some(path) => path.rsplit('/').next() == Some(base),
+    }
+}
+
+/// Flattens nested mappings into dotted names, in file order.
+fn flatten(value: &serde_yaml_ng::Value, prefix: String, out: &mut Vec<(String, serde_yaml_ng::Value)>) -> anyhow::Result<()> {
+    let mapping = value.as_mapping().with_context(|| {
+        let at = if prefix.is_empty() { "`ros__parameters`".to_string() } else { format!("`{prefix}`") };
+        format!("{at} must be a mapping of parameter names to values")
+    })?;
+    for (key, child) in mapping {
+        let key = key.as_str().with_context(|| format!("parameter name {key:?} is not a string"))?;
+        let name = if prefix.is_empty() { key.to_string() } else { format!("{prefix}.{key}") };
+        if child.is_mapping() {
+            flatten(child, name, out)?;
+        } else {
+            out.push((name, child.clone()));
+        }
+    }
+    Ok(())
+}
+
+fn param_value_from_yaml(value: &serde_yaml_ng::Value) -> anyhow::Result<ParamValue> {
+    use serde_yaml_ng::Value;
+    Ok(match value {
+        Value::Bool(b) => ParamValue::Bool(*b),
+        Value::Number(n) => match n.as_i64() {
+            Some(i) => ParamValue::Integer(i),
+            None => ParamValue::Double(n.as_f64().context("number out of range")?),
+        },
+        Value::String(s) => ParamValue::String(s.clone()),
+        other => anyhow::bail!("unsupported value {other:?} (expected a bool, number or string)"),
+    })
+}
 
 /// A parameter value as ROS 2 types it (the subset ecm-lcd uses).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -10,4 +468,180 @@ pub enum ParamValue {
     Integer(i64),
     Double(f64),
     String(String),
+}
+
+impl ParamValue {
+    pub fn kind(&self) -> ParamKind {
+        match self {
+            ParamValue::Bool(_) => ParamKind::Bool,
+            ParamValue::Integer(_) => ParamKind::Integer,
+            ParamValue::Double(_) => ParamKind::Double,
+            ParamValue::String(_) => ParamKind::String,
+        }
+    }
+}
+
+impl fmt::Display for ParamValue {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ParamValue::Bool(v) => write!(f, "{v}"),
+            ParamValue::Integer(v) => write!(f, "{v}"),
+            ParamValue::Double(v) => write!(f, "{v}"),
+            ParamValue::String(v) => write!(f, "{v:?}"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn shipped_file() -> std::path::PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("config/ecm_lcd.yaml")
+    }
+
+    #[test]
+    fn shipped_file_is_exactly_the_defaults() {
+        let params = Params::load(&shipped_file(), NODE_NAME).unwrap();
+        assert_eq!(params, Params::default());
+        // Every parameter is written out in the file (not merely defaulted).
+        let text = std::fs::read_to_string(shipped_file()).unwrap();
+        let document: serde_yaml_ng::Value = serde_yaml_ng::from_str(&text).unwrap();
+        let mut flat = Vec::new();
+        flatten(&document[NODE_NAME]["ros__parameters"], String::new(), &mut flat).unwrap();
+        let names: Vec<&str> = flat.iter().map(|(n, _)| n.as_str()).collect();
+        let specs: Vec<&str> = param_specs().iter().map(|s| s.name).collect();
+        assert_eq!(names, specs);
+    }
+
+    #[test]
+    fn table_defaults_are_valid_and_names_unique() {
+        for (i, spec) in param_specs().iter().enumerate() {
+            assert_eq!(spec.validate(spec.default.clone()), Ok(spec.default.clone()), "{}", spec.name);
+            assert!(!spec.description.is_empty());
+            assert!(param_specs()[..i].iter().all(|other| other.name != spec.name), "{} twice", spec.name);
+        }
+    }
+
+    #[test]
+    fn set_validates_and_keeps_old_value_on_refusal() {
+        let mut p = Params::default();
+        p.set("detector.top_k", ParamValue::Integer(3)).unwrap();
+        assert_eq!(p.get("detector.top_k"), Some(ParamValue::Integer(3)));
+        let err = p.set("detector.top_k", ParamValue::Integer(0)).unwrap_err();
+        assert!(err.contains("[1, 100]"), "{err}");
+        let err = p.set("detector.top_k", ParamValue::Double(2.0)).unwrap_err();
+        assert!(err.contains("integer"), "{err}");
+        assert_eq!(p.get("detector.top_k"), Some(ParamValue::Integer(3)));
+        // Integer for a double is widened.
+        p.set("detector.min_score", ParamValue::Integer(1)).unwrap();
+        assert_eq!(p.get("detector.min_score"), Some(ParamValue::Double(1.0)));
+        assert!(p.set("detector.min_score", ParamValue::Double(1.5)).is_err());
+        assert!(p.set("detector.min_score", ParamValue::Double(f64::NAN)).is_err());
+        // Step: multiples of 32 only.
+        p.set("input_size", ParamValue::Integer(320)).unwrap();
+        let err = p.set("input_size", ParamValue::Integer(300)).unwrap_err();
+        assert!(err.contains("steps of 32"), "{err}");
+        assert_eq!(p.input_size(), 320);
+        // Allowed strings.
+        let err = p.set("arch", ParamValue::String("resnet".into())).unwrap_err();
+        assert!(err.contains("ecmobilenet"), "{err}");
+        p.set("arch", ParamValue::String("mobilenetv2".into())).unwrap();
+        assert_eq!(p.arch(), "mobilenetv2");
+        // Unknown names.
+        assert!(p.set("detector.nope", ParamValue::Integer(1)).unwrap_err().contains("detector.nope"));
+        assert_eq!(p.get("detector.nope"), None);
+        // Read-only at run time.
+        assert!(p.set_at_runtime("descriptor.mode", ParamValue::String("l2".into())).unwrap_err().contains("read-only"));
+        p.set_at_runtime("detector.top_k", ParamValue::Integer(2)).unwrap();
+        // From text.
+        p.set_from_str("selection.min_period", "0.25").unwrap();
+        assert_eq!(p.selection().min_period_secs, 0.25);
+        assert!(p.set_from_str("detector.top_k", "two").is_err());
+    }
+
+    #[test]
+    fn typed_accessors_follow_the_values() {
+        let mut p = Params::default();
+        p.set("descriptor.mode", ParamValue::String("l2".into())).unwrap();
+        p.set("detector.min_score", ParamValue::Double(0.75)).unwrap();
+        assert_eq!(p.descriptor_mode(), DescriptorMode::L2);
+        assert_eq!(p.detector().threshold, Threshold::MinScore(0.75));
+        p.set("detector.max_distance", ParamValue::Double(0.3)).unwrap();
+        assert_eq!(p.detector().threshold, Threshold::MaxDistance(0.3));
+        p.set("detector.exclude_recent.count", ParamValue::Integer(7)).unwrap();
+        p.set("detector.consistency.queries", ParamValue::Integer(3)).unwrap();
+        let d = p.detector();
+        assert_eq!((d.exclude_recent_count, d.consistency_queries), (7, 3));
+        assert_eq!(p.selection().novelty_min_distance, 0.0);
+        // l2: score 0.75 <-> distance 1.
+        p.set("selection.novelty_max_score", ParamValue::Double(0.75)).unwrap();
+        assert!((p.selection().novelty_min_distance - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn node_keys_follow_ros_rules() {
+        assert!(node_key_matches("ecm_lcd", "ecm_lcd"));
+        assert!(node_key_matches("/**", "ecm_lcd"));
+        assert!(node_key_matches("/**/ecm_lcd", "/robot/ecm_lcd"));
+        assert!(node_key_matches("/ns/ecm_lcd", "ecm_lcd"));
+        assert!(node_key_matches("/ecm_lcd", "ecm_lcd"));
+        assert!(node_key_matches("/ns/ecm_lcd", "/ns/ecm_lcd"));
+        assert!(!node_key_matches("/other/ecm_lcd", "/ns/ecm_lcd"));
+        assert!(!node_key_matches("camera", "ecm_lcd"));
+        assert!(!node_key_matches("/ns/camera", "ecm_lcd"));
+    }
+
+    #[test]
+    fn files_with_wildcards_namespaces_and_nesting() {
+        let text = "
+/**:
+  ros__parameters:
+    detector.top_k: 2
+    use_sim_time_is_not_here: 1
+camera:
+  ros__parameters:
+    exposure: 3
+";
+        // The wildcard section applies, so its unknown name is an error naming it.
+        let err = format!("{:#}", Params::from_yaml_str(text, NODE_NAME).unwrap_err());
+        assert!(err.contains("use_sim_time_is_not_here") && err.contains("/**"), "{err}");
+
+        let text = "
+/**:
+  ros__parameters:
+    detector: {top_k: 2, exclude_recent: {seconds: 4}}
+/ns/ecm_lcd:
+  ros__parameters:
+    detector.top_k: 5
+camera:
+  ros__parameters:
+    exposure: 3
+";
+        let p = Params::from_yaml_str(text, NODE_NAME).unwrap();
+        assert_eq!(p.detector().top_k, 5);
+        assert_eq!(p.detector().exclude_recent_secs, 4.0);
+        let err = format!("{:#}", Params::from_yaml_str("camera:\n  ros__parameters: {a: 1}\n", NODE_NAME).unwrap_err());
+        assert!(err.contains("camera") && err.contains("ecm_lcd"), "{err}");
+    }
+
+    #[test]
+    fn bad_files_give_clear_errors() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("p.yaml");
+        std::fs::write(&path, "ecm_lcd:\n  ros__parameters:\n    detector.top_k: 0\n").unwrap();
+        let err = format!("{:#}", Params::load(&path, NODE_NAME).unwrap_err());
+        assert!(err.contains("p.yaml") && err.contains("detector.top_k"), "{err}");
+        std::fs::write(&path, "ecm_lcd:\n  ros__parameters:\n    arch: [a, b]\n").unwrap();
+        let err = format!("{:#}", Params::load(&path, NODE_NAME).unwrap_err());
+        assert!(err.contains("arch") && err.contains("unsupported"), "{err}");
+        std::fs::write(&path, "ecm_lcd:\n  parameters: {}\n").unwrap();
+        assert!(format!("{:#}", Params::load(&path, NODE_NAME).unwrap_err()).contains("ros__parameters"));
+        std::fs::write(&path, "- just\n- a list\n").unwrap();
+        assert!(Params::load(&path, NODE_NAME).is_err());
+        std::fs::write(&path, "ecm_lcd: {ros__parameters: {a: 1\n").unwrap();
+        assert!(format!("{:#}", Params::load(&path, NODE_NAME).unwrap_err()).contains("YAML"));
+        let missing = dir.path().join("missing.yaml");
+        assert!(format!("{:#}", Params::load(&missing, NODE_NAME).unwrap_err()).contains("missing.yaml"));
+    }
 }

@@ -1,1 +1,402 @@
 //! Global descriptors from the network's feature map, their distance and the score derived from it.
+//!
+//! Every mode turns a [`FeatureMap`] (`[C, H, W]`, the last 1x1 conv before global pooling) into one
+//! `Vec<f32>`; two descriptors are compared by the plain Euclidean [`distance`]. Each mode also maps a
+//! distance to a similarity score in `[0, 1]` (1 = identical, monotone decreasing in the distance), so a
+//! user may threshold on either; [`Descriptor::distance_for_score`] is the exact inverse.
+//!
+//! Modes:
+//! - [`DescriptorMode::Paper`] reproduces Section 3.3 of Zhou et al., "A Lightweight Neural Network for
+//!   Loop Closure Detection in Indoor Visual SLAM":
+//!   1. `v` = global average pool of the feature map (1280 values for ECMobileNet);
+//!   2. Eq. 7, min-max normalisation `v_i' = (v_i - min v) / (max v - min v)`; when `max v == min v`
+//!      (e.g. a black image, every channel clipped to the same value) the ratio is undefined and we use 0
+//!      for every value;
+//!   3. Eq. 8, groups of ten consecutive values are summed and weighted into one value (1280 -> 128).
+//!      The printed weight σ is garbled; our interpretation is the fixed weight 1/10, i.e. each group's
+//!      **mean** (a channel count that is not a multiple of ten leaves a shorter last group, averaged
+//!      over its own length), so every value stays in `[0, 1]`;
+//!   4. Eq. 9, the distance: printed without the square root of the sum of squares; we use the true
+//!      Euclidean distance (the ranking is the same, thresholds are on the usual scale).
+//!
+//!   Every value lies in `[0, 1]`, so a distance is at most `sqrt(dim)`; the score is the linear map
+//!   `score = 1 - d / sqrt(dim)` (1 - the root-mean-square difference per value).
+//! - [`DescriptorMode::L2`]: the pooled `C`-d vector, L2-normalised. Unit vectors are at most 2 apart and
+//!   `score = 1 - d²/4 = (1 + cos θ)/2`. Because the features are ReLU6 outputs (non-negative) the cosine is
+//!   non-negative and real scores lie in `[0.5, 1]`.
+//! - [`DescriptorMode::Spatial`]: keeps coarse layout. Five blocks of `C` values are concatenated: the global
+//!   average pool, then max pooling (MAC) over each cell of a 2x2 grid (cells overlap by the middle row or
+//!   column when the size is odd, e.g. rows 0..4 and 3..7 of a 7x7 map). Each block gets signed-square-root
+//!   (power) normalisation, which damps bursty channels, and is L2-normalised, then the whole vector is
+//!   scaled by `1/sqrt(5)` so it is a unit vector: the score is `1 - d²/4` as for `l2`.
+//!
+//! A zero block (all features zero) stays zero rather than dividing by zero.
+
+use crate::types::FeatureMap;
+use std::fmt;
+use std::str::FromStr;
+
+/// The channel count of ECMobileNet's (and MobileNetV2's) last feature map.
+pub const DEFAULT_CHANNELS: usize = 1280;
+
+/// Size of the groups that the paper's Eq. 8 sums into one value.
+const PAPER_GROUP: usize = 10;
+
+/// Grid of the spatial mode's regional max pooling (per side).
+const SPATIAL_GRID: usize = 2;
+
+/// Which descriptor is computed from the feature map; the names are those of config files and the CLI.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum DescriptorMode {
+    /// `paper`: the paper's 128-d min-max normalised, group-averaged descriptor.
+    #[default]
+    Paper,
+    /// `l2`: the L2-normalised global average pool.
+    L2,
+    /// `spatial`: global average + 2x2 regional max pooling, power- and L2-normalised.
+    Spatial,
+}
+
+impl DescriptorMode {
+    /// Every mode, in the order of the names of [`DescriptorMode::NAMES`].
+    pub const ALL: [DescriptorMode; 3] = [DescriptorMode::Paper, DescriptorMode::L2, DescriptorMode::Spatial];
+    /// The names accepted by [`FromStr`], as used in config files.
+    pub const NAMES: [&'static str; 3] = ["paper", "l2", "spatial"];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            DescriptorMode::Paper => "paper",
+            DescriptorMode::L2 => "l2",
+            DescriptorMode::Spatial => "spatial",
+        }
+    }
+}
+
+impl fmt::Display for DescriptorMode {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for DescriptorMode {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        DescriptorMode::ALL
+            .into_iter()
+            .find(|mode| mode.name() == text)
+            .ok_or_else(|| format!("unknown descriptor mode {text:?} (expected one of {})", Self::NAMES.join(", ")))
+    }
+}
+
+/// Euclidean distance between two descriptors of the same length (extra values of the longer are ignored;
+/// callers check lengths, see [`crate::detector::KeyframeDb`]).
+pub fn distance(a: &[f32], b: &[f32]) -> f32 {
+    squared_distance(a, b).sqrt()
+}
+
+/// Squared Euclidean distance; the database ranks by it to skip the square root per stored keyframe.
+pub fn squared_distance(a: &[f32], b: &[f32]) -> f32 {
+    // Eight independent partial sums let the compiler vectorise (a single running f32 sum cannot be
+    // reordered, so it would stay scalar).
+    const LANES: usize = 8;
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut lanes = [0.0f32; LANES];
+    let (a_chunks, b_chunks) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
+    let tail: f32 = a_chunks.remainder().iter().zip(b_chunks.remainder()).map(|(x, y)| (x - y) * (x - y)).sum();
+    for (ca, cb) in a_chunks.zip(b_chunks) {
+        for lane in 0..LANES {
+            let d = ca[lane] - cb[lane];
+            lanes[lane] += d * d;
+        }
+    }
+    lanes.iter().sum::<f32>() + tail
+}
+
+/// A descriptor mode bound to the network's channel count (the paper mode's score depends on the length).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Descriptor {
+    pub mode: DescriptorMode,
+    pub channels: usize,
+}
+
+impl Default for Descriptor {
+    fn default() -> Self {
+        Descriptor::new(DescriptorMode::default(), DEFAULT_CHANNELS)
+    }
+}
+
+impl Descriptor {
+    pub fn new(mode: DescriptorMode, channels: usize) -> Self {
+        Descriptor { mode, channels }
+    }
+
+    /// Length of the descriptor this mode computes from a `channels`-channel feature map.
+    pub fn dim(&self) -> usize {
+        match self.mode {
+            DescriptorMode::Paper => self.channels.div_ceil(PAPER_GROUP),
+            DescriptorMode::L2 => self.channels,
+            DescriptorMode::Spatial => self.channels * (1 + SPATIAL_GRID * SPATIAL_GRID),
+        }
+    }
+
+    /// Computes the descriptor of one feature map. Errors when the map's channel count differs from
+    /// [`Descriptor::channels`] or its data length does not match its shape.
+    pub fn compute(&self, fm: &FeatureMap) -> anyhow::Result<Vec<f32>> {
+        let expected_len = fm.channels.checked_mul(fm.height).and_then(|n| n.checked_mul(fm.width));
+        if expected_len != Some(fm.data.len()) || fm.height == 0 || fm.width == 0 {
+            anyhow::bail!(
+                "feature map of shape [{}, {}, {}] holds {} values; expected a non-empty map with C*H*W values",
+                fm.channels,
+                fm.height,
+                fm.width,
+                fm.data.len()
+            );
+        }
+        if fm.channels != self.channels {
+            anyhow::bail!(
+                "feature map has {} channels but the {} descriptor was set up for {}",
+                fm.channels,
+                self.mode,
+                self.channels
+            );
+        }
+        Ok(match self.mode {
+            DescriptorMode::Paper => paper_descriptor(&fm.global_average()),
+            DescriptorMode::L2 => {
+                let mut v = fm.global_average();
+                l2_normalise(&mut v);
+                v
+            }
+            DescriptorMode::Spatial => spatial_descriptor(fm),
+        })
+    }
+
+    /// Similarity in `[0, 1]` for a distance between two descriptors of this mode (see the module doc).
+    /// Non-finite or negative distances are clamped into range (NaN gives 0).
+    pub fn score(&self, distance: f32) -> f32 {
+        if distance.is_nan() {
+            return 0.0;
+        }
+        let distance = distance.max(0.0);
+        let score = match self.mode {
+            DescriptorMode::Paper => 1.0 - distance / (self.dim() as f32).sqrt(),
+            DescriptorMode::L2 | DescriptorMode::Spatial => 1.0 - distance * distance / 4.0,
+        };
+        // An infinite distance gives -inf here (and inf * inf stays inf), so clamping is enough.
+        score.clamp(0.0, 1.0)
+    }
+
+    /// The distance whose score is `score` (the inverse of [`Descriptor::score`]); `score` is clamped to `[0, 1]`.
+    pub fn distance_for_score(&self, score: f32) -> f32 {
+        let score = if score.is_nan() { 0.0 } else { score.clamp(0.0, 1.0) };
+        match self.mode {
+            DescriptorMode::Paper => (1.0 - score) * (self.dim() as f32).sqrt(),
+            DescriptorMode::L2 | DescriptorMode::Spatial => (4.0 * (1.0 - score)).sqrt(),
+        }
+    }
+}
+
+/// Eq. 7 (min-max) then Eq. 8 (group means of ten), see the module doc.
+fn paper_descriptor(pooled: &[f32]) -> Vec<f32> {
+    let (min, max) = pooled
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &x| (lo.min(x), hi.max(x)));
+    let range = max - min;
+    let normalise = |x: f32| if range > 0.0 { (x - min) / range } else { 0.0 };
+    pooled
+        .chunks(PAPER_GROUP)
+        .map(|group| group.iter().map(|&x| normalise(x)).sum::<f32>() / group.len() as f32)
+        .collect()
+}
+
+/// Scales `v` to unit length; a zero vector stays zero.
+fn l2_normalise(v: &mut [f32]) {
+    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if norm > 0.0 {
+        v.iter_mut().for_each(|x| *x /= norm);
+    }
+}
+
+/// Half-open cell `index` of `cells` cells covering `0..size`; cells overlap when `size` is not a multiple.
+fn grid_cell(size: usize, cells: usize, index: usize) -> std::ops::Range<usize> {
+    (index * size / cells)..((index + 1) * size).div_ceil(cells)
+}
+
+fn spatial_descriptor(fm: &FeatureMap) -> Vec<f32> {
+    let plane = fm.height * fm.width;
+    let mut out = fm.global_average();
+    out.reserve(fm.channels * SPATIAL_GRID * SPATIAL_GRID);
+    for cell_row in 0..SPATIAL_GRID {
+        let rows = grid_cell(fm.height, SPATIAL_GRID, cell_row);
+        for cell_col in 0..SPATIAL_GRID {
+            let cols = grid_cell(fm.width, SPATIAL_GRID, cell_col);
+            for channel in fm.data.chunks_exact(plane) {
+                let max = rows
+                    .clone()
+                    .flat_map(|r| channel[r * fm.width + cols.start..r * fm.width + cols.end].iter())
+                    .fold(f32::NEG_INFINITY, |m, &x| m.max(x));
+                out.push(max);
+            }
+        }
+    }
+    let block_weight = 1.0 / ((1 + SPATIAL_GRID * SPATIAL_GRID) as f32).sqrt();
+    for block in out.chunks_exact_mut(fm.channels) {
+        block.iter_mut().for_each(|x| *x = x.signum() * x.abs().sqrt());
+        l2_normalise(block);
+        block.iter_mut().for_each(|x| *x *= block_weight);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn map(channels: usize, height: usize, width: usize, f: impl Fn(usize, usize, usize) -> f32) -> FeatureMap {
+        let mut data = Vec::with_capacity(channels * height * width);
+        for c in 0..channels {
+            for y in 0..height {
+                for x in 0..width {
+                    data.push(f(c, y, x));
+                }
+            }
+        }
+        FeatureMap { channels, height, width, data }
+    }
+
+    fn assert_close(a: &[f32], b: &[f32]) {
+        assert_eq!(a.len(), b.len());
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!((x - y).abs() < 1e-5, "value {i}: {x} vs {y}");
+        }
+    }
+
+    #[test]
+    fn names_round_trip_and_unknown_is_refused() {
+        for mode in DescriptorMode::ALL {
+            assert_eq!(mode.to_string().parse::<DescriptorMode>().unwrap(), mode);
+        }
+        let err = "cosine".parse::<DescriptorMode>().unwrap_err();
+        assert!(err.contains("cosine") && err.contains("paper"), "{err}");
+    }
+
+    #[test]
+    fn paper_mode_hand_computed() {
+        // 20 channels on a 1x2 map: channel c has pixels (c, c+2) -> pooled mean c + 1, i.e. 1..=20.
+        // Min-max: (c+1 - 1)/19 = c/19. Groups of ten: mean(0..10)/19 = 4.5/19, mean(10..20)/19 = 14.5/19.
+        let fm = map(20, 1, 2, |c, _, x| c as f32 + 2.0 * x as f32);
+        let d = Descriptor::new(DescriptorMode::Paper, 20);
+        assert_eq!(d.dim(), 2);
+        assert_close(&d.compute(&fm).unwrap(), &[4.5 / 19.0, 14.5 / 19.0]);
+        // A last short group (25 channels -> 3 groups, the last of 5) is averaged over its own length.
+        let fm = map(25, 1, 1, |c, _, _| c as f32);
+        let d = Descriptor::new(DescriptorMode::Paper, 25);
+        assert_eq!(d.dim(), 3);
+        assert_close(&d.compute(&fm).unwrap(), &[4.5 / 24.0, 14.5 / 24.0, 22.0 / 24.0]);
+        // Constant input: the undefined ratio gives zeros, not NaN.
+        let fm = map(20, 2, 2, |_, _, _| 6.0);
+        assert_close(&Descriptor::new(DescriptorMode::Paper, 20).compute(&fm).unwrap(), &[0.0, 0.0]);
+        // Full-size map gives 128 values in [0, 1].
+        let fm = map(1280, 7, 7, |c, y, x| ((c * 7 + y * 3 + x) % 13) as f32 * 0.4);
+        let v = Descriptor::default().compute(&fm).unwrap();
+        assert_eq!(v.len(), 128);
+        assert!(v.iter().all(|x| (0.0..=1.0).contains(x)));
+    }
+
+    #[test]
+    fn paper_score_is_linear_in_rms_difference() {
+        let d = Descriptor::new(DescriptorMode::Paper, 1280);
+        // Opposite corners of the unit cube are sqrt(128) apart: score 0.
+        assert_eq!(d.score(0.0), 1.0);
+        assert!((d.score(128f32.sqrt())).abs() < 1e-6);
+        assert!((d.score(128f32.sqrt() / 4.0) - 0.75).abs() < 1e-6);
+    }
+
+    #[test]
+    fn l2_mode_hand_computed() {
+        // Pooled (3, 4) -> (0.6, 0.8).
+        let fm = map(2, 1, 2, |c, _, x| if c == 0 { 2.0 + 2.0 * x as f32 } else { 4.0 });
+        let d = Descriptor::new(DescriptorMode::L2, 2);
+        assert_close(&d.compute(&fm).unwrap(), &[0.6, 0.8]);
+        // Orthogonal unit vectors: d = sqrt(2), score = (1 + 0)/2.
+        assert!((d.score(2f32.sqrt()) - 0.5).abs() < 1e-6);
+        // A zero map stays zero instead of NaN.
+        assert_close(&d.compute(&map(2, 1, 1, |_, _, _| 0.0)).unwrap(), &[0.0, 0.0]);
+    }
+
+    #[test]
+    fn spatial_mode_hand_computed() {
+        // One channel on a 3x3 map with values 0..9 (row-major). Global mean 4; cells overlap on the
+        // middle row/column: maxima top-left 4, top-right 5, bottom-left 7, bottom-right 8. Each 1-value
+        // block after sqrt and L2 normalisation is 1, scaled by 1/sqrt(5).
+        let fm = map(1, 3, 3, |_, y, x| (y * 3 + x) as f32);
+        let d = Descriptor::new(DescriptorMode::Spatial, 1);
+        assert_eq!(d.dim(), 5);
+        let w = 1.0 / 5f32.sqrt();
+        assert_close(&d.compute(&fm).unwrap(), &[w; 5]);
+        // Two channels: global means (1, 4) -> sqrt -> (1, 2)/sqrt(5); the top-left cell of a 2x2 map is
+        // one pixel: (0, 9) -> (0, 3) -> (0, 1).
+        let fm = FeatureMap { channels: 2, height: 2, width: 2, data: vec![0.0, 1.0, 1.0, 2.0, 9.0, 1.0, 1.0, 5.0] };
+        let v = Descriptor::new(DescriptorMode::Spatial, 2).compute(&fm).unwrap();
+        assert_eq!(v.len(), 10);
+        let s5 = 5f32.sqrt();
+        assert_close(&v[0..4], &[w / s5, 2.0 * w / s5, 0.0, w]);
+        let norm: f32 = v.iter().map(|x| x * x).sum();
+        assert!((norm - 1.0).abs() < 1e-5);
+    }
+
+    #[test]
+    fn grid_cells_cover_with_overlap() {
+        assert_eq!(grid_cell(7, 2, 0), 0..4);
+        assert_eq!(grid_cell(7, 2, 1), 3..7);
+        assert_eq!(grid_cell(4, 2, 1), 2..4);
+        assert_eq!(grid_cell(1, 2, 0), 0..1);
+        assert_eq!(grid_cell(1, 2, 1), 0..1);
+    }
+
+    #[test]
+    fn scores_are_in_range_monotone_and_invertible() {
+        for mode in DescriptorMode::ALL {
+            let d = Descriptor::new(mode, DEFAULT_CHANNELS);
+            let mut last = f32::INFINITY;
+            for step in 0..=100 {
+                let dist = step as f32 * 0.25;
+                let s = d.score(dist);
+                assert!((0.0..=1.0).contains(&s), "{mode} score {s} at {dist}");
+                assert!(s <= last, "{mode} not monotone at {dist}");
+                last = s;
+            }
+            for step in 0..=20 {
+                let s = step as f32 / 20.0;
+                assert!((d.score(d.distance_for_score(s)) - s).abs() < 1e-5, "{mode} inverse at {s}");
+            }
+            assert_eq!(d.score(f32::NAN), 0.0);
+            assert_eq!(d.score(-1.0), 1.0);
+            assert_eq!(d.score(f32::INFINITY), 0.0);
+        }
+    }
+
+    #[test]
+    fn distance_is_euclidean() {
+        assert_eq!(distance(&[0.0, 0.0], &[3.0, 4.0]), 5.0);
+        assert_eq!(squared_distance(&[1.0, 1.0], &[2.0, 3.0]), 5.0);
+        // Longer than one vector block, with a tail: 19 differences of 1 and one of 2.
+        let a = vec![0.0f32; 20];
+        let mut b = vec![1.0f32; 20];
+        b[17] = 2.0;
+        assert_eq!(squared_distance(&a, &b), 23.0);
+    }
+
+    #[test]
+    fn bad_feature_maps_are_refused() {
+        let d = Descriptor::new(DescriptorMode::L2, 4);
+        let wrong_len = FeatureMap { channels: 4, height: 2, width: 2, data: vec![0.0; 15] };
+        assert!(d.compute(&wrong_len).unwrap_err().to_string().contains("15 values"));
+        let wrong_channels = FeatureMap { channels: 2, height: 1, width: 1, data: vec![0.0; 2] };
+        assert!(d.compute(&wrong_channels).unwrap_err().to_string().contains("2 channels"));
+        let empty = FeatureMap { channels: 4, height: 0, width: 1, data: vec![] };
+        assert!(d.compute(&empty).is_err());
+    }
+}

@@ -1,1 +1,318 @@
 //! Keyframe database and loop-closure detector: which earlier keyframe, if any, does a new one revisit.
+//!
+//! [`KeyframeDb`] stores every keyframe's descriptor in one contiguous `f32` buffer and answers top-k
+//! nearest-neighbour queries by brute force (it is the single place that stores and searches, so an
+//! approximate index or persistence can replace its internals without touching the detector).
+//!
+//! [`Detector`] applies the policy ([`DetectorParams`]) to each new keyframe: query the history, then
+//! insert. Rules, in order:
+//! 1. minimum history: no query while the database holds fewer than `min_history` keyframes (the paper's
+//!    "number of historical feature vectors exceeds a certain threshold");
+//! 2. recent exclusion: the last `exclude_recent_count` inserted keyframes and those less than
+//!    `exclude_recent_secs` older than the query are never matched (with a non-zero time rule, keyframes
+//!    stamped after the query are excluded too);
+//! 3. the `top_k` nearest eligible keyframes whose distance passes the threshold are the query's matches;
+//! 4. temporal consistency: with `consistency_queries = k > 1`, a match at database position `p` is
+//!    reported only when each of the previous `k - 1` queries (consecutive calls of
+//!    [`Detector::process`], including those that found nothing or ran before the minimum history) had a
+//!    match that passed the threshold at a position within `consistency_window` keyframes of `p`.
+//!    Positions (insertion order) rather than ids are compared so that any id scheme works.
+//!
+//! Reported candidates are ranked 0, 1, ... in increasing distance among those reported.
+
+pub mod selection;
+
+use crate::descriptor::{squared_distance, Descriptor};
+use crate::types::{LoopCandidate, Stamp};
+use anyhow::ensure;
+use std::collections::VecDeque;
+
+/// The acceptance threshold, on the distance or on the score (see [`crate::descriptor::Descriptor::score`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Threshold {
+    /// A match is accepted when its descriptor distance is at most this.
+    MaxDistance(f32),
+    /// A match is accepted when its score is at least this.
+    MinScore(f32),
+}
+
+/// The detector's policy.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DetectorParams {
+    pub threshold: Threshold,
+    /// No query runs until the database holds at least this many keyframes.
+    pub min_history: usize,
+    /// The most recently inserted this-many keyframes are never matched.
+    pub exclude_recent_count: usize,
+    /// Keyframes less than this many seconds older than the query are never matched.
+    pub exclude_recent_secs: f64,
+    /// At most this many candidates per query (ranks 0..top_k).
+    pub top_k: usize,
+    /// A candidate is reported only when this many consecutive queries agree (1 disables the check).
+    pub consistency_queries: usize,
+    /// Matches agree when their database positions differ by at most this many keyframes.
+    pub consistency_window: usize,
+}
+
+impl Default for DetectorParams {
+    /// The defaults of `config/ecm_lcd.yaml`.
+    fn default() -> Self {
+        crate::config::Params::default().detector()
+    }
+}
+
+/// One result of a database query: the keyframe's position (insertion order) and squared distance.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Neighbour {
+    pub position: usize,
+    pub squared_distance: f32,
+}
+
+/// Keyframes (id, stamp, descriptor) in insertion order, with exact top-k search.
+#[derive(Clone, Debug)]
+pub struct KeyframeDb {
+    dim: usize,
+    ids: Vec<u64>,
+    stamps: Vec<Stamp>,
+    /// `len * dim` values, keyframe after keyframe.
+    descriptors: Vec<f32>,
+}
+
+impl KeyframeDb {
+    pub fn new(dim: usize) -> Self {
+        KeyframeDb { dim, ids: Vec::new(), stamps: Vec::new(), descriptors: Vec::new() }
+    }
+
+    /// Descriptor length every keyframe must have.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    pub fn len(&self) -> usize {
+        self.ids.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.ids.is_empty()
+    }
+
+    fn check_descriptor(&self, descriptor: &[f32], what: &str) -> anyhow::Result<()> {
+        ensure!(
+            descriptor.len() == self.dim,
+            "{what} descriptor has {} values, the database holds {}-value descriptors",
+            descriptor.len(),
+            self.dim
+        );
+        if let Some(i) = descriptor.iter().position(|x| !x.is_finite()) {
+            anyhow::bail!("{what} descriptor value {i} is {} (not finite)", descriptor[i]);
+        }
+        Ok(())
+    }
+
+    /// Appends a keyframe; returns its position. Refuses a descriptor of the wrong length or with a
+    /// non-finite value (it would poison every later distance).
+    pub fn insert(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<usize> {
+        self.check_descriptor(descriptor, &format!("keyframe {id}"))?;
+        self.ids.push(id);
+        self.stamps.push(stamp);
+        self.descriptors.extend_from_slice(descriptor);
+        Ok(self.ids.len() - 1)
+    }
+
+    /// Id of the keyframe at `position` (panics out of range, like slice indexing; positions come from
+    /// [`KeyframeDb::insert`] or [`KeyframeDb::nearest`]).
+    pub fn id(&self, position: usize) -> u64 {
+        self.ids[position]
+    }
+
+    pub fn stamp(&self, position: usize) -> Stamp {
+        self.stamps[position]
+    }
+
+    pub fn descriptor(&self, position: usize) -> &[f32] {
+        &self.descriptors[position * self.dim..(position + 1) * self.dim]
+    }
+
+    /// The `k` keyframes nearest to `query` among the positions `eligible` accepts, nearest first (equal
+    /// distances: earlier position first). Allocates only the result.
+    pub fn nearest(
+        &self,
+        query: &[f32],
+        k: usize,
+        eligible: impl Fn(usize) -> bool,
+    ) -> anyhow::Result<Vec<Neighbour>> {
+        self.check_descriptor(query, "query")?;
+        let mut best: Vec<Neighbour> = Vec::with_capacity(k + 1);
+        if k == 0 || self.dim == 0 {
+            // A zero-length descriptor makes every keyframe equally near; take the first eligible ones.
+            return Ok((0..self.len())
+                .filter(|&p| eligible(p))
+                .take(k)
+                .map(|position| Neighbour { position, squared_distance: 0.0 })
+                .collect());
+        }
+        for (position, stored) in self.descriptors.chunks_exact(self.dim).enumerate() {
+            if !eligible(position) {
+                continue;
+            }
+            let d2 = squared_distance(query, stored);
+            if best.len() == k && d2 >= best[k - 1].squared_distance {
+                continue;
+            }
+            let at = best.partition_point(|n| n.squared_distance <= d2);
+            best.insert(at, Neighbour { position, squared_distance: d2 });
+            best.truncate(k);
+        }
+        Ok(best)
+    }
+}
+
+/// The best eligible match of a query, threshold and consistency aside (see [`Detector::best_match`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Match {
+    pub id: u64,
+    pub stamp: Stamp,
+    pub distance: f32,
+    pub score: f32,
+}
+
+/// The loop-closure detector: a keyframe database plus the policy of the module doc.
+#[derive(Clone, Debug)]
+pub struct Detector {
+    descriptor: Descriptor,
+    params: DetectorParams,
+    db: KeyframeDb,
+    /// Positions of the threshold-passing matches of the last `consistency_queries - 1` queries, oldest first.
+    recent_matches: VecDeque<Vec<usize>>,
+}
+
+impl Detector {
+    /// An empty detector for descriptors of `descriptor`'s mode (whose score defines the threshold).
+    pub fn new(descriptor: Descriptor, params: DetectorParams) -> Self {
+        Detector { db: KeyframeDb::new(descriptor.dim()), descriptor, params, recent_matches: VecDeque::new() }
+    }
+
+    pub fn params(&self) -> &DetectorParams {
+        &self.params
+    }
+
+    /// Changes the policy at run time (a node's `set_parameters`); the database is kept, and the
+    /// consistency history is trimmed to the new length.
+    pub fn set_params(&mut self, params: DetectorParams) {
+        self.params = params;
+        let keep = self.params.consistency_queries.saturating_sub(1);
+        while self.recent_matches.len() > keep {
+            self.recent_matches.pop_front();
+        }
+    }
+
+    pub fn descriptor(&self) -> &Descriptor {
+        &self.descriptor
+    }
+
+    pub fn db(&self) -> &KeyframeDb {
+        &self.db
+    }
+
+    /// The threshold as a distance: matches at most this far apart pass.
+    pub fn max_distance(&self) -> f32 {
+        match self.params.threshold {
+            Threshold::MaxDistance(d) => d,
+            Threshold::MinScore(s) => self.descriptor.distance_for_score(s),
+        }
+    }
+
+    fn passes(&self, distance: f32, score: f32) -> bool {
+        match self.params.threshold {
+            Threshold::MaxDistance(d) => distance <= d,
+            Threshold::MinScore(s) => score >= s,
+        }
+    }
+
+    /// The `k` nearest keyframes the history and recency rules allow for a query at `stamp`; empty
+    /// before the minimum history.
+    fn eligible_nearest(&self, stamp: Stamp, descriptor: &[f32], k: usize) -> anyhow::Result<Vec<Neighbour>> {
+        if self.db.len() < self.params.min_history.max(1) {
+            // Still validate the query so bad input is reported at once, not only later.
+            self.db.check_descriptor(descriptor, "query")?;
+            return Ok(Vec::new());
+        }
+        let last_eligible = self.db.len().saturating_sub(self.params.exclude_recent_count);
+        let min_age_nanos = (self.params.exclude_recent_secs * 1e9).round() as i64;
+        let time_rule = self.params.exclude_recent_secs > 0.0;
+        let stamps = &self.db.stamps;
+        self.db.nearest(descriptor, k, |p| {
+            p < last_eligible && (!time_rule || stamp.nanos.saturating_sub(stamps[p].nanos) >= min_age_nanos)
+        })
+    }
+
+    /// Queries the history with a new keyframe, then inserts it; returns the loop candidates reported
+    /// under the full policy (module doc).
+    pub fn process(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Vec<LoopCandidate>> {
+        let neighbours = self.eligible_nearest(stamp, descriptor, self.params.top_k)?;
+        let passing: Vec<(usize, f32, f32)> = neighbours
+            .iter()
+            .map(|n| {
+                let distance = n.squared_distance.sqrt();
+                (n.position, distance, self.descriptor.score(distance))
+            })
+            .filter(|&(_, distance, score)| self.passes(distance, score))
+            .collect();
+        let needed = self.params.consistency_queries.saturating_sub(1);
+        let window = self.params.consistency_window;
+        let consistent = |position: usize| {
+            self.recent_matches.len() >= needed
+                && self
+                    .recent_matches
+                    .iter()
+                    .rev()
+                    .take(needed)
+                    .all(|earlier| earlier.iter().any(|&q| q.abs_diff(position) <= window))
+        };
+        let candidates: Vec<LoopCandidate> = passing
+            .iter()
+            .filter(|&&(position, _, _)| consistent(position))
+            .enumerate()
+            .map(|(rank, &(position, distance, score))| LoopCandidate {
+                query_id: id,
+                query_stamp: stamp,
+                match_id: self.db.id(position),
+                match_stamp: self.db.stamp(position),
+                distance,
+                score,
+                rank: rank as u32,
+            })
+            .collect();
+        self.db.insert(id, stamp, descriptor)?;
+        if needed > 0 {
+            self.recent_matches.push_back(passing.iter().map(|&(position, _, _)| position).collect());
+            while self.recent_matches.len() > needed {
+                self.recent_matches.pop_front();
+            }
+        }
+        Ok(candidates)
+    }
+
+    /// The nearest keyframe the history and recency rules allow, ignoring the threshold, `top_k` and
+    /// consistency (for precision-recall sweeps); `None` before the minimum history or when no keyframe is
+    /// eligible. Does not insert: call [`Detector::insert`] afterwards.
+    pub fn best_match(&self, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Option<Match>> {
+        Ok(self.eligible_nearest(stamp, descriptor, 1)?.first().map(|n| {
+            let distance = n.squared_distance.sqrt();
+            Match {
+                id: self.db.id(n.position),
+                stamp: self.db.stamp(n.position),
+                distance,
+                score: self.descriptor.score(distance),
+            }
+        }))
+    }
+
+    /// Inserts a keyframe without querying (pairs with [`Detector::best_match`]).
+    pub fn insert(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<()> {
+        self.db.insert(id, stamp, descriptor).map(|_| ())
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,268 @@
+//! Unit tests of the keyframe database and every detector policy rule.
+
+use super::*;
+use crate::descriptor::{distance, DescriptorMode};
+
+fn secs(s: f64) -> Stamp {
+    Stamp::from_secs_f64(s)
+}
+
+/// A deterministic pseudo-random generator (xorshift) so the tests need no extra crate.
+fn pseudo_random(seed: u64, n: usize) -> Vec<f32> {
+    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    (0..n)
+        .map(|_| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f32 / (1u64 << 24) as f32
+        })
+        .collect()
+}
+
+#[test]
+fn top_k_equals_a_naive_sort() {
+    let dim = 37;
+    let mut db = KeyframeDb::new(dim);
+    let stored: Vec<Vec<f32>> = (0..200).map(|i| pseudo_random(i + 1, dim)).collect();
+    for (i, d) in stored.iter().enumerate() {
+        assert_eq!(db.insert(1000 + i as u64, secs(i as f64), d).unwrap(), i);
+    }
+    for q in 0..10 {
+        let query = pseudo_random(500 + q, dim);
+        let eligible = |p: usize| p % 3 != 0;
+        for k in [1, 5, 17, 300] {
+            let got = db.nearest(&query, k, eligible).unwrap();
+            let mut naive: Vec<(usize, f32)> =
+                (0..stored.len()).filter(|&p| eligible(p)).map(|p| (p, distance(&query, &stored[p]))).collect();
+            naive.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+            naive.truncate(k);
+            let got_positions: Vec<usize> = got.iter().map(|n| n.position).collect();
+            let naive_positions: Vec<usize> = naive.iter().map(|n| n.0).collect();
+            assert_eq!(got_positions, naive_positions, "query {q}, k {k}");
+            for (n, (_, d)) in got.iter().zip(&naive) {
+                assert!((n.squared_distance.sqrt() - d).abs() < 1e-4);
+            }
+        }
+    }
+    assert_eq!(db.len(), 200);
+    assert_eq!(db.id(3), 1003);
+    assert_eq!(db.stamp(3), secs(3.0));
+    assert_eq!(db.descriptor(3), &stored[3][..]);
+}
+
+#[test]
+fn ties_keep_insertion_order_and_k_zero_is_empty() {
+    let mut db = KeyframeDb::new(2);
+    for i in 0..4 {
+        db.insert(i, secs(0.0), &[1.0, 0.0]).unwrap();
+    }
+    let got: Vec<usize> = db.nearest(&[0.0, 0.0], 3, |_| true).unwrap().iter().map(|n| n.position).collect();
+    assert_eq!(got, vec![0, 1, 2]);
+    assert!(db.nearest(&[0.0, 0.0], 0, |_| true).unwrap().is_empty());
+}
+
+#[test]
+fn bad_descriptors_are_refused_with_reasons() {
+    let mut db = KeyframeDb::new(3);
+    let err = db.insert(7, secs(0.0), &[1.0, 2.0]).unwrap_err().to_string();
+    assert!(err.contains("keyframe 7") && err.contains("2 values"), "{err}");
+    let err = db.insert(8, secs(0.0), &[1.0, f32::NAN, 0.0]).unwrap_err().to_string();
+    assert!(err.contains("value 1") && err.contains("NaN"), "{err}");
+    assert!(db.is_empty());
+    assert!(db.nearest(&[0.0; 4], 1, |_| true).is_err());
+    let mut det = Detector::new(Descriptor::new(DescriptorMode::L2, 3), params_all_off());
+    assert!(det.process(1, secs(0.0), &[0.0; 2]).is_err());
+    assert!(det.best_match(secs(0.0), &[f32::INFINITY, 0.0, 0.0]).is_err());
+}
+
+/// L2 mode on 2-d unit vectors: the angle decides the distance.
+fn unit(angle_deg: f32) -> [f32; 2] {
+    let a = angle_deg.to_radians();
+    [a.cos(), a.sin()]
+}
+
+fn l2_detector(params: DetectorParams) -> Detector {
+    Detector::new(Descriptor::new(DescriptorMode::L2, 2), params)
+}
+
+/// Every rule off, every match accepted.
+fn params_all_off() -> DetectorParams {
+    DetectorParams {
+        threshold: Threshold::MaxDistance(10.0),
+        min_history: 0,
+        exclude_recent_count: 0,
+        exclude_recent_secs: 0.0,
+        top_k: 1,
+        consistency_queries: 1,
+        consistency_window: 0,
+    }
+}
+
+fn match_ids(candidates: &[LoopCandidate]) -> Vec<u64> {
+    candidates.iter().map(|c| c.match_id).collect()
+}
+
+#[test]
+fn min_history_holds_queries_back() {
+    let mut det = l2_detector(DetectorParams { min_history: 3, ..params_all_off() });
+    assert!(det.process(0, secs(0.0), &unit(0.0)).unwrap().is_empty());
+    assert!(det.process(1, secs(1.0), &unit(0.0)).unwrap().is_empty());
+    assert!(det.process(2, secs(2.0), &unit(0.0)).unwrap().is_empty());
+    assert!(det.best_match(secs(3.0), &unit(0.0)).unwrap().is_some());
+    assert_eq!(det.process(3, secs(3.0), &unit(0.0)).unwrap().len(), 1);
+    // With no minimum, the second keyframe can already match the first.
+    let mut det = l2_detector(params_all_off());
+    assert!(det.process(0, secs(0.0), &unit(0.0)).unwrap().is_empty());
+    assert_eq!(match_ids(&det.process(1, secs(1.0), &unit(0.0)).unwrap()), vec![0]);
+}
+
+#[test]
+fn recent_keyframes_are_excluded_by_count() {
+    let mut det = l2_detector(DetectorParams { exclude_recent_count: 2, ..params_all_off() });
+    // Keyframes at 0, 10, 20 degrees; a query at 21 degrees may not match 20 nor 10, only 0.
+    for (id, angle) in [(0, 0.0), (1, 10.0), (2, 20.0)] {
+        det.insert(id, secs(id as f64), &unit(angle)).unwrap();
+    }
+    let c = det.process(3, secs(3.0), &unit(21.0)).unwrap();
+    assert_eq!(match_ids(&c), vec![0]);
+    // Exclusion of everything leaves nothing.
+    let mut det = l2_detector(DetectorParams { exclude_recent_count: 5, ..params_all_off() });
+    for id in 0..5 {
+        det.insert(id, secs(id as f64), &unit(0.0)).unwrap();
+    }
+    assert!(det.process(5, secs(5.0), &unit(0.0)).unwrap().is_empty());
+    assert!(det.best_match(secs(6.0), &unit(0.0)).unwrap().is_some());
+}
+
+#[test]
+fn recent_keyframes_are_excluded_by_time() {
+    let mut det = l2_detector(DetectorParams { exclude_recent_secs: 10.0, ..params_all_off() });
+    det.insert(0, secs(100.0), &unit(0.0)).unwrap();
+    det.insert(1, secs(105.0), &unit(1.0)).unwrap();
+    // At 110.5 s the keyframe at 100 s is 10.5 s old (eligible), the one at 105 s is too recent.
+    let c = det.process(2, secs(110.5), &unit(1.0)).unwrap();
+    assert_eq!(match_ids(&c), vec![0]);
+    // Exactly the exclusion age is eligible.
+    assert_eq!(det.best_match(secs(115.0), &unit(1.0)).unwrap().unwrap().id, 1);
+    assert_eq!(det.best_match(secs(114.9), &unit(1.0)).unwrap().unwrap().id, 0);
+    // Keyframes stamped after the query are never eligible under a time rule.
+    assert!(det.best_match(secs(50.0), &unit(0.0)).unwrap().is_none());
+}
+
+#[test]
+fn top_k_ranks_are_ordered_by_distance() {
+    let mut det = l2_detector(DetectorParams { top_k: 3, ..params_all_off() });
+    for (id, angle) in [(0, 40.0), (1, 10.0), (2, 90.0), (3, 20.0), (4, 5.0)] {
+        det.insert(id, secs(id as f64), &unit(angle)).unwrap();
+    }
+    let c = det.process(9, secs(9.0), &unit(0.0)).unwrap();
+    assert_eq!(match_ids(&c), vec![4, 1, 3]);
+    assert_eq!(c.iter().map(|c| c.rank).collect::<Vec<_>>(), vec![0, 1, 2]);
+    for cand in &c {
+        assert_eq!(cand.query_id, 9);
+        assert_eq!(cand.query_stamp, secs(9.0));
+        assert_eq!(cand.match_stamp, secs(cand.match_id as f64));
+        assert!((cand.score - det.descriptor().score(cand.distance)).abs() < 1e-7);
+    }
+    // 5 degrees apart on the unit circle: d = 2 sin(2.5°).
+    assert!((c[0].distance - 2.0 * 2.5f32.to_radians().sin()).abs() < 1e-5);
+    // The query was inserted after being answered.
+    assert_eq!(det.db().len(), 6);
+    assert_eq!(det.db().id(5), 9);
+}
+
+#[test]
+fn thresholds_on_distance_and_score_agree() {
+    // Stored at 0 and 60 degrees; query at 10 degrees: distances 2 sin 5° ≈ 0.174 and 2 sin 25° ≈ 0.845.
+    let build = |threshold| {
+        let mut det = l2_detector(DetectorParams { threshold, top_k: 2, ..params_all_off() });
+        det.insert(0, secs(0.0), &unit(0.0)).unwrap();
+        det.insert(1, secs(1.0), &unit(60.0)).unwrap();
+        det
+    };
+    let near = 2.0 * 5f32.to_radians().sin();
+    let far = 2.0 * 25f32.to_radians().sin();
+    let mid = (near + far) / 2.0;
+    let mut det = build(Threshold::MaxDistance(mid));
+    assert_eq!(match_ids(&det.process(2, secs(2.0), &unit(10.0)).unwrap()), vec![0]);
+    let mid_score = det.descriptor().score(mid);
+    let mut det = build(Threshold::MinScore(mid_score));
+    assert!((det.max_distance() - mid).abs() < 1e-5);
+    assert_eq!(match_ids(&det.process(2, secs(2.0), &unit(10.0)).unwrap()), vec![0]);
+    let mut det = build(Threshold::MaxDistance(far + 0.01));
+    assert_eq!(match_ids(&det.process(2, secs(2.0), &unit(10.0)).unwrap()), vec![0, 1]);
+    let mut det = build(Threshold::MinScore(1.0));
+    assert!(det.process(2, secs(2.0), &unit(10.0)).unwrap().is_empty());
+    // best_match ignores the threshold.
+    let det = build(Threshold::MinScore(1.0));
+    let m = det.best_match(secs(2.0), &unit(10.0)).unwrap().unwrap();
+    assert_eq!(m.id, 0);
+    assert!((m.distance - near).abs() < 1e-5);
+    assert!((m.score - (1.0 + 10f32.to_radians().cos()) / 2.0).abs() < 1e-5);
+}
+
+/// A place sequence: positions 0..10 are places at 0, 10, ..., 90 degrees; later queries revisit them.
+fn consistency_detector(queries: usize, window: usize) -> Detector {
+    let mut det = l2_detector(DetectorParams {
+        threshold: Threshold::MaxDistance(0.05),
+        consistency_queries: queries,
+        consistency_window: window,
+        ..params_all_off()
+    });
+    for i in 0..10 {
+        det.insert(i, secs(i as f64), &unit(10.0 * i as f32)).unwrap();
+    }
+    det
+}
+
+#[test]
+fn consistency_off_reports_every_passing_match() {
+    let mut det = consistency_detector(1, 0);
+    assert_eq!(match_ids(&det.process(100, secs(100.0), &unit(50.0)).unwrap()), vec![5]);
+    assert!(det.process(101, secs(101.0), &unit(55.0)).unwrap().is_empty());
+    assert_eq!(match_ids(&det.process(102, secs(102.0), &unit(20.0)).unwrap()), vec![2]);
+}
+
+#[test]
+fn consistency_of_three_needs_three_agreeing_queries() {
+    let mut det = consistency_detector(3, 1);
+    // Revisit places 3, 4, 5 with a window of 1: at the third query |5 - 3| = 2 > 1, so it is not yet
+    // consistent; the fourth (place 5 again, after 4 and 5) is.
+    assert!(det.process(100, secs(100.0), &unit(30.0)).unwrap().is_empty());
+    assert!(det.process(101, secs(101.0), &unit(40.0)).unwrap().is_empty());
+    assert!(det.process(102, secs(102.0), &unit(50.0)).unwrap().is_empty());
+    assert_eq!(match_ids(&det.process(103, secs(103.0), &unit(50.0)).unwrap()), vec![5]);
+    assert_eq!(match_ids(&det.process(104, secs(104.0), &unit(60.0)).unwrap()), vec![6]);
+
+    // A window of 2 accepts 3, 4, 5 at the third query.
+    let mut det = consistency_detector(3, 2);
+    assert!(det.process(100, secs(100.0), &unit(30.0)).unwrap().is_empty());
+    assert!(det.process(101, secs(101.0), &unit(40.0)).unwrap().is_empty());
+    assert_eq!(match_ids(&det.process(102, secs(102.0), &unit(50.0)).unwrap()), vec![5]);
+
+    // A query without a passing match breaks the chain; two more agreeing queries are needed.
+    let mut det = consistency_detector(3, 2);
+    det.process(100, secs(100.0), &unit(30.0)).unwrap();
+    det.process(101, secs(101.0), &unit(35.0)).unwrap(); // between places: nothing passes
+    assert!(det.process(102, secs(102.0), &unit(40.0)).unwrap().is_empty());
+    assert!(det.process(103, secs(103.0), &unit(40.0)).unwrap().is_empty());
+    assert_eq!(match_ids(&det.process(104, secs(104.0), &unit(40.0)).unwrap()), vec![4]);
+
+    // Far-apart matches do not agree.
+    let mut det = consistency_detector(3, 2);
+    det.process(100, secs(100.0), &unit(10.0)).unwrap();
+    det.process(101, secs(101.0), &unit(80.0)).unwrap();
+    assert!(det.process(102, secs(102.0), &unit(80.0)).unwrap().is_empty());
+
+    // Lowering the requirement at run time trims the history and takes effect at once.
+    det.set_params(DetectorParams { consistency_queries: 2, ..det.params().clone() });
+    assert_eq!(match_ids(&det.process(103, secs(103.0), &unit(80.0)).unwrap()), vec![8]);
+}
+
+#[test]
+fn default_params_are_the_config_defaults() {
+    let p = DetectorParams::default();
+    assert_eq!(p, crate::config::Params::default().detector());
+    assert!(p.top_k >= 1 && p.consistency_queries >= 1);
+}
