@@ -1,2 +1,152 @@
-//! Sources of frames to replay: TUM folders, ROS 1 bags, ROS 2 bags (sqlite3 and MCAP), and the ROS image messages inside them.
+//! Sources of frames to replay: TUM folders, image folders, ROS 1 bags, ROS 2 bags (sqlite3
+//! and MCAP), the ROS image messages inside them, and writers for the bag formats.
+//!
+//! [`open_source`] picks the reader from the path (see its doc). Every source yields frames in
+//! replay order with [`Frame::index`] counting from 0, and turns a bad input into an `Err` item
+//! naming the file and where it went wrong; after an `Err` a source yields nothing more.
+
+pub mod image_msg;
 pub mod msgs;
+pub mod ros1bag;
+pub mod ros2bag;
+pub mod tum;
+
+use anyhow::{bail, Context, Result};
+use std::path::Path;
+
+use crate::types::Frame;
+use image_msg::ImageKind;
+
+/// A replayable stream of frames.
+pub trait FrameSource: Iterator<Item = Result<Frame>> + Send {
+    /// e.g. "ROS 1 bag foo.bag, topic /camera/rgb/image_color (798 messages)"
+    fn describe(&self) -> String;
+    /// Number of frames if known up front (for progress bars).
+    fn len_hint(&self) -> Option<usize>;
+}
+
+/// Opens any supported source; `topic` picks the image topic of a bag (default: the one image
+/// topic, else an error listing the candidates with their types and counts).
+///
+/// Detection: a directory with `rgb.txt` is a TUM folder; a directory with `metadata.yaml` is a
+/// ROS 2 bag (its `.db3` or `.mcap` file is read); `*.bag` is a ROS 1 bag, `*.db3` a ROS 2
+/// sqlite3 bag, `*.mcap` an MCAP file; any other directory with png/jpg/jpeg/bmp files is an
+/// image folder replayed in file-name order.
+pub fn open_source(path: &Path, topic: Option<&str>) -> Result<Box<dyn FrameSource>> {
+    if path.is_dir() {
+        if path.join("rgb.txt").is_file() {
+            if let Some(topic) = topic {
+                bail!("{} is a TUM folder, which has no topics (asked for {topic})", path.display());
+            }
+            return Ok(Box::new(tum::ImageFilesSource::open_tum(path)?));
+        }
+        if path.join("metadata.yaml").is_file() {
+            let storage = ros2bag::storage_file_of_bag_dir(path)?;
+            return open_source(&storage, topic);
+        }
+        if topic.is_some() {
+            bail!("{} is an image folder, which has no topics", path.display());
+        }
+        return Ok(Box::new(tum::ImageFilesSource::open_image_folder(path)?));
+    }
+    if !path.exists() {
+        bail!("{} does not exist", path.display());
+    }
+    let extension = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
+    Ok(match extension.as_deref() {
+        Some("bag") => Box::new(ros1bag::Ros1BagSource::open(path, topic)?),
+        Some("db3") => Box::new(ros2bag::SqliteBagSource::open(path, topic)?),
+        Some("mcap") => Box::new(ros2bag::McapSource::open(path, topic)?),
+        _ => bail!(
+            "{}: unsupported source (expected a TUM folder, image folder, ROS 2 bag folder, .bag, .db3 or .mcap)",
+            path.display()
+        ),
+    })
+}
+
+/// A topic of a bag, for choosing the image topic and for error messages.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct TopicInfo {
+    pub name: String,
+    pub type_name: String,
+    pub count: usize,
+}
+
+impl TopicInfo {
+    fn listing(topics: &[&TopicInfo]) -> String {
+        if topics.is_empty() {
+            return "none".to_string();
+        }
+        topics
+            .iter()
+            .map(|t| format!("{} ({}, {} messages)", t.name, t.type_name, t.count))
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
+
+/// Picks the image topic to replay from `topics` of the bag described by `bag`.
+pub(crate) fn choose_image_topic(bag: &str, topics: &[TopicInfo], wanted: Option<&str>) -> Result<(TopicInfo, ImageKind)> {
+    let image_topics: Vec<&TopicInfo> =
+        topics.iter().filter(|t| ImageKind::from_type_name(&t.type_name).is_some()).collect();
+    let chosen = match wanted {
+        Some(name) => {
+            let found = topics.iter().find(|t| t.name == name).with_context(|| {
+                format!("{bag} has no topic {name}; image topics: {}", TopicInfo::listing(&image_topics))
+            })?;
+            if ImageKind::from_type_name(&found.type_name).is_none() {
+                bail!(
+                    "topic {name} in {bag} has type {}, not sensor_msgs Image or CompressedImage; image topics: {}",
+                    found.type_name,
+                    TopicInfo::listing(&image_topics)
+                );
+            }
+            found
+        }
+        None => match image_topics.as_slice() {
+            [only] => *only,
+            [] => bail!(
+                "{bag} has no sensor_msgs Image or CompressedImage topic; topics: {}",
+                TopicInfo::listing(&topics.iter().collect::<Vec<_>>())
+            ),
+            several => bail!(
+                "{bag} has {} image topics, pick one with --topic: {}",
+                several.len(),
+                TopicInfo::listing(several)
+            ),
+        },
+    };
+    let kind = ImageKind::from_type_name(&chosen.type_name).context("checked above")?;
+    Ok((chosen.clone(), kind))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn topic(name: &str, type_name: &str, count: usize) -> TopicInfo {
+        TopicInfo { name: name.into(), type_name: type_name.into(), count }
+    }
+
+    #[test]
+    fn topic_choice_lists_candidates() {
+        let topics = vec![
+            topic("/rgb", "sensor_msgs/Image", 3),
+            topic("/tf", "tf2_msgs/TFMessage", 9),
+            topic("/rgb/compressed", "sensor_msgs/CompressedImage", 3),
+        ];
+        let err = choose_image_topic("bag x", &topics, None).unwrap_err().to_string();
+        assert!(err.contains("2 image topics") && err.contains("/rgb (sensor_msgs/Image, 3 messages)"), "{err}");
+        assert!(err.contains("/rgb/compressed (sensor_msgs/CompressedImage, 3 messages)"), "{err}");
+        let err = choose_image_topic("bag x", &topics, Some("/depth")).unwrap_err().to_string();
+        assert!(err.contains("bag x has no topic /depth; image topics: /rgb (sensor_msgs/Image"), "{err}");
+        let err = choose_image_topic("bag x", &topics, Some("/tf")).unwrap_err().to_string();
+        assert!(err.contains("type tf2_msgs/TFMessage"), "{err}");
+        let (chosen, kind) = choose_image_topic("bag x", &topics, Some("/rgb/compressed")).unwrap();
+        assert_eq!((chosen.name.as_str(), kind), ("/rgb/compressed", ImageKind::Compressed));
+        let (chosen, kind) = choose_image_topic("bag x", &topics[..2], None).unwrap();
+        assert_eq!((chosen.name.as_str(), kind), ("/rgb", ImageKind::Raw));
+        let err = choose_image_topic("bag x", &topics[1..2], None).unwrap_err().to_string();
+        assert!(err.contains("no sensor_msgs Image") && err.contains("/tf (tf2_msgs/TFMessage, 9 messages)"), "{err}");
+    }
+}

@@ -1,0 +1,519 @@
+//! ROS image messages (`sensor_msgs/Image`, `sensor_msgs/CompressedImage`) to and from
+//! [`image::RgbImage`], and their two wire formats: ROS 1 serialisation (little-endian, no
+//! alignment, u32-length-prefixed strings and arrays, `uint32 seq` first in the header) and
+//! ROS 2 CDR (4-byte encapsulation header, then aligned little- or big-endian data).
+//!
+//! Interpretations written down once:
+//! - `mono16` becomes 8-bit grey by `round(v * 255 / 65535)`, then replicated to R, G and B;
+//!   `mono8` is replicated as is.
+//! - Alpha of `rgba8`/`bgra8` is dropped (not blended).
+//! - A `CompressedImage` `format` names its codec anywhere in the string, as
+//!   compressed_image_transport writes it (`"jpeg"`, `"png"`, `"rgb8; jpeg compressed bgr8"`);
+//!   the decoded JPEG/PNG is already in true colour order, so no channel swap follows.
+//!   `compressedDepth` payloads are depth maps, not camera images, and are refused.
+
+use anyhow::{bail, ensure, Context, Result};
+use byteorder::{BigEndian, LittleEndian};
+use image::RgbImage;
+
+use super::msgs::{CompressedImage, Header, Image};
+use crate::types::Stamp;
+
+/// The two image message types a source can carry.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ImageKind {
+    Raw,
+    Compressed,
+}
+
+impl ImageKind {
+    /// Recognises ROS 1 (`sensor_msgs/Image`) and ROS 2 (`sensor_msgs/msg/Image`) type names.
+    pub fn from_type_name(type_name: &str) -> Option<ImageKind> {
+        match type_name {
+            "sensor_msgs/Image" | "sensor_msgs/msg/Image" => Some(ImageKind::Raw),
+            "sensor_msgs/CompressedImage" | "sensor_msgs/msg/CompressedImage" => Some(ImageKind::Compressed),
+            _ => None,
+        }
+    }
+
+    pub fn ros1_type(self) -> &'static str {
+        match self {
+            ImageKind::Raw => "sensor_msgs/Image",
+            ImageKind::Compressed => "sensor_msgs/CompressedImage",
+        }
+    }
+
+    pub fn ros2_type(self) -> &'static str {
+        match self {
+            ImageKind::Raw => "sensor_msgs/msg/Image",
+            ImageKind::Compressed => "sensor_msgs/msg/CompressedImage",
+        }
+    }
+}
+
+/// A decoded-from-the-wire image message of either kind.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ImageMessage {
+    Raw(Image),
+    Compressed(CompressedImage),
+}
+
+impl ImageMessage {
+    pub fn kind(&self) -> ImageKind {
+        match self {
+            ImageMessage::Raw(_) => ImageKind::Raw,
+            ImageMessage::Compressed(_) => ImageKind::Compressed,
+        }
+    }
+
+    pub fn header(&self) -> &Header {
+        match self {
+            ImageMessage::Raw(m) => &m.header,
+            ImageMessage::Compressed(m) => &m.header,
+        }
+    }
+
+    /// The header stamp.
+    pub fn stamp(&self) -> Stamp {
+        self.header().stamp.into()
+    }
+
+    /// Decodes the pixels to 8-bit RGB.
+    pub fn to_rgb(&self) -> Result<RgbImage> {
+        match self {
+            ImageMessage::Raw(m) => decode_image(m),
+            ImageMessage::Compressed(m) => decode_compressed_image(m),
+        }
+    }
+
+    /// Parses ROS 1 serialised bytes of the given kind.
+    pub fn from_ros1(kind: ImageKind, bytes: &[u8]) -> Result<ImageMessage> {
+        let mut reader = Ros1Reader { bytes, pos: 0 };
+        let header = reader.header()?;
+        let message = match kind {
+            ImageKind::Raw => ImageMessage::Raw(Image {
+                header,
+                height: reader.u32()?,
+                width: reader.u32()?,
+                encoding: reader.string()?,
+                is_bigendian: reader.u8()?,
+                step: reader.u32()?,
+                data: reader.byte_array()?,
+            }),
+            ImageKind::Compressed => ImageMessage::Compressed(CompressedImage {
+                header,
+                format: reader.string()?,
+                data: reader.byte_array()?,
+            }),
+        };
+        ensure!(
+            reader.pos == bytes.len(),
+            "{} bytes left over after the {} message ({} bytes)",
+            bytes.len() - reader.pos,
+            kind.ros1_type(),
+            bytes.len()
+        );
+        Ok(message)
+    }
+
+    /// Serialises to ROS 1 bytes; `seq` goes into the ROS 1 header.
+    pub fn to_ros1(&self, seq: u32) -> Vec<u8> {
+        let mut out = Vec::new();
+        let header = self.header();
+        out.extend_from_slice(&seq.to_le_bytes());
+        out.extend_from_slice(&(header.stamp.sec as u32).to_le_bytes());
+        out.extend_from_slice(&header.stamp.nanosec.to_le_bytes());
+        put_ros1_bytes(&mut out, header.frame_id.as_bytes());
+        match self {
+            ImageMessage::Raw(m) => {
+                out.extend_from_slice(&m.height.to_le_bytes());
+                out.extend_from_slice(&m.width.to_le_bytes());
+                put_ros1_bytes(&mut out, m.encoding.as_bytes());
+                out.push(m.is_bigendian);
+                out.extend_from_slice(&m.step.to_le_bytes());
+                put_ros1_bytes(&mut out, &m.data);
+            }
+            ImageMessage::Compressed(m) => {
+                put_ros1_bytes(&mut out, m.format.as_bytes());
+                put_ros1_bytes(&mut out, &m.data);
+            }
+        }
+        out
+    }
+
+    /// Parses a CDR payload (with its 4-byte encapsulation header) of the given kind.
+    pub fn from_cdr(kind: ImageKind, bytes: &[u8]) -> Result<ImageMessage> {
+        ensure!(bytes.len() >= 4, "CDR payload of {} bytes is shorter than its 4-byte header", bytes.len());
+        let body = &bytes[4..];
+        let little_endian = match bytes[..2] {
+            [0, 0] => false,
+            [0, 1] => true,
+            [a, b] => bail!("unsupported CDR encapsulation {a:#04x} {b:#04x} (expected plain CDR, 00 00 or 00 01)"),
+            _ => unreachable!("slice of two"),
+        };
+        fn parse<'de, T: serde::Deserialize<'de>>(body: &'de [u8], little_endian: bool) -> Result<T> {
+            let parsed = if little_endian {
+                cdr_encoding::from_bytes::<T, LittleEndian>(body)
+            } else {
+                cdr_encoding::from_bytes::<T, BigEndian>(body)
+            };
+            Ok(parsed.map_err(|e| anyhow::anyhow!("{e}"))?.0)
+        }
+        let message = match kind {
+            ImageKind::Raw => ImageMessage::Raw(parse(body, little_endian)?),
+            ImageKind::Compressed => ImageMessage::Compressed(parse(body, little_endian)?),
+        };
+        Ok(message)
+    }
+
+    /// Serialises to little-endian CDR with the encapsulation header, as rosbag2 stores it.
+    pub fn to_cdr(&self) -> Result<Vec<u8>> {
+        let body = match self {
+            ImageMessage::Raw(m) => cdr_encoding::to_vec::<_, LittleEndian>(m),
+            ImageMessage::Compressed(m) => cdr_encoding::to_vec::<_, LittleEndian>(m),
+        }
+        .map_err(|e| anyhow::anyhow!("CDR serialisation failed: {e}"))?;
+        let mut out = Vec::with_capacity(body.len() + 4);
+        out.extend_from_slice(&[0, 1, 0, 0]);
+        out.extend_from_slice(&body);
+        Ok(out)
+    }
+}
+
+fn put_ros1_bytes(out: &mut Vec<u8>, bytes: &[u8]) {
+    out.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
+    out.extend_from_slice(bytes);
+}
+
+/// Cursor over ROS 1 serialised bytes; every read checks the remaining length.
+struct Ros1Reader<'a> {
+    bytes: &'a [u8],
+    pos: usize,
+}
+
+impl<'a> Ros1Reader<'a> {
+    fn take(&mut self, n: usize, what: &str) -> Result<&'a [u8]> {
+        let end = self.pos.checked_add(n).filter(|&end| end <= self.bytes.len()).with_context(|| {
+            format!(
+                "message truncated: {what} needs {n} bytes at offset {}, only {} left",
+                self.pos,
+                self.bytes.len() - self.pos
+            )
+        })?;
+        let slice = &self.bytes[self.pos..end];
+        self.pos = end;
+        Ok(slice)
+    }
+
+    fn u8(&mut self) -> Result<u8> {
+        Ok(self.take(1, "uint8")?[0])
+    }
+
+    fn u32(&mut self) -> Result<u32> {
+        let b = self.take(4, "uint32")?;
+        Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    }
+
+    fn byte_array(&mut self) -> Result<Vec<u8>> {
+        let len = self.u32()? as usize;
+        Ok(self.take(len, "uint8[] data")?.to_vec())
+    }
+
+    fn string(&mut self) -> Result<String> {
+        let len = self.u32()? as usize;
+        let at = self.pos;
+        let bytes = self.take(len, "string")?;
+        String::from_utf8(bytes.to_vec()).with_context(|| format!("string at offset {at} is not UTF-8"))
+    }
+
+    fn header(&mut self) -> Result<Header> {
+        let _seq = self.u32()?;
+        let sec = self.u32()?;
+        let nanosec = self.u32()?;
+        let frame_id = self.string()?;
+        // ROS 1 time is unsigned; keep it in the i32 of builtin_interfaces/Time bit for bit.
+        Ok(Header { stamp: super::msgs::Time { sec: sec as i32, nanosec }, frame_id })
+    }
+}
+
+/// Bytes per pixel of the raw encodings we decode.
+fn bytes_per_pixel(encoding: &str) -> Option<usize> {
+    match encoding {
+        "rgb8" | "bgr8" => Some(3),
+        "rgba8" | "bgra8" => Some(4),
+        "mono8" => Some(1),
+        "mono16" => Some(2),
+        _ => None,
+    }
+}
+
+/// Decodes a raw `sensor_msgs/Image` to RGB (see the module doc for the conversions).
+pub fn decode_image(msg: &Image) -> Result<RgbImage> {
+    let encoding = msg.encoding.as_str();
+    let bpp = bytes_per_pixel(encoding).with_context(|| {
+        format!("unsupported image encoding {encoding:?} (supported: rgb8, bgr8, rgba8, bgra8, mono8, mono16)")
+    })?;
+    let (width, height) = (msg.width as usize, msg.height as usize);
+    ensure!(width > 0 && height > 0, "empty {encoding} image ({width}x{height})");
+    let row_bytes = width.checked_mul(bpp).context("image width overflows")?;
+    let step = msg.step as usize;
+    ensure!(
+        step >= row_bytes,
+        "{encoding} image {width}x{height}: step {step} is smaller than width*{bpp} = {row_bytes}"
+    );
+    let expected = step.checked_mul(height).context("image size overflows")?;
+    ensure!(
+        msg.data.len() == expected,
+        "{encoding} image {width}x{height}: data has {} bytes but step*height = {step}*{height} = {expected}",
+        msg.data.len()
+    );
+    let big_endian = msg.is_bigendian != 0;
+    let mut out = Vec::with_capacity(width * height * 3);
+    for row in msg.data.chunks_exact(step) {
+        let pixels = &row[..row_bytes];
+        match encoding {
+            "rgb8" => out.extend_from_slice(pixels),
+            "bgr8" => pixels.chunks_exact(3).for_each(|p| out.extend_from_slice(&[p[2], p[1], p[0]])),
+            "rgba8" => pixels.chunks_exact(4).for_each(|p| out.extend_from_slice(&p[..3])),
+            "bgra8" => pixels.chunks_exact(4).for_each(|p| out.extend_from_slice(&[p[2], p[1], p[0]])),
+            "mono8" => pixels.iter().for_each(|&v| out.extend_from_slice(&[v, v, v])),
+            "mono16" => pixels.chunks_exact(2).for_each(|p| {
+                let v = if big_endian { u16::from_be_bytes([p[0], p[1]]) } else { u16::from_le_bytes([p[0], p[1]]) };
+                let g = mono16_to_8(v);
+                out.extend_from_slice(&[g, g, g]);
+            }),
+            _ => unreachable!("checked by bytes_per_pixel"),
+        }
+    }
+    RgbImage::from_raw(msg.width, msg.height, out).context("pixel buffer size (internal)")
+}
+
+/// `round(v * 255 / 65535)`.
+pub fn mono16_to_8(v: u16) -> u8 {
+    ((v as u32 * 255 + 32767) / 65535) as u8
+}
+
+/// The codec named by a `CompressedImage.format` string.
+fn compressed_codec(format: &str) -> Result<image::ImageFormat> {
+    let lower = format.to_ascii_lowercase();
+    if lower.contains("compresseddepth") {
+        bail!("CompressedImage format {format:?} is a compressed depth map, not a camera image");
+    }
+    if lower.contains("jpeg") || lower.contains("jpg") {
+        Ok(image::ImageFormat::Jpeg)
+    } else if lower.contains("png") {
+        Ok(image::ImageFormat::Png)
+    } else {
+        bail!("unsupported CompressedImage format {format:?} (supported: jpeg, png)")
+    }
+}
+
+/// Decodes a `sensor_msgs/CompressedImage` (JPEG or PNG) to RGB.
+pub fn decode_compressed_image(msg: &CompressedImage) -> Result<RgbImage> {
+    let codec = compressed_codec(&msg.format)?;
+    let decoded = image::load_from_memory_with_format(&msg.data, codec).with_context(|| {
+        format!("CompressedImage format {:?}: {} bytes do not decode as {codec:?}", msg.format, msg.data.len())
+    })?;
+    Ok(decoded.to_rgb8())
+}
+
+/// The pixel encodings our writers can produce (the inverse of the decoders above).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WireEncoding {
+    Rgb8,
+    Bgr8,
+    Rgba8,
+    Bgra8,
+    /// Luma (ITU-R BT.601, as `image` computes it).
+    Mono8,
+    /// Luma scaled to 16 bits (`v * 257`).
+    Mono16 { big_endian: bool },
+    /// `CompressedImage` with format "jpeg" at the given quality.
+    Jpeg { quality: u8 },
+    /// `CompressedImage` with format "png".
+    Png,
+}
+
+impl WireEncoding {
+    pub fn kind(self) -> ImageKind {
+        match self {
+            WireEncoding::Jpeg { .. } | WireEncoding::Png => ImageKind::Compressed,
+            _ => ImageKind::Raw,
+        }
+    }
+}
+
+/// Builds the message that carries `image` in `encoding`, stamped `stamp`.
+pub fn encode_image(stamp: Stamp, frame_id: &str, image: &RgbImage, encoding: WireEncoding) -> Result<ImageMessage> {
+    let header = Header { stamp: stamp.into(), frame_id: frame_id.to_string() };
+    let (width, height) = image.dimensions();
+    let raw = |name: &str, bpp: u32, data: Vec<u8>, is_bigendian: u8| {
+        ImageMessage::Raw(Image {
+            header: header.clone(),
+            height,
+            width,
+            encoding: name.to_string(),
+            is_bigendian,
+            step: width * bpp,
+            data,
+        })
+    };
+    let pixels = image.pixels();
+    let luma = || image::DynamicImage::ImageRgb8(image.clone()).to_luma8().into_raw();
+    Ok(match encoding {
+        WireEncoding::Rgb8 => raw("rgb8", 3, image.as_raw().clone(), 0),
+        WireEncoding::Bgr8 => raw("bgr8", 3, pixels.flat_map(|p| [p[2], p[1], p[0]]).collect(), 0),
+        WireEncoding::Rgba8 => raw("rgba8", 4, pixels.flat_map(|p| [p[0], p[1], p[2], 255]).collect(), 0),
+        WireEncoding::Bgra8 => raw("bgra8", 4, pixels.flat_map(|p| [p[2], p[1], p[0], 255]).collect(), 0),
+        WireEncoding::Mono8 => raw("mono8", 1, luma(), 0),
+        WireEncoding::Mono16 { big_endian } => {
+            let data = luma()
+                .into_iter()
+                .flat_map(|v| {
+                    let wide = v as u16 * 257;
+                    if big_endian { wide.to_be_bytes() } else { wide.to_le_bytes() }
+                })
+                .collect();
+            raw("mono16", 2, data, big_endian as u8)
+        }
+        WireEncoding::Jpeg { quality } => ImageMessage::Compressed(CompressedImage {
+            header,
+            format: "jpeg".to_string(),
+            data: encode_jpeg(image, quality)?,
+        }),
+        WireEncoding::Png => {
+            let mut data = Vec::new();
+            image
+                .write_to(&mut std::io::Cursor::new(&mut data), image::ImageFormat::Png)
+                .context("PNG encoding failed")?;
+            ImageMessage::Compressed(CompressedImage { header, format: "png".to_string(), data })
+        }
+    })
+}
+
+/// JPEG bytes of `image` at `quality` (1-100).
+pub fn encode_jpeg(image: &RgbImage, quality: u8) -> Result<Vec<u8>> {
+    let mut data = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut data, quality.clamp(1, 100))
+        .encode_image(image)
+        .context("JPEG encoding failed")?;
+    Ok(data)
+}
+
+/// `sensor_msgs/Image` with encoding rgb8 (what the ROS 2 publisher sends).
+pub fn rgb8_message(stamp: Stamp, frame_id: &str, image: &RgbImage) -> Image {
+    Image {
+        header: Header { stamp: stamp.into(), frame_id: frame_id.to_string() },
+        height: image.height(),
+        width: image.width(),
+        encoding: "rgb8".to_string(),
+        is_bigendian: 0,
+        step: image.width() * 3,
+        data: image.as_raw().clone(),
+    }
+}
+
+/// `sensor_msgs/CompressedImage` with format "jpeg".
+pub fn jpeg_message(stamp: Stamp, frame_id: &str, image: &RgbImage, quality: u8) -> Result<CompressedImage> {
+    Ok(CompressedImage {
+        header: Header { stamp: stamp.into(), frame_id: frame_id.to_string() },
+        format: "jpeg".to_string(),
+        data: encode_jpeg(image, quality)?,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn test_image() -> RgbImage {
+        RgbImage::from_fn(5, 3, |x, y| image::Rgb([(x * 40) as u8, (y * 70) as u8, (x * 10 + y * 5 + 3) as u8]))
+    }
+
+    fn raw(encoding: &str, width: u32, height: u32, step: u32, data: Vec<u8>, big: u8) -> Image {
+        Image { header: Header::default(), height, width, encoding: encoding.into(), is_bigendian: big, step, data }
+    }
+
+    #[test]
+    fn every_raw_encoding_round_trips_through_both_wire_formats() {
+        let img = test_image();
+        let stamp = Stamp::from_sec_nsec(1341847980, 722_988_000);
+        for enc in [WireEncoding::Rgb8, WireEncoding::Bgr8, WireEncoding::Rgba8, WireEncoding::Bgra8] {
+            let msg = encode_image(stamp, "cam", &img, enc).unwrap();
+            let ros1 = ImageMessage::from_ros1(ImageKind::Raw, &msg.to_ros1(7)).unwrap();
+            let cdr = ImageMessage::from_cdr(ImageKind::Raw, &msg.to_cdr().unwrap()).unwrap();
+            assert_eq!(ros1, msg);
+            assert_eq!(cdr, msg);
+            assert_eq!(cdr.stamp(), stamp);
+            assert_eq!(cdr.to_rgb().unwrap(), img, "{enc:?}");
+        }
+        let grey = image::DynamicImage::ImageRgb8(img.clone()).to_luma8();
+        for enc in [WireEncoding::Mono8, WireEncoding::Mono16 { big_endian: false }, WireEncoding::Mono16 { big_endian: true }] {
+            let msg = encode_image(stamp, "cam", &img, enc).unwrap();
+            let back = ImageMessage::from_cdr(ImageKind::Raw, &msg.to_cdr().unwrap()).unwrap().to_rgb().unwrap();
+            for (p, g) in back.pixels().zip(grey.pixels()) {
+                assert_eq!(p.0, [g[0]; 3], "{enc:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn step_padding_is_skipped_and_mono16_byte_order_is_honoured() {
+        // 2x2 bgr8 with two bytes of padding per row.
+        let data = vec![1, 2, 3, 4, 5, 6, 0xEE, 0xEE, 7, 8, 9, 10, 11, 12, 0xEE, 0xEE];
+        let img = decode_image(&raw("bgr8", 2, 2, 8, data, 0)).unwrap();
+        assert_eq!(img.as_raw(), &vec![3, 2, 1, 6, 5, 4, 9, 8, 7, 12, 11, 10]);
+        let big = decode_image(&raw("mono16", 1, 1, 2, vec![0xFF, 0x00], 1)).unwrap();
+        let little = decode_image(&raw("mono16", 1, 1, 2, vec![0xFF, 0x00], 0)).unwrap();
+        assert_eq!(big.as_raw(), &vec![254, 254, 254]); // 0xFF00 = 65280 -> 254.0
+        assert_eq!(little.as_raw(), &vec![1, 1, 1]); // 0x00FF = 255 -> 0.99
+    }
+
+    #[test]
+    fn inconsistent_raw_images_are_errors() {
+        let err = decode_image(&raw("rgb8", 2, 2, 6, vec![0; 11], 0)).unwrap_err().to_string();
+        assert!(err.contains("data has 11 bytes but step*height = 6*2 = 12"), "{err}");
+        let err = decode_image(&raw("rgb8", 2, 2, 5, vec![0; 10], 0)).unwrap_err().to_string();
+        assert!(err.contains("step 5 is smaller than width*3 = 6"), "{err}");
+        let err = decode_image(&raw("yuv422", 2, 2, 4, vec![0; 8], 0)).unwrap_err().to_string();
+        assert!(err.contains("unsupported image encoding \"yuv422\""), "{err}");
+        let err = decode_image(&raw("mono8", u32::MAX, u32::MAX, u32::MAX, vec![], 0)).unwrap_err().to_string();
+        assert!(err.contains("overflow") || err.contains("data has 0 bytes"), "{err}");
+    }
+
+    #[test]
+    fn compressed_formats_decode_and_mismatches_are_errors() {
+        let img = test_image();
+        let stamp = Stamp::from_nanos(5);
+        let png = encode_image(stamp, "", &img, WireEncoding::Png).unwrap();
+        assert_eq!(ImageMessage::from_ros1(ImageKind::Compressed, &png.to_ros1(0)).unwrap().to_rgb().unwrap(), img);
+        let jpeg = encode_image(stamp, "", &img, WireEncoding::Jpeg { quality: 95 }).unwrap();
+        let ImageMessage::Compressed(mut jpeg) = jpeg else { panic!("compressed expected") };
+        jpeg.format = "rgb8; jpeg compressed bgr8".into();
+        let back = decode_compressed_image(&jpeg).unwrap();
+        let max_diff = back.as_raw().iter().zip(img.as_raw()).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
+        assert!(max_diff < 30, "jpeg differs by {max_diff}");
+        jpeg.format = "png".into();
+        let err = format!("{:#}", decode_compressed_image(&jpeg).unwrap_err());
+        assert!(err.contains("do not decode as Png"), "{err}");
+        jpeg.format = "tiff".into();
+        assert!(decode_compressed_image(&jpeg).unwrap_err().to_string().contains("unsupported CompressedImage format \"tiff\""));
+    }
+
+    #[test]
+    fn truncated_or_garbage_bytes_are_errors_not_panics() {
+        let msg = encode_image(Stamp::from_nanos(1), "frame", &test_image(), WireEncoding::Rgb8).unwrap();
+        let ros1 = msg.to_ros1(0);
+        let cdr = msg.to_cdr().unwrap();
+        for cut in 0..ros1.len() {
+            assert!(ImageMessage::from_ros1(ImageKind::Raw, &ros1[..cut]).is_err());
+        }
+        for cut in 0..cdr.len() {
+            assert!(ImageMessage::from_cdr(ImageKind::Raw, &cdr[..cut]).is_err());
+        }
+        let err = ImageMessage::from_ros1(ImageKind::Raw, &[0xFF; 64]).unwrap_err().to_string();
+        assert!(err.contains("truncated"), "{err}");
+        let err = ImageMessage::from_cdr(ImageKind::Raw, &[0, 7, 0, 0, 1]).unwrap_err().to_string();
+        assert!(err.contains("unsupported CDR encapsulation"), "{err}");
+    }
+}

@@ -1,0 +1,467 @@
+//! ROS 2 bags: rosbag2's sqlite3 storage (`.db3`, read with rusqlite) and MCAP (`.mcap`, read
+//! with the `mcap` crate), both carrying CDR-serialised image messages; plus writers for both,
+//! each with the `metadata.yaml` that makes the folder a rosbag2 bag.
+//!
+//! Replay order: sqlite3 messages by `timestamp` (receive time), ties by row id, as `ros2 bag
+//! play` does; MCAP messages in file order, which is log-time order for files written by
+//! rosbag2 and by our writer (MCAP has no cheap random access for a streaming reader, so an
+//! out-of-order MCAP file replays in file order). The frame stamp is the header stamp.
+
+use anyhow::{anyhow, bail, ensure, Context, Result};
+use image::RgbImage;
+use rusqlite::{Connection, OpenFlags, OptionalExtension};
+use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+
+use super::image_msg::{encode_image, ImageKind, ImageMessage, WireEncoding};
+use super::{choose_image_topic, FrameSource, TopicInfo};
+use crate::types::{Frame, Stamp};
+
+/// Decodes one CDR image payload into a frame.
+fn cdr_frame(kind: ImageKind, index: usize, payload: &[u8]) -> Result<Frame> {
+    let message = ImageMessage::from_cdr(kind, payload).with_context(|| format!("{} CDR payload", kind.ros2_type()))?;
+    Ok(Frame { index, stamp: message.stamp(), image: message.to_rgb()? })
+}
+
+/// Finds the storage file of a rosbag2 folder (one with `metadata.yaml`).
+pub fn storage_file_of_bag_dir(dir: &Path) -> Result<PathBuf> {
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))? {
+        let path = entry.with_context(|| format!("cannot list {}", dir.display()))?.path();
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_string();
+        if name.ends_with(".db3") || name.ends_with(".mcap") {
+            files.push(path);
+        } else if name.ends_with(".zstd") {
+            bail!("{}: compressed rosbag2 files ({name}) are not supported; decompress with `ros2 bag convert`", dir.display());
+        }
+    }
+    files.sort();
+    match files.as_slice() {
+        [one] => Ok(one.clone()),
+        [] => bail!("ROS 2 bag folder {} has metadata.yaml but no .db3 or .mcap file", dir.display()),
+        many => bail!(
+            "ROS 2 bag folder {} is split into {} files; replay one of them directly: {}",
+            dir.display(),
+            many.len(),
+            many.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(", ")
+        ),
+    }
+}
+
+/// Replays one image topic of a rosbag2 sqlite3 file.
+pub struct SqliteBagSource {
+    path: PathBuf,
+    db: Connection,
+    description: String,
+    kind: ImageKind,
+    message_ids: Vec<i64>,
+    next: usize,
+    done: bool,
+}
+
+impl SqliteBagSource {
+    pub fn open(path: &Path, topic: Option<&str>) -> Result<SqliteBagSource> {
+        let name = format!("ROS 2 sqlite3 bag {}", path.display());
+        ensure!(path.is_file(), "{name} does not exist");
+        let db = Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)
+            .with_context(|| format!("cannot open {name}"))?;
+        let topics = Self::topics(&db).with_context(|| format!("{name}: cannot read the topics and messages tables"))?;
+        let infos: Vec<TopicInfo> = topics.values().map(|(info, _)| info.clone()).collect();
+        let (chosen, kind) = choose_image_topic(&name, &infos, topic)?;
+        let (topic_id, format) = topics
+            .iter()
+            .find(|(_, (info, _))| info.name == chosen.name)
+            .map(|(id, (_, format))| (*id, format.clone()))
+            .context("chosen topic is listed")?;
+        ensure!(format == "cdr", "{name}: topic {} is serialised as {format:?}, only cdr is supported", chosen.name);
+        let message_ids = (|| -> rusqlite::Result<Vec<i64>> {
+            let mut statement = db.prepare("SELECT id FROM messages WHERE topic_id = ?1 ORDER BY timestamp, id")?;
+            let ids = statement.query_map([topic_id], |row| row.get(0))?.collect();
+            ids
+        })()
+        .with_context(|| format!("{name}: cannot list the messages of {}", chosen.name))?;
+        let description = format!("{name}, topic {} ({} messages)", chosen.name, message_ids.len());
+        Ok(SqliteBagSource { path: path.to_path_buf(), db, description, kind, message_ids, next: 0, done: false })
+    }
+
+    /// Topic id -> (info, serialization format).
+    fn topics(db: &Connection) -> rusqlite::Result<HashMap<i64, (TopicInfo, String)>> {
+        let mut counts: HashMap<i64, usize> = HashMap::new();
+        let mut statement = db.prepare("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id")?;
+        for row in statement.query_map([], |row| Ok((row.get::<_, i64>(0)?, row.get::<_, i64>(1)?)))? {
+            let (id, count) = row?;
+            counts.insert(id, count as usize);
+        }
+        let mut statement = db.prepare("SELECT id, name, type, serialization_format FROM topics ORDER BY name")?;
+        let rows = statement.query_map([], |row| {
+            let id: i64 = row.get(0)?;
+            Ok((id, (TopicInfo { name: row.get(1)?, type_name: row.get(2)?, count: 0 }, row.get::<_, String>(3)?)))
+        })?;
+        let mut topics = HashMap::new();
+        for row in rows {
+            let (id, (mut info, format)) = row?;
+            info.count = counts.get(&id).copied().unwrap_or(0);
+            topics.insert(id, (info, format));
+        }
+        Ok(topics)
+    }
+
+    fn read_frame(&self, index: usize) -> Result<Frame> {
+        let id = self.message_ids[index];
+        let payload: Vec<u8> = self
+            .db
+            .query_row("SELECT data FROM messages WHERE id = ?1", [id], |row| row.get(0))
+            .optional()?
+            .with_context(|| format!("row id {id} vanished"))?;
+        cdr_frame(self.kind, index, &payload).with_context(|| format!("row id {id}"))
+    }
+}
+
+impl Iterator for SqliteBagSource {
+    type Item = Result<Frame>;
+
+    fn next(&mut self) -> Option<Result<Frame>> {
+        if self.done || self.next >= self.message_ids.len() {
+            return None;
+        }
+        let index = self.next;
+        self.next += 1;
+        let frame = self.read_frame(index).with_context(|| {
+            format!("ROS 2 sqlite3 bag {}: message {index}; read {index} messages before the damage", self.path.display())
+        });
+        self.done = frame.is_err();
+        Some(frame)
+    }
+}
+
+impl FrameSource for SqliteBagSource {
+    fn describe(&self) -> String {
+        self.description.clone()
+    }
+
+    fn len_hint(&self) -> Option<usize> {
+        Some(self.message_ids.len())
+    }
+}
+
+/// Replays one image topic of an MCAP file.
+pub struct McapSource {
+    path: PathBuf,
+    reader: mcap::io::MessageReader<BufReader<File>>,
+    description: String,
+    topic: String,
+    kind: ImageKind,
+    count: usize,
+    next: usize,
+    done: bool,
+}
+
+fn open_mcap_reader(path: &Path) -> Result<mcap::io::MessageReader<BufReader<File>>> {
+    let file = File::open(path).with_context(|| format!("cannot open MCAP file {}", path.display()))?;
+    Ok(mcap::io::MessageReader::new(BufReader::with_capacity(1 << 20, file)))
+}
+
+impl McapSource {
+    /// Opens `path`; a first pass over the file counts the messages per topic.
+    pub fn open(path: &Path, topic: Option<&str>) -> Result<McapSource> {
+        let name = format!("MCAP file {}", path.display());
+        let mut topics: BTreeMap<String, TopicInfo> = BTreeMap::new();
+        let mut encodings: HashMap<String, String> = HashMap::new();
+        let mut damage = None;
+        let mut total = 0usize;
+        for message in open_mcap_reader(path)? {
+            match message {
+                Ok(message) => {
+                    let channel = &message.channel;
+                    let type_name = channel.schema.as_ref().map(|s| s.name.clone()).unwrap_or_default();
+                    topics
+                        .entry(channel.topic.clone())
+                        .or_insert_with(|| TopicInfo { name: channel.topic.clone(), type_name, count: 0 })
+                        .count += 1;
+                    encodings.insert(channel.topic.clone(), channel.message_encoding.clone());
+                    total += 1;
+                }
+                Err(err) => {
+                    damage = Some(anyhow!(err).context(format!("{name}: damaged after {total} messages")));
+                    break;
+                }
+            }
+        }
+        let infos: Vec<TopicInfo> = topics.into_values().collect();
+        let (chosen, kind) = match choose_image_topic(&name, &infos, topic) {
+            Ok(chosen) => chosen,
+            Err(err) => return Err(match damage {
+                Some(d) => err.context(format!("{d:#}")),
+                None => err,
+            }),
+        };
+        let encoding = encodings.get(&chosen.name).cloned().unwrap_or_default();
+        ensure!(encoding == "cdr", "{name}: topic {} has message encoding {encoding:?}, only cdr is supported", chosen.name);
+        let description = format!("{name}, topic {} ({} messages)", chosen.name, chosen.count);
+        Ok(McapSource {
+            path: path.to_path_buf(),
+            reader: open_mcap_reader(path)?,
+            description,
+            topic: chosen.name,
+            kind,
+            count: chosen.count,
+            next: 0,
+            done: false,
+        })
+    }
+}
+
+impl Iterator for McapSource {
+    type Item = Result<Frame>;
+
+    fn next(&mut self) -> Option<Result<Frame>> {
+        if self.done {
+            return None;
+        }
+        let index = self.next;
+        let result = loop {
+            match self.reader.next() {
+                None => {
+                    self.done = true;
+                    return None;
+                }
+                Some(Ok(message)) if message.channel.topic == self.topic => {
+                    break cdr_frame(self.kind, index, &message.data)
+                        .with_context(|| format!("message {index} (log time {} ns)", message.log_time));
+                }
+                Some(Ok(_)) => continue,
+                Some(Err(err)) => break Err(anyhow!(err)),
+            }
+        };
+        self.next += 1;
+        self.done = result.is_err();
+        Some(result.with_context(|| {
+            format!("MCAP file {}: read {index} messages of {} before the damage", self.path.display(), self.topic)
+        }))
+    }
+}
+
+impl FrameSource for McapSource {
+    fn describe(&self) -> String {
+        self.description.clone()
+    }
+
+    fn len_hint(&self) -> Option<usize> {
+        Some(self.count)
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Writers
+
+/// rosbag2 storage formats.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Ros2Storage {
+    Sqlite3,
+    Mcap,
+}
+
+const IMAGE_MSG_DEFINITION: &str = "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n";
+const COMPRESSED_IMAGE_MSG_DEFINITION: &str = "std_msgs/Header header\nstring format\nuint8[] data\n";
+const HEADER_MSG_DEFINITION: &str = "builtin_interfaces/Time stamp\nstring frame_id\n";
+const TIME_MSG_DEFINITION: &str = "int32 sec\nuint32 nanosec\n";
+
+/// The `ros2msg` schema text rosbag2 stores in MCAP files.
+fn ros2msg_definition(kind: ImageKind) -> String {
+    let body = match kind {
+        ImageKind::Raw => IMAGE_MSG_DEFINITION,
+        ImageKind::Compressed => COMPRESSED_IMAGE_MSG_DEFINITION,
+    };
+    let line = "=".repeat(80);
+    format!("{body}\n{line}\nMSG: std_msgs/Header\n{HEADER_MSG_DEFINITION}\n{line}\nMSG: builtin_interfaces/Time\n{TIME_MSG_DEFINITION}")
+}
+
+/// Writes a rosbag2 folder `dir` (created; must not exist, as with `ros2 bag record -o`) with
+/// one topic carrying `frames` in `encoding`; receive time = stamp. Returns the message count.
+pub fn write_ros2_bag(
+    dir: &Path,
+    storage: Ros2Storage,
+    topic: &str,
+    frames: impl IntoIterator<Item = (Stamp, RgbImage)>,
+    encoding: WireEncoding,
+) -> Result<usize> {
+    let write = || -> Result<usize> {
+        ensure!(!dir.exists(), "{} already exists", dir.display());
+        std::fs::create_dir_all(dir)?;
+        let base = dir.file_name().and_then(|n| n.to_str()).context("bag folder has no UTF-8 name")?;
+        let kind = encoding.kind();
+        let messages = frames.into_iter().map(|(stamp, image)| {
+            let payload = encode_image(stamp, "camera", &image, encoding)?.to_cdr()?;
+            Ok((stamp, payload))
+        });
+        let (file_name, stamps) = match storage {
+            Ros2Storage::Sqlite3 => {
+                let file_name = format!("{base}_0.db3");
+                (file_name.clone(), write_sqlite(&dir.join(&file_name), topic, kind, messages)?)
+            }
+            Ros2Storage::Mcap => {
+                let file_name = format!("{base}_0.mcap");
+                (file_name.clone(), write_mcap(&dir.join(&file_name), topic, kind, messages)?)
+            }
+        };
+        let storage_name = if storage == Ros2Storage::Sqlite3 { "sqlite3" } else { "mcap" };
+        std::fs::write(dir.join("metadata.yaml"), metadata_yaml(storage_name, &file_name, topic, kind, &stamps))?;
+        Ok(stamps.len())
+    };
+    write().with_context(|| format!("cannot write ROS 2 bag {}", dir.display()))
+}
+
+fn write_sqlite(path: &Path, topic: &str, kind: ImageKind, messages: impl Iterator<Item = Result<(Stamp, Vec<u8>)>>) -> Result<Vec<Stamp>> {
+    let mut db = Connection::open(path)?;
+    db.execute_batch(
+        "CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, type TEXT NOT NULL, \
+           serialization_format TEXT NOT NULL, offered_qos_profiles TEXT NOT NULL);
+         CREATE TABLE messages(id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, \
+           timestamp INTEGER NOT NULL, data BLOB NOT NULL);
+         CREATE INDEX timestamp_idx ON messages (timestamp ASC);",
+    )?;
+    let tx = db.transaction()?;
+    tx.execute(
+        "INSERT INTO topics(id, name, type, serialization_format, offered_qos_profiles) VALUES (1, ?1, ?2, 'cdr', '')",
+        [topic, kind.ros2_type()],
+    )?;
+    let mut stamps = Vec::new();
+    {
+        let mut insert = tx.prepare("INSERT INTO messages(topic_id, timestamp, data) VALUES (1, ?1, ?2)")?;
+        for message in messages {
+            let (stamp, payload) = message?;
+            insert.execute(rusqlite::params![stamp.nanos, payload])?;
+            stamps.push(stamp);
+        }
+    }
+    tx.commit()?;
+    Ok(stamps)
+}
+
+fn write_mcap(path: &Path, topic: &str, kind: ImageKind, messages: impl Iterator<Item = Result<(Stamp, Vec<u8>)>>) -> Result<Vec<Stamp>> {
+    let file = std::io::BufWriter::new(File::create(path)?);
+    let mut writer = mcap::WriteOptions::new().profile("ros2").create(file)?;
+    let schema = writer.add_schema(kind.ros2_type(), "ros2msg", ros2msg_definition(kind).as_bytes())?;
+    let channel = writer.add_channel(schema, topic, "cdr", &BTreeMap::new())?;
+    let mut stamps = Vec::new();
+    for (sequence, message) in messages.enumerate() {
+        let (stamp, payload) = message?;
+        let time = u64::try_from(stamp.nanos).with_context(|| format!("negative stamp {stamp}"))?;
+        let header = mcap::records::MessageHeader { channel_id: channel, sequence: sequence as u32, log_time: time, publish_time: time };
+        writer.write_to_known_channel(&header, &payload)?;
+        stamps.push(stamp);
+    }
+    writer.finish()?;
+    Ok(stamps)
+}
+
+/// rosbag2 `metadata.yaml` (version 5, which rosbag2 since Humble and `rosbags` read).
+fn metadata_yaml(storage: &str, file_name: &str, topic: &str, kind: ImageKind, stamps: &[Stamp]) -> String {
+    let start = stamps.iter().min().map_or(0, |s| s.nanos);
+    let duration = stamps.iter().max().map_or(0, |s| s.nanos) - start;
+    let count = stamps.len();
+    format!(
+        "rosbag2_bagfile_information:
+  version: 5
+  storage_identifier: {storage}
+  duration:
+    nanoseconds: {duration}
+  starting_time:
+    nanoseconds_since_epoch: {start}
+  message_count: {count}
+  topics_with_message_count:
+    - topic_metadata:
+        name: {topic}
+        type: {ty}
+        serialization_format: cdr
+        offered_qos_profiles: \"\"
+      message_count: {count}
+  compression_format: \"\"
+  compression_mode: \"\"
+  relative_file_paths:
+    - {file_name}
+  files:
+    - path: {file_name}
+      starting_time:
+        nanoseconds_since_epoch: {start}
+      duration:
+        nanoseconds: {duration}
+      message_count: {count}
+",
+        ty = kind.ros2_type()
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frames(n: usize) -> Vec<(Stamp, RgbImage)> {
+        (0..n)
+            .map(|i| {
+                let img = RgbImage::from_fn(7, 5, |x, y| image::Rgb([(x * 30) as u8, (y * 40) as u8, (i * 20) as u8]));
+                (Stamp::from_sec_nsec(1_700_000_000 + i as i64, 123_456_789), img)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn written_bags_read_back_in_both_storages() {
+        let dir = tempfile::tempdir().unwrap();
+        for storage in [Ros2Storage::Sqlite3, Ros2Storage::Mcap] {
+            let bag = dir.path().join(format!("{storage:?}"));
+            assert_eq!(write_ros2_bag(&bag, storage, "/cam", frames(4), WireEncoding::Rgba8).unwrap(), 4);
+            let file = storage_file_of_bag_dir(&bag).unwrap();
+            let source: Box<dyn FrameSource> = match storage {
+                Ros2Storage::Sqlite3 => Box::new(SqliteBagSource::open(&file, None).unwrap()),
+                Ros2Storage::Mcap => Box::new(McapSource::open(&file, Some("/cam")).unwrap()),
+            };
+            assert_eq!(source.len_hint(), Some(4));
+            assert!(source.describe().ends_with("topic /cam (4 messages)"), "{}", source.describe());
+            let read: Vec<Frame> = source.map(|f| f.unwrap()).collect();
+            assert_eq!(read.len(), 4);
+            for (i, (frame, (stamp, image))) in read.iter().zip(frames(4)).enumerate() {
+                assert_eq!((frame.index, frame.stamp), (i, stamp));
+                assert_eq!(frame.image, image);
+            }
+        }
+    }
+
+    #[test]
+    fn damaged_ros2_files_are_errors_with_the_file_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let bag = dir.path().join("m");
+        write_ros2_bag(&bag, Ros2Storage::Mcap, "/cam", frames(3), WireEncoding::Png).unwrap();
+        let file = storage_file_of_bag_dir(&bag).unwrap();
+        let bytes = std::fs::read(&file).unwrap();
+        let cut = dir.path().join("cut.mcap");
+        // Cut inside the summary: every message is still there, then the reader reports the cut.
+        for len in [bytes.len() - 30, bytes.len() / 2, 20, 3] {
+            std::fs::write(&cut, &bytes[..len]).unwrap();
+            match McapSource::open(&cut, None) {
+                Ok(source) => {
+                    let results: Vec<Result<Frame>> = source.collect();
+                    let err = format!("{:#}", results.last().unwrap().as_ref().unwrap_err());
+                    assert!(err.contains("cut.mcap") && err.contains("before the damage"), "{err}");
+                }
+                Err(err) => assert!(format!("{err:#}").contains("cut.mcap"), "{err:#}"),
+            }
+        }
+
+        let bag = dir.path().join("s");
+        write_ros2_bag(&bag, Ros2Storage::Sqlite3, "/cam", frames(2), WireEncoding::Mono8).unwrap();
+        let file = storage_file_of_bag_dir(&bag).unwrap();
+        let db = Connection::open(&file).unwrap();
+        db.execute("UPDATE messages SET data = x'00010000ffff' WHERE id = 2", []).unwrap();
+        drop(db);
+        let results: Vec<Result<Frame>> = SqliteBagSource::open(&file, None).unwrap().collect();
+        assert_eq!(results.len(), 2);
+        let err = format!("{:#}", results[1].as_ref().unwrap_err());
+        assert!(err.contains("message 1; read 1 messages before the damage") && err.contains("row id 2"), "{err}");
+        std::fs::write(&cut, b"not a database at all, just text that goes on for a while..............").unwrap();
+        let err = format!("{:#}", SqliteBagSource::open(&cut, None).err().unwrap());
+        assert!(err.contains("cut.mcap"), "{err}");
+    }
+}

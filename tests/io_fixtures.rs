@@ -1,0 +1,140 @@
+//! Bags written by an independent tool (`rosbags` from PyPI, in a test-only virtualenv) read by
+//! our readers, and bags written by our writers read by `rosbags` and by our readers.
+//! The pixel pattern mirrors `tests/support/rosbags_fixtures.py`.
+
+mod support;
+
+use ecm_lcd::io::image_msg::{encode_image, mono16_to_8, WireEncoding};
+use ecm_lcd::io::open_source;
+use ecm_lcd::io::ros1bag::{write_ros1_bag, Ros1Compression};
+use ecm_lcd::io::ros2bag::{write_ros2_bag, Ros2Storage};
+use ecm_lcd::types::{Frame, Stamp};
+use image::{Rgb, RgbImage};
+use sha2::{Digest, Sha256};
+use std::path::Path;
+
+const WIDTH: u32 = 16;
+const HEIGHT: u32 = 12;
+const FRAMES: usize = 5;
+
+fn header_stamp(i: usize) -> Stamp {
+    Stamp::from_sec_nsec(1341847980 + i as i64, 722988000 + i as u32 * 1001)
+}
+
+fn rgb_pattern(i: usize) -> RgbImage {
+    let i = i as u32;
+    RgbImage::from_fn(WIDTH, HEIGHT, |x, y| {
+        Rgb([((x * 13 + i * 29) & 255) as u8, ((y * 17 + i * 7) & 255) as u8, ((x * y * 3 + i) & 255) as u8])
+    })
+}
+
+fn grey(f: impl Fn(u32, u32) -> u8) -> RgbImage {
+    RgbImage::from_fn(WIDTH, HEIGHT, |x, y| Rgb([f(x, y); 3]))
+}
+
+fn expected_image(topic: &str, i: usize) -> RgbImage {
+    let n = i as u32;
+    match topic {
+        "mono8" => grey(|x, y| ((x * 9 + y * 14 + n * 5) & 255) as u8),
+        "mono16_le" | "mono16_be" => grey(|x, y| mono16_to_8(((x * 2000 + y * 3000 + n * 111) & 0xFFFF) as u16)),
+        _ => rgb_pattern(i),
+    }
+}
+
+const TOPICS: [&str; 9] = ["rgb8", "bgr8", "rgba8", "bgra8", "mono8", "mono16_le", "mono16_be", "jpeg", "png"];
+
+fn check_frames(source_name: &str, topic: &str, frames: &[Frame]) {
+    assert_eq!(frames.len(), FRAMES, "{source_name} {topic}");
+    for (i, frame) in frames.iter().enumerate() {
+        assert_eq!(frame.index, i);
+        assert_eq!(frame.stamp, header_stamp(i), "{source_name} {topic} frame {i}: header stamp, not receive time");
+        let expected = expected_image(topic, i);
+        if topic == "jpeg" {
+            let diffs: Vec<u32> =
+                frame.image.as_raw().iter().zip(expected.as_raw()).map(|(a, b)| a.abs_diff(*b) as u32).collect();
+            let mean = diffs.iter().sum::<u32>() as f64 / diffs.len() as f64;
+            assert!(mean < 3.0, "{source_name} jpeg frame {i}: mean abs diff {mean}");
+        } else {
+            assert_eq!(frame.image, expected, "{source_name} {topic} frame {i}");
+        }
+    }
+}
+
+#[test]
+fn rosbags_written_bags_read_with_every_encoding() {
+    let dir = tempfile::tempdir().unwrap();
+    support::rosbags_fixtures(&["write".as_ref(), dir.path().as_os_str()]);
+    for bag in ["ros1_none.bag", "ros1_bz2.bag", "ros1_lz4.bag", "ros2_sqlite3", "ros2_mcap"] {
+        let path = dir.path().join(bag);
+        for topic in TOPICS {
+            let source = open_source(&path, Some(&format!("/{topic}"))).unwrap_or_else(|e| panic!("{bag}: {e:#}"));
+            assert_eq!(source.len_hint(), Some(FRAMES), "{bag} {topic}");
+            let frames: Vec<Frame> = source.map(|f| f.unwrap_or_else(|e| panic!("{bag} {topic}: {e:#}"))).collect();
+            check_frames(bag, topic, &frames);
+        }
+        let err = open_source(&path, None).err().unwrap().to_string();
+        assert!(err.contains("9 image topics") && err.contains("/mono16_be (sensor_msgs"), "{bag}: {err}");
+    }
+    // The storage file of a ROS 2 bag folder opens directly too.
+    let db3 = dir.path().join("ros2_sqlite3/ros2_sqlite3.db3");
+    let frames: Vec<Frame> = open_source(&db3, Some("/png")).unwrap().map(|f| f.unwrap()).collect();
+    check_frames("db3 file", "png", &frames);
+}
+
+fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// What rosbags read from one message, as printed by the fixture script.
+fn rosbags_read(bag: &Path, topic: &str) -> Vec<serde_json::Value> {
+    support::rosbags_fixtures(&["read".as_ref(), bag.as_os_str(), topic.as_ref()])
+        .lines()
+        .map(|line| serde_json::from_str(line).unwrap())
+        .collect()
+}
+
+#[test]
+fn our_bags_read_by_rosbags_and_by_us() {
+    let dir = tempfile::tempdir().unwrap();
+    let frames: Vec<(Stamp, RgbImage)> = (0..3).map(|i| (header_stamp(i), rgb_pattern(i))).collect();
+    let cases: [(&str, WireEncoding); 4] = [
+        ("bgr8", WireEncoding::Bgr8),
+        ("mono16_be", WireEncoding::Mono16 { big_endian: true }),
+        ("jpeg", WireEncoding::Jpeg { quality: 90 }),
+        ("png", WireEncoding::Png),
+    ];
+    let mut bags = Vec::new();
+    for (i, compression) in [Ros1Compression::None, Ros1Compression::Bz2, Ros1Compression::Lz4].into_iter().enumerate() {
+        let (name, encoding) = cases[i];
+        let path = dir.path().join(format!("ours_{compression:?}.bag"));
+        write_ros1_bag(&path, "/camera/image", frames.clone(), encoding, compression).unwrap();
+        bags.push((path, name, encoding));
+    }
+    for (storage, (name, encoding)) in [(Ros2Storage::Sqlite3, cases[3]), (Ros2Storage::Mcap, cases[0])] {
+        let path = dir.path().join(format!("ours_{storage:?}"));
+        write_ros2_bag(&path, storage, "/camera/image", frames.clone(), encoding).unwrap();
+        bags.push((path, name, encoding));
+    }
+    for (path, name, encoding) in bags {
+        let seen = rosbags_read(&path, "/camera/image");
+        assert_eq!(seen.len(), frames.len(), "{}", path.display());
+        for (i, (line, (stamp, image))) in seen.iter().zip(&frames).enumerate() {
+            let sent = encode_image(*stamp, "camera", image, encoding).unwrap();
+            let (sent_data, sent_format) = match &sent {
+                ecm_lcd::io::image_msg::ImageMessage::Raw(m) => (&m.data, m.encoding.clone()),
+                ecm_lcd::io::image_msg::ImageMessage::Compressed(m) => (&m.data, m.format.clone()),
+            };
+            assert_eq!(line["sec"].as_i64(), Some(stamp.sec()), "{name} {i}");
+            assert_eq!(line["nanosec"].as_u64(), Some(stamp.nsec() as u64), "{name} {i}");
+            assert_eq!(line["receive_time"].as_i64(), Some(stamp.nanos), "{name} {i}");
+            assert_eq!(line["sha256"].as_str(), Some(sha256_hex(sent_data).as_str()), "{name} {i}");
+            let format = line.get("encoding").or_else(|| line.get("format")).and_then(|v| v.as_str());
+            assert_eq!(format, Some(sent_format.as_str()), "{name} {i}");
+        }
+        let ours: Vec<Frame> = open_source(&path, None).unwrap().map(|f| f.unwrap()).collect();
+        assert_eq!(ours.iter().map(|f| f.stamp).collect::<Vec<_>>(), frames.iter().map(|f| f.0).collect::<Vec<_>>());
+        if name == "png" || name == "bgr8" {
+            assert!(ours.iter().zip(&frames).all(|(a, b)| a.image == b.1), "{name}");
+        }
+    }
+}

@@ -1,0 +1,78 @@
+//! Helpers shared by the integration tests: the read-only shared data folder and a test-only
+//! Python virtualenv with `rosbags` (an independent implementation of the bag formats) in which
+//! `rosbags_fixtures.py` writes and reads bags.
+#![allow(dead_code)] // each test binary uses a different subset
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// `<repo>/../shared`, else `$ECM_LCD_SHARED`; panics with instructions if neither exists,
+/// because tests that need the shared data must not pass without it.
+pub fn shared_dir() -> PathBuf {
+    let beside = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
+    if beside.is_dir() {
+        return beside;
+    }
+    match std::env::var_os("ECM_LCD_SHARED") {
+        Some(dir) if Path::new(&dir).is_dir() => PathBuf::from(dir),
+        _ => panic!(
+            "shared data not found: neither {} nor $ECM_LCD_SHARED is a directory",
+            beside.display()
+        ),
+    }
+}
+
+/// The cargo target directory this test binary was built into (`target/<profile>/deps/..`).
+fn target_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    exe.ancestors().nth(3).expect("test binary lives in <target>/<profile>/deps").to_path_buf()
+}
+
+const VENV_PACKAGES: &[&str] = &["rosbags==0.11.9", "pillow>=10"];
+
+/// Python of `<target>/test-venv`, created on first use (`python3 -m venv` + `pip install`)
+/// and reused afterwards. Built under a temporary name and renamed into place, so concurrent
+/// test binaries never see a half-built venv.
+pub fn rosbags_python() -> PathBuf {
+    // Tests of one binary run in threads of one process: build the venv once per process.
+    static BUILDING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _guard = BUILDING.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    let venv = target_dir().join("test-venv");
+    let python = venv.join("bin/python");
+    if python.is_file() {
+        return python;
+    }
+    let building = target_dir().join(format!("test-venv.building.{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&building);
+    run(Command::new("python3").args(["-m", "venv"]).arg(&building), "python3 -m venv");
+    run(
+        Command::new(building.join("bin/python"))
+            .args(["-m", "pip", "install", "--quiet", "--disable-pip-version-check"])
+            .args(VENV_PACKAGES),
+        "pip install rosbags",
+    );
+    if std::fs::rename(&building, &venv).is_err() {
+        // Another test binary finished first; use its venv.
+        let _ = std::fs::remove_dir_all(&building);
+    }
+    assert!(python.is_file(), "{} missing after venv creation", python.display());
+    python
+}
+
+fn run(command: &mut Command, what: &str) -> String {
+    let output = command.output().unwrap_or_else(|e| panic!("{what}: cannot start: {e}"));
+    assert!(
+        output.status.success(),
+        "{what} failed ({}):\n{}\n{}",
+        output.status,
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    String::from_utf8(output.stdout).expect("UTF-8 output")
+}
+
+/// Runs `tests/support/rosbags_fixtures.py` with `args` in the venv; returns its stdout.
+pub fn rosbags_fixtures(args: &[&std::ffi::OsStr]) -> String {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/support/rosbags_fixtures.py");
+    run(Command::new(rosbags_python()).arg(script).args(args), "rosbags_fixtures.py")
+}

@@ -1,0 +1,183 @@
+"""Independent bag fixtures for ecm-lcd's io tests, written and read with `rosbags` (PyPI).
+
+  rosbags_fixtures.py write OUTDIR   writes ros1_none.bag, ros1_bz2.bag, ros1_lz4.bag,
+                                     ros2_sqlite3/ and ros2_mcap/, each with one topic per
+                                     image encoding (see TOPICS), FRAMES frames per topic.
+  rosbags_fixtures.py read BAG TOPIC prints one JSON line per message of TOPIC: header stamp,
+                                     receive time, the message fields and sha256 of its data.
+
+The pixel pattern is defined here and mirrored in tests/io_fixtures.rs (keep them in step).
+Raw images carry row padding (step > width * bytes per pixel) filled with 0xAB. ROS 1 and
+sqlite3 bags get their messages written out of time order (receive time still follows the
+frame index), so readers must sort; MCAP is written in order.
+"""
+import hashlib
+import io
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+from PIL import Image as PilImage
+from rosbags.highlevel import AnyReader
+from rosbags.rosbag1 import Writer as Ros1Writer
+from rosbags.rosbag2 import StoragePlugin, Writer as Ros2Writer
+from rosbags.typesys import Stores, get_typestore
+
+WIDTH, HEIGHT, FRAMES = 16, 12, 5
+PAD = 4
+WRITE_ORDER_SHUFFLED = [0, 2, 1, 4, 3]
+TOPICS = ["rgb8", "bgr8", "rgba8", "bgra8", "mono8", "mono16_le", "mono16_be", "jpeg", "png"]
+
+
+def header_stamp(i):
+    return 1341847980 + i, 722988000 + i * 1001
+
+
+def receive_time(i):
+    sec, nsec = header_stamp(i)
+    return sec * 10**9 + nsec + 5_000_000
+
+
+def rgb_pattern(i):
+    y, x = np.mgrid[0:HEIGHT, 0:WIDTH]
+    r = (x * 13 + i * 29) & 255
+    g = (y * 17 + i * 7) & 255
+    b = (x * y * 3 + i) & 255
+    return np.stack([r, g, b], axis=-1).astype(np.uint8)
+
+
+def mono8_pattern(i):
+    y, x = np.mgrid[0:HEIGHT, 0:WIDTH]
+    return ((x * 9 + y * 14 + i * 5) & 255).astype(np.uint8)
+
+
+def mono16_pattern(i):
+    y, x = np.mgrid[0:HEIGHT, 0:WIDTH]
+    return ((x * 2000 + y * 3000 + i * 111) & 0xFFFF).astype(np.uint16)
+
+
+def padded(rows):
+    """rows: (HEIGHT, row_bytes) uint8 -> bytes with PAD bytes of 0xAB after each row."""
+    pad = np.full((rows.shape[0], PAD), 0xAB, dtype=np.uint8)
+    return np.concatenate([rows, pad], axis=1).tobytes(), rows.shape[1] + PAD
+
+
+def raw_fields(topic, i):
+    rgb = rgb_pattern(i)
+    big = 0
+    if topic == "rgb8":
+        rows = rgb
+    elif topic == "bgr8":
+        rows = rgb[..., ::-1]
+    elif topic == "rgba8":
+        rows = np.concatenate([rgb, np.full((HEIGHT, WIDTH, 1), 77, np.uint8)], axis=-1)
+    elif topic == "bgra8":
+        rows = np.concatenate([rgb[..., ::-1], np.full((HEIGHT, WIDTH, 1), 77, np.uint8)], axis=-1)
+    elif topic == "mono8":
+        rows = mono8_pattern(i)
+    else:
+        big = 1 if topic == "mono16_be" else 0
+        rows = mono16_pattern(i).astype(">u2" if big else "<u2").view(np.uint8)
+    data, step = padded(np.ascontiguousarray(rows).reshape(HEIGHT, -1))
+    encoding = "mono16" if topic.startswith("mono16") else topic
+    return encoding, big, step, data
+
+
+def compressed_fields(topic, i):
+    out = io.BytesIO()
+    image = PilImage.fromarray(rgb_pattern(i), "RGB")
+    if topic == "jpeg":
+        # 4:4:4 so that the test measures decoding, not chroma subsampling of a busy 16x12 pattern.
+        image.save(out, format="JPEG", quality=95, subsampling=0)
+        return "rgb8; jpeg compressed bgr8", out.getvalue()
+    image.save(out, format="PNG")
+    return "png", out.getvalue()
+
+
+def make_message(store, ros1, topic, i):
+    types = store.types
+    sec, nsec = header_stamp(i)
+    stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec)
+    if ros1:
+        header = types["std_msgs/msg/Header"](seq=i, stamp=stamp, frame_id="camera")
+    else:
+        header = types["std_msgs/msg/Header"](stamp=stamp, frame_id="camera")
+    if topic in ("jpeg", "png"):
+        fmt, data = compressed_fields(topic, i)
+        msg = types["sensor_msgs/msg/CompressedImage"](header=header, format=fmt, data=np.frombuffer(data, np.uint8))
+        return "sensor_msgs/msg/CompressedImage", msg
+    encoding, big, step, data = raw_fields(topic, i)
+    msg = types["sensor_msgs/msg/Image"](
+        header=header, height=HEIGHT, width=WIDTH, encoding=encoding, is_bigendian=big, step=step,
+        data=np.frombuffer(data, np.uint8))
+    return "sensor_msgs/msg/Image", msg
+
+
+def msgtype_of(topic):
+    return "sensor_msgs/msg/CompressedImage" if topic in ("jpeg", "png") else "sensor_msgs/msg/Image"
+
+
+def write_ros1(path, compression):
+    store = get_typestore(Stores.ROS1_NOETIC)
+    writer = Ros1Writer(path)
+    if compression is not None:
+        writer.set_compression(compression)
+    with writer:
+        conns = {t: writer.add_connection("/" + t, msgtype_of(t), typestore=store) for t in TOPICS}
+        for i in WRITE_ORDER_SHUFFLED:
+            for t in TOPICS:
+                msgtype, msg = make_message(store, True, t, i)
+                writer.write(conns[t], receive_time(i), store.serialize_ros1(msg, msgtype))
+
+
+def write_ros2(path, plugin, order):
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    with Ros2Writer(path, version=9, storage_plugin=plugin) as writer:
+        conns = {t: writer.add_connection("/" + t, msgtype_of(t), typestore=store) for t in TOPICS}
+        for i in order:
+            for t in TOPICS:
+                msgtype, msg = make_message(store, False, t, i)
+                writer.write(conns[t], receive_time(i), store.serialize_cdr(msg, msgtype))
+
+
+def write_all(out):
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_ros1(out / "ros1_none.bag", None)
+    write_ros1(out / "ros1_bz2.bag", Ros1Writer.CompressionFormat.BZ2)
+    write_ros1(out / "ros1_lz4.bag", Ros1Writer.CompressionFormat.LZ4)
+    write_ros2(out / "ros2_sqlite3", StoragePlugin.SQLITE3, WRITE_ORDER_SHUFFLED)
+    write_ros2(out / "ros2_mcap", StoragePlugin.MCAP, range(FRAMES))
+
+
+def read(bag, topic):
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    with AnyReader([Path(bag)], default_typestore=store) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        if not conns:
+            raise SystemExit(f"no topic {topic} in {bag}: {[c.topic for c in reader.connections]}")
+        for conn, timestamp, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            line = {
+                "msgtype": conn.msgtype,
+                "receive_time": timestamp,
+                "sec": msg.header.stamp.sec,
+                "nanosec": msg.header.stamp.nanosec,
+                "sha256": hashlib.sha256(bytes(msg.data)).hexdigest(),
+            }
+            if hasattr(msg, "encoding"):
+                line.update(encoding=msg.encoding, width=msg.width, height=msg.height, step=msg.step,
+                            is_bigendian=msg.is_bigendian)
+            else:
+                line.update(format=msg.format)
+            print(json.dumps(line))
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 3 and sys.argv[1] == "write":
+        write_all(sys.argv[2])
+    elif len(sys.argv) == 4 and sys.argv[1] == "read":
+        read(sys.argv[2], sys.argv[3])
+    else:
+        raise SystemExit(__doc__)
