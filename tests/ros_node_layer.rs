@@ -9,7 +9,7 @@ mod support_netns {
     /// Runs this test binary's test `name` again inside a fresh network namespace and returns its output.
     pub fn rerun_in_private_netns(name: &str) -> std::process::Output {
         let exe = std::env::current_exe().unwrap();
-        let flag = if unsafe_is_root() { "-n" } else { "-rn" };
+        let flag = if is_root() { "-n" } else { "-rn" };
         std::process::Command::new("unshare")
             .args([flag, "sh", "-c"])
             .arg("ip link set lo up && (ip route add 224.0.0.0/4 dev lo 2>/dev/null || true) && exec \"$0\" \"$@\"")
@@ -20,12 +20,25 @@ mod support_netns {
             .expect("running unshare (util-linux) for a private network namespace")
     }
 
-    fn unsafe_is_root() -> bool {
+    fn is_root() -> bool {
         std::process::Command::new("id").arg("-u").output().map(|o| o.stdout.starts_with(b"0\n")).unwrap_or(false)
     }
 
+    /// True inside the re-run (then the logger is set up for the test too).
     pub fn inside() -> bool {
-        std::env::var_os("ECM_LCD_IN_PRIVATE_NETNS").is_some()
+        let inside = std::env::var_os("ECM_LCD_IN_PRIVATE_NETNS").is_some();
+        if inside {
+            let _ = env_logger::builder().is_test(true).filter_level(log::LevelFilter::Info).try_init();
+        }
+        inside
+    }
+
+    /// Re-runs test `name` in a private namespace and checks that it passed and reached its end.
+    pub fn check_inner_run(name: &str) {
+        let out = rerun_in_private_netns(name);
+        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "inner run failed:\n{text}");
+        assert!(text.contains("INNER-DONE"), "inner run did not complete:\n{text}");
     }
 }
 
@@ -133,13 +146,8 @@ fn keyframe(id: u64, secs: i32, value: u8) -> Keyframe {
 #[test]
 fn node_layer_over_dds() {
     if !support_netns::inside() {
-        let out = support_netns::rerun_in_private_netns("node_layer_over_dds");
-        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-        assert!(out.status.success(), "inner run failed:\n{text}");
-        assert!(text.contains("INNER-DONE"), "inner run did not complete:\n{text}");
-        return;
+        return support_netns::check_inner_run("node_layer_over_dds");
     }
-    let _ = env_logger::builder().is_test(true).filter_level(log::LevelFilter::Info).try_init();
     let seen = Arc::new(Mutex::new(Seen::default()));
     let initial = Params::default();
     let ParamValue::Double(min_score) = initial.get("detector.min_score").unwrap() else { panic!() };
@@ -333,13 +341,8 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
     if !support_netns::inside() {
         // Network-free preparation outside the namespace (PyPI must be reachable the first time).
         cyclone_python();
-        let out = support_netns::rerun_in_private_netns("cyclone_dds_peer_sends_images_and_receives_candidates");
-        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-        assert!(out.status.success(), "inner run failed:\n{text}");
-        assert!(text.contains("INNER-DONE"), "inner run did not complete:\n{text}");
-        return;
+        return support_netns::check_inner_run("cyclone_dds_peer_sends_images_and_receives_candidates");
     }
-    let _ = env_logger::builder().is_test(true).filter_level(log::LevelFilter::Info).try_init();
     let seen = Arc::new(Mutex::new(Seen::default()));
     let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.95 };
     let counters = Arc::new(NodeCounters::default());

@@ -314,33 +314,9 @@ pub fn run_node(
             }
         }
         // Edge-triggered: drain every subscription each round (cheap when empty).
-        loop {
-            let index = indices[0];
-            match kf_sub.take() {
-                Ok(Some((msg, _))) => enqueue(Incoming::Keyframe(msg), index),
-                Ok(None) => break,
-                Err(e) => malformed(&kf_name, index, format!("{e:?}")),
-            }
-            indices[0] += 1;
-        }
-        loop {
-            let index = indices[1];
-            match img_sub.take() {
-                Ok(Some((msg, _))) => enqueue(Incoming::Image(msg), index),
-                Ok(None) => break,
-                Err(e) => malformed(&img_name, index, format!("{e:?}")),
-            }
-            indices[1] += 1;
-        }
-        loop {
-            let index = indices[2];
-            match cmp_sub.take() {
-                Ok(Some((msg, _))) => enqueue(Incoming::Compressed(msg), index),
-                Ok(None) => break,
-                Err(e) => malformed(&cmp_name, index, format!("{e:?}")),
-            }
-            indices[2] += 1;
-        }
+        drain(&kf_sub, &mut indices[0], Incoming::Keyframe, &enqueue, |i, r| malformed(&kf_name, i, r));
+        drain(&img_sub, &mut indices[1], Incoming::Image, &enqueue, |i, r| malformed(&img_name, i, r));
+        drain(&cmp_sub, &mut indices[2], Incoming::Compressed, &enqueue, |i, r| malformed(&cmp_name, i, r));
         services.serve(&node, &live);
         if last_status.0.elapsed() >= settings.status_period {
             let now = counters.snapshot();
@@ -358,6 +334,25 @@ pub fn run_node(
     let final_counters = counters.snapshot();
     info!("[{fqn}] stopped: {final_counters}");
     Ok(final_counters)
+}
+
+/// Takes every message waiting on `subscription`: good ones are queued, undeserialisable ones reported;
+/// `index` counts the messages seen on the topic.
+fn drain<M: 'static + serde::de::DeserializeOwned>(
+    subscription: &Subscription<M>,
+    index: &mut u64,
+    wrap: fn(M) -> Incoming,
+    enqueue: &impl Fn(Incoming, u64),
+    malformed: impl Fn(u64, String),
+) {
+    loop {
+        match subscription.take() {
+            Ok(Some((msg, _))) => enqueue(wrap(msg), *index),
+            Ok(None) => return,
+            Err(e) => malformed(*index, format!("{e:?}")),
+        }
+        *index += 1;
+    }
 }
 
 /// Decodes, processes and publishes queued messages until the queue closes.
