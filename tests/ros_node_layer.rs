@@ -373,3 +373,61 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
     assert_eq!(seen.lock().unwrap().calls.iter().filter(|c| c.0.is_none() && c.2 == 32).count(), 4);
     println!("INNER-DONE {final_counters}");
 }
+
+#[test]
+fn play_keyframes_and_listen_processes_talk_to_the_node() {
+    if !support_netns::inside() {
+        return support_netns::check_inner_run("play_keyframes_and_listen_processes_talk_to_the_node");
+    }
+    // A looped sequence in TUM form: places 10, 200, 10, 200, 10.
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let mut writer = ecm_lcd::io::tum::TumWriter::create(&seq).unwrap();
+    for (i, grey) in [10u8, 200, 10, 200, 10].into_iter().enumerate() {
+        writer.write_frame(Stamp::from_sec_nsec(1000 + i as i64, 0), &solid(40, 30, grey)).unwrap();
+    }
+    writer.finish().unwrap();
+
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.95 };
+    let counters = Arc::new(NodeCounters::default());
+    let stop = Arc::new(AtomicBool::new(false));
+    let node_thread = {
+        let (counters, stop) = (counters.clone(), stop.clone());
+        std::thread::spawn(move || run_node(&NodeSettings::default(), Params::default(), None, Box::new(processor), counters, stop))
+    };
+    let exe = env!("CARGO_BIN_EXE_ecm-lcd");
+    // The two cross-keyframe pairs of the first loop and the three of the second: 2->0, 3->1, 4->2, 4->0.
+    let listener = std::process::Command::new(exe)
+        .args(["listen", "--count", "4", "--idle-timeout", "30"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let player = std::process::Command::new(exe)
+        .args(["play-keyframes"])
+        .arg(&seq)
+        .args(["--rate", "20", "--as", "keyframe", "--linger", "1"])
+        .output()
+        .unwrap();
+    assert!(player.status.success(), "{}", String::from_utf8_lossy(&player.stderr));
+    assert!(String::from_utf8_lossy(&player.stderr).contains("published 5 frames"));
+    let listened = listener.wait_with_output().unwrap();
+    stop.store(true, Ordering::Relaxed);
+    let final_counters = node_thread.join().unwrap().unwrap();
+    assert!(listened.status.success(), "{}", String::from_utf8_lossy(&listened.stderr));
+    let csv = String::from_utf8_lossy(&listened.stdout).to_string();
+    let rows: Vec<(u64, u64)> = csv
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[0].parse().unwrap(), f[2].parse().unwrap())
+        })
+        .collect();
+    assert_eq!(rows, vec![(2, 0), (3, 1), (4, 0), (4, 2)], "{csv}");
+    assert!(csv.lines().nth(1).unwrap().starts_with("2,1002.000000000,0,1000.000000000,"), "{csv}");
+    assert_eq!(final_counters.processed, 5, "{final_counters}");
+    assert_eq!(seen.lock().unwrap().calls.iter().map(|c| c.0).collect::<Vec<_>>(), (0..5).map(Some).collect::<Vec<_>>());
+    println!("INNER-DONE {final_counters}");
+}
