@@ -321,7 +321,7 @@ fn node_layer_over_dds() {
 
 /// The Python virtualenv with Cyclone DDS (created once under target/, reused afterwards).
 fn cyclone_python() -> std::path::PathBuf {
-    let venv = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-venv");
+    let venv = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-venv-dds");
     let python = venv.join("bin/python");
     let has = |py: &std::path::Path| {
         std::process::Command::new(py).args(["-c", "import cyclonedds.domain"]).output().is_ok_and(|o| o.status.success())
@@ -329,7 +329,7 @@ fn cyclone_python() -> std::path::PathBuf {
     if !has(&python) {
         let status = std::process::Command::new("python3").arg("-m").arg("venv").arg(&venv).status();
         assert!(status.is_ok_and(|s| s.success()), "python3 -m venv {} failed", venv.display());
-        let status = std::process::Command::new(venv.join("bin/pip")).args(["install", "-q", "cyclonedds"]).status();
+        let status = std::process::Command::new(&python).args(["-m", "pip", "install", "-q", "cyclonedds"]).status();
         assert!(status.is_ok_and(|s| s.success()), "pip install cyclonedds failed");
     }
     assert!(has(&python), "cyclonedds not importable from {}", python.display());
