@@ -1,7 +1,10 @@
 //! Command-line interface: one sub-module per sub-command, each a thin shell over the library.
 
 pub mod bench;
+pub mod listen;
 pub mod model;
+pub mod node;
+pub mod play_keyframes;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -28,6 +31,12 @@ pub enum Command {
     Embed(model::EmbedArgs),
     /// Benchmark: network forward time per thread count (a program that measures, not a test).
     Bench(bench::BenchArgs),
+    /// The ROS 2 node: keyframes in, loop candidates out (ROS arguments after --ros-args).
+    Node(node::Args),
+    /// Tracker stand-in: publish the frames of a replay source as ROS 2 keyframes or images.
+    PlayKeyframes(play_keyframes::Args),
+    /// Print the loop candidates published on a topic, as CSV.
+    Listen(listen::Args),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -53,5 +62,8 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Classify(args) => model::classify(args),
         Command::Embed(args) => model::embed(args),
         Command::Bench(args) => bench::run(args),
+        Command::Node(args) => node::run(args),
+        Command::PlayKeyframes(args) => play_keyframes::run(args),
+        Command::Listen(args) => listen::run(args),
     }
 }

@@ -1,0 +1,31 @@
+"""Launch ecm-lcd beside a tracker. Not tested here (no ROS 2 installation on the build machine).
+
+    ros2 launch ecm_lcd.launch.py image_topic:=/camera/color/image_raw params:=config/ecm_lcd.yaml
+"""
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, ExecuteProcess
+from launch.substitutions import LaunchConfiguration
+
+
+def generate_launch_description():
+    image_topic = LaunchConfiguration("image_topic")
+    keyframe_topic = LaunchConfiguration("keyframe_topic")
+    params = LaunchConfiguration("params")
+    input_qos = LaunchConfiguration("input_qos")
+    return LaunchDescription([
+        DeclareLaunchArgument("image_topic", default_value="/camera/color/image_raw"),
+        DeclareLaunchArgument("keyframe_topic", default_value="/tracker/keyframes"),
+        DeclareLaunchArgument("params", default_value="config/ecm_lcd.yaml"),
+        DeclareLaunchArgument("input_qos", default_value="sensor-data",
+                              description="reliable | sensor-data (best-effort camera drivers)"),
+        # ecm-lcd is a plain binary, not an ament package, so it starts as a process with --ros-args.
+        ExecuteProcess(
+            cmd=["ecm-lcd", "node", "--input-qos", input_qos, "--ros-args",
+                 "-r", "__node:=ecm_lcd",
+                 "--params-file", params,
+                 "-r", ["image:=", image_topic],
+                 "-r", ["image/compressed:=", image_topic, "/compressed"],
+                 "-r", ["keyframes:=", keyframe_topic]],
+            output="screen",
+        ),
+    ])

@@ -1,0 +1,59 @@
+//! `ecm-lcd listen`: prints the LoopCandidates published on a topic as CSV
+//! (`query_id,query_stamp,match_id,match_stamp,distance,score,rank`), for checks and demos.
+
+use anyhow::{Context as _, Result};
+use std::io::Write;
+use std::time::{Duration, Instant};
+
+use crate::ros::peer::CandidateListener;
+use crate::types::Stamp;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Topic to listen on.
+    #[arg(long, default_value = "/loop_candidates")]
+    pub topic: String,
+    /// Exit after this many candidates.
+    #[arg(long)]
+    pub count: Option<usize>,
+    /// Exit after this many seconds without a new candidate (default: never).
+    #[arg(long)]
+    pub idle_timeout: Option<f64>,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let context = ros2_client::Context::new().context("creating the DDS participant")?;
+    let listener = CandidateListener::new(&context, &args.topic)?;
+    let stdout = std::io::stdout();
+    let mut out = stdout.lock();
+    writeln!(out, "query_id,query_stamp,match_id,match_stamp,distance,score,rank")?;
+    out.flush()?;
+    let mut received = 0usize;
+    let mut last = Instant::now();
+    loop {
+        for c in listener.take_all()? {
+            writeln!(
+                out,
+                "{},{},{},{},{},{},{}",
+                c.query_id,
+                Stamp::from(c.header.stamp),
+                c.match_id,
+                Stamp::from(c.match_stamp),
+                c.distance,
+                c.score,
+                c.rank
+            )?;
+            out.flush()?;
+            received += 1;
+            last = Instant::now();
+            if args.count.is_some_and(|n| received >= n) {
+                return Ok(());
+            }
+        }
+        if args.idle_timeout.is_some_and(|t| last.elapsed() >= Duration::from_secs_f64(t)) {
+            log::info!("no candidate for {} s; received {received}", args.idle_timeout.unwrap_or_default());
+            return Ok(());
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}

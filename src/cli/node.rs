@@ -1,0 +1,81 @@
+//! `ecm-lcd node [OPTIONS] [--ros-args ...]`: runs the loop-closure detector as the ROS 2 node
+//! `/ecm_lcd` (see [`crate::ros::node`] for topics, QoS, parameters and the drop policy). ROS arguments
+//! follow `--ros-args` as `ros2 run`/`ros2 launch` pass them (see [`crate::ros::args`]).
+
+use anyhow::{Context as _, Result};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use crate::config::Params;
+use crate::ros::args::RosArgs;
+use crate::ros::node::{run_node, InputQos, KeyframeProcessor, NodeCounters, NodeSettings, DEFAULT_NODE_NAME};
+use crate::ros::params::initial_params;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// QoS of the input subscriptions.
+    #[arg(long, value_enum, default_value_t = InputQos::Reliable)]
+    pub input_qos: InputQos,
+    /// Capacity of the queue in front of the worker (full: the oldest message is dropped and counted).
+    #[arg(long, default_value_t = 4)]
+    pub queue: usize,
+    /// Weights file (default: the usual resolution, see README "Weights").
+    #[arg(long)]
+    pub weights: Option<std::path::PathBuf>,
+    /// ROS arguments: `--ros-args -p name:=value -r from:=to --params-file FILE -r __ns:=/ns ...`.
+    #[arg(trailing_var_arg = true, allow_hyphen_values = true, value_name = "ROS_ARGS")]
+    pub ros_args: Vec<String>,
+}
+
+/// Runs the node over the full pipeline (network, descriptor, selection, detector).
+pub fn run(args: Args) -> Result<()> {
+    let weights = args.weights.clone();
+    run_with(args, move |params| Ok(Box::new(crate::pipeline::Pipeline::new(params.clone(), weights.as_deref())?)))
+}
+
+/// Runs the node with the processor `make_processor` builds from the starting parameters.
+pub fn run_with(args: Args, make_processor: impl FnOnce(&Params) -> Result<Box<dyn KeyframeProcessor>>) -> Result<()> {
+    let ros_args = RosArgs::parse(&args.ros_args, DEFAULT_NODE_NAME).context("reading the ROS arguments")?;
+    // `--log-level` can lower the verbosity; raising it above RUST_LOG's filter (default info) needs
+    // RUST_LOG=debug, because the logger's own filter is fixed when the program starts.
+    if let Some(level) = ros_args.log_level {
+        log::set_max_level(level);
+    }
+    for flag in &ros_args.ignored {
+        log::info!("ROS argument {flag} has no effect in ecm-lcd");
+    }
+    let fqn = ros_args.fully_qualified_node_name(DEFAULT_NODE_NAME);
+    let (params, use_sim_time) = initial_params(&ros_args, &fqn)?;
+    let processor = make_processor(&params)?;
+    let settings = NodeSettings { ros_args, input_qos: args.input_qos, queue_capacity: args.queue, ..Default::default() };
+    let counters = Arc::new(NodeCounters::default());
+    // Runs until the process is stopped (Ctrl-C / SIGTERM end it; the DDS peers time the node out).
+    run_node(&settings, params, use_sim_time, processor, counters, Arc::new(AtomicBool::new(false)))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Wrapper {
+        #[command(flatten)]
+        args: Args,
+    }
+
+    #[test]
+    fn ros_arguments_pass_through_clap() {
+        let w = Wrapper::try_parse_from([
+            "node", "--input-qos", "sensor-data", "--ros-args", "-r", "__ns:=/r", "-p", "detector.min_score:=0.5",
+            "--params-file", "p.yaml",
+        ])
+        .unwrap();
+        assert_eq!(w.args.input_qos, InputQos::SensorData);
+        let ros = RosArgs::parse(&w.args.ros_args, DEFAULT_NODE_NAME).unwrap();
+        assert_eq!(ros.namespace(), "/r");
+        assert_eq!(ros.params.len(), 1);
+        assert_eq!(ros.params_files.len(), 1);
+    }
+}

@@ -1,0 +1,72 @@
+//! `ecm-lcd play-keyframes`: a tracker stand-in. Publishes the frames of any replay source (TUM folder,
+//! image folder, ROS 1/2 bag) as ecm_lcd_msgs/Keyframe (id = frame index), sensor_msgs/Image or
+//! sensor_msgs/CompressedImage at a fixed rate, after waiting for a subscriber.
+
+use anyhow::{Context as _, Result};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use crate::ros::node::InputQos;
+use crate::ros::peer::{FramePublisher, SendAs};
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Replay source: TUM folder, image folder, .bag, .db3, .mcap or ROS 2 bag folder.
+    pub source: PathBuf,
+    /// Frames per second to publish.
+    #[arg(long, default_value_t = 2.0)]
+    pub rate: f64,
+    /// Topic to publish on (default: /keyframes, /image or /image/compressed by --as).
+    #[arg(long)]
+    pub topic: Option<String>,
+    /// Message type to send.
+    #[arg(long = "as", value_enum, default_value_t = SendAs::Keyframe)]
+    pub send_as: SendAs,
+    /// Image topic inside a bag source (default: its only image topic).
+    #[arg(long)]
+    pub bag_topic: Option<String>,
+    /// QoS of the publisher (match the node's --input-qos).
+    #[arg(long, value_enum, default_value_t = InputQos::Reliable)]
+    pub qos: InputQos,
+    /// frame_id written into the headers.
+    #[arg(long, default_value = "camera")]
+    pub frame_id: String,
+    /// Publish at most this many frames.
+    #[arg(long)]
+    pub limit: Option<usize>,
+    /// Seconds to wait for a subscriber before publishing (then publish anyway, with a warning).
+    #[arg(long, default_value_t = 10.0)]
+    pub wait: f64,
+    /// Seconds to stay up after the last frame so reliable delivery completes.
+    #[arg(long, default_value_t = 2.0)]
+    pub linger: f64,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    anyhow::ensure!(args.rate > 0.0 && args.rate.is_finite(), "--rate must be a positive number, got {}", args.rate);
+    let source = crate::io::open_source(&args.source, args.bag_topic.as_deref())
+        .with_context(|| format!("opening {}", args.source.display()))?;
+    let topic = args.topic.clone().unwrap_or_else(|| args.send_as.default_topic().to_string());
+    let context = ros2_client::Context::new().context("creating the DDS participant")?;
+    let publisher = FramePublisher::new(&context, &topic, args.send_as, args.qos, &args.frame_id)?;
+    log::info!("publishing {} on {topic} as {:?} at {} Hz", source.describe(), args.send_as, args.rate);
+    if !publisher.wait_for_subscriber(Duration::from_secs_f64(args.wait.max(0.0))) {
+        log::warn!("no subscriber on {topic} after {} s; publishing anyway", args.wait);
+    }
+    let period = Duration::from_secs_f64(1.0 / args.rate);
+    let start = Instant::now();
+    let mut published = 0usize;
+    for frame in source.take(args.limit.unwrap_or(usize::MAX)) {
+        let frame = frame.with_context(|| format!("reading {}", args.source.display()))?;
+        let due = start + period.mul_f64(published as f64);
+        if let Some(wait) = due.checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+        publisher.publish(&frame)?;
+        log::debug!("published frame {} stamp {}", frame.index, frame.stamp);
+        published += 1;
+    }
+    std::thread::sleep(Duration::from_secs_f64(args.linger.max(0.0)));
+    log::info!("published {published} frames on {topic}");
+    Ok(())
+}

@@ -1,0 +1,296 @@
+//! The `ecm_lcd_msgs` interface package (`msg/` in the repository) on the Rust side: serde structs whose
+//! field names, types and order equal the `.msg` files (a test parses the files and checks), the
+//! `geometry_msgs` pieces they use, and the ros2-client [`Message`] impls for every type the node sends
+//! or receives. CDR follows the declaration order, so never reorder fields here without the `.msg`.
+
+use ros2_client::{Message, MessageTypeName};
+use serde::{Deserialize, Serialize};
+
+use crate::io::msgs::{CompressedImage, Header, Image, Time};
+use crate::types::{self, Stamp};
+
+/// The ROS package name of ecm-lcd's own messages.
+pub const PACKAGE: &str = "ecm_lcd_msgs";
+
+/// `msg/Keyframe.msg` and `msg/LoopCandidate.msg`, as shipped, for tools and the agreement test.
+pub const KEYFRAME_MSG: &str = include_str!("../../msg/msg/Keyframe.msg");
+pub const LOOP_CANDIDATE_MSG: &str = include_str!("../../msg/msg/LoopCandidate.msg");
+
+/// `geometry_msgs/Point`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Point {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+
+/// `geometry_msgs/Quaternion`. Note the ROS default is the identity (w = 1), unlike `Default` here,
+/// which is only used when `has_pose` is false.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Quaternion {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub w: f64,
+}
+
+/// `geometry_msgs/Pose`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Pose {
+    pub position: Point,
+    pub orientation: Quaternion,
+}
+
+/// `ecm_lcd_msgs/Keyframe`: a tracker's keyframe (see `msg/Keyframe.msg`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Keyframe {
+    pub header: Header,
+    pub id: u64,
+    pub image: Image,
+    pub has_pose: bool,
+    pub pose: Pose,
+}
+
+/// `ecm_lcd_msgs/LoopCandidate`: one candidate as published (see `msg/LoopCandidate.msg`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct LoopCandidate {
+    pub header: Header,
+    pub query_id: u64,
+    pub match_id: u64,
+    pub match_stamp: Time,
+    pub match_frame_id: String,
+    pub distance: f32,
+    pub score: f32,
+    pub rank: u32,
+    pub num_candidates: u32,
+    #[serde(rename = "type")]
+    pub loop_type: u8,
+    pub descriptor_mode: String,
+}
+
+impl LoopCandidate {
+    /// `TYPE_APPEARANCE`: appearance-only, not geometrically verified.
+    pub const TYPE_APPEARANCE: u8 = 0;
+
+    /// The message for `candidate`, one of `num_candidates` found for its query.
+    pub fn from_candidate(
+        candidate: &types::LoopCandidate,
+        query_frame_id: &str,
+        match_frame_id: &str,
+        num_candidates: u32,
+        descriptor_mode: &str,
+    ) -> Self {
+        LoopCandidate {
+            header: Header { stamp: candidate.query_stamp.into(), frame_id: query_frame_id.to_string() },
+            query_id: candidate.query_id,
+            match_id: candidate.match_id,
+            match_stamp: candidate.match_stamp.into(),
+            match_frame_id: match_frame_id.to_string(),
+            distance: candidate.distance,
+            score: candidate.score,
+            rank: candidate.rank,
+            num_candidates,
+            loop_type: Self::TYPE_APPEARANCE,
+            descriptor_mode: descriptor_mode.to_string(),
+        }
+    }
+
+    /// Back to the library's candidate (drops the ROS-only fields).
+    pub fn to_candidate(&self) -> types::LoopCandidate {
+        types::LoopCandidate {
+            query_id: self.query_id,
+            query_stamp: Stamp::from(self.header.stamp),
+            match_id: self.match_id,
+            match_stamp: Stamp::from(self.match_stamp),
+            distance: self.distance,
+            score: self.score,
+            rank: self.rank,
+        }
+    }
+}
+
+impl Message for Keyframe {}
+impl Message for LoopCandidate {}
+impl Message for Image {}
+impl Message for CompressedImage {}
+
+/// ROS type names of the messages on ecm-lcd's topics.
+pub fn keyframe_type() -> MessageTypeName {
+    MessageTypeName::new(PACKAGE, "Keyframe")
+}
+pub fn loop_candidate_type() -> MessageTypeName {
+    MessageTypeName::new(PACKAGE, "LoopCandidate")
+}
+pub fn image_type() -> MessageTypeName {
+    MessageTypeName::new("sensor_msgs", "Image")
+}
+pub fn compressed_image_type() -> MessageTypeName {
+    MessageTypeName::new("sensor_msgs", "CompressedImage")
+}
+
+#[cfg(test)]
+mod tests {
+    //! The `.msg` files and the Rust structs must agree field by field. The `.msg` side is parsed here
+    //! (nested types expanded from the official definitions of the standard messages we use); the Rust
+    //! side is traced from the serde derive with serde-reflection, so the check sees exactly what the
+    //! CDR serialiser sees.
+    use super::*;
+    use serde_reflection::{ContainerFormat, Format, Named, Registry, Tracer, TracerConfig};
+
+    /// Official definitions of the standard messages the ecm_lcd_msgs use (constants and comments omitted).
+    const STANDARD: &[(&str, &str)] = &[
+        ("builtin_interfaces/Time", "int32 sec\nuint32 nanosec"),
+        ("std_msgs/Header", "builtin_interfaces/Time stamp\nstring frame_id"),
+        (
+            "sensor_msgs/Image",
+            "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data",
+        ),
+        ("sensor_msgs/CompressedImage", "std_msgs/Header header\nstring format\nuint8[] data"),
+        ("geometry_msgs/Point", "float64 x\nfloat64 y\nfloat64 z"),
+        ("geometry_msgs/Quaternion", "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1"),
+        ("geometry_msgs/Pose", "Point position\nQuaternion orientation"),
+    ];
+
+    /// `(type, name)` of each field of a `.msg` text; constants (`TYPE NAME=VALUE`), comments and default
+    /// values are not fields.
+    fn msg_fields(text: &str) -> Vec<(String, String)> {
+        text.lines()
+            .map(|line| line.split('#').next().unwrap().trim())
+            .filter(|line| !line.is_empty())
+            .filter_map(|line| {
+                let mut parts = line.split_whitespace();
+                let ty = parts.next()?;
+                let name = parts.next()?;
+                (!name.contains('=')).then(|| (ty.to_string(), name.to_string()))
+            })
+            .collect()
+    }
+
+    /// Expands `text` (of package `package`) to `field.path -> primitive type`, in wire order.
+    fn flatten_msg(package: &str, text: &str, prefix: &str, out: &mut Vec<(String, String)>) {
+        for (ty, name) in msg_fields(text) {
+            let path = format!("{prefix}{name}");
+            let base = ty.trim_end_matches("[]");
+            let primitive = matches!(
+                base,
+                "bool" | "int8" | "uint8" | "int16" | "uint16" | "int32" | "uint32" | "int64" | "uint64"
+                    | "float32" | "float64" | "string"
+            );
+            if primitive {
+                out.push((path, ty));
+                continue;
+            }
+            let full = if base.contains('/') { base.to_string() } else { format!("{package}/{base}") };
+            let (pkg, _) = full.split_once('/').unwrap();
+            let sub = STANDARD
+                .iter()
+                .find(|(n, _)| *n == full)
+                .unwrap_or_else(|| panic!("unknown message type {full} in the test's table"))
+                .1;
+            flatten_msg(pkg, sub, &format!("{path}."), out);
+        }
+    }
+
+    fn ros_type_of(format: &Format) -> String {
+        match format {
+            Format::Bool => "bool",
+            Format::I8 => "int8",
+            Format::U8 => "uint8",
+            Format::I16 => "int16",
+            Format::U16 => "uint16",
+            Format::I32 => "int32",
+            Format::U32 => "uint32",
+            Format::I64 => "int64",
+            Format::U64 => "uint64",
+            Format::F32 => "float32",
+            Format::F64 => "float64",
+            Format::Str => "string",
+            Format::Bytes => "uint8[]",
+            other => panic!("no ROS primitive for {other:?}"),
+        }
+        .to_string()
+    }
+
+    fn flatten_rust(registry: &Registry, container: &str, prefix: &str, out: &mut Vec<(String, String)>) {
+        let ContainerFormat::Struct(fields) = &registry[container] else {
+            panic!("{container} is not a struct")
+        };
+        for Named { name, value } in fields {
+            let path = format!("{prefix}{name}");
+            match value {
+                Format::TypeName(sub) => flatten_rust(registry, sub, &format!("{path}."), out),
+                Format::Seq(inner) => out.push((path, format!("{}[]", ros_type_of(inner)))),
+                other => out.push((path, ros_type_of(other))),
+            }
+        }
+    }
+
+    fn rust_fields<T: for<'de> Deserialize<'de>>(name: &str) -> Vec<(String, String)> {
+        let mut tracer = Tracer::new(TracerConfig::default());
+        tracer.trace_simple_type::<T>().unwrap();
+        let registry = tracer.registry().unwrap();
+        let mut out = Vec::new();
+        flatten_rust(&registry, name, "", &mut out);
+        out
+    }
+
+    fn msg_side(text: &str) -> Vec<(String, String)> {
+        let mut out = Vec::new();
+        flatten_msg(PACKAGE, text, "", &mut out);
+        out
+    }
+
+    #[test]
+    fn keyframe_struct_agrees_with_msg_file() {
+        let expected = msg_side(KEYFRAME_MSG);
+        assert_eq!(expected.len(), 21, "{expected:?}");
+        assert_eq!(rust_fields::<Keyframe>("Keyframe"), expected);
+    }
+
+    #[test]
+    fn loop_candidate_struct_agrees_with_msg_file() {
+        let expected = msg_side(LOOP_CANDIDATE_MSG);
+        assert_eq!(expected.len(), 14, "{expected:?}");
+        assert_eq!(rust_fields::<LoopCandidate>("LoopCandidate"), expected);
+    }
+
+    #[test]
+    fn standard_messages_agree_with_their_definitions() {
+        let image = msg_side("sensor_msgs/Image image");
+        let image: Vec<_> =
+            image.into_iter().map(|(p, t)| (p.trim_start_matches("image.").to_string(), t)).collect();
+        assert_eq!(rust_fields::<Image>("Image"), image);
+        let compressed = msg_side("sensor_msgs/CompressedImage c");
+        let compressed: Vec<_> =
+            compressed.into_iter().map(|(p, t)| (p.trim_start_matches("c.").to_string(), t)).collect();
+        assert_eq!(rust_fields::<CompressedImage>("CompressedImage"), compressed);
+    }
+
+    #[test]
+    fn the_check_notices_a_disagreement() {
+        // A .msg with two fields swapped must not pass as the struct's definition.
+        let swapped = LOOP_CANDIDATE_MSG.replace("float32 distance\nfloat32 score", "float32 score\nfloat32 distance");
+        assert_ne!(swapped, LOOP_CANDIDATE_MSG);
+        assert_ne!(rust_fields::<LoopCandidate>("LoopCandidate"), msg_side(&swapped));
+    }
+
+    #[test]
+    fn candidate_round_trips_through_cdr() {
+        let candidate = types::LoopCandidate {
+            query_id: 42,
+            query_stamp: Stamp::from_nanos(1_341_847_980_722_988_000),
+            match_id: 7,
+            match_stamp: Stamp::from_nanos(1_341_847_900_000_000_001),
+            distance: 0.25,
+            score: 0.9,
+            rank: 1,
+        };
+        let msg = LoopCandidate::from_candidate(&candidate, "cam", "cam_old", 3, "paper");
+        let bytes = cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&msg).unwrap();
+        let back: LoopCandidate = cdr_encoding::from_bytes::<_, byteorder::LittleEndian>(&bytes).unwrap().0;
+        assert_eq!(back, msg);
+        assert_eq!(back.to_candidate(), candidate);
+        assert_eq!(back.num_candidates, 3);
+        assert_eq!(back.loop_type, LoopCandidate::TYPE_APPEARANCE);
+    }
+}

@@ -1,0 +1,470 @@
+//! The `ecm_lcd` ROS 2 node: subscribes keyframes (`keyframes`, ecm_lcd_msgs/Keyframe) or plain images
+//! (`image`, sensor_msgs/Image; `image/compressed`, sensor_msgs/CompressedImage), hands them to a
+//! [`KeyframeProcessor`] on a worker thread, and publishes `loop_candidates` (ecm_lcd_msgs/LoopCandidate).
+//!
+//! Threads: the DDS receive loop (main thread) only takes messages and queues them; a worker thread
+//! decodes and processes them behind a bounded [`DropOldestQueue`] (full queue: the oldest waiting
+//! message is dropped and counted); a spinner thread serves discovery and the parameter services.
+//! Malformed messages (bytes that do not deserialise, unknown encoding, `step*height != data` length,
+//! empty image, undecodable JPEG/PNG) are logged with their index on the topic, counted and skipped.
+//! Parameters are declared from [`crate::config::param_specs`] and served by [`super::param_services`]
+//! (descriptions and ranges included); a `set_parameters` request is validated
+//! against the table (a refused value keeps the old one and the reply carries the reason) and then
+//! reaches the processor through the queue's control lane, before the next keyframe.
+//! QoS: inputs reliable, keep last 10 (default) or sensor data (best effort, keep last 5) with
+//! `--input-qos sensor-data`; output reliable, keep last 100, volatile.
+
+use anyhow::{Context as _, Result};
+use log::{debug, error, info, warn};
+use ros2_client::{
+    dds::rustdds::mio1::{Events, Interest, Poll, Token},
+    qos::{Durability, History, WhenFull},
+    Context, Name, Node, NodeName, NodeOptions, Publisher, QosProfile, Subscription,
+};
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use super::args::RosArgs;
+use super::msgs::{self, Keyframe, LoopCandidate};
+use super::param_services::ParamServices;
+use super::params;
+use super::queue::{DropOldestQueue, Next};
+use crate::config::{ParamValue, Params};
+use crate::io::image_msg::{decode_compressed_image, decode_image};
+use crate::io::msgs::{CompressedImage, Image};
+use crate::types::{self, Stamp};
+
+/// The node's name unless `-r __node:=...` says otherwise.
+pub const DEFAULT_NODE_NAME: &str = crate::config::NODE_NAME;
+/// Topic names before remapping (relative: they live in the node's namespace).
+pub const KEYFRAMES_TOPIC: &str = "keyframes";
+pub const IMAGE_TOPIC: &str = "image";
+pub const COMPRESSED_TOPIC: &str = "image/compressed";
+pub const CANDIDATES_TOPIC: &str = "loop_candidates";
+
+/// What the node runs each keyframe through (the pipeline implements it).
+pub trait KeyframeProcessor: Send + 'static {
+    /// `id`: Some(tracker's keyframe id) for Keyframe messages (selection bypassed); None for plain images
+    /// (the processor assigns ids from a counter and applies keyframe selection).
+    fn process(&mut self, id: Option<u64>, stamp: Stamp, image: &image::RgbImage) -> Result<Vec<types::LoopCandidate>>;
+    /// Apply a validated runtime parameter change.
+    fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String>;
+}
+
+impl KeyframeProcessor for crate::pipeline::Pipeline {
+    fn process(&mut self, id: Option<u64>, stamp: Stamp, image: &image::RgbImage) -> Result<Vec<types::LoopCandidate>> {
+        let outcome = match id {
+            Some(id) => self.process_keyframe(id, stamp, image)?,
+            None => self.process_counted(stamp, image)?,
+        };
+        if let Some(id) = outcome.keyframe {
+            let t = outcome.timings;
+            log::debug!(
+                "keyframe {id} at {stamp}: network {:.1} ms, descriptor {:.2} ms, detector {:.2} ms, {} candidate(s)",
+                t.network_ms,
+                t.descriptor_ms,
+                t.detector_ms,
+                outcome.candidates.len()
+            );
+        }
+        Ok(outcome.candidates)
+    }
+
+    fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String> {
+        crate::pipeline::Pipeline::set_param(self, name, value.clone())
+    }
+}
+
+/// Input QoS.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum InputQos {
+    /// Reliable, keep last 10: no keyframe is lost on the wire (trackers publish few keyframes).
+    #[default]
+    Reliable,
+    /// Best effort, keep last 5 (rclcpp's SensorDataQoS): for camera drivers that publish best effort.
+    SensorData,
+}
+
+impl InputQos {
+    pub fn profile(self) -> QosProfile {
+        match self {
+            InputQos::Reliable => QosProfile::publisher_default()
+                .reliability_reliable(WhenFull::DEFAULT)
+                .durability(Durability::Volatile)
+                .history(History::KeepLast { depth: 10 }),
+            InputQos::SensorData => QosProfile::subscription_default()
+                .reliability_best_effort()
+                .durability(Durability::Volatile)
+                .history(History::KeepLast { depth: 5 }),
+        }
+    }
+}
+
+/// The output QoS: reliable, keep last 100 (a back end must not miss a loop).
+pub fn output_qos() -> QosProfile {
+    QosProfile::publisher_default()
+        .reliability_reliable(WhenFull::DEFAULT)
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth: 100 })
+}
+
+/// How the node is set up, besides its parameters.
+#[derive(Clone, Debug)]
+pub struct NodeSettings {
+    pub ros_args: RosArgs,
+    pub input_qos: InputQos,
+    /// Capacity of the queue between the receive loop and the worker.
+    pub queue_capacity: usize,
+    /// How often a status line with the counters is logged (when they changed).
+    pub status_period: Duration,
+}
+
+impl Default for NodeSettings {
+    fn default() -> Self {
+        NodeSettings {
+            ros_args: RosArgs::default(),
+            input_qos: InputQos::Reliable,
+            queue_capacity: 4,
+            status_period: Duration::from_secs(5),
+        }
+    }
+}
+
+/// Running totals, shared by the receive loop, the worker and the caller.
+#[derive(Debug, Default)]
+pub struct NodeCounters {
+    pub received: AtomicU64,
+    pub malformed: AtomicU64,
+    pub dropped: AtomicU64,
+    pub processed: AtomicU64,
+    pub failed: AtomicU64,
+    pub candidates: AtomicU64,
+    pub param_changes: AtomicU64,
+}
+
+/// A copy of [`NodeCounters`] at one moment.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CountersSnapshot {
+    pub received: u64,
+    pub malformed: u64,
+    pub dropped: u64,
+    pub processed: u64,
+    pub failed: u64,
+    pub candidates: u64,
+    pub param_changes: u64,
+}
+
+impl NodeCounters {
+    pub fn snapshot(&self) -> CountersSnapshot {
+        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        CountersSnapshot {
+            received: get(&self.received),
+            malformed: get(&self.malformed),
+            dropped: get(&self.dropped),
+            processed: get(&self.processed),
+            failed: get(&self.failed),
+            candidates: get(&self.candidates),
+            param_changes: get(&self.param_changes),
+        }
+    }
+}
+
+impl std::fmt::Display for CountersSnapshot {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "received {} processed {} candidates {} malformed {} dropped {} failed {} param_changes {}",
+            self.received, self.processed, self.candidates, self.malformed, self.dropped, self.failed, self.param_changes
+        )
+    }
+}
+
+/// One received message, waiting for the worker.
+enum Incoming {
+    Keyframe(Keyframe),
+    Image(Image),
+    Compressed(CompressedImage),
+}
+
+struct Queued {
+    message: Incoming,
+    /// Position on its topic, from 0 (for log lines about this message).
+    index: u64,
+    received_at: Instant,
+}
+
+type ParamChange = (String, ParamValue);
+
+/// Runs the node until `stop` is set: creates the DDS participant, the subscriptions and the publisher,
+/// declares the parameters with `initial` values (and `use_sim_time`), and processes keyframes with
+/// `processor`. Returns the final counters. Must run inside the intended network (see the crate's
+/// network rule: tests use a private namespace).
+pub fn run_node(
+    settings: &NodeSettings,
+    initial: Params,
+    use_sim_time: Option<bool>,
+    processor: Box<dyn KeyframeProcessor>,
+    counters: Arc<NodeCounters>,
+    stop: Arc<AtomicBool>,
+) -> Result<CountersSnapshot> {
+    let args = &settings.ros_args;
+    let node_name = args.node_name(DEFAULT_NODE_NAME).to_string();
+    let fqn = args.fully_qualified_node_name(DEFAULT_NODE_NAME);
+    let live = Arc::new(Mutex::new(initial.clone()));
+    let queue: Arc<DropOldestQueue<Queued, ParamChange>> = Arc::new(DropOldestQueue::new(settings.queue_capacity));
+
+    // The parameter services are ours (see `param_services`): they describe parameters from the table.
+    let mut options = NodeOptions::new().enable_rosout(true).start_parameter_services(false);
+    for (name, value) in params::declarations(&initial)? {
+        options = options.declare_parameter(name, value);
+    }
+    if let Some(sim) = use_sim_time {
+        options = options.declare_parameter(params::USE_SIM_TIME, ros2_client::ParameterValue::Boolean(sim));
+    }
+    let validator_params = live.clone();
+    let validator_fqn = fqn.clone();
+    options = options.parameter_validator(Box::new(move |name, value| {
+        let current = validator_params.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        params::validate_change(&current, name, value).map(|_| ()).inspect_err(|reason| {
+            warn!("[{validator_fqn}] refused parameter change {name} = {value:?}: {reason}");
+        })
+    }));
+    let action_params = live.clone();
+    let action_queue = queue.clone();
+    let action_counters = counters.clone();
+    let action_fqn = fqn.clone();
+    options = options.parameter_set_action(Box::new(move |name, value| {
+        let mut current = action_params.lock().unwrap_or_else(|e| e.into_inner());
+        let new = params::validate_change(&current, name, value)?;
+        if current.get(name).as_ref() == Some(&new) {
+            return Ok(()); // the initial declarations, or a no-op set
+        }
+        current.set(name, new.clone())?;
+        drop(current);
+        info!("[{action_fqn}] parameter {name} = {new}");
+        action_counters.param_changes.fetch_add(1, Ordering::Relaxed);
+        action_queue.push_control((name.to_string(), new));
+        Ok(())
+    }));
+
+    let context = Context::new().context("creating the DDS participant")?;
+    let mut node = context
+        .new_node(
+            NodeName::new(args.namespace(), &node_name).with_context(|| format!("node name {fqn}"))?,
+            options,
+        )
+        .map_err(|e| anyhow::anyhow!("creating node {fqn}: {e:?}"))?;
+
+    let topic = |node: &mut Node, name: &str, ty: ros2_client::MessageTypeName, qos: &QosProfile| -> Result<_> {
+        let resolved = args.resolve_topic(name, DEFAULT_NODE_NAME)?;
+        let ros_name = Name::parse(&resolved).with_context(|| format!("topic name {resolved}"))?;
+        let topic = node
+            .create_topic(&ros_name, ty, qos)
+            .map_err(|e| anyhow::anyhow!("creating topic {resolved}: {e:?}"))?;
+        Ok((topic, resolved))
+    };
+    let input_qos = settings.input_qos.profile();
+    let (kf_topic, kf_name) = topic(&mut node, KEYFRAMES_TOPIC, msgs::keyframe_type(), &input_qos)?;
+    let (img_topic, img_name) = topic(&mut node, IMAGE_TOPIC, msgs::image_type(), &input_qos)?;
+    let (cmp_topic, cmp_name) = topic(&mut node, COMPRESSED_TOPIC, msgs::compressed_image_type(), &input_qos)?;
+    let (out_topic, out_name) = topic(&mut node, CANDIDATES_TOPIC, msgs::loop_candidate_type(), &output_qos())?;
+    let sub_err = |what: &str| {
+        let what = what.to_string();
+        move |e| anyhow::anyhow!("subscribing {what}: {e:?}")
+    };
+    let mut kf_sub: Subscription<Keyframe> = node.create_subscription(&kf_topic, None).map_err(sub_err(&kf_name))?;
+    let mut img_sub: Subscription<Image> = node.create_subscription(&img_topic, None).map_err(sub_err(&img_name))?;
+    let mut cmp_sub: Subscription<CompressedImage> =
+        node.create_subscription(&cmp_topic, None).map_err(sub_err(&cmp_name))?;
+    let publisher: Publisher<LoopCandidate> = node
+        .create_publisher(&out_topic, None)
+        .map_err(|e| anyhow::anyhow!("creating publisher {out_name}: {e:?}"))?;
+
+    let spinner = node.spinner().map_err(|e| anyhow::anyhow!("starting the spinner: {e:?}"))?;
+    let spinner_thread = std::thread::Builder::new()
+        .name("ros-spinner".into())
+        .spawn(move || futures::executor::block_on(spinner.spin()))
+        .context("starting the spinner thread")?;
+
+    info!(
+        "[{fqn}] listening on {kf_name} (Keyframe), {img_name} (Image), {cmp_name} (CompressedImage) with {:?} QoS; \
+         publishing {out_name}; queue capacity {}",
+        settings.input_qos, settings.queue_capacity
+    );
+
+    let worker = {
+        let queue = queue.clone();
+        let counters = counters.clone();
+        let fqn = fqn.clone();
+        let live = live.clone();
+        std::thread::Builder::new()
+            .name("lcd-worker".into())
+            .spawn(move || worker_loop(&fqn, processor, &queue, &publisher, &counters, &live))
+            .context("starting the worker thread")?
+    };
+
+    let mut poll = Poll::new().context("creating the poll")?;
+    let (kf_token, img_token, cmp_token) = (Token(1), Token(2), Token(3));
+    poll.registry().register(&mut kf_sub, kf_token, Interest::READABLE).context("polling keyframes")?;
+    poll.registry().register(&mut img_sub, img_token, Interest::READABLE).context("polling images")?;
+    poll.registry().register(&mut cmp_sub, cmp_token, Interest::READABLE).context("polling compressed images")?;
+    let mut services = ParamServices::create(&mut node, &fqn)?;
+    services.register(poll.registry(), 10).context("polling the parameter services")?;
+    let mut events = Events::with_capacity(16);
+    let mut indices = [0u64; 3];
+    let mut last_status = (Instant::now(), counters.snapshot());
+    let enqueue = |message: Incoming, index: u64| {
+        counters.received.fetch_add(1, Ordering::Relaxed);
+        if let Some(old) = queue.push(Queued { message, index, received_at: Instant::now() }) {
+            counters.dropped.fetch_add(1, Ordering::Relaxed);
+            warn!(
+                "[{fqn}] worker busy: dropped the oldest queued message (#{} after {:.0} ms waiting; {} dropped so far)",
+                old.index,
+                old.received_at.elapsed().as_secs_f64() * 1e3,
+                queue.dropped()
+            );
+        }
+    };
+    let malformed = |topic: &str, index: u64, reason: String| {
+        let n = counters.malformed.fetch_add(1, Ordering::Relaxed) + 1;
+        warn!("[{fqn}] malformed message #{index} on {topic} skipped: {reason} ({n} malformed so far)");
+    };
+    while !stop.load(Ordering::Relaxed) {
+        if let Err(e) = poll.poll(&mut events, Some(Duration::from_millis(100))) {
+            if e.kind() != std::io::ErrorKind::Interrupted {
+                return Err(e).context("polling the subscriptions");
+            }
+        }
+        // Edge-triggered: drain every subscription each round (cheap when empty).
+        drain(&kf_sub, &mut indices[0], Incoming::Keyframe, &enqueue, |i, r| malformed(&kf_name, i, r));
+        drain(&img_sub, &mut indices[1], Incoming::Image, &enqueue, |i, r| malformed(&img_name, i, r));
+        drain(&cmp_sub, &mut indices[2], Incoming::Compressed, &enqueue, |i, r| malformed(&cmp_name, i, r));
+        services.serve(&node, &live);
+        if last_status.0.elapsed() >= settings.status_period {
+            let now = counters.snapshot();
+            if now != last_status.1 {
+                info!("[{fqn}] status: {now}");
+            }
+            last_status = (Instant::now(), now);
+        }
+    }
+
+    queue.close();
+    let _ = worker.join();
+    node.stop_spinner();
+    let _ = spinner_thread.join();
+    let final_counters = counters.snapshot();
+    info!("[{fqn}] stopped: {final_counters}");
+    Ok(final_counters)
+}
+
+/// Takes every message waiting on `subscription`: good ones are queued, undeserialisable ones reported;
+/// `index` counts the messages seen on the topic.
+fn drain<M: 'static + serde::de::DeserializeOwned>(
+    subscription: &Subscription<M>,
+    index: &mut u64,
+    wrap: fn(M) -> Incoming,
+    enqueue: &impl Fn(Incoming, u64),
+    malformed: impl Fn(u64, String),
+) {
+    loop {
+        match subscription.take() {
+            Ok(Some((msg, _))) => enqueue(wrap(msg), *index),
+            Ok(None) => return,
+            Err(e) => malformed(*index, format!("{e:?}")),
+        }
+        *index += 1;
+    }
+}
+
+/// Decodes, processes and publishes queued messages until the queue closes.
+fn worker_loop(
+    fqn: &str,
+    mut processor: Box<dyn KeyframeProcessor>,
+    queue: &DropOldestQueue<Queued, ParamChange>,
+    publisher: &Publisher<LoopCandidate>,
+    counters: &NodeCounters,
+    live: &Mutex<Params>,
+) {
+    // frame_id of each keyframe id seen, for LoopCandidate.match_frame_id.
+    let mut frame_ids: HashMap<u64, String> = HashMap::new();
+    loop {
+        let queued = match queue.pop(Duration::from_millis(200)) {
+            Next::Control((name, value)) => {
+                if let Err(reason) = processor.set_param(&name, &value) {
+                    error!("[{fqn}] the processor refused {name} = {value}: {reason}");
+                }
+                continue;
+            }
+            Next::Item(queued) => queued,
+            Next::Timeout => continue,
+            Next::Closed => return,
+        };
+        let started = Instant::now();
+        let (topic, id, header, decoded) = match &queued.message {
+            Incoming::Keyframe(kf) => {
+                let mut header = kf.header.clone();
+                if header.stamp == Default::default() {
+                    header.stamp = kf.image.header.stamp;
+                }
+                (KEYFRAMES_TOPIC, Some(kf.id), header, decode_image(&kf.image))
+            }
+            Incoming::Image(img) => (IMAGE_TOPIC, None, img.header.clone(), decode_image(img)),
+            Incoming::Compressed(img) => (COMPRESSED_TOPIC, None, img.header.clone(), decode_compressed_image(img)),
+        };
+        let image = match decoded {
+            Ok(image) => image,
+            Err(e) => {
+                let n = counters.malformed.fetch_add(1, Ordering::Relaxed) + 1;
+                warn!("[{fqn}] malformed message #{} on {topic} skipped: {e:#} ({n} malformed so far)", queued.index);
+                continue;
+            }
+        };
+        let decode_ms = started.elapsed().as_secs_f64() * 1e3;
+        let stamp = Stamp::from(header.stamp);
+        let process_start = Instant::now();
+        let result = processor.process(id, stamp, &image);
+        let process_ms = process_start.elapsed().as_secs_f64() * 1e3;
+        let candidates = match result {
+            Ok(c) => c,
+            Err(e) => {
+                counters.failed.fetch_add(1, Ordering::Relaxed);
+                error!("[{fqn}] processing message #{} on {topic} (stamp {stamp}) failed: {e:#}", queued.index);
+                continue;
+            }
+        };
+        counters.processed.fetch_add(1, Ordering::Relaxed);
+        if let Some(id) = id {
+            frame_ids.insert(id, header.frame_id.clone());
+        }
+        if let Some(first) = candidates.first() {
+            frame_ids.entry(first.query_id).or_insert_with(|| header.frame_id.clone());
+        }
+        let mode = match live.lock().unwrap_or_else(|e| e.into_inner()).get("descriptor.mode") {
+            Some(ParamValue::String(mode)) => mode,
+            _ => String::new(),
+        };
+        let total = candidates.len() as u32;
+        for candidate in &candidates {
+            let match_frame = frame_ids.get(&candidate.match_id).unwrap_or(&header.frame_id);
+            let msg = LoopCandidate::from_candidate(candidate, &header.frame_id, match_frame, total, &mode);
+            match publisher.publish(msg) {
+                Ok(()) => {
+                    counters.candidates.fetch_add(1, Ordering::Relaxed);
+                }
+                Err(e) => error!("[{fqn}] publishing candidate {} -> {} failed: {e:?}", candidate.query_id, candidate.match_id),
+            }
+        }
+        debug!(
+            "[{fqn}] {topic} #{} id {} stamp {stamp}: waited {:.1} ms, decode {decode_ms:.1} ms, process {process_ms:.1} ms, \
+             {} candidate(s){}",
+            queued.index,
+            id.map_or("auto".to_string(), |i| i.to_string()),
+            (started - queued.received_at).as_secs_f64() * 1e3,
+            candidates.len(),
+            candidates.first().map_or(String::new(), |c| format!(", best {} -> {} score {:.3}", c.query_id, c.match_id, c.score)),
+        );
+    }
+}

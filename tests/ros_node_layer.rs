@@ -1,0 +1,433 @@
+//! The node layer over DDS, with a small recording processor instead of the pipeline: Keyframe, Image and
+//! CompressedImage input, candidates out, malformed messages counted and skipped, parameters set through
+//! the standard `set_parameters` service (valid accepted and applied, invalid refused with a reason).
+//!
+//! Network rule: the test re-runs itself inside a private network namespace (loopback only, `unshare`),
+//! so every DDS participant lives there; the outer test only checks the inner run's result.
+
+mod support_netns {
+    /// Runs this test binary's test `name` again inside a fresh network namespace and returns its output.
+    pub fn rerun_in_private_netns(name: &str) -> std::process::Output {
+        let exe = std::env::current_exe().unwrap();
+        let flag = if is_root() { "-n" } else { "-rn" };
+        std::process::Command::new("unshare")
+            .args([flag, "sh", "-c"])
+            .arg("ip link set lo up && (ip route add 224.0.0.0/4 dev lo 2>/dev/null || true) && exec \"$0\" \"$@\"")
+            .arg(exe)
+            .args([name, "--exact", "--nocapture", "--test-threads=1"])
+            .env("ECM_LCD_IN_PRIVATE_NETNS", "1")
+            .output()
+            .expect("running unshare (util-linux) for a private network namespace")
+    }
+
+    fn is_root() -> bool {
+        std::process::Command::new("id").arg("-u").output().map(|o| o.stdout.starts_with(b"0\n")).unwrap_or(false)
+    }
+
+    /// True inside the re-run (then the logger is set up for the test too).
+    pub fn inside() -> bool {
+        let inside = std::env::var_os("ECM_LCD_IN_PRIVATE_NETNS").is_some();
+        if inside {
+            let _ = env_logger::builder().is_test(true).filter_level(log::LevelFilter::Info).try_init();
+        }
+        inside
+    }
+
+    /// Re-runs test `name` in a private namespace and checks that it passed and reached its end.
+    pub fn check_inner_run(name: &str) {
+        let out = rerun_in_private_netns(name);
+        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(out.status.success(), "inner run failed:\n{text}");
+        assert!(text.contains("INNER-DONE"), "inner run did not complete:\n{text}");
+    }
+}
+
+use ecm_lcd::config::{ParamValue, Params};
+use ecm_lcd::io::msgs::{CompressedImage, Header, Image};
+use ecm_lcd::ros::msgs::{self, Keyframe, LoopCandidate};
+use ecm_lcd::ros::{run_node, KeyframeProcessor, NodeCounters, NodeSettings};
+use ecm_lcd::types::{self, Stamp};
+use ros2_client::rcl_interfaces::{
+    DescribeParametersRequest, DescribeParametersResponse, SetParametersRequest, SetParametersResponse,
+};
+use ros2_client::{
+    Context, Name, NodeName, NodeOptions, Parameter, ParameterValue, QosProfile, ServiceMapping, ServiceTypeName,
+};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// What the processor saw.
+#[derive(Default)]
+struct Seen {
+    calls: Vec<(Option<u64>, Stamp, u32, u32)>,
+    params: Vec<(String, ParamValue)>,
+}
+
+/// A real, tiny place recogniser: a frame's "place" is its mean colour; a query matches every earlier
+/// frame whose mean colour is within the score threshold (`detector.min_score`, score = 1 - |Δmean|/255).
+struct MeanColourProcessor {
+    seen: Arc<Mutex<Seen>>,
+    history: Vec<(u64, Stamp, f32)>,
+    next_id: u64,
+    min_score: f32,
+}
+
+impl KeyframeProcessor for MeanColourProcessor {
+    fn process(&mut self, id: Option<u64>, stamp: Stamp, image: &image::RgbImage) -> anyhow::Result<Vec<types::LoopCandidate>> {
+        self.seen.lock().unwrap().calls.push((id, stamp, image.width(), image.height()));
+        let id = id.unwrap_or_else(|| {
+            self.next_id += 1;
+            1000 + self.next_id
+        });
+        let mean = image.as_raw().iter().map(|&v| v as f32).sum::<f32>() / image.as_raw().len() as f32;
+        let mut found: Vec<types::LoopCandidate> = self
+            .history
+            .iter()
+            .map(|&(mid, mstamp, m)| {
+                let distance = (mean - m).abs();
+                (mid, mstamp, distance, 1.0 - distance / 255.0)
+            })
+            .filter(|&(_, _, _, score)| score >= self.min_score)
+            .map(|(match_id, match_stamp, distance, score)| types::LoopCandidate {
+                query_id: id,
+                query_stamp: stamp,
+                match_id,
+                match_stamp,
+                distance,
+                score,
+                rank: 0,
+            })
+            .collect();
+        found.sort_by(|a, b| b.score.total_cmp(&a.score));
+        for (rank, c) in found.iter_mut().enumerate() {
+            c.rank = rank as u32;
+        }
+        self.history.push((id, stamp, mean));
+        Ok(found)
+    }
+
+    fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String> {
+        self.seen.lock().unwrap().params.push((name.to_string(), value.clone()));
+        if let ("detector.min_score", ParamValue::Double(v)) = (name, value) {
+            self.min_score = *v as f32;
+        }
+        Ok(())
+    }
+}
+
+fn solid(width: u32, height: u32, value: u8) -> image::RgbImage {
+    image::RgbImage::from_pixel(width, height, image::Rgb([value, value, value]))
+}
+
+fn header(secs: i32) -> Header {
+    Header { stamp: ecm_lcd::io::msgs::Time { sec: secs, nanosec: 500 }, frame_id: "camera".into() }
+}
+
+fn keyframe(id: u64, secs: i32, value: u8) -> Keyframe {
+    let img = solid(32, 24, value);
+    Keyframe {
+        header: header(secs),
+        id,
+        image: Image {
+            header: header(secs),
+            height: 24,
+            width: 32,
+            encoding: "rgb8".into(),
+            is_bigendian: 0,
+            step: 96,
+            data: img.into_raw(),
+        },
+        has_pose: false,
+        pose: Default::default(),
+    }
+}
+
+#[test]
+fn node_layer_over_dds() {
+    if !support_netns::inside() {
+        return support_netns::check_inner_run("node_layer_over_dds");
+    }
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let initial = Params::default();
+    let ParamValue::Double(min_score) = initial.get("detector.min_score").unwrap() else { panic!() };
+    let processor =
+        MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: min_score as f32 };
+    let counters = Arc::new(NodeCounters::default());
+    let stop = Arc::new(AtomicBool::new(false));
+    let settings = NodeSettings {
+        ros_args: ecm_lcd::ros::args::RosArgs::parse(&["--ros-args", "-r", "__ns:=/t"], "ecm_lcd").unwrap(),
+        status_period: Duration::from_millis(500),
+        ..NodeSettings::default()
+    };
+    let node_thread = {
+        let (counters, stop) = (counters.clone(), stop.clone());
+        std::thread::spawn(move || run_node(&settings, initial, Some(false), Box::new(processor), counters, stop))
+    };
+
+    // The peer: publishers on the node's inputs, a subscription on its output, a set_parameters client.
+    let context = Context::new().unwrap();
+    let mut peer = context.new_node(NodeName::new("/t", "peer").unwrap(), NodeOptions::new().enable_rosout(false)).unwrap();
+    let reliable = ecm_lcd::ros::node::InputQos::Reliable.profile();
+    let topic = |peer: &mut ros2_client::Node, name: &str, ty| peer.create_topic(&Name::parse(name).unwrap(), ty, &reliable).unwrap();
+    let kf_topic = topic(&mut peer, "/t/keyframes", msgs::keyframe_type());
+    let img_topic = topic(&mut peer, "/t/image", msgs::image_type());
+    let cmp_topic = topic(&mut peer, "/t/image/compressed", msgs::compressed_image_type());
+    let out_topic = peer.create_topic(&Name::parse("/t/loop_candidates").unwrap(), msgs::loop_candidate_type(), &ecm_lcd::ros::node::output_qos()).unwrap();
+    let kf_pub = peer.create_publisher::<Keyframe>(&kf_topic, None).unwrap();
+    let img_pub = peer.create_publisher::<Image>(&img_topic, None).unwrap();
+    let cmp_pub = peer.create_publisher::<CompressedImage>(&cmp_topic, None).unwrap();
+    // Wrong bytes on the image topic: a plain string under the Image type name does not deserialise.
+    let garbage_pub = peer.create_publisher::<String>(&img_topic, None).unwrap();
+    let out_sub = peer.create_subscription::<LoopCandidate>(&out_topic, None).unwrap();
+    let service_qos = QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 1 });
+    let set_client = peer
+        .create_client::<SetParametersRequest, SetParametersResponse>(
+            ServiceMapping::Enhanced,
+            &Name::new("/t/ecm_lcd", "set_parameters").unwrap(),
+            &ServiceTypeName::new("rcl_interfaces", "SetParameters"),
+            service_qos.clone(),
+            service_qos.clone(),
+        )
+        .unwrap();
+    let describe_client = peer
+        .create_client::<DescribeParametersRequest, DescribeParametersResponse>(
+            ServiceMapping::Enhanced,
+            &Name::new("/t/ecm_lcd", "describe_parameters").unwrap(),
+            &ServiceTypeName::new("rcl_interfaces", "DescribeParameters"),
+            service_qos.clone(),
+            service_qos,
+        )
+        .unwrap();
+    let spinner = peer.spinner().unwrap();
+    std::thread::spawn(move || futures::executor::block_on(spinner.spin()));
+
+    // Wait until the node's subscriptions and our subscription are matched.
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while (kf_pub.get_subscription_count(&peer) == 0
+        || img_pub.get_subscription_count(&peer) == 0
+        || cmp_pub.get_subscription_count(&peer) == 0)
+        && Instant::now() < deadline
+    {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(kf_pub.get_subscription_count(&peer) > 0, "node's keyframe subscription never matched");
+    std::thread::sleep(Duration::from_millis(500));
+
+    let collect = |want: usize, within: Duration| -> Vec<LoopCandidate> {
+        let mut got = Vec::new();
+        let end = Instant::now() + within;
+        while Instant::now() < end && got.len() < want {
+            while let Ok(Some((c, _))) = out_sub.take() {
+                got.push(c);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        // Anything extra that is already on its way.
+        std::thread::sleep(Duration::from_millis(300));
+        while let Ok(Some((c, _))) = out_sub.take() {
+            got.push(c);
+        }
+        got
+    };
+
+    // 1. Keyframes: places 10, 200, 10, 200 -> 2 loops at the default threshold (identical colours).
+    for (i, value) in [10u8, 200, 10, 200].into_iter().enumerate() {
+        kf_pub.publish(keyframe(i as u64 + 1, 100 + i as i32, value)).unwrap();
+    }
+    let got = collect(2, Duration::from_secs(15));
+    let pairs: Vec<(u64, u64)> = got.iter().map(|c| (c.query_id, c.match_id)).collect();
+    assert_eq!(pairs, vec![(3, 1), (4, 2)]);
+    assert_eq!(got[0].header.stamp.sec, 102);
+    assert_eq!(got[0].match_stamp.sec, 100);
+    assert_eq!(got[0].header.frame_id, "camera");
+    assert_eq!(got[0].num_candidates, 1);
+    let Some(ParamValue::String(mode)) = Params::default().get("descriptor.mode") else { panic!("descriptor.mode") };
+    assert_eq!(got[0].descriptor_mode, mode);
+
+    // 2. Malformed messages: each logged, counted and skipped.
+    let mut short = keyframe(9, 0, 1).image;
+    short.data.truncate(10);
+    let mut odd = keyframe(9, 0, 1).image;
+    odd.encoding = "yuv422_weird".into();
+    let empty = Image { encoding: "rgb8".into(), ..Default::default() };
+    img_pub.publish(short).unwrap();
+    img_pub.publish(odd).unwrap();
+    img_pub.publish(empty).unwrap();
+    cmp_pub.publish(CompressedImage { header: header(5), format: "jpeg".into(), data: vec![0xff, 0xd8, 1, 2, 3] }).unwrap();
+    garbage_pub.publish("not an image".to_string()).unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while counters.snapshot().malformed < 5 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert_eq!(counters.snapshot().malformed, 5, "{}", counters.snapshot());
+
+    // 3. Still answering: a plain image is processed (id from the processor's counter) ...
+    img_pub.publish(ecm_lcd::io::image_msg::rgb8_message(Stamp::from_sec_nsec(200, 0), "camera", &solid(32, 24, 200))).unwrap();
+    let got = collect(2, Duration::from_secs(10));
+    assert_eq!(got.iter().map(|c| (c.query_id, c.match_id)).collect::<Vec<_>>(), vec![(1001, 2), (1001, 4)]);
+
+    // ... and the parameter service works: an invalid threshold is refused with a reason, a valid one applied.
+    let call = |name: &str, value: ParameterValue| -> (bool, String) {
+        futures::executor::block_on(async {
+            set_client.wait_for_service(&peer).await;
+            let req = SetParametersRequest { parameter: vec![Parameter { name: name.into(), value }.into()] };
+            let id = set_client.async_send_request(req).await.unwrap();
+            let resp = set_client.async_receive_response(id).await.unwrap();
+            (resp.results[0].successful, resp.results[0].reason.clone())
+        })
+    };
+    let (ok, reason) = call("detector.min_score", ParameterValue::Double(7.0));
+    assert!(!ok);
+    assert!(reason.contains("detector.min_score"), "{reason}");
+    let (ok, reason) = call("detector.min_score", ParameterValue::String("high".into()));
+    assert!(!ok, "{reason}");
+    let (ok, reason) = call("detector.min_score", ParameterValue::Double(0.5));
+    assert!(ok, "{reason}");
+    // describe_parameters carries the table's description and range.
+    let described = futures::executor::block_on(async {
+        describe_client.wait_for_service(&peer).await;
+        let req = DescribeParametersRequest { names: vec!["detector.min_score".into(), "use_sim_time".into()] };
+        let id = describe_client.async_send_request(req).await.unwrap();
+        describe_client.async_receive_response(id).await.unwrap()
+    });
+    let spec = ecm_lcd::config::param_spec("detector.min_score").unwrap();
+    assert_eq!(described.values[0].description, spec.description);
+    assert_eq!(described.values[0].floating_point_range.len(), 1);
+    assert_eq!(described.values[0].r#type, 3); // PARAMETER_DOUBLE
+    assert_eq!(described.values[1].r#type, 1); // PARAMETER_BOOL
+    // With the lower threshold a grey of 100 now matches 10 and 200 (scores 0.65, 0.61).
+    kf_pub.publish(keyframe(50, 300, 100)).unwrap();
+    let got = collect(5, Duration::from_secs(10));
+    let mut matched: Vec<u64> = got.iter().map(|c| c.match_id).collect();
+    matched.sort();
+    assert_eq!(matched, vec![1, 2, 3, 4, 1001]);
+    assert!(got.iter().all(|c| c.query_id == 50 && c.num_candidates == 5));
+
+    stop.store(true, Ordering::Relaxed);
+    let final_counters = node_thread.join().unwrap().unwrap();
+    let seen = seen.lock().unwrap();
+    assert_eq!(seen.calls.len(), 6, "{:?}", seen.calls);
+    assert_eq!(seen.calls[0], (Some(1), Stamp::from_sec_nsec(100, 500), 32, 24));
+    assert_eq!(seen.calls[4].0, None);
+    assert_eq!(seen.params, vec![("detector.min_score".to_string(), ParamValue::Double(0.5))]);
+    assert_eq!(final_counters.processed, 6);
+    assert_eq!(final_counters.malformed, 5);
+    assert_eq!(final_counters.received, 10);
+    assert_eq!(final_counters.candidates, 9);
+    assert_eq!(final_counters.param_changes, 1);
+    println!("INNER-DONE {final_counters}");
+}
+
+/// The Python virtualenv with Cyclone DDS (created once under target/, reused afterwards).
+fn cyclone_python() -> std::path::PathBuf {
+    let venv = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-venv-dds");
+    let python = venv.join("bin/python");
+    let has = |py: &std::path::Path| {
+        std::process::Command::new(py).args(["-c", "import cyclonedds.domain"]).output().is_ok_and(|o| o.status.success())
+    };
+    if !has(&python) {
+        let status = std::process::Command::new("python3").arg("-m").arg("venv").arg(&venv).status();
+        assert!(status.is_ok_and(|s| s.success()), "python3 -m venv {} failed", venv.display());
+        let status = std::process::Command::new(&python).args(["-m", "pip", "install", "-q", "cyclonedds"]).status();
+        assert!(status.is_ok_and(|s| s.success()), "pip install cyclonedds failed");
+    }
+    assert!(has(&python), "cyclonedds not importable from {}", python.display());
+    python
+}
+
+#[test]
+fn cyclone_dds_peer_sends_images_and_receives_candidates() {
+    if !support_netns::inside() {
+        // Network-free preparation outside the namespace (PyPI must be reachable the first time).
+        cyclone_python();
+        return support_netns::check_inner_run("cyclone_dds_peer_sends_images_and_receives_candidates");
+    }
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.95 };
+    let counters = Arc::new(NodeCounters::default());
+    let stop = Arc::new(AtomicBool::new(false));
+    let settings = NodeSettings::default();
+    let node_thread = {
+        let (counters, stop) = (counters.clone(), stop.clone());
+        std::thread::spawn(move || run_node(&settings, Params::default(), None, Box::new(processor), counters, stop))
+    };
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros_support/cyclone_peer.py");
+    let out = std::process::Command::new(cyclone_python())
+        .arg(&script)
+        .args(["2", "10", "200", "10", "200"])
+        .output()
+        .expect("running the Cyclone DDS peer");
+    let text = String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    stop.store(true, Ordering::Relaxed);
+    let final_counters = node_thread.join().unwrap().unwrap();
+    assert!(out.status.success(), "peer failed:\n{text}");
+    let candidates: Vec<&str> = text.lines().filter(|l| l.starts_with("CANDIDATE ")).collect();
+    assert_eq!(
+        candidates,
+        vec!["CANDIDATE 1003 1001 0 1.000 502 500 cyclone_cam", "CANDIDATE 1004 1002 0 1.000 503 501 cyclone_cam"],
+        "{text}"
+    );
+    assert_eq!(final_counters.processed, 4, "{final_counters}");
+    assert_eq!(final_counters.malformed, 0);
+    assert_eq!(seen.lock().unwrap().calls.iter().filter(|c| c.0.is_none() && c.2 == 32).count(), 4);
+    println!("INNER-DONE {final_counters}");
+}
+
+#[test]
+fn play_keyframes_and_listen_processes_talk_to_the_node() {
+    if !support_netns::inside() {
+        return support_netns::check_inner_run("play_keyframes_and_listen_processes_talk_to_the_node");
+    }
+    // A looped sequence in TUM form: places 10, 200, 10, 200, 10.
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let mut writer = ecm_lcd::io::tum::TumWriter::create(&seq).unwrap();
+    for (i, grey) in [10u8, 200, 10, 200, 10].into_iter().enumerate() {
+        writer.write_frame(Stamp::from_sec_nsec(1000 + i as i64, 0), &solid(40, 30, grey)).unwrap();
+    }
+    writer.finish().unwrap();
+
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.95 };
+    let counters = Arc::new(NodeCounters::default());
+    let stop = Arc::new(AtomicBool::new(false));
+    let node_thread = {
+        let (counters, stop) = (counters.clone(), stop.clone());
+        std::thread::spawn(move || run_node(&NodeSettings::default(), Params::default(), None, Box::new(processor), counters, stop))
+    };
+    let exe = env!("CARGO_BIN_EXE_ecm-lcd");
+    // The two cross-keyframe pairs of the first loop and the three of the second: 2->0, 3->1, 4->2, 4->0.
+    let listener = std::process::Command::new(exe)
+        .args(["listen", "--count", "4", "--idle-timeout", "30"])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let player = std::process::Command::new(exe)
+        .args(["play-keyframes"])
+        .arg(&seq)
+        .args(["--rate", "20", "--as", "keyframe", "--linger", "1"])
+        .output()
+        .unwrap();
+    assert!(player.status.success(), "{}", String::from_utf8_lossy(&player.stderr));
+    assert!(String::from_utf8_lossy(&player.stderr).contains("published 5 frames"));
+    let listened = listener.wait_with_output().unwrap();
+    stop.store(true, Ordering::Relaxed);
+    let final_counters = node_thread.join().unwrap().unwrap();
+    assert!(listened.status.success(), "{}", String::from_utf8_lossy(&listened.stderr));
+    let csv = String::from_utf8_lossy(&listened.stdout).to_string();
+    let rows: Vec<(u64, u64)> = csv
+        .lines()
+        .skip(1)
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            (f[0].parse().unwrap(), f[2].parse().unwrap())
+        })
+        .collect();
+    assert_eq!(rows, vec![(2, 0), (3, 1), (4, 0), (4, 2)], "{csv}");
+    assert!(csv.lines().nth(1).unwrap().starts_with("2,1002.000000000,0,1000.000000000,"), "{csv}");
+    assert_eq!(final_counters.processed, 5, "{final_counters}");
+    assert_eq!(seen.lock().unwrap().calls.iter().map(|c| c.0).collect::<Vec<_>>(), (0..5).map(Some).collect::<Vec<_>>());
+    println!("INNER-DONE {final_counters}");
+}

@@ -1,0 +1,98 @@
+"""An independent DDS peer (Eclipse Cyclone DDS, not RustDDS) for the ecm-lcd node test.
+
+Publishes sensor_msgs/Image (rgb8, solid grey levels given on the command line) on rt/image and prints
+every ecm_lcd_msgs/LoopCandidate received on rt/loop_candidates as `CANDIDATE query match rank score`.
+Types are declared with the ROS 2 DDS names (`pkg::msg::dds_::Type_`) and plain CDR (XCDR1), as
+rmw_cyclonedds does. Usage: cyclone_peer.py EXPECTED_CANDIDATES GREY [GREY ...]
+"""
+import sys
+import time
+from dataclasses import dataclass
+
+from cyclonedds.core import Policy, Qos
+from cyclonedds.domain import DomainParticipant
+from cyclonedds.idl import IdlStruct
+from cyclonedds.idl.types import float32, int32, sequence, uint8, uint32, uint64
+from cyclonedds.pub import DataWriter
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
+from cyclonedds.util import duration
+
+
+@dataclass
+class Time(IdlStruct, typename="builtin_interfaces::msg::dds_::Time_"):
+    sec: int32
+    nanosec: uint32
+
+
+@dataclass
+class Header(IdlStruct, typename="std_msgs::msg::dds_::Header_"):
+    stamp: Time
+    frame_id: str
+
+
+@dataclass
+class Image(IdlStruct, typename="sensor_msgs::msg::dds_::Image_"):
+    header: Header
+    height: uint32
+    width: uint32
+    encoding: str
+    is_bigendian: uint8
+    step: uint32
+    data: sequence[uint8]
+
+
+@dataclass
+class LoopCandidate(IdlStruct, typename="ecm_lcd_msgs::msg::dds_::LoopCandidate_"):
+    header: Header
+    query_id: uint64
+    match_id: uint64
+    match_stamp: Time
+    match_frame_id: str
+    distance: float32
+    score: float32
+    rank: uint32
+    num_candidates: uint32
+    type: uint8
+    descriptor_mode: str
+
+
+def main():
+    expected = int(sys.argv[1])
+    greys = [int(v) for v in sys.argv[2:]]
+    qos = Qos(
+        Policy.Reliability.Reliable(duration(milliseconds=100)),
+        Policy.Durability.Volatile,
+        Policy.History.KeepLast(10),
+        Policy.DataRepresentation(use_cdrv0_representation=True),
+    )
+    dp = DomainParticipant(0)
+    writer = DataWriter(dp, Topic(dp, "rt/image", Image), qos=qos)
+    reader = DataReader(dp, Topic(dp, "rt/loop_candidates", LoopCandidate), qos=qos)
+    deadline = time.time() + 20
+    while writer.get_publication_matched_status().current_count == 0 or \
+            reader.get_subscription_matched_status().current_count == 0:
+        if time.time() > deadline:
+            print("PEER-ERROR no match with the node", flush=True)
+            sys.exit(2)
+        time.sleep(0.05)
+    time.sleep(0.3)
+    width, height = 32, 24
+    for i, grey in enumerate(greys):
+        header = Header(stamp=Time(sec=500 + i, nanosec=0), frame_id="cyclone_cam")
+        writer.write(Image(header=header, height=height, width=width, encoding="rgb8", is_bigendian=0,
+                           step=width * 3, data=[grey] * (width * height * 3)))
+        time.sleep(0.1)
+    got = 0
+    deadline = time.time() + 20
+    while got < expected and time.time() < deadline:
+        for c in reader.take(N=16):
+            print(f"CANDIDATE {c.query_id} {c.match_id} {c.rank} {c.score:.3f} {c.header.stamp.sec} "
+                  f"{c.match_stamp.sec} {c.match_frame_id}", flush=True)
+            got += 1
+        time.sleep(0.05)
+    print(f"PEER-DONE {got}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
