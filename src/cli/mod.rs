@@ -3,6 +3,9 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+pub mod eval;
+pub mod synth;
+
 #[derive(Parser, Debug)]
 #[command(name = "ecm-lcd", version, about = "Loop-closure detection for visual SLAM with ECMobileNet descriptors")]
 pub struct Cli {
@@ -15,6 +18,8 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
+    Synth(synth::Args),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -34,5 +39,7 @@ pub fn main() -> ExitCode {
 }
 
 fn run(command: Command) -> anyhow::Result<()> {
-    match command {}
+    match command {
+        Command::Synth(args) => synth::run(args),
+    }
 }
