@@ -1,6 +1,8 @@
 //! Precision-recall metrics of a loop detector from its top-1 candidate per query.
 //!
-//! Interpretation: every query counts once. A query is a positive if its truth has any match.
+//! Interpretation: the queries are the results handed in, each once (the caller reports every
+//! query, with `best: None` where the detector found nothing). A query is a positive if its truth
+//! has any match; truth for indexes that are not queries is ignored.
 //! Sweeping a threshold over the top-1 scores (descending), a query whose top-1 score is at or
 //! above the threshold is reported; a reported query is a true positive if its match is one of its
 //! true matches, otherwise a false positive (a wrong match of a positive query or any match of a
@@ -164,12 +166,15 @@ mod tests {
     fn ties_form_one_threshold_and_a_wrong_best_gives_zero_recall_at_full_precision() {
         let results = [result(10, Some((1, 0.9))), result(14, Some((0, 0.9))), result(11, Some((2, 0.4)))];
         let m = evaluate(&results, &truth()).unwrap();
+        // Positives are counted among the queries given: 10 and 11.
+        assert_eq!((m.queries, m.positives), (3, 2));
         assert_eq!(m.curve.len(), 2);
-        assert_eq!((m.curve[0].precision, m.curve[0].recall), (0.5, 0.25));
+        assert_eq!((m.curve[0].threshold, m.curve[0].precision, m.curve[0].recall), (0.9, 0.5, 0.5));
+        assert_eq!((m.curve[1].threshold, m.curve[1].recall), (0.4, 1.0));
         assert_eq!(m.recall_at_100_precision, Some(0.0));
-        // AP = 0.25*0.5 + 0.25*(2/3).
-        assert!((m.average_precision.unwrap() - (0.125 + 0.5 / 3.0)).abs() < 1e-12);
-        assert_eq!(m.recall_at_1, Some(0.5));
+        // AP = 0.5*0.5 + 0.5*(2/3).
+        assert!((m.average_precision.unwrap() - (0.25 + 1.0 / 3.0)).abs() < 1e-12);
+        assert_eq!(m.recall_at_1, Some(1.0));
     }
 
     #[test]
