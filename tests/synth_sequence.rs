@@ -53,9 +53,11 @@ fn ground_truth_loops_join_the_laps() {
     let poses: Vec<_> = (0..scene.len()).map(|i| (scene.stamp(i), scene.pose(i))).collect();
     let criteria = PoseLoopCriteria { max_distance_m: 0.5, max_angle_deg: 20.0, min_gap_s: 5.0, ..PoseLoopCriteria::default() };
     let truth = loop_truth_from_poses(&stamps, &poses, &criteria);
-    for q in 0..300 {
-        assert!(truth.matches(q).unwrap().is_empty(), "first-lap frame {q} cannot close a loop");
+    // The first lap only revisits its own start at its very end (the path is closed).
+    for q in 0..280 {
+        assert!(truth.matches(q).unwrap().is_empty(), "first-lap frame {q} visits a new place");
     }
+    assert!(truth.matches(299).unwrap().contains(&0), "the end of the first lap closes on its start");
     for q in 300..900 {
         let matches = truth.matches(q).unwrap();
         assert!(matches.contains(&(q - 300)), "frame {q} must match the same place one lap earlier");
