@@ -71,6 +71,29 @@ fn hsv(h: f32, s: f32, v: f32) -> Rgb {
     [r + m, g + m, b + m]
 }
 
+/// `f32::floor` without the libm call (this target has no SSE4.1 rounding instruction);
+/// exact for |x| < 2^31, far beyond any texture coordinate here.
+fn floor(x: f32) -> f32 {
+    let truncated = x as i32 as f32;
+    if truncated > x {
+        truncated - 1.0
+    } else {
+        truncated
+    }
+}
+
+/// `x - floor(x)`, in [0, 1).
+fn fract(x: f32) -> f32 {
+    x - floor(x)
+}
+
+/// A smooth falloff from 1 at d = 0 towards 0 over about `scale`, like `exp(-d / scale)` but
+/// without the libm call.
+fn falloff(d: f32, scale: f32) -> f32 {
+    let x = d.max(0.0) / scale;
+    1.0 / (1.0 + x + 0.5 * x * x)
+}
+
 fn mix(a: Rgb, b: Rgb, t: f32) -> Rgb {
     [a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, a[2] + (b[2] - a[2]) * t]
 }
@@ -99,7 +122,7 @@ impl Noise {
     }
 
     fn sample(&self, u: f32, v: f32) -> f32 {
-        let (fu, fv) = (u.floor(), v.floor());
+        let (fu, fv) = (floor(u), floor(v));
         let (tu, tv) = (u - fu, v - fv);
         let (tu, tv) = (tu * tu * (3.0 - 2.0 * tu), tv * tv * (3.0 - 2.0 * tv));
         let mask = NOISE_SIZE as i64 - 1;
@@ -149,48 +172,48 @@ impl Material {
         let mut colour = match self.pattern {
             Pattern::Plain => self.base,
             Pattern::Stripes { period, duty } => {
-                mix(self.base, self.alt, coverage((u / period).rem_euclid(1.0) < duty, duty, period))
+                mix(self.base, self.alt, coverage(fract(u / period) < duty, duty, period))
             }
             Pattern::Bands { period, duty } => {
-                mix(self.base, self.alt, coverage((v / period).rem_euclid(1.0) < duty, duty, period))
+                mix(self.base, self.alt, coverage(fract(v / period) < duty, duty, period))
             }
             Pattern::Checker { size } => {
-                let odd = ((u / size).floor() as i64 + (v / size).floor() as i64) & 1 == 1;
+                let odd = (floor(u / size) as i64 + floor(v / size) as i64) & 1 == 1;
                 mix(self.base, self.alt, coverage(odd, 0.5, size))
             }
             Pattern::Planks { width, length } => {
-                let row = (v / width).floor();
+                let row = floor(v / width);
                 let shift = hash_unit(row as i64, 7, self.salt) * length;
-                let col = ((u + shift) / length).floor();
+                let col = floor((u + shift) / length);
                 let tint = 0.8 + 0.4 * hash_unit(row as i64, col as i64, self.salt);
                 let grain = noise.sample(u * 1.5, v * 25.0);
                 let wood = scale(mix(self.base, self.alt, grain), tint);
-                let seam = (v / width).rem_euclid(1.0) < 0.06 || ((u + shift) / length).rem_euclid(1.0) < 0.015;
+                let seam = fract(v / width) < 0.06 || fract((u + shift) / length) < 0.015;
                 let dark = coverage(seam, 0.08, width);
                 scale(wood, 1.0 - 0.6 * dark)
             }
             Pattern::Tiles { size } => {
-                let tint = 0.92 + 0.16 * hash_unit((u / size).floor() as i64, (v / size).floor() as i64, self.salt);
-                let grout = (u / size).rem_euclid(1.0) < 0.05 || (v / size).rem_euclid(1.0) < 0.05;
+                let tint = 0.92 + 0.16 * hash_unit(floor(u / size) as i64, floor(v / size) as i64, self.salt);
+                let grout = fract(u / size) < 0.05 || fract(v / size) < 0.05;
                 mix(scale(self.base, tint), self.alt, coverage(grout, 0.1, size))
             }
             Pattern::Bricks { width, height } => {
-                let row = (v / height).floor();
+                let row = floor(v / height);
                 let shift = if (row as i64) & 1 == 1 { 0.5 * width } else { 0.0 };
-                let col = ((u + shift) / width).floor();
+                let col = floor((u + shift) / width);
                 let tint = 0.85 + 0.3 * hash_unit(row as i64, col as i64, self.salt);
-                let mortar = (v / height).rem_euclid(1.0) < 0.1 || ((u + shift) / width).rem_euclid(1.0) < 0.05;
+                let mortar = fract(v / height) < 0.1 || fract((u + shift) / width) < 0.05;
                 mix(scale(self.base, tint), self.alt, coverage(mortar, 0.14, height))
             }
             Pattern::Dots { period, radius } => {
-                let du = (u / period).rem_euclid(1.0) - 0.5;
-                let dv = (v / period).rem_euclid(1.0) - 0.5;
+                let du = fract(u / period) - 0.5;
+                let dv = fract(v / period) - 0.5;
                 let inside = du * du + dv * dv < radius * radius;
                 mix(self.base, self.alt, coverage(inside, std::f32::consts::PI * radius * radius, period))
             }
         };
         if self.grain > 0.0 {
-            let n = noise.fbm(u * self.grain_scale + self.salt as f32 % 97.0, v * self.grain_scale);
+            let n = noise.fbm(u * self.grain_scale + (self.salt % 97) as f32, v * self.grain_scale);
             let keep = detail(footprint, 1.0 / self.grain_scale);
             colour = scale(colour, 1.0 + self.grain * (n - 0.5) * 2.0 * keep);
         }
@@ -265,8 +288,8 @@ impl Poster {
                 c[(r * 9.0) as usize % 4]
             }
             PosterKind::Blocks => {
-                let (i, j) = ((s * 4.0).floor() as i64, (t * 5.0).floor() as i64);
-                let edge = (s * 4.0).rem_euclid(1.0) < 0.06 || (t * 5.0).rem_euclid(1.0) < 0.06;
+                let (i, j) = (floor(s * 4.0) as i64, floor(t * 5.0) as i64);
+                let edge = fract(s * 4.0) < 0.06 || fract(t * 5.0) < 0.06;
                 if edge {
                     [0.05, 0.05, 0.05]
                 } else {
@@ -277,14 +300,14 @@ impl Poster {
                 let r = ((s - 0.6).powi(2) + (t - 0.35).powi(2)).sqrt();
                 if r < 0.22 {
                     c[2]
-                } else if ((s + t) * 4.0).rem_euclid(1.0) < 0.5 {
+                } else if fract((s + t) * 4.0) < 0.5 {
                     c[0]
                 } else {
                     c[1]
                 }
             }
             PosterKind::Landscape => {
-                let horizon = 0.55 + 0.15 * (noise.sample(s * 6.0 + self.salt as f32 % 50.0, 3.0) - 0.5);
+                let horizon = 0.55 + 0.15 * (noise.sample(s * 6.0 + (self.salt % 50) as f32, 3.0) - 0.5);
                 if t < horizon {
                     mix(c[0], [0.95, 0.95, 1.0], t / horizon)
                 } else {
@@ -295,10 +318,10 @@ impl Poster {
                 if t < 0.25 {
                     return c[0];
                 }
-                let line = ((t - 0.25) * 14.0).floor() as i64;
-                let in_line = ((t - 0.25) * 14.0).rem_euclid(1.0) < 0.55;
+                let line = floor((t - 0.25) * 14.0) as i64;
+                let in_line = fract((t - 0.25) * 14.0) < 0.55;
                 let word_end = 0.5 + 0.45 * hash_unit(line, 3, self.salt);
-                if in_line && s > 0.1 && s < word_end && (s * 9.0 + hash_unit(line, 4, self.salt)).rem_euclid(1.0) < 0.85 {
+                if in_line && s > 0.1 && s < word_end && fract(s * 9.0 + hash_unit(line, 4, self.salt)) < 0.85 {
                     [0.15, 0.15, 0.18]
                 } else {
                     [0.93, 0.92, 0.88]
@@ -612,7 +635,7 @@ impl World {
         let cos_view = (dir[0] * n[0] + dir[1] * n[1] + dir[2] * n[2]).abs().max(0.15);
         let footprint = hit.t * pixel_angle / cos_view;
         let noise = &self.noise;
-        let soft_edge = |d: f32| 1.0 - 0.45 * (-d.max(0.0) / 0.25).exp();
+        let soft_edge = |d: f32| 1.0 - 0.45 * falloff(d, 0.25);
         let (albedo, occlusion, emissive) = match hit.surface {
             Surface::Furniture(k) => {
                 let item = &room.furniture[k];
@@ -627,7 +650,7 @@ impl World {
                     .filter(|&a| a != axis)
                     .map(|a| (p[a] - item.min[a]).min(item.max[a] - p[a]))
                     .fold(f32::INFINITY, f32::min);
-                let occ = (1.0 - 0.35 * (-p[2] / 0.2).exp()) * (0.85 + 0.15 * (edge / 0.03).min(1.0));
+                let occ = (1.0 - 0.35 * falloff(p[2], 0.2)) * (0.85 + 0.15 * (edge / 0.03).min(1.0));
                 (colour, occ, false)
             }
             Surface::Wall(face) => {
@@ -643,7 +666,7 @@ impl World {
                         for item in &room.furniture {
                             let dx = (item.min[0] - p[0]).max(p[0] - item.max[0]).max(0.0);
                             let dy = (item.min[1] - p[1]).max(p[1] - item.max[1]).max(0.0);
-                            occ *= 1.0 - 0.5 * (-(dx * dx + dy * dy).sqrt() / 0.15).exp();
+                            occ *= 1.0 - 0.5 * falloff((dx * dx + dy * dy).sqrt(), 0.15);
                         }
                         (room.floor.albedo(u, v, footprint, noise), occ, false)
                     }
@@ -703,21 +726,25 @@ impl World {
     pub fn render(&self, pose: &Isometry3<f64>, width: u32, height: u32, focal: f64, lighting: &Lighting, noise_seed: u64) -> RgbImage {
         let rotation = pose.rotation.to_rotation_matrix();
         let m = rotation.matrix();
-        let rot: [[f32; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)] as f32));
+        // Ray directions are computed in f64: in f32, LLVM packs the 3-vectors into SIMD lanes
+        // whose unused lane can hold denormals, and the resulting micro-code assists made
+        // this loop three times slower.
+        let rot: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]));
         let t = pose.translation.vector;
         let origin = [t.x as f32, t.y as f32, t.z as f32];
         let start_room = self.room_at(origin);
         let (w, h) = (width as usize, height as usize);
-        let (cx, cy, f) = (width as f32 / 2.0, height as f32 / 2.0, focal as f32);
-        let pixel_angle = 1.0 / f;
+        let (cx, cy, f) = (width as f64 / 2.0, height as f64 / 2.0, focal);
+        let pixel_angle = (1.0 / f) as f32;
         let mut buffer = vec![0u8; w * h * 3];
         buffer.par_chunks_mut(w * 3).enumerate().for_each(|(y, row)| {
-            let yc = (y as f32 + 0.5 - cy) / f;
+            let yc = (y as f64 + 0.5 - cy) / f;
             for x in 0..w {
-                let xc = (x as f32 + 0.5 - cx) / f;
+                let xc = (x as f64 + 0.5 - cx) / f;
                 let norm = (xc * xc + yc * yc + 1.0).sqrt();
-                let dc = [xc / norm, yc / norm, 1.0 / norm];
-                let dir: [f32; 3] = std::array::from_fn(|r| rot[r][0] * dc[0] + rot[r][1] * dc[1] + rot[r][2] * dc[2]);
+                let dir: [f32; 3] =
+                    std::array::from_fn(|r| ((rot[r][0] * xc + rot[r][1] * yc + rot[r][2]) / norm) as f32);
+                let (xc, yc) = (xc as f32, yc as f32);
                 let colour = match self.trace(origin, dir, start_room) {
                     Some(hit) => self.shade(&hit, dir, pixel_angle, lighting),
                     None => [0.0; 3],
