@@ -136,3 +136,86 @@ fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)]) -> 
 fn display_name(path: &Path) -> String {
     path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| path.display().to_string())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct TestCli {
+        #[command(flatten)]
+        args: Args,
+    }
+
+    fn parse(argv: &[&str]) -> Result<Args, clap::Error> {
+        TestCli::try_parse_from(std::iter::once("eval").chain(argv.iter().copied())).map(|c| c.args)
+    }
+
+    #[test]
+    fn truth_comes_from_loops_or_the_source_folders_groundtruth() {
+        let dir = tempfile::tempdir().unwrap();
+        let loops = dir.path().join("loops.csv");
+        std::fs::write(&loops, "3,0 1\n").unwrap();
+        let args = parse(&["seq", "--loops", loops.to_str().unwrap()]).unwrap();
+        let truth = load_truth(&args, &[]).unwrap();
+        assert_eq!(truth.positive_queries().collect::<Vec<_>>(), vec![3]);
+
+        // Without --loops: SOURCE/groundtruth.txt, with the distance/angle/gap options applied.
+        std::fs::write(dir.path().join("groundtruth.txt"), "10.0 0 0 0 0 0 0 1\n15.0 0.3 0 0 0 0 0 1\n").unwrap();
+        let stamps = [Stamp::from_secs_f64(10.0), Stamp::from_secs_f64(15.0)];
+        let source = dir.path().to_str().unwrap();
+        let truth = load_truth(&parse(&[source]).unwrap(), &stamps).unwrap();
+        assert_eq!(truth.positive_queries().count(), 0, "default 20 s gap");
+        let truth = load_truth(&parse(&[source, "--min-gap", "4"]).unwrap(), &stamps).unwrap();
+        assert_eq!(truth.positive_queries().collect::<Vec<_>>(), vec![1]);
+        let truth = load_truth(&parse(&[source, "--min-gap", "4", "--max-distance", "0.2"]).unwrap(), &stamps).unwrap();
+        assert_eq!(truth.positive_queries().count(), 0);
+
+        let err = load_truth(&parse(&["/nonexistent-folder"]).unwrap(), &stamps).unwrap_err();
+        assert!(err.to_string().contains("no loop truth"), "{err:#}");
+        let err = load_truth(&parse(&[source, "--min-gap=-1"]).unwrap(), &stamps).unwrap_err();
+        assert!(err.to_string().contains("--min-gap"), "{err:#}");
+    }
+
+    #[test]
+    fn database_mode_needs_queries_and_loops_and_lists_images_in_name_order() {
+        assert!(parse(&["--database", "db"]).is_err());
+        assert!(parse(&["--database", "db", "--queries", "q"]).is_err(), "needs --loops");
+        assert!(parse(&["seq", "--database", "db", "--queries", "q", "--loops", "l"]).is_err(), "not with SOURCE");
+        let dir = tempfile::tempdir().unwrap();
+        let (db, queries) = (dir.path().join("db"), dir.path().join("q"));
+        std::fs::create_dir_all(&db).unwrap();
+        std::fs::create_dir_all(&queries).unwrap();
+        for name in ["b.png", "a.JPG", "c.txt", "10.bmp"] {
+            std::fs::write(db.join(name), b"x").unwrap();
+        }
+        let args = parse(&["--database", db.to_str().unwrap(), "--queries", queries.to_str().unwrap(), "--loops", "l"]).unwrap();
+        let err = args.database_and_queries().unwrap_err();
+        assert!(err.to_string().contains("holds no png, jpg or bmp files"), "{err:#}");
+        std::fs::write(queries.join("q0.png"), b"x").unwrap();
+        let (database, query_images) = args.database_and_queries().unwrap().unwrap();
+        let names: Vec<_> = database.iter().map(|p| p.file_name().unwrap().to_str().unwrap().to_string()).collect();
+        assert_eq!(names, ["10.bmp", "a.JPG", "b.png"]);
+        assert_eq!(query_images.len(), 1);
+    }
+
+    #[test]
+    fn results_are_scored_and_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let (csv, json, png) = (dir.path().join("pr.csv"), dir.path().join("s.json"), dir.path().join("pr.png"));
+        let args = parse(&["seq", "-o", csv.to_str().unwrap(), "--json", json.to_str().unwrap(), "--plot", png.to_str().unwrap()]).unwrap();
+        let truth = crate::eval::parse_loops("2,0\n3,1\n").unwrap();
+        let results = [
+            QueryResult { query: 2, best: Some((0, 0.8)) },
+            QueryResult { query: 3, best: Some((0, 0.6)) },
+        ];
+        let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)]).unwrap();
+        assert_eq!(metrics.recall_at_1, Some(0.5));
+        assert!(std::fs::read_to_string(&csv).unwrap().starts_with("threshold,precision,recall\n0.8,1,0.5\n"));
+        let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        assert_eq!(summary["average_precision"], 0.5);
+        assert_eq!(summary["timing_ms"]["total"], 5.0);
+        assert!(png.is_file());
+    }
+}

@@ -90,7 +90,10 @@ fn draw_pr_curve(metrics: &Metrics, title: &str, path: &Path, with_text: bool) -
     mesh.draw()?;
     let points: Vec<(f64, f64)> = metrics.curve.iter().map(|p| (p.recall, p.precision)).collect();
     chart.draw_series(LineSeries::new(points.iter().copied(), BLUE.stroke_width(2)))?;
-    chart.draw_series(points.iter().map(|&p| Circle::new(p, 3, BLUE.filled())))?;
+    // Markers only where they can be told apart; a dense curve is clearer as a line.
+    if points.len() <= 60 {
+        chart.draw_series(points.iter().map(|&p| Circle::new(p, 3, BLUE.filled())))?;
+    }
     root.present()?;
     Ok(())
 }
