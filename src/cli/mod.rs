@@ -9,6 +9,9 @@ pub mod play_keyframes;
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+pub mod eval;
+pub mod synth;
+
 #[derive(Parser, Debug)]
 #[command(name = "ecm-lcd", version, about = "Loop-closure detection for visual SLAM with ECMobileNet descriptors")]
 pub struct Cli {
@@ -37,6 +40,8 @@ pub enum Command {
     PlayKeyframes(play_keyframes::Args),
     /// Print the loop candidates published on a topic, as CSV.
     Listen(listen::Args),
+    /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
+    Synth(synth::Args),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -65,5 +70,6 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Node(args) => node::run(args),
         Command::PlayKeyframes(args) => play_keyframes::run(args),
         Command::Listen(args) => listen::run(args),
+        Command::Synth(args) => synth::run(args),
     }
 }

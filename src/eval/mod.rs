@@ -1,1 +1,16 @@
 //! Evaluation against ground truth: loop ground truth from poses or lists, precision-recall, plots.
+//!
+//! The caller runs the detector over a source and hands in one [`QueryResult`] per query; this
+//! module decides which of those are right ([`truth`]), scores them ([`metrics`]) and writes the
+//! curve, plot and summary ([`report`]).
+
+pub mod metrics;
+pub mod report;
+pub mod truth;
+
+pub use metrics::{evaluate, Metrics, PrPoint, QueryResult};
+pub use report::{plot_pr_curve, summary_json, write_curve_csv, write_summary_json};
+pub use truth::{
+    images_in_name_order, loop_truth_from_poses, parse_loops, parse_tum_groundtruth, poses_at_stamps, read_loops,
+    read_tum_groundtruth, LoopTruth, PoseLoopCriteria,
+};

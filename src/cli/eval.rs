@@ -1,0 +1,221 @@
+//! `ecm-lcd eval`: runs the detector over a source and scores its loop candidates against ground
+//! truth (poses or a loops file), writing the PR curve (CSV, PNG) and a JSON summary.
+//!
+//! Only the step "run the pipeline over the source and collect one `QueryResult` per query" is
+//! the pipeline's; everything before (truth) and after (metrics, outputs) is here.
+//! Not yet wired as a sub-command: the lead adds the `Command::Eval` variant together with that
+//! pipeline step (see `run_with_results`).
+
+use crate::eval::{
+    evaluate, images_in_name_order, loop_truth_from_poses, plot_pr_curve, read_loops, read_tum_groundtruth,
+    summary_json, write_curve_csv, write_summary_json, LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
+};
+use crate::types::Stamp;
+use anyhow::{bail, Result};
+use std::path::{Path, PathBuf};
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Sequence to replay (TUM folder, ROS 1 bag, ROS 2 bag); not used with --database/--queries.
+    pub source: Option<PathBuf>,
+    /// TUM ground-truth poses (`timestamp tx ty tz qx qy qz qw`); default: SOURCE/groundtruth.txt
+    /// when SOURCE is a folder holding one.
+    #[arg(long)]
+    pub groundtruth: Option<PathBuf>,
+    /// Explicit loop truth instead of poses: lines `query_index,match_index match_index ...`.
+    #[arg(long)]
+    pub loops: Option<PathBuf>,
+    /// Database/query mode: folder of database images (name order); needs --queries and --loops.
+    #[arg(long, requires_all = ["queries", "loops"], conflicts_with = "source")]
+    pub database: Option<PathBuf>,
+    /// Database/query mode: folder of query images (name order).
+    #[arg(long, requires = "database")]
+    pub queries: Option<PathBuf>,
+    /// Write the JSON summary here.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+    /// Write the precision-recall plot (PNG) here.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
+    /// Write the precision-recall curve (CSV `threshold,precision,recall`) here.
+    #[arg(short, long)]
+    pub output: Option<PathBuf>,
+    /// Pose truth: largest distance between camera centres of the same place (metres).
+    #[arg(long, default_value_t = PoseLoopCriteria::default().max_distance_m)]
+    pub max_distance: f64,
+    /// Pose truth: largest angle between optical axes of the same place (degrees).
+    #[arg(long, default_value_t = PoseLoopCriteria::default().max_angle_deg)]
+    pub max_angle: f64,
+    /// Pose truth: smallest time between a query and its match (seconds).
+    #[arg(long, default_value_t = PoseLoopCriteria::default().min_gap_s)]
+    pub min_gap: f64,
+    /// Detector parameters (ROS 2 params YAML).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Image topic to read from a bag.
+    #[arg(long)]
+    pub topic: Option<String>,
+}
+
+impl Args {
+    pub fn criteria(&self) -> Result<PoseLoopCriteria> {
+        for (name, value) in [("--max-distance", self.max_distance), ("--max-angle", self.max_angle), ("--min-gap", self.min_gap)] {
+            if !(value.is_finite() && value >= 0.0) {
+                bail!("{name} must be a non-negative number, got {value}");
+            }
+        }
+        Ok(PoseLoopCriteria {
+            max_distance_m: self.max_distance,
+            max_angle_deg: self.max_angle,
+            min_gap_s: self.min_gap,
+            ..PoseLoopCriteria::default()
+        })
+    }
+
+    /// Database and query image paths in database/query mode, else `None`.
+    pub fn database_and_queries(&self) -> Result<Option<(Vec<PathBuf>, Vec<PathBuf>)>> {
+        match (&self.database, &self.queries) {
+            (Some(database), Some(queries)) => Ok(Some((images_in_name_order(database)?, images_in_name_order(queries)?))),
+            (None, None) => Ok(None),
+            _ => bail!("--database and --queries go together"),
+        }
+    }
+
+    /// Ground-truth file for sequence mode: --groundtruth, or SOURCE/groundtruth.txt.
+    fn groundtruth_path(&self) -> Option<PathBuf> {
+        self.groundtruth.clone().or_else(|| {
+            let candidate = self.source.as_deref()?.join("groundtruth.txt");
+            candidate.is_file().then_some(candidate)
+        })
+    }
+}
+
+/// The loop truth for these arguments. `query_stamps` are the stamps of the replayed frames in
+/// replay order (sequence mode with poses; ignored with --loops).
+pub fn load_truth(args: &Args, query_stamps: &[Stamp]) -> Result<LoopTruth> {
+    if let Some(loops) = &args.loops {
+        return read_loops(loops);
+    }
+    if args.database.is_some() {
+        bail!("database/query mode needs --loops");
+    }
+    let Some(path) = args.groundtruth_path() else {
+        bail!("no loop truth: give --loops FILE or --groundtruth FILE (or a SOURCE folder with groundtruth.txt)");
+    };
+    let poses = read_tum_groundtruth(&path)?;
+    if poses.is_empty() {
+        bail!("ground truth {} holds no poses", path.display());
+    }
+    Ok(loop_truth_from_poses(query_stamps, &poses, &args.criteria()?))
+}
+
+/// Scores the results, writes the requested outputs and logs the summary; `timings_ms` are
+/// per-stage timings to include in the JSON.
+pub fn run_with_results(args: &Args, truth: &LoopTruth, results: &[QueryResult], timings_ms: &[(&str, f64)]) -> Result<Metrics> {
+    let metrics = evaluate(results, truth)?;
+    write_outputs(args, &metrics, timings_ms)?;
+    Ok(metrics)
+}
+
+fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)]) -> Result<()> {
+    let summary = summary_json(metrics, timings_ms);
+    if let Some(path) = &args.output {
+        write_curve_csv(metrics, path)?;
+    }
+    if let Some(path) = &args.json {
+        write_summary_json(path, &summary)?;
+    }
+    if let Some(path) = &args.plot {
+        let title = args.source.as_deref().or(args.queries.as_deref()).map(display_name).unwrap_or_default();
+        plot_pr_curve(metrics, &title, path)?;
+    }
+    log::info!("{summary}");
+    Ok(())
+}
+
+fn display_name(path: &Path) -> String {
+    path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| path.display().to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct TestCli {
+        #[command(flatten)]
+        args: Args,
+    }
+
+    fn parse(argv: &[&str]) -> Result<Args, clap::Error> {
+        TestCli::try_parse_from(std::iter::once("eval").chain(argv.iter().copied())).map(|c| c.args)
+    }
+
+    #[test]
+    fn truth_comes_from_loops_or_the_source_folders_groundtruth() {
+        let dir = tempfile::tempdir().unwrap();
+        let loops = dir.path().join("loops.csv");
+        std::fs::write(&loops, "3,0 1\n").unwrap();
+        let args = parse(&["seq", "--loops", loops.to_str().unwrap()]).unwrap();
+        let truth = load_truth(&args, &[]).unwrap();
+        assert_eq!(truth.positive_queries().collect::<Vec<_>>(), vec![3]);
+
+        // Without --loops: SOURCE/groundtruth.txt, with the distance/angle/gap options applied.
+        std::fs::write(dir.path().join("groundtruth.txt"), "10.0 0 0 0 0 0 0 1\n15.0 0.3 0 0 0 0 0 1\n").unwrap();
+        let stamps = [Stamp::from_secs_f64(10.0), Stamp::from_secs_f64(15.0)];
+        let source = dir.path().to_str().unwrap();
+        let truth = load_truth(&parse(&[source]).unwrap(), &stamps).unwrap();
+        assert_eq!(truth.positive_queries().count(), 0, "default 20 s gap");
+        let truth = load_truth(&parse(&[source, "--min-gap", "4"]).unwrap(), &stamps).unwrap();
+        assert_eq!(truth.positive_queries().collect::<Vec<_>>(), vec![1]);
+        let truth = load_truth(&parse(&[source, "--min-gap", "4", "--max-distance", "0.2"]).unwrap(), &stamps).unwrap();
+        assert_eq!(truth.positive_queries().count(), 0);
+
+        let err = load_truth(&parse(&["/nonexistent-folder"]).unwrap(), &stamps).unwrap_err();
+        assert!(err.to_string().contains("no loop truth"), "{err:#}");
+        let err = load_truth(&parse(&[source, "--min-gap=-1"]).unwrap(), &stamps).unwrap_err();
+        assert!(err.to_string().contains("--min-gap"), "{err:#}");
+    }
+
+    #[test]
+    fn database_mode_needs_queries_and_loops_and_lists_images_in_name_order() {
+        assert!(parse(&["--database", "db"]).is_err());
+        assert!(parse(&["--database", "db", "--queries", "q"]).is_err(), "needs --loops");
+        assert!(parse(&["seq", "--database", "db", "--queries", "q", "--loops", "l"]).is_err(), "not with SOURCE");
+        let dir = tempfile::tempdir().unwrap();
+        let (db, queries) = (dir.path().join("db"), dir.path().join("q"));
+        std::fs::create_dir_all(&db).unwrap();
+        std::fs::create_dir_all(&queries).unwrap();
+        for name in ["b.png", "a.JPG", "c.txt", "10.bmp"] {
+            std::fs::write(db.join(name), b"x").unwrap();
+        }
+        let args = parse(&["--database", db.to_str().unwrap(), "--queries", queries.to_str().unwrap(), "--loops", "l"]).unwrap();
+        let err = args.database_and_queries().unwrap_err();
+        assert!(err.to_string().contains("holds no png, jpg or bmp files"), "{err:#}");
+        std::fs::write(queries.join("q0.png"), b"x").unwrap();
+        let (database, query_images) = args.database_and_queries().unwrap().unwrap();
+        let names: Vec<_> = database.iter().map(|p| p.file_name().unwrap().to_str().unwrap().to_string()).collect();
+        assert_eq!(names, ["10.bmp", "a.JPG", "b.png"]);
+        assert_eq!(query_images.len(), 1);
+    }
+
+    #[test]
+    fn results_are_scored_and_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let (csv, json, png) = (dir.path().join("pr.csv"), dir.path().join("s.json"), dir.path().join("pr.png"));
+        let args = parse(&["seq", "-o", csv.to_str().unwrap(), "--json", json.to_str().unwrap(), "--plot", png.to_str().unwrap()]).unwrap();
+        let truth = crate::eval::parse_loops("2,0\n3,1\n").unwrap();
+        let results = [
+            QueryResult { query: 2, best: Some((0, 0.8)) },
+            QueryResult { query: 3, best: Some((0, 0.6)) },
+        ];
+        let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)]).unwrap();
+        assert_eq!(metrics.recall_at_1, Some(0.5));
+        assert!(std::fs::read_to_string(&csv).unwrap().starts_with("threshold,precision,recall\n0.8,1,0.5\n"));
+        let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        assert_eq!(summary["average_precision"], 0.5);
+        assert_eq!(summary["timing_ms"]["total"], 5.0);
+        assert!(png.is_file());
+    }
+}

@@ -1,0 +1,142 @@
+//! Writing evaluation results: the precision-recall curve as CSV and as a PNG plot, and the
+//! JSON summary. The plot's text needs a TrueType font, loaded at run time from the system
+//! (DejaVu Sans or Liberation Sans); without one the plot is drawn without any text.
+
+use super::metrics::Metrics;
+use anyhow::{Context, Result};
+use plotters::prelude::*;
+use std::path::Path;
+use std::sync::OnceLock;
+
+/// Writes `threshold,precision,recall` rows, highest threshold first.
+pub fn write_curve_csv(metrics: &Metrics, path: &Path) -> Result<()> {
+    let mut writer = csv::Writer::from_path(path).with_context(|| format!("creating {}", path.display()))?;
+    writer.write_record(["threshold", "precision", "recall"]).with_context(|| format!("writing {}", path.display()))?;
+    for point in &metrics.curve {
+        writer
+            .write_record([point.threshold.to_string(), point.precision.to_string(), point.recall.to_string()])
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    writer.flush().with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
+
+/// The JSON summary: `queries`, `positives`, `unknown`, `recall_at_1`,
+/// `recall_at_100_precision`, `average_precision` (null without positives), plus `timing_ms`
+/// with whatever stage timings the caller measured (milliseconds, by stage name).
+pub fn summary_json(metrics: &Metrics, timings_ms: &[(&str, f64)]) -> serde_json::Value {
+    let mut value = serde_json::to_value(metrics).expect("metrics serialise to JSON");
+    if !timings_ms.is_empty() {
+        let timing: serde_json::Map<String, serde_json::Value> =
+            timings_ms.iter().map(|(name, ms)| (name.to_string(), serde_json::json!(ms))).collect();
+        value["timing_ms"] = serde_json::Value::Object(timing);
+    }
+    value
+}
+
+pub fn write_summary_json(path: &Path, summary: &serde_json::Value) -> Result<()> {
+    let text = serde_json::to_string_pretty(summary).expect("JSON values serialise");
+    std::fs::write(path, text + "\n").with_context(|| format!("writing {}", path.display()))
+}
+
+const FONT_CANDIDATES: [&str; 3] = [
+    "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
+    "/usr/share/fonts/TTF/DejaVuSans.ttf",
+    "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
+];
+
+/// Registers the first system font found as plotters' "sans-serif"; false if there is none.
+fn font_available() -> bool {
+    static REGISTERED: OnceLock<bool> = OnceLock::new();
+    *REGISTERED.get_or_init(|| {
+        FONT_CANDIDATES.iter().any(|path| {
+            let Ok(bytes) = std::fs::read(path) else { return false };
+            // plotters keeps fonts for the life of the process; this runs at most once.
+            let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+            plotters::style::register_font("sans-serif", FontStyle::Normal, bytes).is_ok()
+        })
+    })
+}
+
+/// Draws the precision-recall curve into a PNG (800x600), with the metrics in the caption when
+/// a font is available.
+pub fn plot_pr_curve(metrics: &Metrics, title: &str, path: &Path) -> Result<()> {
+    let with_text = font_available();
+    draw_pr_curve(metrics, title, path, with_text).map_err(|e| anyhow::anyhow!("{e}")).with_context(|| format!("plotting {}", path.display()))
+}
+
+fn draw_pr_curve(metrics: &Metrics, title: &str, path: &Path, with_text: bool) -> Result<(), Box<dyn std::error::Error>> {
+    let root = BitMapBackend::new(path, (800, 600)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let mut builder = ChartBuilder::on(&root);
+    builder.margin(20);
+    if with_text {
+        let fmt = |v: Option<f64>| v.map_or("n/a".to_string(), |v| format!("{v:.3}"));
+        let caption = format!(
+            "{title}  AP {}  R@100%P {}  R@1 {}",
+            fmt(metrics.average_precision),
+            fmt(metrics.recall_at_100_precision),
+            fmt(metrics.recall_at_1)
+        );
+        builder.caption(caption, ("sans-serif", 20)).x_label_area_size(45).y_label_area_size(55);
+    }
+    let mut chart = builder.build_cartesian_2d(0.0f64..1.0, 0.0f64..1.02)?;
+    let mut mesh = chart.configure_mesh();
+    if with_text {
+        mesh.x_desc("recall").y_desc("precision").label_style(("sans-serif", 15));
+    } else {
+        mesh.x_labels(0).y_labels(0);
+    }
+    mesh.draw()?;
+    let points: Vec<(f64, f64)> = metrics.curve.iter().map(|p| (p.recall, p.precision)).collect();
+    chart.draw_series(LineSeries::new(points.iter().copied(), BLUE.stroke_width(2)))?;
+    // Markers only where they can be told apart; a dense curve is clearer as a line.
+    if points.len() <= 60 {
+        chart.draw_series(points.iter().map(|&p| Circle::new(p, 3, BLUE.filled())))?;
+    }
+    root.present()?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eval::{evaluate, LoopTruth, QueryResult};
+
+    fn metrics() -> Metrics {
+        let mut truth = LoopTruth::default();
+        truth.insert(5, 1);
+        truth.insert(6, 2);
+        let results = [
+            QueryResult { query: 5, best: Some((1, 0.9)) },
+            QueryResult { query: 6, best: Some((0, 0.5)) },
+            QueryResult { query: 7, best: Some((3, 0.25)) },
+        ];
+        evaluate(&results, &truth).unwrap()
+    }
+
+    #[test]
+    fn csv_json_and_plot_are_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = metrics();
+        let csv_path = dir.path().join("pr.csv");
+        write_curve_csv(&m, &csv_path).unwrap();
+        let text = std::fs::read_to_string(&csv_path).unwrap();
+        assert_eq!(text, "threshold,precision,recall\n0.9,1,0.5\n0.5,0.5,0.5\n0.25,0.3333333333333333,0.5\n");
+        let json = summary_json(&m, &[("network", 12.5)]);
+        assert_eq!(json["queries"], 3);
+        assert_eq!(json["recall_at_1"], 0.5);
+        assert_eq!(json["recall_at_100_precision"], 0.5);
+        assert_eq!(json["average_precision"], 0.5);
+        assert_eq!(json["timing_ms"]["network"], 12.5);
+        let json_path = dir.path().join("summary.json");
+        write_summary_json(&json_path, &json).unwrap();
+        let back: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json_path).unwrap()).unwrap();
+        assert_eq!(back, json);
+        let png = dir.path().join("pr.png");
+        plot_pr_curve(&m, "test", &png).unwrap();
+        let image = image::open(&png).unwrap().to_rgb8();
+        assert_eq!(image.dimensions(), (800, 600));
+        assert!(image.pixels().any(|p| p.0 == [0, 0, 255]), "the curve is drawn in blue");
+    }
+}

@@ -1,0 +1,324 @@
+//! Loop ground truth: which earlier frames (or database images) each query truly revisits,
+//! either derived from camera poses or read from an explicit loops file.
+//!
+//! Pose rule (defaults in [`PoseLoopCriteria::default`]): frame `j` is a true match of query `i`
+//! when `j` is at least `min_gap_s` seconds older than `i`, the camera positions are within
+//! `max_distance_m` and the optical axes (camera +z) within `max_angle_deg`. Each frame takes the
+//! pose of the nearest ground-truth stamp; a frame whose nearest pose is more than
+//! `max_stamp_offset_s` away has no pose: as a query its truth is unknown (it is left out of the
+//! metrics), as a match it is never a true one.
+
+use crate::types::Stamp;
+use anyhow::{bail, Context, Result};
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use rayon::prelude::*;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+static NO_MATCHES: BTreeSet<usize> = BTreeSet::new();
+
+/// For each query (by replay index), the set of its true matches; queries not listed have none
+/// unless they are marked unknown.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LoopTruth {
+    matches: BTreeMap<usize, BTreeSet<usize>>,
+    unknown: BTreeSet<usize>,
+}
+
+impl LoopTruth {
+    /// True matches of `query`: `None` when its truth is unknown (no pose), else the set
+    /// (empty for a query that revisits nothing).
+    pub fn matches(&self, query: usize) -> Option<&BTreeSet<usize>> {
+        if self.unknown.contains(&query) {
+            None
+        } else {
+            Some(self.matches.get(&query).unwrap_or(&NO_MATCHES))
+        }
+    }
+
+    /// Queries that have at least one true match, in order.
+    pub fn positive_queries(&self) -> impl Iterator<Item = usize> + '_ {
+        self.matches.iter().filter(|(_, m)| !m.is_empty()).map(|(q, _)| *q)
+    }
+
+    pub fn unknown_queries(&self) -> &BTreeSet<usize> {
+        &self.unknown
+    }
+
+    /// Records that `query` truly matches `matched` (adds to its set).
+    pub fn insert(&mut self, query: usize, matched: usize) {
+        self.matches.entry(query).or_default().insert(matched);
+    }
+
+    /// Marks `query` as having unknown truth; it is then left out of the metrics.
+    pub fn mark_unknown(&mut self, query: usize) {
+        self.unknown.insert(query);
+    }
+}
+
+/// Rules for "same place" between two posed frames.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PoseLoopCriteria {
+    pub max_distance_m: f64,
+    pub max_angle_deg: f64,
+    pub min_gap_s: f64,
+    pub max_stamp_offset_s: f64,
+}
+
+impl Default for PoseLoopCriteria {
+    /// 1 m, 30°, 20 s, 0.05 s. Why, for TUM-scale indoor sequences: with things 1-4 m away, two
+    /// views whose centres are within 1 m and whose axes are within 30° (about half the 62°
+    /// horizontal field of view of the Kinect) share most of what they see; 20 s excludes the
+    /// trivially similar recent frames (6-10 m of hand-held motion at 0.3-0.5 m/s) so that only
+    /// real revisits count; 0.05 s is half the spacing of frames at 10 Hz and five samples of the
+    /// 100 Hz TUM ground truth, enough for unsynchronised stamps and too little to misplace a frame.
+    fn default() -> Self {
+        PoseLoopCriteria { max_distance_m: 1.0, max_angle_deg: 30.0, min_gap_s: 20.0, max_stamp_offset_s: 0.05 }
+    }
+}
+
+/// Ground-truth poses of each query stamp: the pose at the nearest ground-truth stamp, or `None`
+/// if that is farther than `max_offset_s`. `groundtruth` need not be sorted.
+pub fn poses_at_stamps(
+    stamps: &[Stamp],
+    groundtruth: &[(Stamp, Isometry3<f64>)],
+    max_offset_s: f64,
+) -> Vec<Option<Isometry3<f64>>> {
+    let mut sorted: Vec<&(Stamp, Isometry3<f64>)> = groundtruth.iter().collect();
+    sorted.sort_by_key(|(s, _)| *s);
+    let max_offset = (max_offset_s * 1e9).round() as i64;
+    stamps
+        .iter()
+        .map(|stamp| {
+            let k = sorted.partition_point(|(s, _)| s < stamp);
+            [k.checked_sub(1), Some(k)]
+                .into_iter()
+                .flatten()
+                .filter_map(|i| sorted.get(i))
+                .min_by_key(|(s, _)| (s.nanos - stamp.nanos).abs())
+                .filter(|(s, _)| (s.nanos - stamp.nanos).abs() <= max_offset)
+                .map(|(_, pose)| *pose)
+        })
+        .collect()
+}
+
+/// Loop truth of a sequence from its frame stamps (replay order) and ground-truth poses.
+pub fn loop_truth_from_poses(
+    stamps: &[Stamp],
+    groundtruth: &[(Stamp, Isometry3<f64>)],
+    criteria: &PoseLoopCriteria,
+) -> LoopTruth {
+    let poses = poses_at_stamps(stamps, groundtruth, criteria.max_stamp_offset_s);
+    let axes: Vec<Option<(Vector3<f64>, Vector3<f64>)>> =
+        poses.iter().map(|p| p.map(|p| (p.translation.vector, p.rotation * Vector3::z()))).collect();
+    let cos_max = criteria.max_angle_deg.to_radians().cos();
+    let min_gap = (criteria.min_gap_s * 1e9).round() as i64;
+    let per_query: Vec<Option<Vec<usize>>> = (0..stamps.len())
+        .into_par_iter()
+        .map(|q| {
+            let (position, axis) = axes[q]?;
+            let found = (0..stamps.len())
+                .filter(|&m| stamps[q].nanos - stamps[m].nanos >= min_gap)
+                .filter(|&m| match axes[m] {
+                    Some((p, a)) => (p - position).norm() <= criteria.max_distance_m && a.dot(&axis) >= cos_max,
+                    None => false,
+                })
+                .collect();
+            Some(found)
+        })
+        .collect();
+    let mut truth = LoopTruth::default();
+    for (q, found) in per_query.into_iter().enumerate() {
+        match found {
+            None => truth.mark_unknown(q),
+            Some(found) => found.into_iter().for_each(|m| truth.insert(q, m)),
+        }
+    }
+    truth
+}
+
+/// Reads a TUM `groundtruth.txt` (`timestamp tx ty tz qx qy qz qw`, `#` comments).
+pub fn read_tum_groundtruth(path: &Path) -> Result<Vec<(Stamp, Isometry3<f64>)>> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading ground truth {}", path.display()))?;
+    parse_tum_groundtruth(&text).with_context(|| format!("in ground truth {}", path.display()))
+}
+
+pub fn parse_tum_groundtruth(text: &str) -> Result<Vec<(Stamp, Isometry3<f64>)>> {
+    let mut poses = Vec::new();
+    for (number, line) in text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())) {
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let fields: Vec<&str> = line.split_whitespace().collect();
+        if fields.len() != 8 {
+            bail!("line {number}: expected 8 fields `timestamp tx ty tz qx qy qz qw`, found {}", fields.len());
+        }
+        let stamp = Stamp::parse_secs(fields[0]).with_context(|| format!("line {number}: bad timestamp {:?}", fields[0]))?;
+        let mut values = [0.0f64; 7];
+        for (value, field) in values.iter_mut().zip(&fields[1..]) {
+            *value = field
+                .parse::<f64>()
+                .ok()
+                .filter(|v| v.is_finite())
+                .with_context(|| format!("line {number}: bad number {field:?}"))?;
+        }
+        let [tx, ty, tz, qx, qy, qz, qw] = values;
+        let q = Quaternion::new(qw, qx, qy, qz);
+        if q.norm() < 1e-6 {
+            bail!("line {number}: quaternion has zero length");
+        }
+        poses.push((stamp, Isometry3::from_parts(Translation3::new(tx, ty, tz), UnitQuaternion::from_quaternion(q))));
+    }
+    Ok(poses)
+}
+
+/// Parses an explicit loops file: lines `query_index,match_index match_index ...` (indexes in
+/// replay order, or database indexes in database/query mode). A query with no loop may be listed
+/// with nothing after the comma or left out. Blank lines and `#` comments are skipped; an
+/// optional header line whose first field starts with a letter (e.g. `query,matches`) is allowed first.
+pub fn parse_loops(text: &str) -> Result<LoopTruth> {
+    let mut truth = LoopTruth::default();
+    let mut seen = BTreeSet::new();
+    let mut first_content = true;
+    for (number, line) in text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())) {
+        if line.is_empty() || line.starts_with('#') {
+            continue;
+        }
+        let is_first = std::mem::replace(&mut first_content, false);
+        let (query_text, matches_text) = line
+            .split_once(',')
+            .with_context(|| format!("line {number}: expected `query_index,match_index ...`, found {line:?}"))?;
+        let query_text = query_text.trim();
+        if is_first && query_text.starts_with(|c: char| c.is_ascii_alphabetic()) {
+            continue; // header
+        }
+        let query: usize =
+            query_text.parse().with_context(|| format!("line {number}: query index {query_text:?} is not a number"))?;
+        if !seen.insert(query) {
+            bail!("line {number}: query {query} is listed twice");
+        }
+        for field in matches_text.split_whitespace() {
+            let matched: usize =
+                field.parse().with_context(|| format!("line {number}: match index {field:?} is not a number"))?;
+            truth.insert(query, matched);
+        }
+    }
+    Ok(truth)
+}
+
+pub fn read_loops(path: &Path) -> Result<LoopTruth> {
+    let text = std::fs::read_to_string(path).with_context(|| format!("reading loops file {}", path.display()))?;
+    parse_loops(&text).with_context(|| format!("in loops file {}", path.display()))
+}
+
+/// Image files (png, jpg, jpeg, bmp; any case) directly in `dir`, in file-name order: how the
+/// database and query folders of database/query mode are indexed.
+pub fn images_in_name_order(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut images = Vec::new();
+    for entry in std::fs::read_dir(dir).with_context(|| format!("listing image folder {}", dir.display()))? {
+        let path = entry.with_context(|| format!("listing image folder {}", dir.display()))?.path();
+        let is_image = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .is_some_and(|e| ["png", "jpg", "jpeg", "bmp"].contains(&e.to_ascii_lowercase().as_str()));
+        if is_image && path.is_file() {
+            images.push(path);
+        }
+    }
+    images.sort_by(|a, b| a.file_name().cmp(&b.file_name()));
+    if images.is_empty() {
+        bail!("image folder {} holds no png, jpg or bmp files", dir.display());
+    }
+    Ok(images)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::camera_rotation;
+
+    fn pose(x: f64, y: f64, yaw_deg: f64) -> Isometry3<f64> {
+        Isometry3::from_parts(Translation3::new(x, y, 1.5), camera_rotation(yaw_deg.to_radians(), 0.0, 0.0))
+    }
+
+    fn secs(s: f64) -> Stamp {
+        Stamp::from_secs_f64(1000.0 + s)
+    }
+
+    #[test]
+    fn pose_truth_applies_distance_angle_and_gap() {
+        // Frames at t = 0, 10, 30, 31, 32, 33, 34 s.
+        let stamps: Vec<Stamp> = [0.0, 10.0, 30.0, 31.0, 32.0, 33.0, 34.0].iter().map(|&t| secs(t)).collect();
+        let poses = [
+            pose(0.0, 0.0, 0.0),
+            pose(0.0, 0.0, 0.0),
+            pose(0.9, 0.0, 0.0),  // 0.9 m from frame 0, 30 s later: loop with 0 and 1 (gap 20 s)
+            pose(1.1, 0.0, 0.0),  // 1.1 m: too far
+            pose(0.0, 0.0, 29.0), // 29 degrees: loop
+            pose(0.0, 0.0, 31.0), // 31 degrees: not
+            pose(0.0, 0.0, 0.0),  // same as 0 and 1, but frame 1 is only 24 s earlier: both
+        ];
+        let groundtruth: Vec<_> = stamps.iter().copied().zip(poses).collect();
+        let truth = loop_truth_from_poses(&stamps, &groundtruth, &PoseLoopCriteria::default());
+        let set = |v: &[usize]| v.iter().copied().collect::<BTreeSet<_>>();
+        assert_eq!(truth.matches(0), Some(&set(&[])));
+        assert_eq!(truth.matches(1), Some(&set(&[])));
+        assert_eq!(truth.matches(2), Some(&set(&[0, 1])));
+        assert_eq!(truth.matches(3), Some(&set(&[])));
+        assert_eq!(truth.matches(4), Some(&set(&[0, 1])));
+        assert_eq!(truth.matches(5), Some(&set(&[])));
+        assert_eq!(truth.matches(6), Some(&set(&[0, 1])));
+        // A gap of 25 s drops frame 1 (24 s before frame 6... and 20 s before frame 2).
+        let strict = PoseLoopCriteria { min_gap_s: 25.0, ..PoseLoopCriteria::default() };
+        let truth = loop_truth_from_poses(&stamps, &groundtruth, &strict);
+        assert_eq!(truth.matches(2), Some(&set(&[0])));
+        assert_eq!(truth.matches(6), Some(&set(&[0])));
+        assert_eq!(truth.positive_queries().collect::<Vec<_>>(), vec![2, 4, 6]);
+    }
+
+    #[test]
+    fn stamps_take_the_nearest_pose_within_the_offset() {
+        let groundtruth = vec![(secs(1.0), pose(1.0, 0.0, 0.0)), (secs(0.0), pose(0.0, 0.0, 0.0)), (secs(2.0), pose(2.0, 0.0, 0.0))];
+        let stamps = [secs(0.96), secs(1.03), secs(1.5), secs(-0.04), secs(2.06)];
+        let poses = poses_at_stamps(&stamps, &groundtruth, 0.05);
+        let xs: Vec<Option<f64>> = poses.iter().map(|p| p.map(|p| p.translation.x)).collect();
+        assert_eq!(xs, vec![Some(1.0), Some(1.0), None, Some(0.0), None]);
+        // Frames without a pose are unknown as queries and never true matches.
+        let stamps = [secs(0.0), secs(50.0)];
+        let truth = loop_truth_from_poses(&stamps, &groundtruth, &PoseLoopCriteria::default());
+        assert_eq!(truth.matches(1), None);
+        assert_eq!(truth.unknown_queries().iter().copied().collect::<Vec<_>>(), vec![1]);
+    }
+
+    #[test]
+    fn groundtruth_parses_tum_lines_and_names_bad_lines() {
+        let text = "# comment\n1341847981.0200 -0.6749 2.6938 1.7375 -0.0003 0.8609 -0.5085 -0.0170\n\n";
+        let poses = parse_tum_groundtruth(text).unwrap();
+        assert_eq!(poses.len(), 1);
+        assert_eq!(poses[0].0, Stamp::parse_secs("1341847981.02").unwrap());
+        assert!((poses[0].1.translation.y - 2.6938).abs() < 1e-12);
+        let err = parse_tum_groundtruth("# x\n1.0 1 2 3 0 0 0\n").unwrap_err();
+        assert!(format!("{err:#}").contains("line 2"), "{err:#}");
+        let err = parse_tum_groundtruth("1.0 1 2 3 0 0 0 1\n2.0 1 2 x 0 0 0 1\n").unwrap_err();
+        assert!(format!("{err:#}").contains("line 2: bad number \"x\""), "{err:#}");
+    }
+
+    #[test]
+    fn loops_file_parses_and_names_bad_lines() {
+        let truth = parse_loops("query,matches\n# comment\n5,1 2\n6,\n\n9, 3 \n").unwrap();
+        assert_eq!(truth.matches(5).unwrap().iter().copied().collect::<Vec<_>>(), vec![1, 2]);
+        assert!(truth.matches(6).unwrap().is_empty());
+        assert!(truth.matches(7).unwrap().is_empty(), "an omitted query has no loop");
+        assert_eq!(truth.positive_queries().collect::<Vec<_>>(), vec![5, 9]);
+        for (text, expected) in [
+            ("5,1\n6 2\n", "line 2: expected `query_index,match_index ...`"),
+            ("5,1\nx,2\n", "line 2: query index \"x\" is not a number"),
+            ("5,1 b\n", "line 1: match index \"b\" is not a number"),
+            ("5,1\n\n5,2\n", "line 3: query 5 is listed twice"),
+            ("-1,2\n", "line 1: query index \"-1\" is not a number"),
+        ] {
+            let err = parse_loops(text).unwrap_err();
+            assert!(format!("{err:#}").contains(expected), "{text:?}: {err:#}");
+        }
+    }
+}
