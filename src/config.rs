@@ -174,7 +174,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
         ),
         double(
             "detector.min_score",
-            0.95,
+            0.96,
             0.0,
             1.0,
             "A loop is accepted when the match score (in [0, 1], 1 = identical) is at least this.",

@@ -15,6 +15,7 @@ pub mod io;
 pub mod model;
 pub mod pipeline;
 pub mod preprocess;
+pub mod replay;
 pub mod ros;
 pub mod runtime;
 pub mod synth;

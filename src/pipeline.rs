@@ -89,6 +89,15 @@ impl Pipeline {
         &self.detector
     }
 
+    pub fn detector_mut(&mut self) -> &mut Detector {
+        &mut self.detector
+    }
+
+    /// The descriptor of one image, with no selection and no database.
+    pub fn describe(&mut self, image: &RgbImage) -> Result<Vec<f32>> {
+        self.descriptor.compute(&self.embedder.feature_map(image)?)
+    }
+
     /// Use stock candle ops instead of the fast kernels (verification).
     pub fn set_reference(&mut self, reference: bool) {
         self.embedder.set_reference(reference);

@@ -1,7 +1,8 @@
 //! Pose-based loop truth on the real TUM frames in ../shared: stamp matching against the
 //! 100 Hz ground truth, including a frame taken before the ground truth starts.
 
-use ecm_lcd::eval::{loop_truth_from_poses, poses_at_stamps, read_tum_groundtruth, PoseLoopCriteria};
+use ecm_lcd::eval::{loop_truth_from_poses, poses_at_stamps, PoseLoopCriteria};
+use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::types::Stamp;
 use std::path::PathBuf;
 
@@ -26,7 +27,7 @@ fn tum_frames_take_the_nearest_ground_truth_pose() {
         .map(|l| Stamp::parse_secs(l.split_whitespace().next().unwrap()).unwrap())
         .collect();
     assert_eq!(stamps.len(), 17);
-    let groundtruth = read_tum_groundtruth(&dir.join("groundtruth.txt")).unwrap();
+    let groundtruth = read_groundtruth(&dir.join("groundtruth.txt")).unwrap();
     let poses = poses_at_stamps(&stamps, &groundtruth, 0.05);
     // The first image (…980.72) precedes the first pose (…981.02) by 0.3 s: no pose.
     assert!(poses[0].is_none());

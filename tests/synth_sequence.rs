@@ -1,7 +1,8 @@
 //! The synthetic sequence end to end: the `synth` command writes a TUM folder whose files agree
 //! with each other and whose ground truth has loops exactly where the laps revisit places.
 
-use ecm_lcd::eval::{loop_truth_from_poses, parse_tum_groundtruth, PoseLoopCriteria};
+use ecm_lcd::eval::{loop_truth_from_poses, PoseLoopCriteria};
+use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::synth::{Scene, SynthConfig};
 use ecm_lcd::types::Stamp;
 use std::process::Command;
@@ -30,7 +31,7 @@ fn synth_command_writes_a_consistent_tum_folder() {
         let image = image::open(out.join(path)).unwrap().to_rgb8();
         assert_eq!(image, scene.render(index), "frame {index} on disk differs from the renderer");
     }
-    let truth = parse_tum_groundtruth(&std::fs::read_to_string(out.join("groundtruth.txt")).unwrap()).unwrap();
+    let truth = read_groundtruth(&out.join("groundtruth.txt")).unwrap();
     assert_eq!(truth.len(), 24);
     for (index, (stamp, pose)) in truth.iter().enumerate() {
         assert_eq!(*stamp, scene.stamp(index));

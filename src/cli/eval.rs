@@ -3,16 +3,20 @@
 //!
 //! Only the step "run the pipeline over the source and collect one `QueryResult` per query" is
 //! the pipeline's; everything before (truth) and after (metrics, outputs) is here.
-//! Not yet wired as a sub-command: the lead adds the `Command::Eval` variant together with that
-//! pipeline step (see `run_with_results`).
 
 use crate::eval::{
-    evaluate, images_in_name_order, loop_truth_from_poses, plot_pr_curve, read_loops, read_tum_groundtruth,
-    summary_json, write_curve_csv, write_summary_json, LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
+    evaluate, images_in_name_order, loop_truth_from_poses, plot_pr_curve, read_loops,
+    summary_json, write_curve_csv, LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
 };
+use super::replay::SourceArgs;
+use crate::replay::run_source;
+use crate::config::ParamValue;
+use crate::pipeline::Pipeline;
+use crate::preprocess::read_image;
 use crate::types::Stamp;
 use anyhow::{bail, Result};
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -31,9 +35,10 @@ pub struct Args {
     /// Database/query mode: folder of query images (name order).
     #[arg(long, requires = "database")]
     pub queries: Option<PathBuf>,
-    /// Write the JSON summary here.
+    /// Print the summary as JSON (keys `queries`, `recall_at_1`, `recall_at_100_precision`,
+    /// `average_precision`, ...) instead of text.
     #[arg(long)]
-    pub json: Option<PathBuf>,
+    pub json: bool,
     /// Write the precision-recall plot (PNG) here.
     #[arg(long)]
     pub plot: Option<PathBuf>,
@@ -49,12 +54,8 @@ pub struct Args {
     /// Pose truth: smallest time between a query and its match (seconds).
     #[arg(long, default_value_t = PoseLoopCriteria::default().min_gap_s)]
     pub min_gap: f64,
-    /// Detector parameters (ROS 2 params YAML).
-    #[arg(long)]
-    pub config: Option<PathBuf>,
-    /// Image topic to read from a bag.
-    #[arg(long)]
-    pub topic: Option<String>,
+    #[command(flatten)]
+    pub source_args: SourceArgs,
 }
 
 impl Args {
@@ -102,7 +103,7 @@ pub fn load_truth(args: &Args, query_stamps: &[Stamp]) -> Result<LoopTruth> {
     let Some(path) = args.groundtruth_path() else {
         bail!("no loop truth: give --loops FILE or --groundtruth FILE (or a SOURCE folder with groundtruth.txt)");
     };
-    let poses = read_tum_groundtruth(&path)?;
+    let poses = crate::io::tum::read_groundtruth(&path)?;
     if poses.is_empty() {
         bail!("ground truth {} holds no poses", path.display());
     }
@@ -122,15 +123,71 @@ fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)]) -> 
     if let Some(path) = &args.output {
         write_curve_csv(metrics, path)?;
     }
-    if let Some(path) = &args.json {
-        write_summary_json(path, &summary)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        print_summary(metrics, timings_ms);
     }
     if let Some(path) = &args.plot {
         let title = args.source.as_deref().or(args.queries.as_deref()).map(display_name).unwrap_or_default();
         plot_pr_curve(metrics, &title, path)?;
     }
-    log::info!("{summary}");
     Ok(())
+}
+
+/// The figures as text.
+pub fn print_summary(metrics: &Metrics, timings_ms: &[(&str, f64)]) {
+    let show = |v: Option<f64>| v.map(|v| format!("{v:.3}")).unwrap_or_else(|| "n/a (no loops in the truth)".into());
+    println!("queries                 {} ({} with a true loop, {} without ground truth)", metrics.queries, metrics.positives, metrics.unknown);
+    println!("recall@1                {}", show(metrics.recall_at_1));
+    println!("recall at 100% precision {}", show(metrics.recall_at_100_precision));
+    println!("average precision       {}", show(metrics.average_precision));
+    let timings: Vec<String> = timings_ms.iter().map(|(name, ms)| format!("{name} {ms:.2}")).collect();
+    println!("per keyframe            {}", timings.join(", "));
+}
+
+/// `ecm-lcd eval`: replays the source (or embeds the database and query folders), then scores.
+pub fn run(args: Args) -> Result<()> {
+    let mut pipeline = args.source_args.pipeline()?;
+    if let Some((database, queries)) = args.database_and_queries()? {
+        let truth = load_truth(&args, &[])?;
+        let (results, timings) = database_queries(&mut pipeline, &database, &queries)?;
+        run_with_results(&args, &truth, &results, &timings)?;
+        return Ok(());
+    }
+    let Some(source) = &args.source else { bail!("give a SOURCE to replay, or --database and --queries") };
+    let run = run_source(&mut pipeline, source, args.source_args.topic.as_deref(), !args.source_args.quiet)?;
+    if let Some(error) = &run.error {
+        log::warn!("{} broke off after {} frames; evaluating those: {error}", source.display(), run.frames);
+    }
+    let truth = load_truth(&args, &run.frame_stamps)?;
+    let results = run.query_results();
+    let mut timings = run.mean_timings();
+    timings.push(("wall_s", run.wall_secs));
+    run_with_results(&args, &truth, &results, &timings)?;
+    Ok(())
+}
+
+/// Database/query mode: every database image is stored, then each query is matched against
+/// them all (no recency rules: the two sets are different visits).
+fn database_queries(pipeline: &mut Pipeline, database: &[PathBuf], queries: &[PathBuf]) -> Result<(Vec<QueryResult>, Vec<(&'static str, f64)>)> {
+    for rule in ["detector.min_history", "detector.exclude_recent.count"] {
+        pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
+    }
+    pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
+    let started = Instant::now();
+    for (index, path) in database.iter().enumerate() {
+        let descriptor = pipeline.describe(&read_image(path)?)?;
+        pipeline.detector_mut().insert(index as u64, Stamp::from_nanos(index as i64), &descriptor)?;
+    }
+    let mut results = Vec::with_capacity(queries.len());
+    for (index, path) in queries.iter().enumerate() {
+        let descriptor = pipeline.describe(&read_image(path)?)?;
+        let best = pipeline.detector().best_match(Stamp::from_nanos(i64::MAX), &descriptor)?;
+        results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
+    }
+    let per_image = started.elapsed().as_secs_f64() * 1e3 / (database.len() + queries.len()).max(1) as f64;
+    Ok((results, vec![("per_image_ms", per_image)]))
 }
 
 fn display_name(path: &Path) -> String {
@@ -203,8 +260,8 @@ mod tests {
     #[test]
     fn results_are_scored_and_written() {
         let dir = tempfile::tempdir().unwrap();
-        let (csv, json, png) = (dir.path().join("pr.csv"), dir.path().join("s.json"), dir.path().join("pr.png"));
-        let args = parse(&["seq", "-o", csv.to_str().unwrap(), "--json", json.to_str().unwrap(), "--plot", png.to_str().unwrap()]).unwrap();
+        let (csv, png) = (dir.path().join("pr.csv"), dir.path().join("pr.png"));
+        let args = parse(&["seq", "-o", csv.to_str().unwrap(), "--json", "--plot", png.to_str().unwrap()]).unwrap();
         let truth = crate::eval::parse_loops("2,0\n3,1\n").unwrap();
         let results = [
             QueryResult { query: 2, best: Some((0, 0.8)) },
@@ -213,7 +270,7 @@ mod tests {
         let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)]).unwrap();
         assert_eq!(metrics.recall_at_1, Some(0.5));
         assert!(std::fs::read_to_string(&csv).unwrap().starts_with("threshold,precision,recall\n0.8,1,0.5\n"));
-        let summary: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+        let summary = summary_json(&metrics, &[("total", 5.0)]);
         assert_eq!(summary["average_precision"], 0.5);
         assert_eq!(summary["timing_ms"]["total"], 5.0);
         assert!(png.is_file());

@@ -5,6 +5,7 @@ pub mod listen;
 pub mod model;
 pub mod node;
 pub mod play_keyframes;
+pub mod replay;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -40,6 +41,10 @@ pub enum Command {
     PlayKeyframes(play_keyframes::Args),
     /// Print the loop candidates published on a topic, as CSV.
     Listen(listen::Args),
+    /// Replay a source (TUM folder, ROS 1/2 bag, image folder) offline; loop candidates as CSV.
+    Replay(replay::Args),
+    /// Replay a source and score the detector against ground truth (precision-recall).
+    Eval(eval::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
     Synth(synth::Args),
 }
@@ -71,5 +76,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::PlayKeyframes(args) => play_keyframes::run(args),
         Command::Listen(args) => listen::run(args),
         Command::Synth(args) => synth::run(args),
+        Command::Replay(args) => replay::run(args),
+        Command::Eval(args) => eval::run(args),
     }
 }

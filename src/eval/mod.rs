@@ -6,11 +6,11 @@
 
 pub mod metrics;
 pub mod report;
+pub mod revisit;
 pub mod truth;
 
 pub use metrics::{evaluate, Metrics, PrPoint, QueryResult};
-pub use report::{plot_pr_curve, summary_json, write_curve_csv, write_summary_json};
+pub use report::{plot_pr_curve, summary_json, write_curve_csv};
 pub use truth::{
-    images_in_name_order, loop_truth_from_poses, parse_loops, parse_tum_groundtruth, poses_at_stamps, read_loops,
-    read_tum_groundtruth, LoopTruth, PoseLoopCriteria,
+    images_in_name_order, loop_truth_from_poses, parse_loops, poses_at_stamps, read_loops, LoopTruth, PoseLoopCriteria,
 };

@@ -34,11 +34,6 @@ pub fn summary_json(metrics: &Metrics, timings_ms: &[(&str, f64)]) -> serde_json
     value
 }
 
-pub fn write_summary_json(path: &Path, summary: &serde_json::Value) -> Result<()> {
-    let text = serde_json::to_string_pretty(summary).expect("JSON values serialise");
-    std::fs::write(path, text + "\n").with_context(|| format!("writing {}", path.display()))
-}
-
 const FONT_CANDIDATES: [&str; 3] = [
     "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf",
     "/usr/share/fonts/TTF/DejaVuSans.ttf",
@@ -129,10 +124,6 @@ mod tests {
         assert_eq!(json["recall_at_100_precision"], 0.5);
         assert_eq!(json["average_precision"], 0.5);
         assert_eq!(json["timing_ms"]["network"], 12.5);
-        let json_path = dir.path().join("summary.json");
-        write_summary_json(&json_path, &json).unwrap();
-        let back: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json_path).unwrap()).unwrap();
-        assert_eq!(back, json);
         let png = dir.path().join("pr.png");
         plot_pr_curve(&m, "test", &png).unwrap();
         let image = image::open(&png).unwrap().to_rgb8();

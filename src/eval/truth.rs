@@ -10,7 +10,7 @@
 
 use crate::types::Stamp;
 use anyhow::{bail, Context, Result};
-use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Vector3};
 use rayon::prelude::*;
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -137,41 +137,6 @@ pub fn loop_truth_from_poses(
     truth
 }
 
-/// Reads a TUM `groundtruth.txt` (`timestamp tx ty tz qx qy qz qw`, `#` comments).
-pub fn read_tum_groundtruth(path: &Path) -> Result<Vec<(Stamp, Isometry3<f64>)>> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading ground truth {}", path.display()))?;
-    parse_tum_groundtruth(&text).with_context(|| format!("in ground truth {}", path.display()))
-}
-
-pub fn parse_tum_groundtruth(text: &str) -> Result<Vec<(Stamp, Isometry3<f64>)>> {
-    let mut poses = Vec::new();
-    for (number, line) in text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())) {
-        if line.is_empty() || line.starts_with('#') {
-            continue;
-        }
-        let fields: Vec<&str> = line.split_whitespace().collect();
-        if fields.len() != 8 {
-            bail!("line {number}: expected 8 fields `timestamp tx ty tz qx qy qz qw`, found {}", fields.len());
-        }
-        let stamp = Stamp::parse_secs(fields[0]).with_context(|| format!("line {number}: bad timestamp {:?}", fields[0]))?;
-        let mut values = [0.0f64; 7];
-        for (value, field) in values.iter_mut().zip(&fields[1..]) {
-            *value = field
-                .parse::<f64>()
-                .ok()
-                .filter(|v| v.is_finite())
-                .with_context(|| format!("line {number}: bad number {field:?}"))?;
-        }
-        let [tx, ty, tz, qx, qy, qz, qw] = values;
-        let q = Quaternion::new(qw, qx, qy, qz);
-        if q.norm() < 1e-6 {
-            bail!("line {number}: quaternion has zero length");
-        }
-        poses.push((stamp, Isometry3::from_parts(Translation3::new(tx, ty, tz), UnitQuaternion::from_quaternion(q))));
-    }
-    Ok(poses)
-}
-
 /// Parses an explicit loops file: lines `query_index,match_index match_index ...` (indexes in
 /// replay order, or database indexes in database/query mode). A query with no loop may be listed
 /// with nothing after the comma or left out. Blank lines and `#` comments are skipped; an
@@ -234,6 +199,7 @@ pub fn images_in_name_order(dir: &Path) -> Result<Vec<PathBuf>> {
 
 #[cfg(test)]
 mod tests {
+    use nalgebra::Translation3;
     use super::*;
     use crate::synth::camera_rotation;
 
@@ -288,19 +254,6 @@ mod tests {
         let truth = loop_truth_from_poses(&stamps, &groundtruth, &PoseLoopCriteria::default());
         assert_eq!(truth.matches(1), None);
         assert_eq!(truth.unknown_queries().iter().copied().collect::<Vec<_>>(), vec![1]);
-    }
-
-    #[test]
-    fn groundtruth_parses_tum_lines_and_names_bad_lines() {
-        let text = "# comment\n1341847981.0200 -0.6749 2.6938 1.7375 -0.0003 0.8609 -0.5085 -0.0170\n\n";
-        let poses = parse_tum_groundtruth(text).unwrap();
-        assert_eq!(poses.len(), 1);
-        assert_eq!(poses[0].0, Stamp::parse_secs("1341847981.02").unwrap());
-        assert!((poses[0].1.translation.y - 2.6938).abs() < 1e-12);
-        let err = parse_tum_groundtruth("# x\n1.0 1 2 3 0 0 0\n").unwrap_err();
-        assert!(format!("{err:#}").contains("line 2"), "{err:#}");
-        let err = parse_tum_groundtruth("1.0 1 2 3 0 0 0 1\n2.0 1 2 x 0 0 0 1\n").unwrap_err();
-        assert!(format!("{err:#}").contains("line 2: bad number \"x\""), "{err:#}");
     }
 
     #[test]

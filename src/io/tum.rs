@@ -170,12 +170,17 @@ impl TumWriter {
     /// Stamps are written with 6 decimals (the TUM convention), so use microsecond stamps for
     /// exact round trips.
     pub fn write_frame(&mut self, stamp: Stamp, image: &RgbImage) -> Result<()> {
-        let name = format!("{}", tum_stamp(stamp));
+        let path = self.add_frame(stamp);
+        image.save(&path).with_context(|| format!("cannot write {}", path.display()))
+    }
+
+    /// Lists a frame in `rgb.txt` and returns the path its PNG must be written to, for callers
+    /// that encode many images in parallel.
+    pub fn add_frame(&mut self, stamp: Stamp) -> PathBuf {
+        let name = tum_stamp(stamp);
         let rel = format!("rgb/{name}.png");
-        let path = self.dir.join(&rel);
-        image.save(&path).with_context(|| format!("cannot write {}", path.display()))?;
         let _ = writeln!(self.rgb_lines, "{name} {rel}");
-        Ok(())
+        self.dir.join(rel)
     }
 
     pub fn write_pose(&mut self, stamp: Stamp, pose: &Isometry3<f64>) -> Result<()> {

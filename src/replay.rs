@@ -1,0 +1,100 @@
+//! Replaying a source offline: every frame through one [`Pipeline`], in order, with keyframe
+//! selection, collecting candidates, the best match of each keyframe (for evaluation) and timings.
+//! `replay`, `eval` and `demo` share this loop.
+
+use std::path::Path;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::detector::Match;
+use crate::eval::QueryResult;
+use crate::io::open_source;
+use crate::pipeline::{Pipeline, Timings};
+use crate::types::{LoopCandidate, Stamp};
+
+/// One keyframe of a replay.
+#[derive(Clone, Debug)]
+pub struct ReplayedKeyframe {
+    /// Frame index in the source (also the keyframe id).
+    pub index: usize,
+    pub stamp: Stamp,
+    /// Nearest eligible earlier keyframe, threshold aside.
+    pub best: Option<Match>,
+}
+
+/// Everything a replay produced.
+#[derive(Debug, Default)]
+pub struct ReplayRun {
+    /// Frames read from the source.
+    pub frames: usize,
+    /// Stamps of all frames read, in replay order.
+    pub frame_stamps: Vec<Stamp>,
+    pub keyframes: Vec<ReplayedKeyframe>,
+    pub candidates: Vec<LoopCandidate>,
+    /// Summed per-stage time over the keyframes.
+    pub total: Timings,
+    pub wall_secs: f64,
+    /// Set when the source broke off (e.g. a truncated bag) after the frames above.
+    pub error: Option<String>,
+}
+
+impl ReplayRun {
+    /// Mean per-stage milliseconds per keyframe.
+    pub fn mean_timings(&self) -> Vec<(&'static str, f64)> {
+        let n = self.keyframes.len().max(1) as f64;
+        vec![
+            ("network_ms", self.total.network_ms / n),
+            ("descriptor_ms", self.total.descriptor_ms / n),
+            ("detector_ms", self.total.detector_ms / n),
+        ]
+    }
+
+    /// One evaluation result per keyframe: its frame index, and its best match's frame index and score.
+    pub fn query_results(&self) -> Vec<QueryResult> {
+        self.keyframes.iter().map(|k| QueryResult { query: k.index, best: k.best.map(|m| (m.id as usize, m.score)) }).collect()
+    }
+}
+
+/// Replays `source` through `pipeline`: keyframe selection applies, keyframe ids are frame
+/// indexes. A source that breaks off ends the replay with what was read (see [`ReplayRun::error`]).
+pub fn run_source(pipeline: &mut Pipeline, source: &Path, topic: Option<&str>, progress: bool) -> Result<ReplayRun> {
+    let frames = open_source(source, topic)?;
+    log::info!("replaying {}", frames.describe());
+    let bar = if progress { ProgressBar::new(frames.len_hint().unwrap_or(0) as u64) } else { ProgressBar::hidden() };
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} frames, {per_sec}, {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let started = Instant::now();
+    let mut run = ReplayRun::default();
+    for frame in frames {
+        let frame = match frame {
+            Ok(frame) => frame,
+            Err(e) => {
+                run.error = Some(format!("{e:#}"));
+                break;
+            }
+        };
+        run.frames += 1;
+        run.frame_stamps.push(frame.stamp);
+        let outcome = pipeline
+            .process_frame(frame.index as u64, frame.stamp, &frame.image)
+            .with_context(|| format!("frame {} (stamp {}) of {}", frame.index, frame.stamp, source.display()))?;
+        if outcome.keyframe.is_some() {
+            let t = outcome.timings;
+            run.total.network_ms += t.network_ms;
+            run.total.descriptor_ms += t.descriptor_ms;
+            run.total.detector_ms += t.detector_ms;
+            run.keyframes.push(ReplayedKeyframe { index: frame.index, stamp: frame.stamp, best: outcome.best });
+            run.candidates.extend(outcome.candidates);
+            bar.set_message(format!("{} keyframes, {} candidates", run.keyframes.len(), run.candidates.len()));
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    run.wall_secs = started.elapsed().as_secs_f64();
+    Ok(run)
+}
+
