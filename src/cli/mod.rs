@@ -1,6 +1,7 @@
 //! Command-line interface: one sub-module per sub-command, each a thin shell over the library.
 
 pub mod bench;
+pub mod demo;
 pub mod listen;
 pub mod model;
 pub mod node;
@@ -25,6 +26,8 @@ pub struct Cli {
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// The main job: replay the bundled sample (bags/), print loop candidates and precision-recall.
+    Demo(demo::Args),
     /// Import MobileNetV2 weights from a TFLite model into safetensors.
     ImportWeights(model::ImportArgs),
     /// Parameter count and multiply-accumulates of a network.
@@ -67,6 +70,7 @@ pub fn main() -> ExitCode {
 
 fn run(command: Command) -> anyhow::Result<()> {
     match command {
+        Command::Demo(args) => demo::run(args),
         Command::ImportWeights(args) => model::import_weights(args),
         Command::ModelInfo(args) => model::model_info(args),
         Command::Classify(args) => model::classify(args),

@@ -1,5 +1,8 @@
 //! `ecm-lcd synth`: renders a synthetic looping indoor sequence into a TUM RGB-D folder.
 
+use crate::io::image_msg::WireEncoding;
+use crate::io::ros1bag::{write_ros1_bag, Ros1Compression};
+use crate::io::ros2bag::{write_ros2_bag, Ros2Storage};
 use crate::synth::{write_tum_folder, Scene, SynthConfig};
 use anyhow::{bail, Result};
 use std::path::PathBuf;
@@ -26,7 +29,38 @@ pub struct Args {
     /// Frame rate of the stamps (frames per second).
     #[arg(long, default_value_t = SynthConfig::default().rate_hz)]
     pub rate: f64,
+    /// Also write the frames as a ROS 1 bag (lz4 chunks) to this file.
+    #[arg(long)]
+    pub ros1_bag: Option<PathBuf>,
+    /// Also write the frames as a ROS 2 bag into this (new) folder.
+    #[arg(long)]
+    pub ros2_bag: Option<PathBuf>,
+    /// Storage of the ROS 2 bag.
+    #[arg(long, value_enum, default_value_t = Ros2StorageArg::Mcap)]
+    pub ros2_storage: Ros2StorageArg,
+    /// Image messages in the bags: raw rgb8 `sensor_msgs/Image`, or JPEG `CompressedImage`.
+    #[arg(long, value_enum, default_value_t = BagImages::Jpeg)]
+    pub bag_images: BagImages,
+    /// JPEG quality for `--bag-images jpeg`.
+    #[arg(long, default_value_t = 85, value_parser = clap::value_parser!(u8).range(1..=100))]
+    pub jpeg_quality: u8,
 }
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum Ros2StorageArg {
+    Sqlite3,
+    Mcap,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum BagImages {
+    Rgb8,
+    Jpeg,
+}
+
+/// The TUM RGB-D bags' camera topic (raw) and its compressed variant.
+const RAW_TOPIC: &str = "/camera/rgb/image_color";
+const COMPRESSED_TOPIC: &str = "/camera/rgb/image_color/compressed";
 
 pub fn run(args: Args) -> Result<()> {
     if args.output.join("rgb.txt").exists() {
@@ -54,5 +88,22 @@ pub fn run(args: Args) -> Result<()> {
         seconds,
         seconds * 1e3 / scene.len() as f64
     );
+    let (encoding, topic) = match args.bag_images {
+        BagImages::Rgb8 => (WireEncoding::Rgb8, RAW_TOPIC),
+        BagImages::Jpeg => (WireEncoding::Jpeg { quality: args.jpeg_quality }, COMPRESSED_TOPIC),
+    };
+    let frames = || (0..scene.len()).map(|i| (scene.stamp(i), scene.render(i)));
+    if let Some(path) = &args.ros1_bag {
+        let n = write_ros1_bag(path, topic, frames(), encoding, Ros1Compression::Lz4)?;
+        log::info!("wrote {n} messages on {topic} to the ROS 1 bag {}", path.display());
+    }
+    if let Some(dir) = &args.ros2_bag {
+        let storage = match args.ros2_storage {
+            Ros2StorageArg::Sqlite3 => Ros2Storage::Sqlite3,
+            Ros2StorageArg::Mcap => Ros2Storage::Mcap,
+        };
+        let n = write_ros2_bag(dir, storage, topic, frames(), encoding)?;
+        log::info!("wrote {n} messages on {topic} to the ROS 2 bag {}", dir.display());
+    }
     Ok(())
 }
