@@ -74,7 +74,7 @@ fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
         }
     }
     let metrics = evaluate(&run.query_results(), &truth).unwrap();
-    println!("TUM two-pass: {} candidates, {metrics:?}", run.candidates.len());
+    println!("TUM two-pass: {} candidates, recall@1 {:?}, recall@100%P {:?}, AP {:?}", run.candidates.len(), metrics.recall_at_1, metrics.recall_at_100_precision, metrics.average_precision);
     assert_eq!(metrics.positives, 8);
     assert!(metrics.recall_at_1.unwrap() >= 0.875, "{metrics:?}");
 }
@@ -95,7 +95,7 @@ fn synthetic_loops_are_detected() {
     let poses = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
     let truth = loop_truth_from_poses(&run.frame_stamps, &poses, &PoseLoopCriteria::default());
     let metrics = evaluate(&run.query_results(), &truth).unwrap();
-    println!("synthetic 240 frames, 2 laps: {} candidates, {metrics:?}", run.candidates.len());
+    println!("synthetic 240 frames, 2 laps: {} candidates, recall@1 {:?}, recall@100%P {:?}, AP {:?}", run.candidates.len(), metrics.recall_at_1, metrics.recall_at_100_precision, metrics.average_precision);
     assert!(metrics.positives >= 40, "{metrics:?}");
     assert!(metrics.recall_at_100_precision.unwrap() >= 0.9, "{metrics:?}");
     let false_loops = run.candidates.iter().filter(|c| !truth.matches(c.query_id as usize).unwrap().contains(&(c.match_id as usize))).count();
