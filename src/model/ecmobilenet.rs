@@ -25,11 +25,7 @@ use std::collections::HashMap;
 use anyhow::{ensure, Context, Result};
 use candle_core::Tensor;
 
-use super::{Arch, BottleneckRow, NetworkSpec};
-
-const fn row(t: usize, c: usize, n: usize, s: usize) -> BottleneckRow {
-    BottleneckRow { t, c, n, s }
-}
+use super::{row, Arch, NetworkSpec};
 
 /// Table 1 of the paper: 13 bottlenecks, each with ECA.
 pub const EC_MOBILENET: NetworkSpec = NetworkSpec {
