@@ -1,9 +1,11 @@
 //! Command-line interface: one sub-module per sub-command, each a thin shell over the library.
 
 pub mod bench;
+pub mod bench_node;
 pub mod listen;
 pub mod model;
 pub mod node;
+pub mod param;
 pub mod play_keyframes;
 
 use clap::{Parser, Subcommand};
@@ -40,6 +42,10 @@ pub enum Command {
     PlayKeyframes(play_keyframes::Args),
     /// Print the loop candidates published on a topic, as CSV.
     Listen(listen::Args),
+    /// Get or set a parameter of a running node (like `ros2 param get|set`).
+    Param(param::Args),
+    /// Benchmark: node latency from keyframe publish to candidate receipt (private network namespace).
+    BenchNode(bench_node::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
     Synth(synth::Args),
 }
@@ -70,6 +76,8 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Node(args) => node::run(args),
         Command::PlayKeyframes(args) => play_keyframes::run(args),
         Command::Listen(args) => listen::run(args),
+        Command::Param(args) => param::run(args),
+        Command::BenchNode(args) => bench_node::run(args),
         Command::Synth(args) => synth::run(args),
     }
 }
