@@ -2,7 +2,7 @@
 //! `/ecm_lcd` (see [`crate::ros::node`] for topics, QoS, parameters and the drop policy). ROS arguments
 //! follow `--ros-args` as `ros2 run`/`ros2 launch` pass them (see [`crate::ros::args`]).
 //!
-//! SIGINT (Ctrl-C) and SIGTERM (`ros2 launch` shutdown, `kill`, systemd) stop the node cleanly: the
+//! SIGINT (Ctrl-C, `ros2 launch` shutdown) and SIGTERM (`kill`, systemd) stop the node cleanly: the
 //! keyframes already queued are processed and published, then it logs its final counters and exits 0.
 //! A second signal while it is stopping ends the process at once.
 

@@ -55,6 +55,18 @@ pub struct FramePublisher {
     topic: String,
 }
 
+/// Checks `ready` every 50 ms until it holds (true) or `timeout` passed (false).
+fn wait_until(timeout: Duration, mut ready: impl FnMut() -> bool) -> bool {
+    let end = Instant::now() + timeout;
+    while !ready() {
+        if Instant::now() >= end {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    true
+}
+
 /// A node with its spinner running on a thread (discovery needs it).
 fn spinning_node(context: &Context, name: &str) -> Result<Node> {
     let mut node = context
@@ -102,14 +114,7 @@ impl FramePublisher {
 
     /// Waits until at least one subscriber matched; false on timeout.
     pub fn wait_for_subscriber(&self, timeout: Duration) -> bool {
-        let end = Instant::now() + timeout;
-        while self.subscribers() == 0 {
-            if Instant::now() >= end {
-                return false;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        true
+        wait_until(timeout, || self.subscribers() > 0)
     }
 
     /// Publishes one frame (Keyframe id = `frame.index`).
@@ -184,14 +189,7 @@ impl CandidateListener {
 
     /// Waits until at least one publisher matched; false on timeout.
     pub fn wait_for_publisher(&self, timeout: Duration) -> bool {
-        let end = Instant::now() + timeout;
-        while self.publishers() == 0 {
-            if Instant::now() >= end {
-                return false;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        true
+        wait_until(timeout, || self.publishers() > 0)
     }
 
     /// Every candidate that has arrived, without waiting. Undecodable messages are an error.
