@@ -346,12 +346,7 @@ fn play_keyframes_and_listen_processes_talk_to_the_node() {
     };
     let exe = env!("CARGO_BIN_EXE_ecm-lcd");
     // The two cross-keyframe pairs of the first loop and the three of the second: 2->0, 3->1, 4->2, 4->0.
-    let listener = std::process::Command::new(exe)
-        .args(["listen", "--count", "4", "--idle-timeout", "30"])
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let listener = ros_support::Listener::start(4);
     let player = std::process::Command::new(exe)
         .args(["play-keyframes"])
         .arg(&seq)
@@ -360,21 +355,18 @@ fn play_keyframes_and_listen_processes_talk_to_the_node() {
         .unwrap();
     assert!(player.status.success(), "{}", String::from_utf8_lossy(&player.stderr));
     assert!(String::from_utf8_lossy(&player.stderr).contains("published 5 frames"));
-    let listened = listener.wait_with_output().unwrap();
+    let csv = listener.finish();
     stop.store(true, Ordering::Relaxed);
     let final_counters = node_thread.join().unwrap().unwrap();
-    assert!(listened.status.success(), "{}", String::from_utf8_lossy(&listened.stderr));
-    let csv = String::from_utf8_lossy(&listened.stdout).to_string();
     let rows: Vec<(u64, u64)> = csv
         .lines()
-        .skip(1)
         .map(|l| {
             let f: Vec<&str> = l.split(',').collect();
             (f[0].parse().unwrap(), f[2].parse().unwrap())
         })
         .collect();
     assert_eq!(rows, vec![(2, 0), (3, 1), (4, 0), (4, 2)], "{csv}");
-    assert!(csv.lines().nth(1).unwrap().starts_with("2,1002.000000000,0,1000.000000000,"), "{csv}");
+    assert!(csv.lines().next().unwrap().starts_with("2,1002.000000000,0,1000.000000000,"), "{csv}");
     assert_eq!(final_counters.processed, 5, "{final_counters}");
     assert_eq!(seen.lock().unwrap().calls.iter().map(|c| c.0).collect::<Vec<_>>(), (0..5).map(Some).collect::<Vec<_>>());
     println!("INNER-DONE {final_counters}");

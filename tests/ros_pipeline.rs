@@ -20,9 +20,8 @@ use ecm_lcd::config::Params;
 use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::ros::args::parse_param_value;
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
-use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdout, Command, Stdio};
+use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 const EXE: &str = env!("CARGO_BIN_EXE_ecm-lcd");
@@ -153,42 +152,14 @@ impl NodeProcess {
     }
 }
 
-/// `ecm-lcd listen` as a child process, started once it matched the node's publisher.
-struct Listener {
-    child: Child,
-    stdout: BufReader<ChildStdout>,
-}
-
-impl Listener {
-    fn start(count: usize) -> Listener {
-        let mut child = Command::new(EXE)
-            .args(["listen", "--wait-publisher", "60", "--idle-timeout", "60", "--count", &count.to_string()])
-            .env("RUST_LOG", "warn,rustdds=error")
-            .stdout(Stdio::piped())
-            .spawn()
-            .unwrap();
-        let mut stdout = BufReader::new(child.stdout.take().unwrap());
-        let mut header = String::new();
-        stdout.read_line(&mut header).unwrap();
-        assert_eq!(header.trim(), "query_id,query_stamp,match_id,match_stamp,distance,score,rank", "listener failed to start");
-        // The writer side of the match may lag the reader side a little.
-        std::thread::sleep(Duration::from_millis(500));
-        Listener { child, stdout }
-    }
-
-    fn finish(mut self) -> (Vec<Row>, String) {
-        let mut csv = String::new();
-        self.stdout.read_to_string(&mut csv).unwrap();
-        assert!(self.child.wait().unwrap().success(), "listen failed:\n{csv}");
-        let rows = csv
-            .lines()
-            .map(|line| {
-                let f: Vec<&str> = line.split(',').collect();
-                (f[0].parse().unwrap(), f[2].parse().unwrap(), f[5].parse().unwrap())
-            })
-            .collect();
-        (rows, csv)
-    }
+/// The rows `(query_id, match_id, score)` of `listen`'s CSV body.
+fn rows(csv: &str) -> Vec<Row> {
+    csv.lines()
+        .map(|line| {
+            let f: Vec<&str> = line.split(',').collect();
+            (f[0].parse().unwrap(), f[2].parse().unwrap(), f[5].parse().unwrap())
+        })
+        .collect()
 }
 
 fn play(seq: &Path, extra: &[&str]) -> String {
@@ -222,10 +193,11 @@ fn tracker_stand_in_node_and_listener_processes_match_the_offline_run() {
     assert!(expected.len() >= 10, "the sequence should close loops offline: {expected:?}");
 
     let node = NodeProcess::start(dir.path(), &ros_param_args(LOOSE));
-    let listener = Listener::start(expected.len());
+    let listener = ros_support::Listener::start(expected.len());
     let played = play(&seq, &[]);
     assert!(played.contains(&format!("published {FRAMES} frames")), "{played}");
-    let (got, csv) = listener.finish();
+    let csv = listener.finish();
+    let got = rows(&csv);
     let counters = node.stop("TERM");
     assert_rows_equal(&got, &expected, &csv);
     assert_eq!(
@@ -248,7 +220,7 @@ fn threshold_set_by_another_process_mid_run_changes_the_output() {
     assert!(expected.iter().all(|r| r.0 >= SWITCH_AT as u64), "the strict threshold finds none: {expected:?}");
 
     let node = NodeProcess::start(dir.path(), &ros_param_args(STRICT));
-    let listener = Listener::start(expected.len());
+    let listener = ros_support::Listener::start(expected.len());
     play(&seq, &["--limit", &SWITCH_AT.to_string()]);
     // The change must reach the node after these keyframes, as it does offline.
     node.wait_for_log(&format!("keyframes #{0} id {0} stamp", SWITCH_AT - 1), Duration::from_secs(30));
@@ -267,7 +239,8 @@ fn threshold_set_by_another_process_mid_run_changes_the_output() {
     assert!(ok && value.trim() == LOOSE, "{value}{err}");
 
     play(&seq, &["--start", &SWITCH_AT.to_string()]);
-    let (got, csv) = listener.finish();
+    let csv = listener.finish();
+    let got = rows(&csv);
     let counters = node.stop("INT");
     assert_rows_equal(&got, &expected, &csv);
     assert_eq!(

@@ -1,10 +1,14 @@
 //! Helpers shared by the ROS integration tests: re-running one test inside a private network namespace
 //! (every DDS participant of the test then lives there; the outer run only checks the inner one's
-//! result), and the test-only Python virtualenv with Eclipse Cyclone DDS.
+//! result), `ecm-lcd listen` as a child process, and the test-only Python virtualenv with Eclipse
+//! Cyclone DDS.
 #![allow(dead_code)] // each test binary uses a different subset
 
 use ecm_lcd::ros::netns::{inside_private_netns, private_netns_command};
+use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdout, Command, Stdio};
+use std::time::Duration;
 
 /// True inside the re-run (then the logger is set up for the test too).
 pub fn inside() -> bool {
@@ -51,4 +55,37 @@ pub fn cyclone_python() -> PathBuf {
 /// The peer script beside this file.
 pub fn cyclone_peer_script() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros_support/cyclone_peer.py")
+}
+
+/// `ecm-lcd listen` as a child process, started once it matched the node's publisher, so that no
+/// candidate is published before anyone listens.
+pub struct Listener {
+    child: Child,
+    stdout: BufReader<ChildStdout>,
+}
+
+impl Listener {
+    pub fn start(count: usize) -> Listener {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+            .args(["listen", "--wait-publisher", "60", "--idle-timeout", "60", "--count", &count.to_string()])
+            .env("RUST_LOG", "warn,rustdds=error")
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut stdout = BufReader::new(child.stdout.take().unwrap());
+        let mut header = String::new();
+        stdout.read_line(&mut header).unwrap();
+        assert_eq!(header.trim(), "query_id,query_stamp,match_id,match_stamp,distance,score,rank", "listener failed to start");
+        // The writer side of the match may lag the reader side a little.
+        std::thread::sleep(Duration::from_millis(500));
+        Listener { child, stdout }
+    }
+
+    /// Waits for the listener to end; returns its CSV rows (no header).
+    pub fn finish(mut self) -> String {
+        let mut csv = String::new();
+        self.stdout.read_to_string(&mut csv).unwrap();
+        assert!(self.child.wait().unwrap().success(), "listen failed:\n{csv}");
+        csv
+    }
 }
