@@ -188,7 +188,8 @@ impl TumWriter {
         let q = pose.rotation.quaternion();
         let _ = writeln!(
             self.pose_lines,
-            "{} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9} {:.9}",
+            // Shortest text that reads back to the same f64: ground truth round-trips exactly.
+            "{} {} {} {} {} {} {} {}",
             tum_stamp(stamp), t.x, t.y, t.z, q.i, q.j, q.k, q.w
         );
         Ok(())
