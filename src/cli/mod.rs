@@ -1,6 +1,7 @@
 //! Command-line interface: one sub-module per sub-command, each a thin shell over the library.
 
 pub mod bench;
+pub mod db;
 pub mod demo;
 pub mod listen;
 pub mod model;
@@ -50,6 +51,8 @@ pub enum Command {
     Eval(eval::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
     Synth(synth::Args),
+    /// Inspect, export and merge persistent keyframe databases (--db).
+    Db(db::Args),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -82,5 +85,6 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Synth(args) => synth::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Db(args) => db::run(args),
     }
 }

@@ -96,6 +96,7 @@ fn params_all_off() -> DetectorParams {
         top_k: 1,
         consistency_queries: 1,
         consistency_window: 0,
+        max_keyframes: 0,
     }
 }
 
