@@ -123,15 +123,14 @@ fn descriptor_blob(descriptor: &[f32]) -> Vec<u8> {
 
 impl KeyframeStore {
     /// Opens the store at `path`, creating it for `identity` when the file does not exist or is empty;
-    /// an existing store must have exactly `identity` (module doc).
+    /// an existing store must have exactly `identity` (module doc). A new store is built under a
+    /// temporary name and renamed into place, so a crash while creating never leaves a file at `path`
+    /// that is not a complete, empty store.
     pub fn open_or_create(path: &Path, identity: &StoreIdentity) -> Result<Self> {
-        let connection = open_connection(path, OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_CREATE)?;
-        let has_meta: bool = connection
-            .query_row("SELECT count(*) FROM sqlite_master WHERE type = 'table' AND name = 'meta'", [], |r| r.get(0))
-            .with_context(|| format!("{} is not a keyframe database", path.display()))?;
-        if !has_meta {
-            create_schema(&connection, identity).with_context(|| format!("creating keyframe database {}", path.display()))?;
+        if std::fs::metadata(path).map_or(true, |m| m.len() == 0) {
+            create_store_file(path, identity).with_context(|| format!("creating keyframe database {}", path.display()))?;
         }
+        let connection = open_connection(path, OpenFlags::SQLITE_OPEN_READ_WRITE)?;
         let store = Self::from_connection(connection, path)?;
         store.identity.check_same(&format!("keyframe database {}", path.display()), identity, "this pipeline")?;
         Ok(store)
@@ -338,6 +337,27 @@ impl KeyframeStore {
 /// A stored descriptor blob as `f32` values.
 pub fn decode_descriptor(blob: &[u8]) -> impl Iterator<Item = f32> + '_ {
     blob.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+}
+
+/// Writes an empty store for `identity` next to `path`, then renames it to `path` (and syncs the folder).
+fn create_store_file(path: &Path, identity: &StoreIdentity) -> Result<()> {
+    let mut temporary = path.as_os_str().to_owned();
+    temporary.push(".creating");
+    let temporary = PathBuf::from(temporary);
+    for suffix in ["", "-wal", "-shm"] {
+        let mut stale = temporary.as_os_str().to_owned();
+        stale.push(suffix);
+        let _ = std::fs::remove_file(PathBuf::from(stale));
+    }
+    let connection = open_connection(&temporary, OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_CREATE)?;
+    connection.pragma_update(None, "synchronous", "FULL")?;
+    create_schema(&connection, identity)?;
+    // Closing the last connection checkpoints the log into the file and removes it.
+    connection.close().map_err(|(_, e)| e)?;
+    std::fs::rename(&temporary, path).with_context(|| format!("renaming {} to {}", temporary.display(), path.display()))?;
+    let folder = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::File::open(folder).and_then(|f| f.sync_all()).with_context(|| format!("syncing {}", folder.display()))?;
+    Ok(())
 }
 
 fn create_schema(connection: &Connection, identity: &StoreIdentity) -> Result<()> {
