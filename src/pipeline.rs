@@ -198,26 +198,13 @@ impl Pipeline {
         Ok(outcome)
     }
 
-    /// Changes one parameter at run time, validated. Parameters fixed at start (`arch`,
-    /// `input_size`) and the descriptor mode once keyframes are stored (stored descriptors would
-    /// no longer be comparable) are refused with a reason; the old value stays.
+    /// Changes one parameter at run time, validated by [`Params::set_at_runtime`]: a bad value
+    /// is refused with a reason and the old value stays. `arch`, `input_size` and
+    /// `descriptor.mode` are fixed at start (stored descriptors would no longer be comparable).
     pub fn set_param(&mut self, name: &str, value: ParamValue) -> std::result::Result<(), String> {
-        let mut params = self.params.clone();
-        params.set_at_runtime(name, value)?;
-        if params.descriptor_mode() != self.params.descriptor_mode() && !self.detector.db().is_empty() {
-            return Err(format!(
-                "descriptor.mode cannot change while {} keyframes with {} descriptors are stored",
-                self.detector.db().len(),
-                self.params.descriptor_mode()
-            ));
-        }
-        if params.descriptor_mode() != self.params.descriptor_mode() {
-            self.descriptor = params.descriptor();
-            self.detector = Detector::new(self.descriptor.clone(), params.detector());
-        }
-        self.detector.set_params(params.detector());
-        self.selector.set_params(params.selection());
-        self.params = params;
+        self.params.set_at_runtime(name, value)?;
+        self.detector.set_params(self.params.detector());
+        self.selector.set_params(self.params.selection());
         Ok(())
     }
 }

@@ -2,45 +2,10 @@
 //! CompressedImage input, candidates out, malformed messages counted and skipped, parameters set through
 //! the standard `set_parameters` service (valid accepted and applied, invalid refused with a reason).
 //!
-//! Network rule: the test re-runs itself inside a private network namespace (loopback only, `unshare`),
-//! so every DDS participant lives there; the outer test only checks the inner run's result.
+//! Network rule: each test re-runs itself inside a private network namespace (loopback only, see
+//! `ros_support`), so every DDS participant lives there; the outer test only checks the inner run's result.
 
-mod support_netns {
-    /// Runs this test binary's test `name` again inside a fresh network namespace and returns its output.
-    pub fn rerun_in_private_netns(name: &str) -> std::process::Output {
-        let exe = std::env::current_exe().unwrap();
-        let flag = if is_root() { "-n" } else { "-rn" };
-        std::process::Command::new("unshare")
-            .args([flag, "sh", "-c"])
-            .arg("ip link set lo up && (ip route add 224.0.0.0/4 dev lo 2>/dev/null || true) && exec \"$0\" \"$@\"")
-            .arg(exe)
-            .args([name, "--exact", "--nocapture", "--test-threads=1"])
-            .env("ECM_LCD_IN_PRIVATE_NETNS", "1")
-            .output()
-            .expect("running unshare (util-linux) for a private network namespace")
-    }
-
-    fn is_root() -> bool {
-        std::process::Command::new("id").arg("-u").output().map(|o| o.stdout.starts_with(b"0\n")).unwrap_or(false)
-    }
-
-    /// True inside the re-run (then the logger is set up for the test too).
-    pub fn inside() -> bool {
-        let inside = std::env::var_os("ECM_LCD_IN_PRIVATE_NETNS").is_some();
-        if inside {
-            let _ = env_logger::builder().is_test(true).filter_level(log::LevelFilter::Info).try_init();
-        }
-        inside
-    }
-
-    /// Re-runs test `name` in a private namespace and checks that it passed and reached its end.
-    pub fn check_inner_run(name: &str) {
-        let out = rerun_in_private_netns(name);
-        let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
-        assert!(out.status.success(), "inner run failed:\n{text}");
-        assert!(text.contains("INNER-DONE"), "inner run did not complete:\n{text}");
-    }
-}
+mod ros_support;
 
 use ecm_lcd::config::{ParamValue, Params};
 use ecm_lcd::io::msgs::{CompressedImage, Header, Image};
@@ -145,8 +110,8 @@ fn keyframe(id: u64, secs: i32, value: u8) -> Keyframe {
 
 #[test]
 fn node_layer_over_dds() {
-    if !support_netns::inside() {
-        return support_netns::check_inner_run("node_layer_over_dds");
+    if !ros_support::inside() {
+        return ros_support::check_inner_run("node_layer_over_dds");
     }
     let seen = Arc::new(Mutex::new(Seen::default()));
     let initial = Params::default();
@@ -319,29 +284,12 @@ fn node_layer_over_dds() {
     println!("INNER-DONE {final_counters}");
 }
 
-/// The Python virtualenv with Cyclone DDS (created once under target/, reused afterwards).
-fn cyclone_python() -> std::path::PathBuf {
-    let venv = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-venv-dds");
-    let python = venv.join("bin/python");
-    let has = |py: &std::path::Path| {
-        std::process::Command::new(py).args(["-c", "import cyclonedds.domain"]).output().is_ok_and(|o| o.status.success())
-    };
-    if !has(&python) {
-        let status = std::process::Command::new("python3").arg("-m").arg("venv").arg(&venv).status();
-        assert!(status.is_ok_and(|s| s.success()), "python3 -m venv {} failed", venv.display());
-        let status = std::process::Command::new(&python).args(["-m", "pip", "install", "-q", "cyclonedds"]).status();
-        assert!(status.is_ok_and(|s| s.success()), "pip install cyclonedds failed");
-    }
-    assert!(has(&python), "cyclonedds not importable from {}", python.display());
-    python
-}
-
 #[test]
 fn cyclone_dds_peer_sends_images_and_receives_candidates() {
-    if !support_netns::inside() {
+    if !ros_support::inside() {
         // Network-free preparation outside the namespace (PyPI must be reachable the first time).
-        cyclone_python();
-        return support_netns::check_inner_run("cyclone_dds_peer_sends_images_and_receives_candidates");
+        ros_support::cyclone_python();
+        return ros_support::check_inner_run("cyclone_dds_peer_sends_images_and_receives_candidates");
     }
     let seen = Arc::new(Mutex::new(Seen::default()));
     let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.95 };
@@ -352,8 +300,8 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
         let (counters, stop) = (counters.clone(), stop.clone());
         std::thread::spawn(move || run_node(&settings, Params::default(), None, Box::new(processor), counters, stop))
     };
-    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros_support/cyclone_peer.py");
-    let out = std::process::Command::new(cyclone_python())
+    let script = ros_support::cyclone_peer_script();
+    let out = std::process::Command::new(ros_support::cyclone_python())
         .arg(&script)
         .args(["2", "10", "200", "10", "200"])
         .output()
@@ -365,7 +313,7 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
     let candidates: Vec<&str> = text.lines().filter(|l| l.starts_with("CANDIDATE ")).collect();
     assert_eq!(
         candidates,
-        vec!["CANDIDATE 1003 1001 0 1.000 502 500 cyclone_cam", "CANDIDATE 1004 1002 0 1.000 503 501 cyclone_cam"],
+        vec!["CANDIDATE 1003 1001 0 1.000 502 500 cyclone_cam 0 0", "CANDIDATE 1004 1002 0 1.000 503 501 cyclone_cam 0 0"],
         "{text}"
     );
     assert_eq!(final_counters.processed, 4, "{final_counters}");
@@ -376,8 +324,8 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
 
 #[test]
 fn play_keyframes_and_listen_processes_talk_to_the_node() {
-    if !support_netns::inside() {
-        return support_netns::check_inner_run("play_keyframes_and_listen_processes_talk_to_the_node");
+    if !ros_support::inside() {
+        return ros_support::check_inner_run("play_keyframes_and_listen_processes_talk_to_the_node");
     }
     // A looped sequence in TUM form: places 10, 200, 10, 200, 10.
     let dir = tempfile::tempdir().unwrap();
@@ -398,12 +346,7 @@ fn play_keyframes_and_listen_processes_talk_to_the_node() {
     };
     let exe = env!("CARGO_BIN_EXE_ecm-lcd");
     // The two cross-keyframe pairs of the first loop and the three of the second: 2->0, 3->1, 4->2, 4->0.
-    let listener = std::process::Command::new(exe)
-        .args(["listen", "--count", "4", "--idle-timeout", "30"])
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
+    let listener = ros_support::Listener::start(4);
     let player = std::process::Command::new(exe)
         .args(["play-keyframes"])
         .arg(&seq)
@@ -412,21 +355,18 @@ fn play_keyframes_and_listen_processes_talk_to_the_node() {
         .unwrap();
     assert!(player.status.success(), "{}", String::from_utf8_lossy(&player.stderr));
     assert!(String::from_utf8_lossy(&player.stderr).contains("published 5 frames"));
-    let listened = listener.wait_with_output().unwrap();
+    let csv = listener.finish();
     stop.store(true, Ordering::Relaxed);
     let final_counters = node_thread.join().unwrap().unwrap();
-    assert!(listened.status.success(), "{}", String::from_utf8_lossy(&listened.stderr));
-    let csv = String::from_utf8_lossy(&listened.stdout).to_string();
     let rows: Vec<(u64, u64)> = csv
         .lines()
-        .skip(1)
         .map(|l| {
             let f: Vec<&str> = l.split(',').collect();
             (f[0].parse().unwrap(), f[2].parse().unwrap())
         })
         .collect();
     assert_eq!(rows, vec![(2, 0), (3, 1), (4, 0), (4, 2)], "{csv}");
-    assert!(csv.lines().nth(1).unwrap().starts_with("2,1002.000000000,0,1000.000000000,"), "{csv}");
+    assert!(csv.lines().next().unwrap().starts_with("2,1002.000000000,0,1000.000000000,"), "{csv}");
     assert_eq!(final_counters.processed, 5, "{final_counters}");
     assert_eq!(seen.lock().unwrap().calls.iter().map(|c| c.0).collect::<Vec<_>>(), (0..5).map(Some).collect::<Vec<_>>());
     println!("INNER-DONE {final_counters}");

@@ -63,8 +63,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
     for arch in [Arch::EcMobileNet, Arch::MobileNetV2] {
         let paths: &[bool] = if args.reference { &[false, true] } else { &[false] };
         for &reference in paths {
-            let network = NetworkArgs { weights: args.weights.clone(), arch, size: args.size, reference };
-            let (mut embedder, _) = network.embedder(false)?;
+            let network = NetworkArgs { weights: args.weights.clone(), arch: Some(arch), size: args.size, reference };
+            let (mut embedder, _) = network.embedder(arch, false)?;
             let cost = arch.spec().cost(None, args.size);
             for &threads in &args.threads {
                 let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;

@@ -19,11 +19,21 @@ pub struct Args {
     /// Exit after this many seconds without a new candidate (default: never).
     #[arg(long)]
     pub idle_timeout: Option<f64>,
+    /// Before printing the CSV header, wait up to this many seconds until a publisher (the node) is
+    /// matched, and fail if none is: the header then tells a script that candidates will arrive.
+    #[arg(long)]
+    pub wait_publisher: Option<f64>,
 }
 
 pub fn run(args: Args) -> Result<()> {
     let context = ros2_client::Context::new().context("creating the DDS participant")?;
     let listener = CandidateListener::new(&context, &args.topic)?;
+    if let Some(wait) = args.wait_publisher {
+        if !listener.wait_for_publisher(Duration::from_secs_f64(wait.max(0.0))) {
+            anyhow::bail!("no publisher on {} after {wait} s", args.topic);
+        }
+        log::info!("matched a publisher on {}", args.topic);
+    }
     let stdout = std::io::stdout();
     let mut out = stdout.lock();
     writeln!(out, "query_id,query_stamp,match_id,match_stamp,distance,score,rank")?;
@@ -31,7 +41,7 @@ pub fn run(args: Args) -> Result<()> {
     let mut received = 0usize;
     let mut last = Instant::now();
     loop {
-        for c in listener.take_all()? {
+        for c in listener.wait(Duration::from_millis(100))? {
             writeln!(
                 out,
                 "{},{},{},{},{},{},{}",
@@ -54,6 +64,5 @@ pub fn run(args: Args) -> Result<()> {
             log::info!("no candidate for {} s; received {received}", args.idle_timeout.unwrap_or_default());
             return Ok(());
         }
-        std::thread::sleep(Duration::from_millis(20));
     }
 }

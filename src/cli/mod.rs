@@ -1,19 +1,20 @@
 //! Command-line interface: one sub-module per sub-command, each a thin shell over the library.
 
 pub mod bench;
+pub mod bench_node;
 pub mod db;
 pub mod demo;
+pub mod eval;
 pub mod listen;
 pub mod model;
 pub mod node;
+pub mod param;
 pub mod play_keyframes;
 pub mod replay;
+pub mod synth;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
-
-pub mod eval;
-pub mod synth;
 
 #[derive(Parser, Debug)]
 #[command(name = "ecm-lcd", version, about = "Loop-closure detection for visual SLAM with ECMobileNet descriptors")]
@@ -49,6 +50,10 @@ pub enum Command {
     Replay(replay::Args),
     /// Replay a source and score the detector against ground truth (precision-recall).
     Eval(eval::Args),
+    /// Get or set a parameter of a running node (like `ros2 param get|set`).
+    Param(param::Args),
+    /// Benchmark: node latency from keyframe publish to candidate receipt (private network namespace).
+    BenchNode(bench_node::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
     Synth(synth::Args),
     /// Inspect, export and merge persistent keyframe databases (--db).
@@ -82,6 +87,8 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Node(args) => node::run(args),
         Command::PlayKeyframes(args) => play_keyframes::run(args),
         Command::Listen(args) => listen::run(args),
+        Command::Param(args) => param::run(args),
+        Command::BenchNode(args) => bench_node::run(args),
         Command::Synth(args) => synth::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),

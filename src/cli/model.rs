@@ -17,9 +17,10 @@ pub struct NetworkArgs {
     /// Weights file (safetensors, or a .tflite to import); default: see README "Weights".
     #[arg(long)]
     pub weights: Option<PathBuf>,
-    /// Network architecture: ecmobilenet or mobilenetv2.
-    #[arg(long, default_value = "ecmobilenet")]
-    pub arch: Arch,
+    /// Network architecture: ecmobilenet or mobilenetv2 (default: mobilenetv2 for `classify`,
+    /// whose classifier was trained with it; ecmobilenet otherwise).
+    #[arg(long)]
+    pub arch: Option<Arch>,
     /// Input size (a multiple of 32).
     #[arg(long, default_value_t = 224)]
     pub size: usize,
@@ -29,11 +30,13 @@ pub struct NetworkArgs {
 }
 
 impl NetworkArgs {
-    /// Resolves the weights, logs which ones run, and builds the embedder.
-    pub fn embedder(&self, with_classifier: bool) -> Result<(Embedder, resolve::Resolved)> {
+    /// Resolves the weights, logs which ones run, and builds the embedder (`default_arch` unless
+    /// `--arch` says otherwise).
+    pub fn embedder(&self, default_arch: Arch, with_classifier: bool) -> Result<(Embedder, resolve::Resolved)> {
+        let arch = self.arch.unwrap_or(default_arch);
         let resolved = resolve::resolve(self.weights.as_deref())?;
-        let weights = resolved.weights.for_arch(self.arch)?;
-        log::info!("weights: {} -> {}", resolved.describe(), self.arch);
+        let weights = resolved.weights.for_arch(arch)?;
+        log::info!("weights: {} -> {arch}", resolved.describe());
         let mut embedder = Embedder::new(weights.network(with_classifier)?, self.size)?;
         embedder.set_reference(self.reference);
         Ok((embedder, resolved))
@@ -130,12 +133,8 @@ fn read_labels(path: Option<&Path>) -> Result<Vec<String>> {
     Ok(text.lines().map(str::to_string).collect())
 }
 
-pub fn classify(mut args: ClassifyArgs) -> Result<()> {
-    // The classifier exists only in the MobileNetV2 import unless told otherwise.
-    if args.network.weights.is_none() && args.network.arch == Arch::EcMobileNet {
-        args.network.arch = Arch::MobileNetV2;
-    }
-    let (mut embedder, _) = args.network.embedder(true)?;
+pub fn classify(args: ClassifyArgs) -> Result<()> {
+    let (mut embedder, _) = args.network.embedder(Arch::MobileNetV2, true)?;
     let labels = read_labels(args.labels.as_deref())?;
     let mut results = Vec::new();
     for path in &args.images {
@@ -175,7 +174,7 @@ pub struct EmbedArgs {
 }
 
 pub fn embed(args: EmbedArgs) -> Result<()> {
-    let (mut embedder, _) = args.network.embedder(false)?;
+    let (mut embedder, _) = args.network.embedder(Arch::EcMobileNet, false)?;
     let mut writer = csv::Writer::from_path(&args.output).with_context(|| format!("cannot write {}", args.output.display()))?;
     for path in &args.images {
         let pooled = embedder.feature_map(&read_image(path)?)?.global_average();

@@ -1,8 +1,13 @@
 //! `ecm-lcd node [OPTIONS] [--ros-args ...]`: runs the loop-closure detector as the ROS 2 node
 //! `/ecm_lcd` (see [`crate::ros::node`] for topics, QoS, parameters and the drop policy). ROS arguments
 //! follow `--ros-args` as `ros2 run`/`ros2 launch` pass them (see [`crate::ros::args`]).
+//!
+//! SIGINT (Ctrl-C, `ros2 launch` shutdown) and SIGTERM (`kill`, systemd) stop the node cleanly: the
+//! keyframes already queued are processed and published, then it logs its final counters and exits 0.
+//! A second signal while it is stopping ends the process at once.
 
 use anyhow::{Context as _, Result};
+use signal_hook::consts::{SIGINT, SIGTERM};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
@@ -61,8 +66,15 @@ pub fn run_with(args: Args, make_processor: impl FnOnce(&Params) -> Result<Box<d
     let processor = make_processor(&params)?;
     let settings = NodeSettings { ros_args, input_qos: args.input_qos, queue_capacity: args.queue, ..Default::default() };
     let counters = Arc::new(NodeCounters::default());
-    // Runs until the process is stopped (Ctrl-C / SIGTERM end it; the DDS peers time the node out).
-    run_node(&settings, params, use_sim_time, processor, counters, Arc::new(AtomicBool::new(false)))?;
+    let stop = Arc::new(AtomicBool::new(false));
+    for signal in [SIGINT, SIGTERM] {
+        // Registered first, so it sees the flag as it was before this signal: set means a second signal.
+        signal_hook::flag::register_conditional_shutdown(signal, 1, stop.clone())
+            .with_context(|| format!("installing the handler for signal {signal}"))?;
+        signal_hook::flag::register(signal, stop.clone())
+            .with_context(|| format!("installing the handler for signal {signal}"))?;
+    }
+    run_node(&settings, params, use_sim_time, processor, counters, stop)?;
     Ok(())
 }
 

@@ -31,6 +31,9 @@ pub struct Args {
     /// frame_id written into the headers.
     #[arg(long, default_value = "camera")]
     pub frame_id: String,
+    /// Skip this many frames at the start of the source (ids stay the source's frame indices).
+    #[arg(long, default_value_t = 0)]
+    pub start: usize,
     /// Publish at most this many frames.
     #[arg(long)]
     pub limit: Option<usize>,
@@ -56,7 +59,7 @@ pub fn run(args: Args) -> Result<()> {
     let period = Duration::from_secs_f64(1.0 / args.rate);
     let start = Instant::now();
     let mut published = 0usize;
-    for frame in source.take(args.limit.unwrap_or(usize::MAX)) {
+    for frame in source.skip(args.start).take(args.limit.unwrap_or(usize::MAX)) {
         let frame = frame.with_context(|| format!("reading {}", args.source.display()))?;
         let due = start + period.mul_f64(published as f64);
         if let Some(wait) = due.checked_duration_since(Instant::now()) {

@@ -25,11 +25,7 @@ use std::collections::HashMap;
 use anyhow::{ensure, Context, Result};
 use candle_core::Tensor;
 
-use super::{Arch, BottleneckRow, NetworkSpec};
-
-const fn row(t: usize, c: usize, n: usize, s: usize) -> BottleneckRow {
-    BottleneckRow { t, c, n, s }
-}
+use super::{row, Arch, NetworkSpec};
 
 /// Table 1 of the paper: 13 bottlenecks, each with ECA.
 pub const EC_MOBILENET: NetworkSpec = NetworkSpec {
@@ -187,10 +183,14 @@ mod tests {
         // Inference form of the same network gives the same logits as the stock path.
         let folded = crate::model::weights::inference_tensors(&net)?;
         let inference = Network::load(&EC_MOBILENET, VarBuilder::from_tensors(folded, DType::F32, &dev), Some(3), false)?;
-        let a = inference.logits(&x, Mode::Inference)?;
-        let b = net.logits(&x, Mode::Reference)?;
-        let diff = (a - b)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
-        assert!(diff < 1e-3, "folded vs BatchNorm inference: {diff}");
+        // Batch 2 runs ECA on the activations, batch 1 folds the (trained, non-constant) gate
+        // into the projection weights: both must agree with the stock path.
+        for x in [x.clone(), x.narrow(0, 0, 1)?] {
+            let a = inference.logits(&x, Mode::Inference)?;
+            let b = net.logits(&x, Mode::Reference)?;
+            let diff = (a - b)?.abs()?.flatten_all()?.max(0)?.to_scalar::<f32>()?;
+            assert!(diff < 1e-3, "folded vs BatchNorm inference, batch {}: {diff}", x.dim(0)?);
+        }
         Ok(())
     }
 }

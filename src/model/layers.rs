@@ -119,6 +119,20 @@ impl ConvUnit {
         self.activation.forward(&y)
     }
 
+    /// A pointwise unit applied to `x` scaled channel-wise by `scale` `[C]`, computed as the
+    /// unit with its weight columns scaled instead: `W (s ⊙ x) = (W diag(s)) x`. Touches an
+    /// `O x C` matrix instead of the whole `C x H x W` activation (fast path, batch 1).
+    pub fn forward_channel_scaled(&self, x: &Tensor, scale: &Tensor) -> Result<Tensor> {
+        let (Some(bias), None, ConvKind::Pointwise) = (&self.bias, &self.bn, self.kind) else {
+            candle_core::bail!("channel-scaled forward needs a folded pointwise unit");
+        };
+        let (out, channels) = (self.weight.dim(0)?, self.weight.dim(1)?);
+        let weight = self.weight.reshape((out, channels))?.broadcast_mul(&scale.reshape((1, channels))?)?;
+        let y = pointwise(x, &weight.reshape((out, channels, 1, 1))?)?;
+        depthwise::bias_activation_(&y, bias, self.activation)?;
+        Ok(y)
+    }
+
     fn convolve(&self, x: &Tensor, stride: usize, groups: usize) -> Result<Tensor> {
         let (_, _, h, w) = x.dims4()?;
         let (_, _, kh, kw) = self.weight.dims4()?;
@@ -159,8 +173,9 @@ impl Eca {
 
     /// The per-channel gate in (0, 1), shape `[B, C, 1, 1]`.
     pub fn gate(&self, x: &Tensor) -> Result<Tensor> {
-        let (b, c, _, _) = x.dims4()?;
-        let pooled = x.mean_keepdim(3)?.mean_keepdim(2)?.reshape((b, 1, c))?;
+        let (b, c, h, w) = x.dims4()?;
+        // One reduction over each contiguous channel plane.
+        let pooled = x.contiguous()?.reshape((b, c, h * w))?.mean(2)?.reshape((b, 1, c))?;
         let k = self.kernel();
         let y = pooled.conv1d(&self.weight, (k - 1) / 2, 1, 1, 1)?;
         candle_nn::ops::sigmoid(&y)?.reshape((b, c, 1, 1))
@@ -244,10 +259,14 @@ impl InvertedResidual {
             None => x.clone(),
         };
         y = self.depthwise.forward_t(&y, mode)?;
-        if let Some(eca) = &self.eca {
-            y = eca.forward(&y)?;
-        }
-        y = self.project.forward_t(&y, mode)?;
+        y = match &self.eca {
+            // Fast path: the gate scales the projection's weights, not the activation.
+            Some(eca) if mode == Mode::Inference && y.dim(0)? == 1 && self.project.bn.is_none() => {
+                self.project.forward_channel_scaled(&y, &eca.gate(&y)?.flatten_all()?)?
+            }
+            Some(eca) => self.project.forward_t(&eca.forward(&y)?, mode)?,
+            None => self.project.forward_t(&y, mode)?,
+        };
         if self.shape.has_residual() {
             y = (y + x)?;
         }

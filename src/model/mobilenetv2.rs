@@ -1,11 +1,7 @@
 //! MobileNetV2, width 1.0 (Sandler et al., Table 2): the reference network and the target of the
 //! TFLite import.
 
-use super::{Arch, BottleneckRow, NetworkSpec};
-
-const fn row(t: usize, c: usize, n: usize, s: usize) -> BottleneckRow {
-    BottleneckRow { t, c, n, s }
-}
+use super::{row, Arch, NetworkSpec};
 
 /// Table 2 of the MobileNetV2 paper: 17 bottlenecks.
 pub const MOBILENET_V2: NetworkSpec = NetworkSpec {

@@ -73,6 +73,11 @@ pub struct BottleneckRow {
     pub s: usize,
 }
 
+/// A table row (t, c, n, s).
+pub const fn row(t: usize, c: usize, n: usize, s: usize) -> BottleneckRow {
+    BottleneckRow { t, c, n, s }
+}
+
 /// A whole network as data.
 #[derive(Clone, Debug)]
 pub struct NetworkSpec {

@@ -2,10 +2,13 @@
 //!
 //! [`node`] runs the node around a [`node::KeyframeProcessor`]; [`args`] reads `--ros-args`;
 //! [`params`] declares and validates the parameters; [`msgs`] holds the `ecm_lcd_msgs` types;
-//! [`queue`] is the bounded drop-oldest queue in front of the worker.
+//! [`queue`] is the bounded drop-oldest queue in front of the worker; [`peer`] holds the other side
+//! (tracker stand-in, candidate listener, parameter client) for tools and tests; [`netns`] makes the
+//! private network namespaces that tests and the benchmark run their DDS participants in.
 
 pub mod args;
 pub mod msgs;
+pub mod netns;
 pub mod node;
 pub mod param_services;
 pub mod params;

@@ -351,6 +351,7 @@ pub fn run_node(
         }
     }
 
+    info!("[{fqn}] stopping: finishing {} queued message(s)", queue.len());
     queue.close();
     let _ = worker.join();
     node.stop_spinner();

@@ -1,9 +1,15 @@
 //! The other side of the node, for tools and tests: a small ROS 2 participant that publishes frames as
 //! Keyframe / Image / CompressedImage messages (the tracker stand-in) and one that prints the
-//! LoopCandidates it receives. Both use the node's QoS so they match it.
+//! LoopCandidates it receives (both with the node's QoS so they match it), and a client of the node's
+//! parameter services (`ecm-lcd param`).
 
 use anyhow::{Context as _, Result};
-use ros2_client::{Context, Name, Node, NodeName, NodeOptions, Publisher, Subscription};
+use ros2_client::dds::rustdds::mio1::{Events, Interest, Poll, Token};
+use ros2_client::rcl_interfaces::{GetParametersRequest, GetParametersResponse, SetParametersRequest, SetParametersResponse};
+use ros2_client::{
+    Client, Context, Message, Name, Node, NodeName, NodeOptions, Parameter, ParameterValue, Publisher, QosProfile,
+    ServiceMapping, ServiceTypeName, Subscription,
+};
 use std::time::{Duration, Instant};
 
 use super::msgs::{self, Keyframe, LoopCandidate};
@@ -47,6 +53,18 @@ pub struct FramePublisher {
     publisher: AnyPublisher,
     frame_id: String,
     topic: String,
+}
+
+/// Checks `ready` every 50 ms until it holds (true) or `timeout` passed (false).
+fn wait_until(timeout: Duration, mut ready: impl FnMut() -> bool) -> bool {
+    let end = Instant::now() + timeout;
+    while !ready() {
+        if Instant::now() >= end {
+            return false;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    true
 }
 
 /// A node with its spinner running on a thread (discovery needs it).
@@ -96,14 +114,7 @@ impl FramePublisher {
 
     /// Waits until at least one subscriber matched; false on timeout.
     pub fn wait_for_subscriber(&self, timeout: Duration) -> bool {
-        let end = Instant::now() + timeout;
-        while self.subscribers() == 0 {
-            if Instant::now() >= end {
-                return false;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        true
+        wait_until(timeout, || self.subscribers() > 0)
     }
 
     /// Publishes one frame (Keyframe id = `frame.index`).
@@ -137,6 +148,8 @@ impl FramePublisher {
 pub struct CandidateListener {
     _node: Node,
     subscription: Subscription<LoopCandidate>,
+    /// Wakes [`CandidateListener::wait`] when data arrives (the subscription is registered with it).
+    poll: std::sync::Mutex<(Poll, Events)>,
 }
 
 impl CandidateListener {
@@ -145,9 +158,38 @@ impl CandidateListener {
         let t = node
             .create_topic(&topic_name(topic)?, msgs::loop_candidate_type(), &output_qos())
             .map_err(|e| anyhow::anyhow!("topic {topic}: {e:?}"))?;
-        let subscription =
+        let mut subscription: Subscription<LoopCandidate> =
             node.create_subscription(&t, None).map_err(|e| anyhow::anyhow!("subscribing {topic}: {e:?}"))?;
-        Ok(CandidateListener { _node: node, subscription })
+        let poll = Poll::new().context("creating the poll")?;
+        poll.registry().register(&mut subscription, Token(0), Interest::READABLE).context("polling the subscription")?;
+        Ok(CandidateListener { _node: node, subscription, poll: std::sync::Mutex::new((poll, Events::with_capacity(4))) })
+    }
+
+    /// The candidates that arrived, waiting at most `timeout` for the first (empty on timeout). Wakes on
+    /// arrival, so it adds no polling delay to a latency measurement.
+    pub fn wait(&self, timeout: Duration) -> Result<Vec<LoopCandidate>> {
+        let got = self.take_all()?;
+        if !got.is_empty() {
+            return Ok(got);
+        }
+        let mut guard = self.poll.lock().unwrap_or_else(|e| e.into_inner());
+        let (poll, events) = &mut *guard;
+        if let Err(e) = poll.poll(events, Some(timeout)) {
+            if e.kind() != std::io::ErrorKind::Interrupted {
+                return Err(e).context("waiting for candidates");
+            }
+        }
+        self.take_all()
+    }
+
+    /// Number of matched publishers (the node's, once discovery has run).
+    pub fn publishers(&self) -> usize {
+        self.subscription.get_publisher_count(&self._node)
+    }
+
+    /// Waits until at least one publisher matched; false on timeout.
+    pub fn wait_for_publisher(&self, timeout: Duration) -> bool {
+        wait_until(timeout, || self.publishers() > 0)
     }
 
     /// Every candidate that has arrived, without waiting. Undecodable messages are an error.
@@ -157,5 +199,84 @@ impl CandidateListener {
             out.push(msg);
         }
         Ok(out)
+    }
+}
+
+/// Runs `future` on this thread for at most `timeout`; None when the time ran out.
+fn block_on_with_timeout<F: std::future::Future>(future: F, timeout: Duration) -> Option<F::Output> {
+    let (alarm, rang) = futures::channel::oneshot::channel::<()>();
+    std::thread::spawn(move || {
+        std::thread::sleep(timeout);
+        let _ = alarm.send(());
+    });
+    futures::executor::block_on(async {
+        match futures::future::select(std::pin::pin!(future), rang).await {
+            futures::future::Either::Left((output, _)) => Some(output),
+            futures::future::Either::Right(_) => None,
+        }
+    })
+}
+
+/// A client of another node's parameter services (`get_parameters`, `set_parameters`), as `ros2 param`.
+pub struct ParamClient {
+    node: Node,
+    get: Client<GetParametersRequest, GetParametersResponse>,
+    set: Client<SetParametersRequest, SetParametersResponse>,
+    target: String,
+    timeout: Duration,
+}
+
+impl ParamClient {
+    /// `target`: the node's fully qualified name (`/ecm_lcd`, `/robot1/lcd`). Each call waits at most
+    /// `timeout` for the service to appear and answer.
+    pub fn new(context: &Context, target: &str, timeout: Duration) -> Result<Self> {
+        let mut node = spinning_node(context, &format!("ecm_lcd_param_{}", std::process::id()))?;
+        let target = if target.starts_with('/') { target.to_string() } else { format!("/{target}") };
+        let get = Self::client(&mut node, &target, "get_parameters", "GetParameters")?;
+        let set = Self::client(&mut node, &target, "set_parameters", "SetParameters")?;
+        Ok(ParamClient { node, get, set, target, timeout })
+    }
+
+    fn client<Req: Message + Clone + 'static, Resp: Message + Clone + 'static>(
+        node: &mut Node,
+        target: &str,
+        service: &str,
+        type_name: &str,
+    ) -> Result<Client<Req, Resp>> {
+        let qos = QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 1 });
+        let name = topic_name(&format!("{target}/{service}"))?;
+        node.create_client(ServiceMapping::Enhanced, &name, &ServiceTypeName::new("rcl_interfaces", type_name), qos.clone(), qos)
+            .map_err(|e| anyhow::anyhow!("creating a client of {target}/{service}: {e:?}"))
+    }
+
+    fn call<Req: Message + Clone + 'static, Resp: Message + Clone + 'static>(&self, client: &Client<Req, Resp>, service: &str, request: Req) -> Result<Resp> {
+        let call = async {
+            client.wait_for_service(&self.node).await;
+            client.async_call_service(request).await
+        };
+        match block_on_with_timeout(call, self.timeout) {
+            Some(Ok(response)) => Ok(response),
+            Some(Err(e)) => Err(anyhow::anyhow!("calling {}/{service}: {e:?}", self.target)),
+            None => Err(anyhow::anyhow!(
+                "no answer from {}/{service} within {:.1} s (is the node running, in this ROS domain?)",
+                self.target,
+                self.timeout.as_secs_f64()
+            )),
+        }
+    }
+
+    /// Sets one parameter. Outer error: the call failed; inner error: the node refused, with its reason.
+    pub fn set(&self, name: &str, value: ParameterValue) -> Result<std::result::Result<(), String>> {
+        let request = SetParametersRequest { parameter: vec![Parameter { name: name.to_string(), value }.into()] };
+        let response = self.call(&self.set, "set_parameters", request)?;
+        let result = response.results.first().with_context(|| format!("{} sent an empty set_parameters answer", self.target))?;
+        Ok(if result.successful { Ok(()) } else { Err(result.reason.clone()) })
+    }
+
+    /// The current value of one parameter (`ParameterValue::NotSet` when the node has no such parameter).
+    pub fn get(&self, name: &str) -> Result<ParameterValue> {
+        let response = self.call(&self.get, "get_parameters", GetParametersRequest { names: vec![name.to_string()] })?;
+        let value = response.values.into_iter().next().with_context(|| format!("{} sent an empty get_parameters answer", self.target))?;
+        Ok(value.into())
     }
 }

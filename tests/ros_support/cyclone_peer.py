@@ -1,10 +1,15 @@
 """An independent DDS peer (Eclipse Cyclone DDS, not RustDDS) for the ecm-lcd node test.
 
-Publishes sensor_msgs/Image (rgb8, solid grey levels given on the command line) on rt/image and prints
-every ecm_lcd_msgs/LoopCandidate received on rt/loop_candidates as `CANDIDATE query match rank score`.
+Publishes sensor_msgs/Image (rgb8) on rt/image and prints every ecm_lcd_msgs/LoopCandidate received on
+rt/loop_candidates as `CANDIDATE query match rank score query_sec match_sec match_frame_id query_nanosec
+match_nanosec`.
 Types are declared with the ROS 2 DDS names (`pkg::msg::dds_::Type_`) and plain CDR (XCDR1), as
-rmw_cyclonedds does. Usage: cyclone_peer.py EXPECTED_CANDIDATES GREY [GREY ...]
+rmw_cyclonedds does.
+Usage: cyclone_peer.py EXPECTED_CANDIDATES GREY [GREY ...]   (solid 32x24 images of those grey levels)
+       cyclone_peer.py EXPECTED_CANDIDATES --frames LIST       (LIST: lines `sec nanosec width height FILE`
+           with FILE raw rgb8 bytes beside LIST, or `MALFORMED short|encoding` for a broken image)
 """
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -57,9 +62,43 @@ class LoopCandidate(IdlStruct, typename="ecm_lcd_msgs::msg::dds_::LoopCandidate_
     descriptor_mode: str
 
 
+def frames_from_list(path):
+    """Images from a frame list (see the module doc); broken ones where it says MALFORMED."""
+    images = []
+    folder = os.path.dirname(path)
+    with open(path) as lines:
+        for line in lines:
+            fields = line.split()
+            header = Header(stamp=Time(sec=0, nanosec=0), frame_id="cyclone_cam")
+            if fields[0] == "MALFORMED":
+                # short: step * height is larger than the data; encoding: one the node does not know.
+                data = [7] * (8 * 6 * 3)
+                if fields[1] == "short":
+                    images.append(Image(header=header, height=6, width=8, encoding="rgb8", is_bigendian=0,
+                                        step=8 * 3, data=data[:50]))
+                else:
+                    images.append(Image(header=header, height=6, width=8, encoding="yuv_unknown", is_bigendian=0,
+                                        step=8 * 3, data=data))
+                continue
+            sec, nanosec, width, height, name = fields
+            with open(os.path.join(folder, name), "rb") as f:
+                data = list(f.read())
+            header.stamp = Time(sec=int(sec), nanosec=int(nanosec))
+            images.append(Image(header=header, height=int(height), width=int(width), encoding="rgb8",
+                                is_bigendian=0, step=int(width) * 3, data=data))
+    return images
+
+
 def main():
     expected = int(sys.argv[1])
-    greys = [int(v) for v in sys.argv[2:]]
+    if sys.argv[2] == "--frames":
+        images = frames_from_list(sys.argv[3])
+    else:
+        width, height = 32, 24
+        images = [Image(header=Header(stamp=Time(sec=500 + i, nanosec=0), frame_id="cyclone_cam"), height=height,
+                        width=width, encoding="rgb8", is_bigendian=0, step=width * 3,
+                        data=[int(grey)] * (width * height * 3))
+                  for i, grey in enumerate(sys.argv[2:])]
     qos = Qos(
         Policy.Reliability.Reliable(duration(milliseconds=100)),
         Policy.Durability.Volatile,
@@ -77,19 +116,25 @@ def main():
             sys.exit(2)
         time.sleep(0.05)
     time.sleep(0.3)
-    width, height = 32, 24
-    for i, grey in enumerate(greys):
-        header = Header(stamp=Time(sec=500 + i, nanosec=0), frame_id="cyclone_cam")
-        writer.write(Image(header=header, height=height, width=width, encoding="rgb8", is_bigendian=0,
-                           step=width * 3, data=[grey] * (width * height * 3)))
-        time.sleep(0.1)
     got = 0
-    deadline = time.time() + 20
-    while got < expected and time.time() < deadline:
+
+    def drain():
+        # Taken while publishing too: the reader keeps only the last 10.
+        taken = 0
         for c in reader.take(N=16):
             print(f"CANDIDATE {c.query_id} {c.match_id} {c.rank} {c.score:.3f} {c.header.stamp.sec} "
-                  f"{c.match_stamp.sec} {c.match_frame_id}", flush=True)
-            got += 1
+                  f"{c.match_stamp.sec} {c.match_frame_id} {c.header.stamp.nanosec} {c.match_stamp.nanosec}",
+                  flush=True)
+            taken += 1
+        return taken
+
+    for image in images:
+        writer.write(image)
+        time.sleep(0.05)
+        got += drain()
+    deadline = time.time() + 20
+    while got < expected and time.time() < deadline:
+        got += drain()
         time.sleep(0.05)
     print(f"PEER-DONE {got}", flush=True)
 
