@@ -223,6 +223,13 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "Matches agree when they are at most this many keyframes apart in the database.",
         ),
         integer(
+            "detector.max_keyframes",
+            0,
+            0,
+            MAX_COUNT,
+            "At most this many newest keyframes are kept in memory and searched; older ones are dropped (a --db keeps them on disk). 0 = unlimited.",
+        ),
+        integer(
             "selection.every_nth",
             1,
             1,
@@ -401,6 +408,7 @@ impl Params {
             top_k: self.count("detector.top_k"),
             consistency_queries: self.count("detector.consistency.queries"),
             consistency_window: self.count("detector.consistency.window"),
+            max_keyframes: self.count("detector.max_keyframes"),
         }
     }
 

@@ -1,6 +1,11 @@
 //! The whole per-frame path: image -> tensor -> feature map -> descriptor -> keyframe selection ->
 //! detector -> loop candidates. The offline commands (replay, eval, demo) and the ROS node all
 //! run frames through one [`Pipeline`], so they give the same answers.
+//!
+//! With a keyframe store attached ([`Pipeline::attach_store`]), every keyframe is committed to disk
+//! before the detector sees it, so its candidates are never returned before the keyframe is durable.
+//! A crash between the commit and the caller emitting the candidates loses those candidates, never
+//! the keyframe.
 
 use std::path::Path;
 use std::time::Instant;
@@ -11,6 +16,7 @@ use image::RgbImage;
 use crate::config::{ParamValue, Params};
 use crate::descriptor::Descriptor;
 use crate::detector::selection::{KeyframeSelector, Verdict};
+use crate::detector::store::{KeyframeStore, StoreIdentity};
 use crate::detector::{Detector, Match};
 use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
@@ -48,6 +54,7 @@ pub struct Pipeline {
     detector: Detector,
     next_id: u64,
     weights: Resolved,
+    store: Option<KeyframeStore>,
 }
 
 impl Pipeline {
@@ -70,6 +77,7 @@ impl Pipeline {
             params,
             next_id: 0,
             weights,
+            store: None,
         })
     }
 
@@ -91,6 +99,50 @@ impl Pipeline {
 
     pub fn detector_mut(&mut self) -> &mut Detector {
         &mut self.detector
+    }
+
+    /// What this pipeline's descriptors depend on (a store must match it).
+    pub fn store_identity(&self) -> StoreIdentity {
+        StoreIdentity {
+            weights_sha256: self.weights.sha256.clone(),
+            arch: self.params.arch().to_string(),
+            descriptor_mode: self.params.descriptor_mode().name().to_string(),
+            input_size: self.params.input_size(),
+            dim: self.descriptor.dim(),
+        }
+    }
+
+    /// Opens (or creates) the keyframe store at `path` and attaches it ([`Pipeline::attach_store`]).
+    pub fn open_store(&mut self, path: &Path) -> Result<()> {
+        let store = KeyframeStore::open_or_create(path, &self.store_identity())?;
+        self.attach_store(store)
+    }
+
+    /// Makes `store` the keyframe history: its newest keyframes (all, or `detector.max_keyframes`)
+    /// become the detector's database, counted ids continue after the largest stored id, and every
+    /// later keyframe is appended to it. Refused when the store's identity differs from the pipeline's.
+    pub fn attach_store(&mut self, store: KeyframeStore) -> Result<()> {
+        store.identity().check_same(&format!("keyframe database {}", store.path().display()), &self.store_identity(), "this pipeline")?;
+        let started = Instant::now();
+        let limit = Some(self.params.detector().max_keyframes).filter(|&n| n > 0);
+        self.detector.replace_history(store.load_db(limit)?)?;
+        if let Some(max_id) = store.max_id() {
+            self.next_id = self.next_id.max(max_id + 1);
+        }
+        log::info!(
+            "keyframe database {}: {} keyframes stored, {} loaded in {:.3} s, ids continue at {}",
+            store.path().display(),
+            store.len(),
+            self.detector.db().len(),
+            started.elapsed().as_secs_f64(),
+            self.next_id
+        );
+        self.store = Some(store);
+        Ok(())
+    }
+
+    pub fn store(&self) -> Option<&KeyframeStore> {
+        self.store.as_ref()
     }
 
     /// The descriptor of one image, with no selection and no database.
@@ -135,6 +187,9 @@ impl Pipeline {
         outcome.timings.descriptor_ms = (after_descriptor - after_network).as_secs_f64() * 1e3;
         if select && self.selector.needs_descriptor() && !self.selector.offer_descriptor(stamp, &descriptor)? {
             return Ok(outcome);
+        }
+        if let Some(store) = &mut self.store {
+            store.append(id, stamp, &descriptor)?;
         }
         outcome.best = self.detector.best_match(stamp, &descriptor)?;
         outcome.candidates = self.detector.process(id, stamp, &descriptor)?;

@@ -1,6 +1,10 @@
 //! Replaying a source offline: every frame through one [`Pipeline`], in order, with keyframe
 //! selection, collecting candidates, the best match of each keyframe (for evaluation) and timings.
 //! `replay`, `eval` and `demo` share this loop.
+//!
+//! Resuming: when the pipeline has a keyframe store attached, frames whose index (= keyframe id) is at
+//! most the largest stored id were processed by an earlier run and are skipped (counted in
+//! [`ReplayRun::skipped`]); keyframe selection starts afresh at the first frame after them.
 
 use std::path::Path;
 use std::time::Instant;
@@ -29,6 +33,8 @@ pub struct ReplayedKeyframe {
 pub struct ReplayRun {
     /// Frames read from the source.
     pub frames: usize,
+    /// Frames skipped because an attached store already holds their keyframe ids (module doc).
+    pub skipped: usize,
     /// Stamps of all frames read, in replay order.
     pub frame_stamps: Vec<Stamp>,
     pub keyframes: Vec<ReplayedKeyframe>,
@@ -60,6 +66,19 @@ impl ReplayRun {
 /// Replays `source` through `pipeline`: keyframe selection applies, keyframe ids are frame
 /// indexes. A source that breaks off ends the replay with what was read (see [`ReplayRun::error`]).
 pub fn run_source(pipeline: &mut Pipeline, source: &Path, topic: Option<&str>, progress: bool) -> Result<ReplayRun> {
+    run_source_with(pipeline, source, topic, progress, |_, _| Ok(()))
+}
+
+/// As [`run_source`], calling `on_keyframe` with each keyframe and its candidates as soon as the
+/// pipeline returns them (to write them out incrementally); an error from it ends the replay.
+pub fn run_source_with(
+    pipeline: &mut Pipeline,
+    source: &Path,
+    topic: Option<&str>,
+    progress: bool,
+    mut on_keyframe: impl FnMut(&ReplayedKeyframe, &[LoopCandidate]) -> Result<()>,
+) -> Result<ReplayRun> {
+    let resume_after = pipeline.store().and_then(|store| store.max_id());
     let frames = open_source(source, topic)?;
     log::info!("replaying {}", frames.describe());
     let bar = if progress { ProgressBar::new(frames.len_hint().unwrap_or(0) as u64) } else { ProgressBar::hidden() };
@@ -79,6 +98,11 @@ pub fn run_source(pipeline: &mut Pipeline, source: &Path, topic: Option<&str>, p
         };
         run.frames += 1;
         run.frame_stamps.push(frame.stamp);
+        if resume_after.is_some_and(|last| frame.index as u64 <= last) {
+            run.skipped += 1;
+            bar.inc(1);
+            continue;
+        }
         let outcome = pipeline
             .process_frame(frame.index as u64, frame.stamp, &frame.image)
             .with_context(|| format!("frame {} (stamp {}) of {}", frame.index, frame.stamp, source.display()))?;
@@ -87,7 +111,9 @@ pub fn run_source(pipeline: &mut Pipeline, source: &Path, topic: Option<&str>, p
             run.total.network_ms += t.network_ms;
             run.total.descriptor_ms += t.descriptor_ms;
             run.total.detector_ms += t.detector_ms;
-            run.keyframes.push(ReplayedKeyframe { index: frame.index, stamp: frame.stamp, best: outcome.best });
+            let keyframe = ReplayedKeyframe { index: frame.index, stamp: frame.stamp, best: outcome.best };
+            on_keyframe(&keyframe, &outcome.candidates)?;
+            run.keyframes.push(keyframe);
             run.candidates.extend(outcome.candidates);
             bar.set_message(format!("{} keyframes, {} candidates", run.keyframes.len(), run.candidates.len()));
         }

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod bench_node;
+pub mod db;
 pub mod demo;
 pub mod eval;
 pub mod listen;
@@ -55,6 +56,8 @@ pub enum Command {
     BenchNode(bench_node::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
     Synth(synth::Args),
+    /// Inspect, export and merge persistent keyframe databases (--db).
+    Db(db::Args),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -89,5 +92,6 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Synth(args) => synth::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Db(args) => db::run(args),
     }
 }

@@ -27,6 +27,11 @@ pub struct Args {
     /// Weights file (default: the usual resolution, see README "Weights").
     #[arg(long)]
     pub weights: Option<std::path::PathBuf>,
+    /// Persistent keyframe database (SQLite; created if missing): stored keyframes are the starting
+    /// history, counted ids continue after the largest stored id, and every keyframe is committed
+    /// before its candidates are published.
+    #[arg(long, value_name = "PATH")]
+    pub db: Option<std::path::PathBuf>,
     /// ROS arguments: `--ros-args -p name:=value -r from:=to --params-file FILE -r __ns:=/ns ...`.
     #[arg(trailing_var_arg = true, allow_hyphen_values = true, value_name = "ROS_ARGS")]
     pub ros_args: Vec<String>,
@@ -35,7 +40,14 @@ pub struct Args {
 /// Runs the node over the full pipeline (network, descriptor, selection, detector).
 pub fn run(args: Args) -> Result<()> {
     let weights = args.weights.clone();
-    run_with(args, move |params| Ok(Box::new(crate::pipeline::Pipeline::new(params.clone(), weights.as_deref())?)))
+    let db = args.db.clone();
+    run_with(args, move |params| {
+        let mut pipeline = crate::pipeline::Pipeline::new(params.clone(), weights.as_deref())?;
+        if let Some(db) = &db {
+            pipeline.open_store(db)?;
+        }
+        Ok(Box::new(pipeline))
+    })
 }
 
 /// Runs the node with the processor `make_processor` builds from the starting parameters.

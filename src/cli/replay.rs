@@ -1,13 +1,20 @@
 //! `ecm-lcd replay`: runs every frame of a source through the pipeline offline and writes the
 //! loop candidates as CSV.
+//!
+//! The CSV is written incrementally, flushed after each keyframe's candidates, so what a killed replay
+//! emitted is on disk. With `--db`, keyframes are stored as they are accepted, and a replay of a source
+//! whose frames are already stored skips them ([`crate::replay`]) and appends to an existing output CSV
+//! instead of replacing it, so a crashed replay restarted with the same arguments completes the file.
 
+use std::fs::File;
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
 use crate::config::{Params, NODE_NAME};
 use crate::pipeline::Pipeline;
-use crate::replay::run_source;
+use crate::replay::run_source_with;
 use crate::types::LoopCandidate;
 
 /// Options every command that replays a source shares.
@@ -32,6 +39,11 @@ pub struct SourceArgs {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Persistent keyframe database (SQLite; created if missing): stored keyframes are the starting
+    /// history, every new keyframe is committed before its candidates are written, and frames already
+    /// stored are skipped. Must have been made with the same weights, arch, descriptor mode and input size.
+    #[arg(long, value_name = "PATH")]
+    pub db: Option<PathBuf>,
 }
 
 impl SourceArgs {
@@ -52,29 +64,71 @@ impl SourceArgs {
     pub fn pipeline(&self) -> Result<Pipeline> {
         let mut pipeline = Pipeline::new(self.params()?, self.weights.as_deref())?;
         pipeline.set_reference(self.reference);
+        if let Some(db) = &self.db {
+            pipeline.open_store(db)?;
+        }
         Ok(pipeline)
     }
 }
 
-/// Writes candidates as CSV: `query_id,query_stamp,match_id,match_stamp,distance,score`.
+const CSV_HEADER: [&str; 6] = ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score"];
+
+/// Candidates as CSV (`query_id,query_stamp,match_id,match_stamp,distance,score`), written in pieces,
+/// each flushed.
+pub struct CandidateCsv {
+    out: csv::Writer<Box<dyn Write>>,
+    name: String,
+}
+
+impl CandidateCsv {
+    /// A new file at `path` (replacing one there), or, with `append` and a non-empty file there, its
+    /// continuation (no second header).
+    pub fn to_file(path: &Path, append: bool) -> Result<Self> {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        }
+        let continuing = append && std::fs::metadata(path).is_ok_and(|m| m.len() > 0);
+        let file = if continuing { File::options().append(true).open(path) } else { File::create(path) }
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        Self::new(Box::new(file), path.display().to_string(), !continuing)
+    }
+
+    pub fn to_stdout() -> Result<Self> {
+        Self::new(Box::new(std::io::stdout()), "standard output".into(), true)
+    }
+
+    fn new(out: Box<dyn Write>, name: String, header: bool) -> Result<Self> {
+        let mut csv = CandidateCsv { out: csv::WriterBuilder::new().has_headers(false).from_writer(out), name };
+        if header {
+            csv.out.write_record(CSV_HEADER)?;
+            csv.flush()?;
+        }
+        Ok(csv)
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        self.out.flush().with_context(|| format!("cannot write {}", self.name))
+    }
+
+    /// Writes `candidates` and flushes.
+    pub fn write(&mut self, candidates: &[LoopCandidate]) -> Result<()> {
+        for c in candidates {
+            self.out.write_record([
+                c.query_id.to_string(),
+                c.query_stamp.to_string(),
+                c.match_id.to_string(),
+                c.match_stamp.to_string(),
+                format!("{:.6}", c.distance),
+                format!("{:.6}", c.score),
+            ])?;
+        }
+        self.flush()
+    }
+}
+
+/// Writes candidates as a new CSV file ([`CandidateCsv`]).
 pub fn write_candidates_csv(candidates: &[LoopCandidate], path: &Path) -> Result<()> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    }
-    let mut out = csv::Writer::from_path(path).with_context(|| format!("cannot write {}", path.display()))?;
-    out.write_record(["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score"])?;
-    for c in candidates {
-        out.write_record([
-            c.query_id.to_string(),
-            c.query_stamp.to_string(),
-            c.match_id.to_string(),
-            c.match_stamp.to_string(),
-            format!("{:.6}", c.distance),
-            format!("{:.6}", c.score),
-        ])?;
-    }
-    out.flush().with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
+    CandidateCsv::to_file(path, false)?.write(candidates)
 }
 
 #[derive(clap::Args, Debug)]
@@ -90,20 +144,19 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     let mut pipeline = args.source_args.pipeline()?;
-    let run = run_source(&mut pipeline, &args.source, args.source_args.topic.as_deref(), !args.source_args.quiet)?;
-    match &args.output {
-        Some(path) => write_candidates_csv(&run.candidates, path)?,
-        None => {
-            println!("query_id,query_stamp,match_id,match_stamp,distance,score");
-            for c in &run.candidates {
-                println!("{},{},{},{},{:.6},{:.6}", c.query_id, c.query_stamp, c.match_id, c.match_stamp, c.distance, c.score);
-            }
-        }
-    }
+    let resuming = pipeline.store().is_some_and(|store| !store.is_empty());
+    let mut csv = match &args.output {
+        Some(path) => CandidateCsv::to_file(path, resuming)?,
+        None => CandidateCsv::to_stdout()?,
+    };
+    let run = run_source_with(&mut pipeline, &args.source, args.source_args.topic.as_deref(), !args.source_args.quiet, |_, candidates| {
+        csv.write(candidates)
+    })?;
     let t = run.mean_timings();
     eprintln!(
-        "{} frames, {} keyframes, {} loop candidates in {:.1} s (per keyframe: network {:.1} ms, descriptor {:.2} ms, detector {:.2} ms){}",
+        "{} frames{}, {} keyframes, {} loop candidates in {:.1} s (per keyframe: network {:.1} ms, descriptor {:.2} ms, detector {:.2} ms){}",
         run.frames,
+        if run.skipped > 0 { format!(" ({} already stored, skipped)", run.skipped) } else { String::new() },
         run.keyframes.len(),
         run.candidates.len(),
         run.wall_secs,

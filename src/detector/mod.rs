@@ -19,8 +19,14 @@
 //!    Positions (insertion order) rather than ids are compared so that any id scheme works.
 //!
 //! Reported candidates are ranked 0, 1, ... in increasing distance among those reported.
+//!
+//! Memory budget: with `max_keyframes = n > 0`, once the database holds more than `n` keyframes the
+//! oldest are dropped from memory (and so from the search) until `n` remain; positions are renumbered
+//! from the oldest kept keyframe and the consistency history follows. A persistent store ([`store`])
+//! keeps every keyframe on disk regardless; a restart loads only the newest `n`.
 
 pub mod selection;
+pub mod store;
 
 use crate::descriptor::{squared_distance, Descriptor};
 use crate::types::{LoopCandidate, Stamp};
@@ -52,6 +58,8 @@ pub struct DetectorParams {
     pub consistency_queries: usize,
     /// Matches agree when their database positions differ by at most this many keyframes.
     pub consistency_window: usize,
+    /// At most this many keyframes are kept in memory and searched, the newest (0 = unlimited; module doc).
+    pub max_keyframes: usize,
 }
 
 impl Default for DetectorParams {
@@ -76,11 +84,41 @@ pub struct KeyframeDb {
     stamps: Vec<Stamp>,
     /// `len * dim` values, keyframe after keyframe.
     descriptors: Vec<f32>,
+    /// Dropped keyframes still at the front of the vectors (removed in batches: see [`KeyframeDb::drop_oldest`]).
+    dropped: usize,
 }
 
 impl KeyframeDb {
     pub fn new(dim: usize) -> Self {
-        KeyframeDb { dim, ids: Vec::new(), stamps: Vec::new(), descriptors: Vec::new() }
+        Self::with_capacity(dim, 0)
+    }
+
+    /// An empty database with room for `keyframes` keyframes (loading a stored history).
+    pub fn with_capacity(dim: usize, keyframes: usize) -> Self {
+        KeyframeDb {
+            dim,
+            ids: Vec::with_capacity(keyframes),
+            stamps: Vec::with_capacity(keyframes),
+            descriptors: Vec::with_capacity(keyframes * dim),
+            dropped: 0,
+        }
+    }
+
+    /// Drops the `count` oldest keyframes (all, if fewer); later positions shift down by `count`.
+    /// The memory is reclaimed once the dropped ones reach an eighth of those kept, so dropping one
+    /// keyframe per insertion costs amortised O(dim), with at most 1/8 extra memory.
+    pub fn drop_oldest(&mut self, count: usize) {
+        self.dropped += count.min(self.len());
+        if self.dropped > 0 && self.dropped >= self.len() / 8 {
+            self.ids.drain(..self.dropped);
+            self.stamps.drain(..self.dropped);
+            self.descriptors.drain(..self.dropped * self.dim);
+            self.dropped = 0;
+        }
+    }
+
+    fn stamps(&self) -> &[Stamp] {
+        &self.stamps[self.dropped..]
     }
 
     /// Descriptor length every keyframe must have.
@@ -89,11 +127,11 @@ impl KeyframeDb {
     }
 
     pub fn len(&self) -> usize {
-        self.ids.len()
+        self.ids.len() - self.dropped
     }
 
     pub fn is_empty(&self) -> bool {
-        self.ids.is_empty()
+        self.len() == 0
     }
 
     fn check_descriptor(&self, descriptor: &[f32], what: &str) -> anyhow::Result<()> {
@@ -116,21 +154,22 @@ impl KeyframeDb {
         self.ids.push(id);
         self.stamps.push(stamp);
         self.descriptors.extend_from_slice(descriptor);
-        Ok(self.ids.len() - 1)
+        Ok(self.len() - 1)
     }
 
     /// Id of the keyframe at `position` (panics out of range, like slice indexing; positions come from
     /// [`KeyframeDb::insert`] or [`KeyframeDb::nearest`]).
     pub fn id(&self, position: usize) -> u64 {
-        self.ids[position]
+        self.ids[self.dropped + position]
     }
 
     pub fn stamp(&self, position: usize) -> Stamp {
-        self.stamps[position]
+        self.stamps()[position]
     }
 
     pub fn descriptor(&self, position: usize) -> &[f32] {
-        &self.descriptors[position * self.dim..(position + 1) * self.dim]
+        let start = (self.dropped + position) * self.dim;
+        &self.descriptors[start..start + self.dim]
     }
 
     /// The `k` keyframes nearest to `query` among the positions `eligible` accepts, nearest first (equal
@@ -151,7 +190,7 @@ impl KeyframeDb {
                 .map(|position| Neighbour { position, squared_distance: 0.0 })
                 .collect());
         }
-        for (position, stored) in self.descriptors.chunks_exact(self.dim).enumerate() {
+        for (position, stored) in self.descriptors[self.dropped * self.dim..].chunks_exact(self.dim).enumerate() {
             if !eligible(position) {
                 continue;
             }
@@ -204,6 +243,31 @@ impl Detector {
         while self.recent_matches.len() > keep {
             self.recent_matches.pop_front();
         }
+        self.enforce_budget();
+    }
+
+    /// Replaces the history with `db` (a stored history being loaded); the consistency history restarts.
+    /// The memory budget applies.
+    pub fn replace_history(&mut self, db: KeyframeDb) -> anyhow::Result<()> {
+        ensure!(db.dim() == self.db.dim(), "the history has {}-value descriptors, the detector's descriptor {}", db.dim(), self.db.dim());
+        self.db = db;
+        self.recent_matches.clear();
+        self.enforce_budget();
+        Ok(())
+    }
+
+    /// Drops the oldest keyframes beyond `max_keyframes` (module doc); consistency positions follow.
+    fn enforce_budget(&mut self) {
+        let max = self.params.max_keyframes;
+        if max == 0 || self.db.len() <= max {
+            return;
+        }
+        let excess = self.db.len() - max;
+        self.db.drop_oldest(excess);
+        for positions in &mut self.recent_matches {
+            positions.retain(|&p| p >= excess);
+            positions.iter_mut().for_each(|p| *p -= excess);
+        }
     }
 
     pub fn descriptor(&self) -> &Descriptor {
@@ -240,7 +304,7 @@ impl Detector {
         let last_eligible = self.db.len().saturating_sub(self.params.exclude_recent_count);
         let min_age_nanos = (self.params.exclude_recent_secs * 1e9).round() as i64;
         let time_rule = self.params.exclude_recent_secs > 0.0;
-        let stamps = &self.db.stamps;
+        let stamps = self.db.stamps();
         self.db.nearest(descriptor, k, |p| {
             p < last_eligible && (!time_rule || stamp.nanos.saturating_sub(stamps[p].nanos) >= min_age_nanos)
         })
@@ -290,6 +354,7 @@ impl Detector {
                 self.recent_matches.pop_front();
             }
         }
+        self.enforce_budget();
         Ok(candidates)
     }
 
@@ -310,7 +375,9 @@ impl Detector {
 
     /// Inserts a keyframe without querying (pairs with [`Detector::best_match`]).
     pub fn insert(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<()> {
-        self.db.insert(id, stamp, descriptor).map(|_| ())
+        self.db.insert(id, stamp, descriptor)?;
+        self.enforce_budget();
+        Ok(())
     }
 }
 

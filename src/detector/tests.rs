@@ -96,6 +96,7 @@ fn params_all_off() -> DetectorParams {
         top_k: 1,
         consistency_queries: 1,
         consistency_window: 0,
+        max_keyframes: 0,
     }
 }
 
@@ -265,4 +266,74 @@ fn default_params_are_the_config_defaults() {
     let p = DetectorParams::default();
     assert_eq!(p, crate::config::Params::default().detector());
     assert!(p.top_k >= 1 && p.consistency_queries >= 1);
+}
+
+#[test]
+fn dropping_the_oldest_keeps_positions_ids_and_search_exact() {
+    let dim = 5;
+    let mut db = KeyframeDb::new(dim);
+    let all: Vec<Vec<f32>> = (0..300).map(|i| pseudo_random(i + 7, dim)).collect();
+    // Insert and drop in a pattern that crosses the batched reclamation many times.
+    let mut first_kept = 0usize;
+    for (i, d) in all.iter().enumerate() {
+        db.insert(i as u64, secs(i as f64), d).unwrap();
+        if i % 3 == 2 {
+            db.drop_oldest(2);
+            first_kept += 2;
+        }
+        assert_eq!(db.len(), i + 1 - first_kept);
+        assert_eq!(db.id(0), first_kept as u64);
+        assert_eq!(db.stamp(db.len() - 1), secs(i as f64));
+        assert_eq!(db.descriptor(0), &all[first_kept][..]);
+    }
+    let query = pseudo_random(999, dim);
+    let got: Vec<u64> = db.nearest(&query, 4, |_| true).unwrap().iter().map(|n| db.id(n.position)).collect();
+    let mut naive: Vec<(u64, f32)> = (first_kept..all.len()).map(|p| (p as u64, distance(&query, &all[p]))).collect();
+    naive.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.cmp(&b.0)));
+    assert_eq!(got, naive.iter().take(4).map(|n| n.0).collect::<Vec<_>>());
+    db.drop_oldest(10_000);
+    assert!(db.is_empty());
+}
+
+#[test]
+fn memory_budget_keeps_the_newest_keyframes_and_search_forgets_the_rest() {
+    let mut det = l2_detector(DetectorParams { max_keyframes: 3, ..params_all_off() });
+    for i in 0..10u64 {
+        det.insert(i, secs(i as f64), &unit(10.0 * i as f32)).unwrap();
+        assert_eq!(det.db().len(), (i as usize + 1).min(3));
+    }
+    assert_eq!((det.db().id(0), det.db().id(2)), (7, 9));
+    // Keyframe 0's place is only matched to the nearest kept keyframe, 7.
+    let got = det.process(10, secs(10.0), &unit(0.0)).unwrap();
+    assert_eq!(got.iter().map(|c| c.match_id).collect::<Vec<_>>(), [7]);
+    assert_eq!((det.db().len(), det.db().id(2)), (3, 10));
+    // Lowering the budget at run time drops at once; 0 lifts it.
+    det.set_params(DetectorParams { max_keyframes: 1, ..det.params().clone() });
+    assert_eq!((det.db().len(), det.db().id(0)), (1, 10));
+    det.set_params(DetectorParams { max_keyframes: 0, ..det.params().clone() });
+    for i in 11..20 {
+        det.insert(i, secs(i as f64), &unit(0.0)).unwrap();
+    }
+    assert_eq!(det.db().len(), 10);
+    // A loaded history is trimmed too.
+    let mut history = KeyframeDb::new(2);
+    for i in 0..6 {
+        history.insert(100 + i, secs(i as f64), &unit(i as f32)).unwrap();
+    }
+    det.set_params(DetectorParams { max_keyframes: 4, ..det.params().clone() });
+    det.replace_history(history).unwrap();
+    assert_eq!((det.db().len(), det.db().id(0)), (4, 102));
+    assert!(det.replace_history(KeyframeDb::new(3)).is_err());
+}
+
+#[test]
+fn memory_budget_keeps_consistency_positions_in_step() {
+    // Consistency over 2 queries with a window of 0: two revisits of place 3 agree only if the first
+    // one's match position is renumbered when the oldest keyframe is dropped between them.
+    let mut det = consistency_detector(2, 0);
+    det.set_params(DetectorParams { max_keyframes: 10, ..det.params().clone() });
+    assert!(det.process(100, secs(100.0), &unit(30.0)).unwrap().is_empty());
+    assert_eq!((det.db().len(), det.db().id(0)), (10, 1));
+    // Place 3 moved from position 3 to 2; the ties with keyframe 100 go to the earlier position.
+    assert_eq!(match_ids(&det.process(101, secs(101.0), &unit(30.0)).unwrap()), vec![3]);
 }

@@ -1,0 +1,471 @@
+//! A keyframe database on disk that survives crashes: every accepted keyframe (id, stamp, descriptor) is
+//! committed before its loop candidates leave the process, and a restarted replay or node loads the
+//! stored keyframes back as the detector's history.
+//!
+//! Storage: one SQLite file (rusqlite, bundled), chosen over a hand-written append-only log because
+//! SQLite already gives what the log would have to re-invent and test: atomic commits (a kill -9 at any
+//! moment leaves either the whole keyframe or nothing, never a file that fails to open), a checked
+//! format, unique ids enforced by an index, and plain SQL for `db info` / `export` / `merge`. It is
+//! already a dependency (ROS 2 bags).
+//! - WAL journal, `synchronous=FULL`, one transaction (one `INSERT`) per keyframe: in WAL mode `NORMAL`
+//!   survives a process crash but may lose the last commits on power loss or an OS crash, while `FULL`
+//!   fsyncs the WAL on every commit. Keyframes come at a few per second and each costs tens of
+//!   milliseconds of network time, so one fsync per keyframe (about a millisecond, see the tests) is
+//!   cheap, and "stored before published" then holds for power loss too.
+//! - `page_size=16384`: a 1280-value `f32` descriptor (5120 bytes) then fits three to a page with no
+//!   overflow pages, which keeps loading a sequential scan (100k keyframes load in well under a second).
+//! - Descriptors are little-endian `f32` blobs; stamps are nanoseconds; ids are SQLite integers, so ids
+//!   above `i64::MAX` are refused. Rows keep insertion order (`seq`), which is the detector's history order.
+//!
+//! Identity: a store records the weights' SHA-256, the architecture, the descriptor mode, the input size
+//! and the descriptor length ([`StoreIdentity`]); descriptors from any other combination are not
+//! comparable, so opening a store with a different identity is refused with both identities named.
+//!
+//! Merging ([`merge`]) concatenates two sessions of the same identity: the first store's keyframes,
+//! then the second's, ids kept (or the second's shifted by an offset); an id found in both is an error
+//! that names the clashing ids.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, ensure, Context, Result};
+use rusqlite::{params, Connection, OpenFlags, OptionalExtension};
+
+use crate::detector::KeyframeDb;
+use crate::types::Stamp;
+
+/// Written into every store; a file with another format value is refused.
+const FORMAT: &str = "ecm-lcd keyframes 1";
+
+/// What the stored descriptors were computed with; two stores (or a store and a pipeline) can share
+/// keyframes only when these are equal.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct StoreIdentity {
+    /// SHA-256 of the weights file, lower-case hex.
+    pub weights_sha256: String,
+    pub arch: String,
+    pub descriptor_mode: String,
+    pub input_size: usize,
+    /// Values per descriptor.
+    pub dim: usize,
+}
+
+impl std::fmt::Display for StoreIdentity {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "weights sha256 {}, arch {}, descriptor {} ({} values), input {}",
+            self.weights_sha256, self.arch, self.descriptor_mode, self.dim, self.input_size
+        )
+    }
+}
+
+impl StoreIdentity {
+    /// Ok when `other` equals `self`; otherwise an error naming both (`what_self`, `what_other` say
+    /// whose identity each is).
+    pub fn check_same(&self, what_self: &str, other: &StoreIdentity, what_other: &str) -> Result<()> {
+        if self != other {
+            bail!("{what_self} has keyframes of [{self}], but {what_other} has [{other}]; their descriptors are not comparable");
+        }
+        Ok(())
+    }
+}
+
+/// One stored keyframe.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StoredKeyframe {
+    pub id: u64,
+    pub stamp: Stamp,
+    pub descriptor: Vec<f32>,
+}
+
+/// Counts and ranges of a store (`ecm-lcd db info`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct StoreSummary {
+    pub count: u64,
+    /// Smallest and largest id.
+    pub ids: Option<(u64, u64)>,
+    /// Earliest and latest stamp.
+    pub stamps: Option<(Stamp, Stamp)>,
+    /// Bytes on disk: the database file plus its write-ahead log.
+    pub bytes: u64,
+}
+
+/// An open keyframe store (module doc).
+pub struct KeyframeStore {
+    connection: Connection,
+    path: PathBuf,
+    identity: StoreIdentity,
+    count: u64,
+    max_id: Option<u64>,
+}
+
+impl std::fmt::Debug for KeyframeStore {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "KeyframeStore({}, {} keyframes)", self.path.display(), self.count)
+    }
+}
+
+fn open_connection(path: &Path, flags: OpenFlags) -> Result<Connection> {
+    let connection = Connection::open_with_flags(path, flags)
+        .with_context(|| format!("cannot open keyframe database {}", path.display()))?;
+    // The writer holds the lock only for one insert; a reader (db info on a running node) waits for it.
+    connection.busy_timeout(std::time::Duration::from_secs(5))?;
+    Ok(connection)
+}
+
+fn to_sql_id(id: u64) -> Result<i64> {
+    i64::try_from(id).with_context(|| format!("keyframe id {id} is too large for the database (at most {})", i64::MAX))
+}
+
+fn descriptor_blob(descriptor: &[f32]) -> Vec<u8> {
+    descriptor.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+impl KeyframeStore {
+    /// Opens the store at `path`, creating it for `identity` when the file does not exist or is empty;
+    /// an existing store must have exactly `identity` (module doc). A new store is built under a
+    /// temporary name and renamed into place, so a crash while creating never leaves a file at `path`
+    /// that is not a complete, empty store.
+    pub fn open_or_create(path: &Path, identity: &StoreIdentity) -> Result<Self> {
+        if std::fs::metadata(path).map_or(true, |m| m.len() == 0) {
+            create_store_file(path, identity).with_context(|| format!("creating keyframe database {}", path.display()))?;
+        }
+        let connection = open_connection(path, OpenFlags::SQLITE_OPEN_READ_WRITE)?;
+        let store = Self::from_connection(connection, path)?;
+        store.identity.check_same(&format!("keyframe database {}", path.display()), identity, "this pipeline")?;
+        Ok(store)
+    }
+
+    /// Opens an existing store, whatever its identity (for inspection, export and merging).
+    pub fn open_existing(path: &Path) -> Result<Self> {
+        ensure!(path.is_file(), "keyframe database {} does not exist", path.display());
+        let connection = open_connection(path, OpenFlags::SQLITE_OPEN_READ_WRITE)?;
+        Self::from_connection(connection, path)
+    }
+
+    fn from_connection(connection: Connection, path: &Path) -> Result<Self> {
+        let context = || format!("keyframe database {}", path.display());
+        // WAL and FULL: see the module doc. journal_mode is stored in the file; synchronous is per connection.
+        connection
+            .query_row("PRAGMA journal_mode = WAL", [], |r| r.get::<_, String>(0))
+            .with_context(|| format!("{} is not a keyframe database", path.display()))?;
+        connection.pragma_update(None, "synchronous", "FULL").with_context(context)?;
+        let meta = |key: &str| -> Result<String> {
+            connection
+                .query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get::<_, String>(0))
+                .optional()
+                .with_context(|| format!("{} is not a keyframe database", path.display()))?
+                .with_context(|| format!("{}: no `{key}` entry in its meta table", context()))
+        };
+        let format = meta("format")?;
+        ensure!(format == FORMAT, "{}: format {format:?}, this program reads {FORMAT:?}", context());
+        let number = |key: &str| -> Result<usize> {
+            let text = meta(key)?;
+            text.parse().with_context(|| format!("{}: `{key}` is {text:?}, not a number", context()))
+        };
+        let identity = StoreIdentity {
+            weights_sha256: meta("weights_sha256")?,
+            arch: meta("arch")?,
+            descriptor_mode: meta("descriptor_mode")?,
+            input_size: number("input_size")?,
+            dim: number("dim")?,
+        };
+        let (count, max_id): (i64, Option<i64>) = connection
+            .query_row("SELECT count(*), max(id) FROM keyframes", [], |r| Ok((r.get(0)?, r.get(1)?)))
+            .with_context(context)?;
+        Ok(KeyframeStore {
+            connection,
+            path: path.to_path_buf(),
+            identity,
+            count: count as u64,
+            max_id: max_id.map(|id| id as u64),
+        })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    pub fn identity(&self) -> &StoreIdentity {
+        &self.identity
+    }
+
+    /// Keyframes stored.
+    pub fn len(&self) -> u64 {
+        self.count
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.count == 0
+    }
+
+    /// The largest stored id (a restart continues after it).
+    pub fn max_id(&self) -> Option<u64> {
+        self.max_id
+    }
+
+    /// Appends one keyframe in its own committed transaction: when this returns Ok the keyframe is on
+    /// disk (fsynced). Refuses a descriptor of the wrong length or with a non-finite value, and an id
+    /// that is already stored.
+    pub fn append(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> Result<()> {
+        ensure!(
+            descriptor.len() == self.identity.dim,
+            "keyframe {id} descriptor has {} values, the database {} holds {}-value descriptors",
+            descriptor.len(),
+            self.path.display(),
+            self.identity.dim
+        );
+        if let Some(i) = descriptor.iter().position(|x| !x.is_finite()) {
+            bail!("keyframe {id} descriptor value {i} is {} (not finite)", descriptor[i]);
+        }
+        let sql_id = to_sql_id(id)?;
+        let inserted = self
+            .connection
+            .prepare("INSERT INTO keyframes (id, stamp_nanos, descriptor) VALUES (?1, ?2, ?3)")
+            .and_then(|mut insert| insert.execute(params![sql_id, stamp.nanos, descriptor_blob(descriptor)]));
+        match inserted {
+            Ok(_) => {}
+            Err(rusqlite::Error::SqliteFailure(e, _)) if e.code == rusqlite::ErrorCode::ConstraintViolation => {
+                bail!("keyframe id {id} is already stored in {}", self.path.display())
+            }
+            Err(e) => return Err(e).with_context(|| format!("storing keyframe {id} in {}", self.path.display())),
+        }
+        self.count += 1;
+        self.max_id = Some(self.max_id.map_or(id, |m| m.max(id)));
+        Ok(())
+    }
+
+    /// Calls `each` with every stored keyframe in insertion order, skipping the first `skip`.
+    pub fn for_each(&self, skip: u64, mut each: impl FnMut(u64, Stamp, &[u8]) -> Result<()>) -> Result<()> {
+        let context = || format!("reading keyframe database {}", self.path.display());
+        // Reading through a memory map skips a copy per page (the whole history is read once).
+        self.connection.query_row("PRAGMA mmap_size = 4294967296", [], |_| Ok(())).optional().with_context(context)?;
+        let mut query = self
+            .connection
+            .prepare("SELECT id, stamp_nanos, descriptor FROM keyframes ORDER BY seq LIMIT -1 OFFSET ?1")
+            .with_context(context)?;
+        let mut rows = query.query([skip as i64]).with_context(context)?;
+        let bytes_per_descriptor = self.identity.dim * 4;
+        while let Some(row) = rows.next().with_context(context)? {
+            let id: i64 = row.get(0).with_context(context)?;
+            let stamp = Stamp::from_nanos(row.get(1).with_context(context)?);
+            let blob = row.get_ref(2).and_then(|v| Ok(v.as_blob()?)).with_context(context)?;
+            ensure!(
+                blob.len() == bytes_per_descriptor,
+                "{}: keyframe {id} has a {}-byte descriptor, expected {bytes_per_descriptor}",
+                context(),
+                blob.len()
+            );
+            each(id as u64, stamp, blob)?;
+        }
+        Ok(())
+    }
+
+    /// Every stored keyframe, in insertion order (small stores; the detector loads with [`KeyframeStore::load_db`]).
+    pub fn keyframes(&self) -> Result<Vec<StoredKeyframe>> {
+        let mut out = Vec::with_capacity(self.count as usize);
+        self.for_each(0, |id, stamp, blob| {
+            out.push(StoredKeyframe { id, stamp, descriptor: decode_descriptor(blob).collect() });
+            Ok(())
+        })?;
+        Ok(out)
+    }
+
+    /// The newest `limit` keyframes (all of them when `limit` is `None`) as a detector database, in
+    /// insertion order.
+    pub fn load_db(&self, limit: Option<usize>) -> Result<KeyframeDb> {
+        let skip = match limit {
+            Some(limit) => self.count.saturating_sub(limit as u64),
+            None => 0,
+        };
+        let mut db = KeyframeDb::with_capacity(self.identity.dim, (self.count - skip) as usize);
+        let mut descriptor = vec![0f32; self.identity.dim];
+        self.for_each(skip, |id, stamp, blob| {
+            decode_descriptor_into(blob, &mut descriptor);
+            db.insert(id, stamp, &descriptor)
+                .with_context(|| format!("keyframe database {}: stored keyframe {id}", self.path.display()))?;
+            Ok(())
+        })?;
+        Ok(db)
+    }
+
+    /// Counts, id and stamp ranges, size on disk.
+    pub fn summary(&self) -> Result<StoreSummary> {
+        let (min_id, max_id, min_stamp, max_stamp): (Option<i64>, Option<i64>, Option<i64>, Option<i64>) = self
+            .connection
+            .query_row("SELECT min(id), max(id), min(stamp_nanos), max(stamp_nanos) FROM keyframes", [], |r| {
+                Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?))
+            })
+            .with_context(|| format!("reading keyframe database {}", self.path.display()))?;
+        let size = |p: &Path| std::fs::metadata(p).map(|m| m.len()).unwrap_or(0);
+        let mut wal = self.path.as_os_str().to_owned();
+        wal.push("-wal");
+        Ok(StoreSummary {
+            count: self.count,
+            ids: min_id.zip(max_id).map(|(a, b)| (a as u64, b as u64)),
+            stamps: min_stamp.zip(max_stamp).map(|(a, b)| (Stamp::from_nanos(a), Stamp::from_nanos(b))),
+            bytes: size(&self.path) + size(Path::new(&wal)),
+        })
+    }
+
+    /// Appends many keyframes in one transaction (bulk copies: merging, test fixtures). Not for live
+    /// keyframes, whose candidates must wait for their own commit ([`KeyframeStore::append`]).
+    pub fn append_batch(&mut self, keyframes: impl IntoIterator<Item = (u64, Stamp, Vec<f32>)>) -> Result<u64> {
+        let context = || format!("writing keyframe database {}", self.path.display());
+        let transaction = self.connection.transaction().with_context(context)?;
+        let mut added = 0u64;
+        let mut max_id = self.max_id;
+        {
+            let mut insert = transaction
+                .prepare("INSERT INTO keyframes (id, stamp_nanos, descriptor) VALUES (?1, ?2, ?3)")
+                .with_context(context)?;
+            for (id, stamp, descriptor) in keyframes {
+                ensure!(descriptor.len() == self.identity.dim, "keyframe {id}: {} values, expected {}", descriptor.len(), self.identity.dim);
+                insert
+                    .execute(params![to_sql_id(id)?, stamp.nanos, descriptor_blob(&descriptor)])
+                    .with_context(|| format!("{}: keyframe {id}", context()))?;
+                added += 1;
+                max_id = Some(max_id.map_or(id, |m| m.max(id)));
+            }
+        }
+        transaction.commit().with_context(context)?;
+        self.count += added;
+        self.max_id = max_id;
+        Ok(added)
+    }
+}
+
+/// A stored descriptor blob as `f32` values.
+pub fn decode_descriptor(blob: &[u8]) -> impl Iterator<Item = f32> + '_ {
+    blob.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+}
+
+/// As [`decode_descriptor`] into `out` (of `blob.len() / 4` values): one copy on little-endian machines.
+fn decode_descriptor_into(blob: &[u8], out: &mut [f32]) {
+    if cfg!(target_endian = "little") {
+        bytemuck::cast_slice_mut::<f32, u8>(out).copy_from_slice(blob);
+    } else {
+        out.iter_mut().zip(decode_descriptor(blob)).for_each(|(o, v)| *o = v);
+    }
+}
+
+/// Writes an empty store for `identity` next to `path`, then renames it to `path` (and syncs the folder).
+fn create_store_file(path: &Path, identity: &StoreIdentity) -> Result<()> {
+    let mut temporary = path.as_os_str().to_owned();
+    temporary.push(".creating");
+    let temporary = PathBuf::from(temporary);
+    for suffix in ["", "-wal", "-shm"] {
+        let mut stale = temporary.as_os_str().to_owned();
+        stale.push(suffix);
+        let _ = std::fs::remove_file(PathBuf::from(stale));
+    }
+    let connection = open_connection(&temporary, OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_CREATE)?;
+    connection.pragma_update(None, "synchronous", "FULL")?;
+    create_schema(&connection, identity)?;
+    // Closing the last connection checkpoints the log into the file and removes it.
+    connection.close().map_err(|(_, e)| e)?;
+    std::fs::rename(&temporary, path).with_context(|| format!("renaming {} to {}", temporary.display(), path.display()))?;
+    let folder = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::File::open(folder).and_then(|f| f.sync_all()).with_context(|| format!("syncing {}", folder.display()))?;
+    Ok(())
+}
+
+fn create_schema(connection: &Connection, identity: &StoreIdentity) -> Result<()> {
+    // page_size only takes effect before the first table exists (module doc for the value).
+    connection.pragma_update(None, "page_size", 16384)?;
+    connection.query_row("PRAGMA journal_mode = WAL", [], |r| r.get::<_, String>(0))?;
+    connection.execute_batch(
+        "BEGIN;
+         CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+         CREATE TABLE keyframes (
+             seq INTEGER PRIMARY KEY,
+             id INTEGER NOT NULL UNIQUE,
+             stamp_nanos INTEGER NOT NULL,
+             descriptor BLOB NOT NULL
+         );",
+    )?;
+    let entries = [
+        ("format", FORMAT.to_string()),
+        ("weights_sha256", identity.weights_sha256.clone()),
+        ("arch", identity.arch.clone()),
+        ("descriptor_mode", identity.descriptor_mode.clone()),
+        ("input_size", identity.input_size.to_string()),
+        ("dim", identity.dim.to_string()),
+    ];
+    for (key, value) in entries {
+        connection.execute("INSERT INTO meta (key, value) VALUES (?1, ?2)", params![key, value])?;
+    }
+    connection.execute_batch("COMMIT;")?;
+    Ok(())
+}
+
+/// What [`merge`] wrote.
+#[derive(Clone, Debug, PartialEq)]
+pub struct MergeReport {
+    pub from_first: u64,
+    pub from_second: u64,
+}
+
+/// Writes a new store at `output` holding `first`'s keyframes, then `second`'s with `second_id_offset`
+/// added to their ids. Both must have the same identity; an id in both (after the offset) is an error
+/// naming the clashing ids; `output` must not exist yet. Rows are copied inside SQLite (no descriptor
+/// passes through memory), in one transaction.
+pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) -> Result<MergeReport> {
+    let a = KeyframeStore::open_existing(first)?;
+    let b = KeyframeStore::open_existing(second)?;
+    a.identity.check_same(&format!("{}", first.display()), &b.identity, &format!("{}", second.display()))?;
+    ensure!(!output.exists(), "{} already exists; merge writes a new database", output.display());
+    let offset = to_sql_id(second_id_offset)?;
+    if let Some(max) = b.max_id {
+        ensure!(
+            max.checked_add(second_id_offset).is_some_and(|m| m <= i64::MAX as u64),
+            "{}: its largest id {max} plus the offset {second_id_offset} is too large",
+            second.display()
+        );
+    }
+    let path_text = |p: &Path| p.to_str().map(str::to_string).with_context(|| format!("{} is not a UTF-8 path", p.display()));
+    a.connection.execute("ATTACH DATABASE ?1 AS other", [path_text(second)?])?;
+    let clashes: Vec<i64> = {
+        let mut query = a.connection.prepare(
+            "SELECT main.keyframes.id FROM other.keyframes JOIN main.keyframes ON other.keyframes.id + ?1 = main.keyframes.id ORDER BY 1",
+        )?;
+        let ids = query.query_map([offset], |r| r.get(0))?.collect::<rusqlite::Result<_>>()?;
+        ids
+    };
+    if !clashes.is_empty() {
+        let shown: Vec<String> = clashes.iter().take(10).map(i64::to_string).collect();
+        bail!(
+            "{} keyframe id(s) are in both {} and {} (second's ids + {second_id_offset}): {}{}; give the second database an id offset (e.g. --offset {})",
+            clashes.len(),
+            first.display(),
+            second.display(),
+            shown.join(", "),
+            if clashes.len() > 10 { ", ..." } else { "" },
+            a.max_id.map_or(0, |m| m + 1)
+        );
+    }
+    let result = (|| -> Result<MergeReport> {
+        let out = KeyframeStore::open_or_create(output, &a.identity)?;
+        out.connection.execute("ATTACH DATABASE ?1 AS first", [path_text(first)?])?;
+        out.connection.execute("ATTACH DATABASE ?1 AS second", [path_text(second)?])?;
+        out.connection.execute_batch("BEGIN")?;
+        let copy = "INSERT INTO main.keyframes (id, stamp_nanos, descriptor) SELECT id + ?1, stamp_nanos, descriptor FROM";
+        let from_first = out.connection.execute(&format!("{copy} first.keyframes ORDER BY seq"), [0i64])? as u64;
+        let from_second = out.connection.execute(&format!("{copy} second.keyframes ORDER BY seq"), [offset])? as u64;
+        out.connection.execute_batch("COMMIT")?;
+        Ok(MergeReport { from_first, from_second })
+    })()
+    .with_context(|| format!("merging into {}", output.display()));
+    if result.is_err() {
+        // Leave no half-written output behind.
+        for suffix in ["", "-wal", "-shm"] {
+            let mut p = output.as_os_str().to_owned();
+            p.push(suffix);
+            let _ = std::fs::remove_file(PathBuf::from(p));
+        }
+    }
+    result
+}
+
+#[cfg(test)]
+mod tests;

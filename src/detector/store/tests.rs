@@ -1,0 +1,191 @@
+use super::*;
+use std::time::Instant;
+
+fn identity(dim: usize) -> StoreIdentity {
+    StoreIdentity {
+        weights_sha256: "ab".repeat(32),
+        arch: "ecmobilenet".into(),
+        descriptor_mode: "l2".into(),
+        input_size: 224,
+        dim,
+    }
+}
+
+/// A descriptor that differs per id and per value (exact f32 round trips are checked, so no
+/// transcendental functions whose last bit may depend on vectorisation).
+fn descriptor(id: u64, dim: usize) -> Vec<f32> {
+    (0..dim as u64).map(|i| ((id * 7919 + i * 104_729) % 10_007) as f32 / 10_007.0 - 0.5).collect()
+}
+
+fn stamp(id: u64) -> Stamp {
+    Stamp::from_nanos(1_700_000_000_000_000_000 + id as i64 * 500_000_000)
+}
+
+fn store_with(path: &Path, ids: impl IntoIterator<Item = u64>, dim: usize) -> KeyframeStore {
+    let mut store = KeyframeStore::open_or_create(path, &identity(dim)).unwrap();
+    for id in ids {
+        store.append(id, stamp(id), &descriptor(id, dim)).unwrap();
+    }
+    store
+}
+
+#[test]
+fn keyframes_round_trip_in_insertion_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("kf.db");
+    let ids = [5u64, 2, 9, 3];
+    drop(store_with(&path, ids, 16));
+    let store = KeyframeStore::open_or_create(&path, &identity(16)).unwrap();
+    assert_eq!((store.len(), store.max_id()), (4, Some(9)));
+    let stored = store.keyframes().unwrap();
+    assert_eq!(stored.iter().map(|k| k.id).collect::<Vec<_>>(), ids);
+    for k in &stored {
+        assert_eq!(k.stamp, stamp(k.id));
+        assert_eq!(k.descriptor, descriptor(k.id, 16));
+    }
+    // As a detector database, whole or the newest n.
+    let db = store.load_db(None).unwrap();
+    assert_eq!((db.len(), db.id(0), db.id(3)), (4, 5, 3));
+    assert_eq!(db.descriptor(2), descriptor(9, 16).as_slice());
+    let newest = store.load_db(Some(2)).unwrap();
+    assert_eq!((newest.len(), newest.id(0), newest.id(1)), (2, 9, 3));
+    assert_eq!(store.load_db(Some(10)).unwrap().len(), 4);
+    let summary = store.summary().unwrap();
+    assert_eq!(summary.count, 4);
+    assert_eq!(summary.ids, Some((2, 9)));
+    assert_eq!(summary.stamps, Some((stamp(2), stamp(9))));
+    assert!(summary.bytes > 0);
+}
+
+#[test]
+fn a_store_of_other_weights_mode_arch_or_size_is_refused_naming_both() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("kf.db");
+    drop(store_with(&path, [0, 1], 8));
+    let mut other = identity(8);
+    other.weights_sha256 = "cd".repeat(32);
+    let err = format!("{:#}", KeyframeStore::open_or_create(&path, &other).unwrap_err());
+    assert!(err.contains(&"ab".repeat(32)) && err.contains(&"cd".repeat(32)) && err.contains("kf.db"), "{err}");
+    let other = StoreIdentity { descriptor_mode: "paper".into(), dim: 128, ..identity(8) };
+    let err = format!("{:#}", KeyframeStore::open_or_create(&path, &other).unwrap_err());
+    assert!(err.contains("descriptor l2 (8 values)") && err.contains("descriptor paper (128 values)"), "{err}");
+    let other = StoreIdentity { arch: "mobilenetv2".into(), ..identity(8) };
+    let err = format!("{:#}", KeyframeStore::open_or_create(&path, &other).unwrap_err());
+    assert!(err.contains("arch ecmobilenet") && err.contains("arch mobilenetv2"), "{err}");
+    let other = StoreIdentity { input_size: 320, ..identity(8) };
+    assert!(format!("{:#}", KeyframeStore::open_or_create(&path, &other).unwrap_err()).contains("input 320"));
+    // Nothing was changed by the refusals.
+    assert_eq!(KeyframeStore::open_existing(&path).unwrap().keyframes().unwrap().len(), 2);
+}
+
+#[test]
+fn bad_keyframes_and_files_are_refused_clearly() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("kf.db");
+    let mut store = store_with(&path, [1], 4);
+    let err = format!("{:#}", store.append(1, stamp(1), &descriptor(1, 4)).unwrap_err());
+    assert!(err.contains("keyframe id 1 is already stored"), "{err}");
+    assert!(format!("{:#}", store.append(2, stamp(2), &[0.0; 3]).unwrap_err()).contains("3 values"));
+    assert!(format!("{:#}", store.append(2, stamp(2), &[0.0, f32::NAN, 0.0, 0.0]).unwrap_err()).contains("not finite"));
+    assert!(format!("{:#}", store.append(u64::MAX, stamp(2), &[0.0; 4]).unwrap_err()).contains("too large"));
+    assert_eq!((store.len(), store.max_id()), (1, Some(1)));
+    drop(store);
+    assert_eq!(KeyframeStore::open_existing(&path).unwrap().len(), 1);
+
+    let text = dir.path().join("notes.txt");
+    std::fs::write(&text, "query_id,match_id\n1,2\n".repeat(200)).unwrap();
+    let err = format!("{:#}", KeyframeStore::open_or_create(&text, &identity(4)).unwrap_err());
+    assert!(err.contains("notes.txt") && err.contains("not a keyframe database"), "{err}");
+    let missing = dir.path().join("missing.db");
+    assert!(format!("{:#}", KeyframeStore::open_existing(&missing).unwrap_err()).contains("missing.db"));
+    assert!(!missing.exists());
+    // Another SQLite file (say, a ROS 2 bag) is not a keyframe database either.
+    let other = dir.path().join("other.db3");
+    Connection::open(&other).unwrap().execute_batch("CREATE TABLE meta (key TEXT, value TEXT);").unwrap();
+    assert!(format!("{:#}", KeyframeStore::open_existing(&other).unwrap_err()).contains("no `format` entry"));
+}
+
+#[test]
+fn merge_keeps_ids_refuses_clashes_and_other_identities() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b, out) = (dir.path().join("a.db"), dir.path().join("b.db"), dir.path().join("out.db"));
+    drop(store_with(&a, 0..5, 8));
+    drop(store_with(&b, 3..7, 8));
+    let err = format!("{:#}", merge(&a, &b, &out, 0).unwrap_err());
+    assert!(err.contains("2 keyframe id(s)") && err.contains("3, 4") && err.contains("--offset 5"), "{err}");
+    assert!(!out.exists());
+
+    let report = merge(&a, &b, &out, 100).unwrap();
+    assert_eq!(report, MergeReport { from_first: 5, from_second: 4 });
+    let merged = KeyframeStore::open_existing(&out).unwrap();
+    assert_eq!(merged.identity(), &identity(8));
+    let keyframes = merged.keyframes().unwrap();
+    assert_eq!(keyframes.iter().map(|k| k.id).collect::<Vec<_>>(), [0, 1, 2, 3, 4, 103, 104, 105, 106]);
+    assert_eq!(keyframes[5].descriptor, descriptor(3, 8));
+    assert_eq!(keyframes[5].stamp, stamp(3));
+    assert!(format!("{:#}", merge(&a, &b, &out, 100).unwrap_err()).contains("already exists"));
+
+    let c = dir.path().join("c.db");
+    let mut other = KeyframeStore::open_or_create(&c, &StoreIdentity { weights_sha256: "ef".repeat(32), ..identity(8) }).unwrap();
+    other.append(50, stamp(50), &descriptor(50, 8)).unwrap();
+    drop(other);
+    let out2 = dir.path().join("out2.db");
+    let err = format!("{:#}", merge(&a, &c, &out2, 0).unwrap_err());
+    assert!(err.contains(&"ab".repeat(32)) && err.contains(&"ef".repeat(32)), "{err}");
+    assert!(!out2.exists());
+}
+
+/// CPU seconds this thread has used (Linux: /proc/thread-self/stat, 10 ms resolution), so a timing
+/// bound holds however busy the machine is; `None` elsewhere.
+fn thread_cpu_secs() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/thread-self/stat").ok()?;
+    // Fields after the parenthesised command name: state is field 3, utime 14, stime 15.
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let ticks: f64 = fields.get(11)?.parse::<f64>().ok()? + fields.get(12)?.parse::<f64>().ok()?;
+    Some(ticks / 100.0)
+}
+
+/// Append latency (each a committed, fsynced transaction) and the load time of 100k 1280-value
+/// keyframes, printed; the load must take under a second of CPU time (wall time is printed too: on
+/// an idle machine they agree, on a shared one only the CPU time measures the code).
+#[test]
+fn append_latency_and_loading_100k_keyframes() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("kf.db");
+    let dim = 1280;
+    let mut store = KeyframeStore::open_or_create(&path, &identity(dim)).unwrap();
+    let mut latencies = Vec::new();
+    for id in 0..100u64 {
+        let d = descriptor(id, dim);
+        let started = Instant::now();
+        store.append(id, stamp(id), &d).unwrap();
+        latencies.push(started.elapsed().as_secs_f64() * 1e3);
+    }
+    latencies.sort_by(f64::total_cmp);
+    println!(
+        "append (one fsynced transaction each): median {:.2} ms, p90 {:.2} ms, max {:.2} ms",
+        latencies[50], latencies[90], latencies[99]
+    );
+    let total = 100_000u64;
+    let one = descriptor(7, dim);
+    let started = Instant::now();
+    store.append_batch((100..total).map(|id| (id, stamp(id), one.clone()))).unwrap();
+    println!("bulk insert of {} keyframes: {:.2} s", total - 100, started.elapsed().as_secs_f64());
+    drop(store);
+
+    let store = KeyframeStore::open_existing(&path).unwrap();
+    let started = Instant::now();
+    let cpu_before = thread_cpu_secs();
+    let db = store.load_db(None).unwrap();
+    let wall_secs = started.elapsed().as_secs_f64();
+    let cpu_secs = thread_cpu_secs().zip(cpu_before).map(|(after, before)| after - before);
+    let load_secs = cpu_secs.unwrap_or(wall_secs);
+    println!(
+        "load of {total} keyframes x {dim} f32 ({} MB on disk): {wall_secs:.3} s wall, {cpu_secs:.2?} s CPU",
+        store.summary().unwrap().bytes >> 20
+    );
+    assert_eq!(db.len(), total as usize);
+    assert_eq!((db.id(0), db.id(total as usize - 1)), (0, total - 1));
+    assert_eq!(db.descriptor(3), descriptor(3, dim).as_slice());
+    assert!(load_secs < 1.0, "loading {total} keyframes took {load_secs:.3} s");
+}

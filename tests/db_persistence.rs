@@ -1,0 +1,285 @@
+//! The persistent keyframe database end to end: `replay --db` killed (SIGKILL) at random moments and
+//! restarted loses no keyframe whose candidates reached the CSV and always leaves a database that loads;
+//! a restarted pipeline continues ids and history; `db info|export|merge`; refusal of other descriptors.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+use ecm_lcd::config::Params;
+use ecm_lcd::detector::store::KeyframeStore;
+use ecm_lcd::model::weights::resolve;
+use ecm_lcd::pipeline::Pipeline;
+use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
+
+const FRAMES: usize = 40;
+
+/// Small and fast, and loose enough that nearly every keyframe reports a candidate, so the CSV shows
+/// what was emitted keyframe by keyframe.
+const PARAMS: [&str; 5] = [
+    "input_size=96",
+    "detector.min_score=0",
+    "detector.min_history=1",
+    "detector.exclude_recent.count=1",
+    "detector.exclude_recent.seconds=0",
+];
+
+fn shared() -> PathBuf {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
+    assert!(dir.join("models").is_dir(), "shared data missing at {}: tests need ../shared (see README)", dir.display());
+    dir
+}
+
+fn command() -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"));
+    command.env("ECM_LCD_CACHE", Path::new(env!("CARGO_TARGET_TMPDIR")).join("weights-cache")).env("RUST_LOG", "warn");
+    command
+}
+
+fn ecm_lcd(args: &[&str]) -> Output {
+    command().args(args).output().unwrap()
+}
+
+fn replay_args<'a>(source: &'a str, db: &'a str, csv: &'a str) -> Vec<&'a str> {
+    let mut args = vec!["replay", source, "--db", db, "-o", csv, "--quiet", "--threads", "1"];
+    for p in &PARAMS {
+        args.extend(["--param", p]);
+    }
+    args
+}
+
+fn synthetic_sequence(dir: &Path) -> PathBuf {
+    let config = SynthConfig { frames: FRAMES, laps: 2, width: 160, height: 120, rate_hz: 2.0, ..SynthConfig::default() };
+    let seq = dir.join("seq");
+    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    seq
+}
+
+/// The candidate lines of a replay CSV by query id (query id -> match id, distance); panics on a torn
+/// or malformed line, or a query reported twice.
+fn read_candidates(csv: &Path) -> BTreeMap<u64, (u64, f64)> {
+    let text = std::fs::read_to_string(csv).unwrap_or_default();
+    let mut lines = text.lines();
+    let mut out = BTreeMap::new();
+    if let Some(header) = lines.next() {
+        assert_eq!(header, "query_id,query_stamp,match_id,match_stamp,distance,score");
+    }
+    for line in lines {
+        let fields: Vec<&str> = line.split(',').collect();
+        assert_eq!(fields.len(), 6, "malformed line {line:?} in {}", csv.display());
+        let query: u64 = fields[0].parse().unwrap();
+        let previous = out.insert(query, (fields[2].parse().unwrap(), fields[4].parse().unwrap()));
+        assert!(previous.is_none(), "query {query} reported twice in {}", csv.display());
+    }
+    out
+}
+
+fn stored_ids(db: &Path) -> Vec<u64> {
+    let store = KeyframeStore::open_existing(db).unwrap_or_else(|e| panic!("{}: {e:#}", db.display()));
+    let history = store.load_db(None).unwrap_or_else(|e| panic!("{}: {e:#}", db.display()));
+    (0..history.len()).map(|p| history.id(p)).collect()
+}
+
+/// A tiny xorshift so the test needs no extra crate; the seed is printed to reproduce a failure.
+struct Random(u64);
+
+impl Random {
+    fn below(&mut self, n: u64) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0 % n
+    }
+}
+
+#[test]
+fn replay_killed_at_random_moments_loses_no_emitted_keyframe() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = synthetic_sequence(dir.path());
+    let seq_text = seq.to_str().unwrap();
+
+    // Uninterrupted reference (this also imports the weights into the test cache once).
+    let (ref_db, ref_csv) = (dir.path().join("ref.db"), dir.path().join("ref.csv"));
+    let out = ecm_lcd(&replay_args(seq_text, ref_db.to_str().unwrap(), ref_csv.to_str().unwrap()));
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // Timed on a second, warm run (the first imported the weights): kills land within this span.
+    std::fs::remove_file(&ref_db).unwrap();
+    let timed = Instant::now();
+    let out = ecm_lcd(&replay_args(seq_text, ref_db.to_str().unwrap(), ref_csv.to_str().unwrap()));
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let full_run_ms = (timed.elapsed().as_millis() as u64).clamp(100, 800);
+    let reference = read_candidates(&ref_csv);
+    assert_eq!(stored_ids(&ref_db), (0..FRAMES as u64).collect::<Vec<_>>());
+    assert!(reference.len() >= FRAMES - 2, "only {} candidates in the reference", reference.len());
+
+    let seed = std::env::var("ECM_LCD_KILL_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64 | 1);
+    println!("kill test seed {seed} (ECM_LCD_KILL_SEED to repeat)");
+    let mut random = Random(seed);
+    let (db, csv) = (dir.path().join("kill.db"), dir.path().join("kill.csv"));
+    let args = replay_args(seq_text, db.to_str().unwrap(), csv.to_str().unwrap());
+    let started = Instant::now();
+    let (mut kills, mut completions, mut checked, mut lost, mut kills_mid_sequence) = (0, 0, 0, 0, 0);
+    let mut stored_before = 0;
+    while kills < 20 || completions == 0 {
+        assert!(started.elapsed() < Duration::from_secs(120), "kill test ran out of time after {kills} kills");
+        let mut child = command().args(&args).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
+        // Between 50 ms and one full run (at most 800 ms): from before the weights load to the end.
+        let kill_after = Duration::from_millis(50 + random.below(full_run_ms - 49));
+        let deadline = Instant::now() + kill_after;
+        let finished = loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                break Some(status);
+            }
+            if Instant::now() >= deadline {
+                break None;
+            }
+            std::thread::sleep(Duration::from_millis(5));
+        };
+        let killed = finished.is_none();
+        if killed {
+            child.kill().unwrap(); // SIGKILL on Unix
+            child.wait().unwrap();
+            kills += 1;
+        } else {
+            assert!(finished.unwrap().success(), "replay failed after {kills} kills");
+        }
+        // The database always loads, and every keyframe with a candidate in the CSV is stored; the
+        // emitted candidates are the reference's.
+        let ids = if db.exists() { stored_ids(&db) } else { Vec::new() };
+        assert!(ids.windows(2).all(|w| w[0] + 1 == w[1]) && ids.first().is_none_or(|&f| f == 0), "stored ids {ids:?}");
+        let emitted = read_candidates(&csv);
+        for (query, (matched, distance)) in &emitted {
+            assert!(ids.contains(query), "keyframe {query} has a candidate in the CSV but is not stored (stored: {ids:?})");
+            let (ref_match, ref_distance) = reference[query];
+            assert_eq!(*matched, ref_match, "keyframe {query}");
+            assert!((distance - ref_distance).abs() < 1e-3, "keyframe {query}: distance {distance} vs {ref_distance}");
+        }
+        checked += emitted.len();
+        if killed && ids.len() > stored_before && ids.len() < FRAMES {
+            kills_mid_sequence += 1;
+        }
+        stored_before = ids.len();
+        if !killed {
+            // A complete run: every keyframe stored; the candidates of keyframes committed just before
+            // a kill and never written are the only ones allowed to be missing.
+            assert_eq!(ids, (0..FRAMES as u64).collect::<Vec<_>>());
+            lost += reference.keys().filter(|q| !emitted.contains_key(q)).count();
+            completions += 1;
+            stored_before = 0;
+            for path in [&db, &csv] {
+                std::fs::remove_file(path).unwrap();
+            }
+        }
+    }
+    println!(
+        "kill test: {kills} kills within {full_run_ms} ms ({kills_mid_sequence} after some keyframes were stored and before the last), \
+         {completions} complete sequences, {checked} emitted keyframes checked against the database, \
+         {lost} candidates lost with a kill between commit and write, {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(lost <= kills, "{lost} candidates lost in {kills} kills: at most one per kill is possible");
+}
+
+#[test]
+fn restarted_pipeline_continues_ids_and_history() {
+    let weights = || resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
+    let mut params = Params::default();
+    for p in PARAMS {
+        let (name, value) = p.split_once('=').unwrap();
+        params.set_from_str(name, value).unwrap();
+    }
+    let scene = Scene::new(SynthConfig { frames: 8, laps: 1, width: 160, height: 120, rate_hz: 2.0, ..SynthConfig::default() }).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("node.db");
+
+    let mut first = Pipeline::with_weights(params.clone(), weights()).unwrap();
+    first.open_store(&db).unwrap();
+    for i in 0..5 {
+        let (stamp, image, _) = scene.frame(i);
+        assert_eq!(first.process_counted(stamp, &image).unwrap().keyframe, Some(i as u64));
+    }
+    drop(first);
+
+    let mut second = Pipeline::with_weights(params.clone(), weights()).unwrap();
+    second.open_store(&db).unwrap();
+    assert_eq!(second.detector().db().len(), 5);
+    let (stamp, image, _) = scene.frame(5);
+    let outcome = second.process_counted(stamp, &image).unwrap();
+    assert_eq!(outcome.keyframe, Some(5));
+    assert!(outcome.candidates.iter().all(|c| c.match_id < 5) && !outcome.candidates.is_empty());
+    // The tracker's own ids: a stored id is refused, the keyframe is neither stored nor matched.
+    let err = format!("{:#}", second.process_keyframe(2, stamp, &image).unwrap_err());
+    assert!(err.contains("keyframe id 2 is already stored"), "{err}");
+    assert_eq!(second.detector().db().len(), 6);
+    drop(second);
+
+    // A memory budget loads only the newest keyframes; the store keeps all.
+    params.set_from_str("detector.max_keyframes", "4").unwrap();
+    let mut third = Pipeline::with_weights(params.clone(), weights()).unwrap();
+    third.open_store(&db).unwrap();
+    assert_eq!((third.detector().db().len(), third.detector().db().id(0)), (4, 2));
+    let (stamp, image, _) = scene.frame(6);
+    assert_eq!(third.process_counted(stamp, &image).unwrap().keyframe, Some(6));
+    assert_eq!((third.detector().db().len(), third.store().unwrap().len()), (4, 7));
+    drop(third);
+
+    // Another descriptor mode is refused, naming both.
+    params.set_from_str("descriptor.mode", "paper").unwrap();
+    let mut other = Pipeline::with_weights(params, weights()).unwrap();
+    let err = format!("{:#}", other.open_store(&db).unwrap_err());
+    assert!(err.contains("descriptor l2 (1280 values)") && err.contains("descriptor paper (128 values)") && err.contains("node.db"), "{err}");
+}
+
+#[test]
+fn db_info_export_and_merge_commands() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene::new(SynthConfig { frames: 6, laps: 1, width: 160, height: 120, rate_hz: 2.0, ..SynthConfig::default() }).unwrap();
+    let seq = dir.path().join("seq");
+    write_tum_folder(&scene, &seq).unwrap();
+    let (db, csv) = (dir.path().join("a.db"), dir.path().join("a.csv"));
+    let out = ecm_lcd(&replay_args(seq.to_str().unwrap(), db.to_str().unwrap(), csv.to_str().unwrap()));
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    // A second replay of the same source finds everything stored and adds nothing.
+    let out = ecm_lcd(&replay_args(seq.to_str().unwrap(), db.to_str().unwrap(), csv.to_str().unwrap()));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("6 already stored, skipped"), "{}", String::from_utf8_lossy(&out.stderr));
+
+    let out = ecm_lcd(&["db", "info", db.to_str().unwrap()]);
+    let info = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for expected in ["keyframes:       6", "ids:             0 .. 5", "arch:            ecmobilenet", "descriptor:      l2 (1280 values)", "input size:      96"] {
+        assert!(info.contains(expected), "{expected:?} not in\n{info}");
+    }
+    let sha = KeyframeStore::open_existing(&db).unwrap().identity().weights_sha256.clone();
+    assert!(info.contains(&sha) && sha.len() == 64, "{info}");
+
+    let export = dir.path().join("export.csv");
+    let out = ecm_lcd(&["db", "export", db.to_str().unwrap(), "-o", export.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = std::fs::read_to_string(&export).unwrap();
+    let rows: Vec<Vec<&str>> = text.lines().map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 7);
+    assert_eq!(&rows[0][..3], ["id", "stamp", "d0"]);
+    assert!(rows.iter().all(|r| r.len() == 2 + 1280));
+    let stored = KeyframeStore::open_existing(&db).unwrap().keyframes().unwrap();
+    let exported: Vec<f32> = rows[4][2..].iter().map(|v| v.parse().unwrap()).collect();
+    assert_eq!((rows[4][0], exported), ("3", stored[3].descriptor.clone()));
+
+    let merged = dir.path().join("merged.db");
+    let out = ecm_lcd(&["db", "merge", db.to_str().unwrap(), db.to_str().unwrap(), "-o", merged.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("6 keyframe id(s)") && err.contains("0, 1, 2, 3, 4, 5") && err.contains("--offset 6"), "{err}");
+    let out = ecm_lcd(&["db", "merge", db.to_str().unwrap(), db.to_str().unwrap(), "-o", merged.to_str().unwrap(), "--offset", "6"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(stored_ids(&merged), (0..12).collect::<Vec<_>>());
+
+    // Replaying with another descriptor mode into this database is refused, naming both.
+    let mut args = replay_args(seq.to_str().unwrap(), db.to_str().unwrap(), csv.to_str().unwrap());
+    args.extend(["--param", "descriptor.mode=paper"]);
+    let out = ecm_lcd(&args);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("descriptor l2") && err.contains("descriptor paper") && err.contains("a.db"), "{err}");
+}
