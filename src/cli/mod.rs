@@ -3,6 +3,7 @@
 pub mod bench;
 pub mod bench_node;
 pub mod demo;
+pub mod distill;
 pub mod eval;
 pub mod listen;
 pub mod model;
@@ -11,6 +12,7 @@ pub mod param;
 pub mod play_keyframes;
 pub mod replay;
 pub mod synth;
+pub mod train;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -55,6 +57,10 @@ pub enum Command {
     BenchNode(bench_node::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
     Synth(synth::Args),
+    /// Train ECMobileNet or MobileNetV2 on an image folder (the paper's classification recipe).
+    Train(train::Args),
+    /// Distil a MobileNetV2 teacher's descriptor into ECMobileNet on unlabelled images.
+    Distill(distill::Args),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -89,5 +95,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Synth(args) => synth::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Train(args) => train::run(args),
+        Command::Distill(args) => distill::run(args),
     }
 }
