@@ -19,6 +19,7 @@ pub mod replay;
 pub mod ros;
 pub mod runtime;
 pub mod synth;
+pub mod train;
 pub mod types;
 
 pub mod cli;

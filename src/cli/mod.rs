@@ -4,6 +4,7 @@ pub mod bench;
 pub mod bench_node;
 pub mod db;
 pub mod demo;
+pub mod distill;
 pub mod eval;
 pub mod listen;
 pub mod model;
@@ -12,6 +13,7 @@ pub mod param;
 pub mod play_keyframes;
 pub mod replay;
 pub mod synth;
+pub mod train;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -58,6 +60,10 @@ pub enum Command {
     Synth(synth::Args),
     /// Inspect, export and merge persistent keyframe databases (--db).
     Db(db::Args),
+    /// Train ECMobileNet or MobileNetV2 on an image folder (the paper's classification recipe).
+    Train(train::Args),
+    /// Distil a MobileNetV2 teacher's descriptor into ECMobileNet on unlabelled images.
+    Distill(distill::Args),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -93,5 +99,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),
         Command::Db(args) => db::run(args),
+        Command::Train(args) => train::run(args),
+        Command::Distill(args) => distill::run(args),
     }
 }

@@ -135,7 +135,13 @@ fn read_labels(path: Option<&Path>) -> Result<Vec<String>> {
 
 pub fn classify(args: ClassifyArgs) -> Result<()> {
     let (mut embedder, _) = args.network.embedder(Arch::MobileNetV2, true)?;
-    let labels = read_labels(args.labels.as_deref())?;
+    let classes = embedder.network.classes().unwrap_or(0);
+    // The shared ImageNet labels only name an ImageNet classifier's 1001 outputs.
+    let labels = match &args.labels {
+        Some(path) => read_labels(Some(path))?,
+        None if classes == 1001 => read_labels(None)?,
+        None => vec![],
+    };
     let mut results = Vec::new();
     for path in &args.images {
         let probs = embedder.probabilities(&read_image(path)?)?;

@@ -31,7 +31,10 @@ pub enum ConvKind {
     Pointwise,
 }
 
-const BN_EPS: f64 = 1e-3; // TensorFlow's MobileNetV2 BatchNorm epsilon.
+/// TensorFlow's MobileNetV2 BatchNorm epsilon.
+pub const BN_EPS: f64 = 1e-3;
+/// Weight of a batch's statistics in the running statistics (candle's convention; TensorFlow's 0.99 decay).
+pub const BN_MOMENTUM: f64 = 0.01;
 
 /// Convolution followed by BatchNorm (or its folded bias) and an activation.
 #[derive(Clone, Debug)]
@@ -57,7 +60,7 @@ impl ConvUnit {
         let weight = vb.get_with_hints(shape, "weight", candle_nn::init::DEFAULT_KAIMING_NORMAL)?;
         let has_bn = vb.contains_tensor("bn.running_mean");
         if batch_norm || (has_bn && !vb.contains_tensor("bias")) {
-            let config = BatchNormConfig { eps: BN_EPS, remove_mean: true, affine: true, momentum: 0.01 };
+            let config = BatchNormConfig { eps: BN_EPS, remove_mean: true, affine: true, momentum: BN_MOMENTUM };
             let bn = candle_nn::batch_norm(out, config, vb.pp("bn"))?;
             let unit = ConvUnit { weight, bias: None, bn: Some(bn), kind, activation };
             return if batch_norm { Ok(unit) } else { unit.folded() };

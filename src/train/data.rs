@@ -1,0 +1,340 @@
+//! Training data: an image folder (one sub-folder per class) with its train/validation split,
+//! the augmentations, and a loader thread that prepares batches while the network trains.
+//!
+//! Split: when the folder holds `TrainImages.txt` and `TestImages.txt` (indoorCVPR's lists, one
+//! relative path `class/file.jpg` per line), those decide the split and the class of an image is
+//! the first component of its listed path; a listed path is looked up under the folder and, as
+//! indoorCVPR ships its images, under `Images/`. Otherwise every image of every class sub-folder
+//! is shuffled with the seed and `val_fraction` of each class (at least one image) is held out.
+
+use std::path::{Path, PathBuf};
+use std::sync::mpsc::{sync_channel, Receiver};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+
+use anyhow::{bail, ensure, Context, Result};
+use image::RgbImage;
+use rand::rngs::StdRng;
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+
+use crate::preprocess::{read_image, Preprocessor};
+
+const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "bmp"];
+
+fn is_image(path: &Path) -> bool {
+    path.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+}
+
+/// Image files directly inside `dir`, sorted by name.
+pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))? {
+        let path = entry.with_context(|| format!("cannot list {}", dir.display()))?.path();
+        if path.is_file() && is_image(&path) {
+            files.push(path);
+        }
+    }
+    files.sort();
+    Ok(files)
+}
+
+/// A labelled image folder split into training and validation images.
+#[derive(Clone, Debug)]
+pub struct ImageFolder {
+    /// Class names, sorted; a label is an index into this.
+    pub classes: Vec<String>,
+    pub train: Vec<(PathBuf, usize)>,
+    pub val: Vec<(PathBuf, usize)>,
+    /// How the split was made, for the run's JSON.
+    pub split: String,
+}
+
+impl ImageFolder {
+    pub fn open(dir: &Path, seed: u64, val_fraction: f64) -> Result<Self> {
+        ensure!(dir.is_dir(), "{} is not a directory", dir.display());
+        let (train_list, test_list) = (dir.join("TrainImages.txt"), dir.join("TestImages.txt"));
+        if train_list.is_file() && test_list.is_file() {
+            return Self::from_lists(dir, &train_list, &test_list);
+        }
+        ensure!((0.0..1.0).contains(&val_fraction), "--val-fraction {val_fraction} is not in [0, 1)");
+        let mut class_dirs: Vec<PathBuf> = std::fs::read_dir(dir)
+            .with_context(|| format!("cannot list {}", dir.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.is_dir())
+            .collect();
+        class_dirs.sort();
+        let mut classes = Vec::new();
+        let (mut train, mut val) = (Vec::new(), Vec::new());
+        let mut rng = StdRng::seed_from_u64(seed);
+        for class_dir in class_dirs {
+            let mut files = image_files(&class_dir)?;
+            if files.is_empty() {
+                continue;
+            }
+            let label = classes.len();
+            classes.push(class_dir.file_name().unwrap_or_default().to_string_lossy().into_owned());
+            files.shuffle(&mut rng);
+            let held_out = if val_fraction > 0.0 { ((files.len() as f64 * val_fraction).round() as usize).clamp(1, files.len() - 1) } else { 0 };
+            ensure!(files.len() > held_out, "class folder {} has too few images to split", class_dir.display());
+            for (i, f) in files.into_iter().enumerate() {
+                if i < held_out { val.push((f, label)) } else { train.push((f, label)) }
+            }
+        }
+        ensure!(classes.len() >= 2, "{} has {} class sub-folders with images; training needs at least 2", dir.display(), classes.len());
+        Ok(ImageFolder { classes, train, val, split: format!("random, seed {seed}, validation fraction {val_fraction}") })
+    }
+
+    fn from_lists(dir: &Path, train_list: &Path, test_list: &Path) -> Result<Self> {
+        let read_list = |list: &Path| -> Result<Vec<(String, PathBuf)>> {
+            let text = std::fs::read_to_string(list).with_context(|| format!("cannot read {}", list.display()))?;
+            let mut out = Vec::new();
+            for (line_no, line) in text.lines().enumerate() {
+                let rel = line.trim();
+                if rel.is_empty() || rel.starts_with('#') {
+                    continue;
+                }
+                let class = Path::new(rel).components().next().filter(|_| Path::new(rel).components().count() >= 2);
+                let class = class.with_context(|| format!("{} line {}: '{rel}' is not class/file", list.display(), line_no + 1))?;
+                let path = [dir.join(rel), dir.join("Images").join(rel)].into_iter().find(|p| p.is_file());
+                let path = path.with_context(|| format!("{} line {}: no file {rel} under {}", list.display(), line_no + 1, dir.display()))?;
+                out.push((class.as_os_str().to_string_lossy().into_owned(), path));
+            }
+            Ok(out)
+        };
+        let (train, val) = (read_list(train_list)?, read_list(test_list)?);
+        let mut classes: Vec<String> = train.iter().map(|(c, _)| c.clone()).collect();
+        classes.sort();
+        classes.dedup();
+        ensure!(classes.len() >= 2, "{} lists {} classes; training needs at least 2", train_list.display(), classes.len());
+        let label = |c: &str| classes.binary_search_by(|x| x.as_str().cmp(c)).ok();
+        let train = train.iter().map(|(c, p)| (p.clone(), label(c).expect("listed class"))).collect();
+        let mut labelled_val = Vec::new();
+        for (c, p) in &val {
+            let l = label(c).with_context(|| format!("{}: class {c} of {} has no training images", test_list.display(), p.display()))?;
+            labelled_val.push((p.clone(), l));
+        }
+        Ok(ImageFolder { classes, train, val: labelled_val, split: "TrainImages.txt / TestImages.txt".into() })
+    }
+}
+
+/// Augmentation strength.
+#[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize)]
+pub struct Augment {
+    /// Smallest area fraction of a random resized crop (largest is 1).
+    pub min_crop_area: f64,
+    pub flip: bool,
+    /// Brightness, contrast and saturation factors are drawn from [1 - j, 1 + j].
+    pub colour_jitter: f64,
+}
+
+impl Augment {
+    pub const NONE: Augment = Augment { min_crop_area: 1.0, flip: false, colour_jitter: 0.0 };
+}
+
+/// Random resized crop (area fraction and aspect ratio 3/4..4/3, as Inception training does),
+/// then the project's preprocessing at `size`, a random horizontal flip and colour jitter.
+/// Output: `[3, size, size]` values in [-1, 1], channel-major.
+pub fn augmented_chw(image: &RgbImage, augment: &Augment, pre: &mut Preprocessor, rng: &mut StdRng) -> Result<Vec<f32>> {
+    let (w, h) = (image.width() as f64, image.height() as f64);
+    let cropped;
+    let image = if augment.min_crop_area < 1.0 {
+        let area = rng.random_range(augment.min_crop_area..=1.0) * w * h;
+        let ratio = (rng.random_range((0.75f64).ln()..=(4.0f64 / 3.0).ln())).exp();
+        let cw = ((area * ratio).sqrt().round()).clamp(1.0, w) as u32;
+        let ch = ((area / ratio).sqrt().round()).clamp(1.0, h) as u32;
+        let x = rng.random_range(0..=image.width() - cw);
+        let y = rng.random_range(0..=image.height() - ch);
+        cropped = image::imageops::crop_imm(image, x, y, cw, ch).to_image();
+        &cropped
+    } else {
+        image
+    };
+    let mut chw = pre.chw(image)?;
+    let size = pre.size();
+    let plane = size * size;
+    if augment.flip && rng.random_bool(0.5) {
+        for row in chw.chunks_exact_mut(size) {
+            row.reverse();
+        }
+    }
+    let j = augment.colour_jitter;
+    if j > 0.0 {
+        let mut factor = || rng.random_range(1.0 - j..=1.0 + j) as f32;
+        let (brightness, contrast, saturation) = (factor(), factor(), factor());
+        // In [0, 1] units: brightness scales, contrast blends with the image's mean grey,
+        // saturation blends each pixel with its own grey.
+        let to01 = |v: f32| (v + 1.0) * 0.5;
+        let grey: Vec<f32> = (0..plane).map(|i| 0.299 * to01(chw[i]) + 0.587 * to01(chw[plane + i]) + 0.114 * to01(chw[2 * plane + i])).collect();
+        let mean_grey = grey.iter().sum::<f32>() / plane as f32 * brightness;
+        for c in 0..3 {
+            for i in 0..plane {
+                let mut v = to01(chw[c * plane + i]) * brightness;
+                v = (v - mean_grey) * contrast + mean_grey;
+                let g = grey[i] * brightness;
+                v = (v - g) * saturation + g;
+                chw[c * plane + i] = v.clamp(0.0, 1.0) * 2.0 - 1.0;
+            }
+        }
+    }
+    Ok(chw)
+}
+
+/// Where a loader gets image `i` and its label from.
+pub trait ImageSet: Send + Sync {
+    fn len(&self) -> usize;
+    fn image(&self, index: usize) -> Result<RgbImage>;
+    fn label(&self, index: usize) -> usize;
+}
+
+/// Labelled image files, read from disk when needed.
+pub struct FileSet(pub Vec<(PathBuf, usize)>);
+
+impl ImageSet for FileSet {
+    fn len(&self) -> usize {
+        self.0.len()
+    }
+    fn image(&self, index: usize) -> Result<RgbImage> {
+        read_image(&self.0[index].0)
+    }
+    fn label(&self, index: usize) -> usize {
+        self.0[index].1
+    }
+}
+
+/// Images held in memory (unlabelled: every label is 0).
+pub struct MemorySet(pub Vec<RgbImage>);
+
+impl ImageSet for MemorySet {
+    fn len(&self) -> usize {
+        self.0.len()
+    }
+    fn image(&self, index: usize) -> Result<RgbImage> {
+        Ok(self.0[index].clone())
+    }
+    fn label(&self, _: usize) -> usize {
+        0
+    }
+}
+
+/// A batch: `data` is `[n, 3, size, size]` flattened.
+pub struct Batch {
+    pub data: Vec<f32>,
+    pub labels: Vec<u32>,
+}
+
+impl Batch {
+    pub fn len(&self) -> usize {
+        self.labels.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.labels.is_empty()
+    }
+    pub fn tensor(&self, size: usize) -> Result<candle_core::Tensor> {
+        Ok(candle_core::Tensor::from_slice(&self.data, (self.len(), 3, size, size), &candle_core::Device::Cpu)?)
+    }
+}
+
+/// One epoch of batches, prepared on a separate thread (a bounded channel keeps it at most a few
+/// batches ahead). The order is a shuffle seeded by `seed`; a last batch of one image is dropped
+/// (BatchNorm needs two). The thread stops early when the receiver is dropped.
+pub struct Loader {
+    pub batches: Receiver<Result<Batch>>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl Loader {
+    pub fn spawn(set: Arc<dyn ImageSet>, batch: usize, size: usize, augment: Augment, shuffle: bool, seed: u64) -> Loader {
+        let (tx, rx) = sync_channel(3);
+        let thread = std::thread::spawn(move || {
+            let mut rng = StdRng::seed_from_u64(seed);
+            let mut order: Vec<usize> = (0..set.len()).collect();
+            if shuffle {
+                order.shuffle(&mut rng);
+            }
+            let mut pre = Preprocessor::new(size);
+            for chunk in order.chunks(batch.max(1)) {
+                if chunk.len() < 2 && shuffle {
+                    break;
+                }
+                let mut out = Batch { data: Vec::with_capacity(chunk.len() * 3 * size * size), labels: Vec::with_capacity(chunk.len()) };
+                let result = chunk.iter().try_for_each(|&i| {
+                    let image = set.image(i)?;
+                    out.data.extend(augmented_chw(&image, &augment, &mut pre, &mut rng)?);
+                    out.labels.push(set.label(i) as u32);
+                    Ok(())
+                });
+                let failed = result.is_err();
+                if tx.send(result.map(|_| out)).is_err() || failed {
+                    return;
+                }
+            }
+        });
+        Loader { batches: rx, thread: Some(thread) }
+    }
+}
+
+impl Drop for Loader {
+    fn drop(&mut self) {
+        // Unblock the thread (its send fails once the receiver is gone), then wait for it.
+        let (_, dummy) = sync_channel(0);
+        drop(std::mem::replace(&mut self.batches, dummy));
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// Every image of `source` (an image folder with class sub-folders, or anything
+/// [`crate::io::open_source`] replays), each scaled so its shorter side is `keep_side` (memory
+/// stays small), at most `max_images` evenly spread over the source.
+pub fn load_unlabelled(source: &Path, keep_side: u32, max_images: usize) -> Result<Vec<RgbImage>> {
+    let shrink = |img: RgbImage| -> RgbImage {
+        let short = img.width().min(img.height());
+        if short <= keep_side {
+            return img;
+        }
+        let (w, h) = ((img.width() as u64 * keep_side as u64 / short as u64) as u32, (img.height() as u64 * keep_side as u64 / short as u64) as u32);
+        image::imageops::resize(&img, w.max(1), h.max(1), image::imageops::FilterType::Triangle)
+    };
+    let subfolders: Vec<PathBuf> = if source.is_dir() && !source.join("rgb.txt").exists() && !source.join("metadata.yaml").exists() && image_files(source)?.is_empty() {
+        let mut dirs: Vec<PathBuf> = std::fs::read_dir(source)
+            .with_context(|| format!("cannot list {}", source.display()))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.is_dir())
+            .collect();
+        dirs.sort();
+        dirs
+    } else {
+        Vec::new()
+    };
+    let mut images = Vec::new();
+    if !subfolders.is_empty() {
+        let mut files = Vec::new();
+        for d in &subfolders {
+            files.extend(image_files(d)?);
+        }
+        for f in spread(&files, max_images) {
+            images.push(shrink(read_image(f)?));
+        }
+    } else {
+        let frames = crate::io::open_source(source, None)?;
+        let mut all = Vec::new();
+        for frame in frames {
+            all.push(shrink(frame.with_context(|| format!("cannot read the frames of {}", source.display()))?.image));
+        }
+        images = spread(&all, max_images).into_iter().cloned().collect();
+    }
+    if images.len() < 4 {
+        bail!("{} has {} images; distillation needs at least 4", source.display(), images.len());
+    }
+    Ok(images)
+}
+
+/// At most `n` items of `items`, evenly spread.
+fn spread<T>(items: &[T], n: usize) -> Vec<&T> {
+    if items.len() <= n {
+        return items.iter().collect();
+    }
+    (0..n).map(|i| &items[i * items.len() / n]).collect()
+}

@@ -1,0 +1,537 @@
+//! Training: the paper's recipe (classification on an image folder such as indoorCVPR) for
+//! ECMobileNet or MobileNetV2, and distillation of a MobileNetV2 teacher's descriptor into
+//! ECMobileNet ([`distill`]).
+//!
+//! - The network is built in its training form (`Network::load(.., batch_norm = true)`) from a
+//!   `VarMap`. In [`Mode::Train`] every op is a stock, differentiable candle op (the fast kernels
+//!   are inference-only and are tested equal to the stock ops), so no custom-op gradients exist.
+//! - `--init` loads folded (inference-form) weights into the training form: convolution weight as
+//!   is, BatchNorm gamma = 1, beta = the folded bias, running mean 0, running variance 1 - eps, so
+//!   the initial network computes exactly the folded one ([`training_form`]).
+//! - Optimizers: SGD with (PyTorch-style) momentum and AdamW, written here against candle's
+//!   `Optimizer` trait because candle's SGD has no momentum and candle's AdamW keeps its moments
+//!   private; owning the state lets `--resume` restore it exactly. Weight decay applies to
+//!   convolution, ECA and classifier weights, not to BatchNorm parameters or biases.
+//! - Learning rate: linear warm-up from 0, then a cosine decay to 0 over the remaining steps.
+//! - Loss: cross-entropy with label smoothing.
+//! - BatchNorm statistics: candle's running averages move slowly (momentum 0.01), far too slowly
+//!   for short runs, so before each validation and save the running statistics are recomputed
+//!   exactly over up to [`PRECISE_BN_IMAGES`] training images ("precise BN", Wu & Johnson 2021):
+//!   with the running values set to 0, one training-mode forward leaves `momentum x` the batch
+//!   statistic in them, which is read back and averaged over batches.
+//!
+//! Outputs for `-o run.safetensors`: `run.safetensors` (best validation accuracy, inference form
+//! via [`inference_tensors`], usable as `--weights` anywhere), `run.last.safetensors` (last epoch,
+//! inference form), `run.train.safetensors` (training form: every `VarMap` tensor plus the
+//! optimizer state under `optimizer.`, for `--resume`), and `run.json` (settings, per-epoch
+//! results, where the schedule stands).
+
+pub mod data;
+pub mod distill;
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{bail, ensure, Context, Result};
+use candle_core::backprop::GradStore;
+use candle_core::{DType, Device, Tensor, Var, D};
+use candle_nn::{VarBuilder, VarMap};
+use serde::{Deserialize, Serialize};
+
+use crate::model::layers::{Mode, BN_EPS, BN_MOMENTUM};
+use crate::model::weights::{inference_tensors, Weights};
+use crate::model::{check_input_size, Arch, Network};
+use data::{Augment, FileSet, ImageFolder, ImageSet, Loader};
+
+/// Images used to recompute BatchNorm statistics before each validation and save.
+pub const PRECISE_BN_IMAGES: usize = 512;
+
+/// Which optimizer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum OptimizerKind {
+    Sgd,
+    Adamw,
+}
+
+/// Everything a run needs besides the data.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Hyper {
+    pub size: usize,
+    pub epochs: usize,
+    pub batch: usize,
+    pub optimizer: OptimizerKind,
+    pub lr: f64,
+    pub momentum: f64,
+    pub weight_decay: f64,
+    pub warmup_epochs: f64,
+    pub label_smoothing: f64,
+    pub augment: Augment,
+    pub seed: u64,
+}
+
+/// Learning rate at `step` (from 0) of `total` steps: linear warm-up over `warmup` steps to
+/// `base`, then cosine decay to 0 at `total`.
+pub fn learning_rate(step: usize, total: usize, warmup: usize, base: f64) -> f64 {
+    if step < warmup {
+        return base * (step + 1) as f64 / warmup as f64;
+    }
+    let span = total.saturating_sub(warmup).max(1) as f64;
+    let progress = ((step - warmup) as f64 / span).min(1.0);
+    0.5 * base * (1.0 + (std::f64::consts::PI * progress).cos())
+}
+
+/// Cross-entropy of `logits` `[B, K]` against `labels` `[B]` (u32) with label smoothing `eps`:
+/// the target is `1 - eps` on the label plus `eps / K` everywhere.
+pub fn smoothed_cross_entropy(logits: &Tensor, labels: &Tensor, eps: f64) -> Result<Tensor> {
+    let log_p = candle_nn::ops::log_softmax(logits, D::Minus1)?;
+    let nll = log_p.gather(&labels.unsqueeze(1)?, 1)?.squeeze(1)?.neg()?;
+    let uniform = log_p.mean(D::Minus1)?.neg()?;
+    Ok(((nll * (1.0 - eps))? + (uniform * eps)?)?.mean_all()?)
+}
+
+/// A trainable tensor with its name.
+pub struct Param {
+    pub name: String,
+    pub var: Var,
+    pub decay: bool,
+}
+
+/// The trainable variables of a training-form `VarMap` (running statistics excluded), sorted by name.
+pub fn trainable_params(varmap: &VarMap) -> Vec<Param> {
+    let data = varmap.data().lock().expect("VarMap lock");
+    let mut params: Vec<Param> = data
+        .iter()
+        .filter(|(n, _)| !n.ends_with("running_mean") && !n.ends_with("running_var"))
+        .map(|(n, v)| Param { name: n.clone(), var: v.clone(), decay: n.ends_with(".weight") && !n.ends_with("bn.weight") })
+        .collect();
+    params.sort_by(|a, b| a.name.cmp(&b.name));
+    params
+}
+
+/// SGD with momentum or AdamW, with its state in tensors it can save and restore.
+pub struct Optimizer {
+    pub kind: OptimizerKind,
+    params: Vec<Param>,
+    /// Per parameter: SGD momentum buffer / AdamW first moment, and AdamW second moment.
+    state: Vec<(Tensor, Tensor)>,
+    pub steps: usize,
+    momentum: f64,
+    weight_decay: f64,
+}
+
+const ADAM_BETAS: (f64, f64) = (0.9, 0.999);
+const ADAM_EPS: f64 = 1e-8;
+
+impl Optimizer {
+    pub fn new(kind: OptimizerKind, params: Vec<Param>, momentum: f64, weight_decay: f64) -> Result<Self> {
+        let state = params.iter().map(|p| Ok((p.var.zeros_like()?, p.var.zeros_like()?))).collect::<Result<Vec<_>>>()?;
+        Ok(Optimizer { kind, params, state, steps: 0, momentum, weight_decay })
+    }
+
+    /// One update with learning rate `lr`; parameters without a gradient are left alone.
+    pub fn step(&mut self, grads: &GradStore, lr: f64) -> Result<()> {
+        self.steps += 1;
+        let t = self.steps as i32;
+        for (p, (m, v)) in self.params.iter().zip(self.state.iter_mut()) {
+            let Some(g) = grads.get(p.var.as_tensor()) else { continue };
+            let w = p.var.as_tensor().detach();
+            let wd = if p.decay { self.weight_decay } else { 0.0 };
+            match self.kind {
+                OptimizerKind::Sgd => {
+                    let g = (g + (&w * wd)?)?;
+                    *m = ((&*m * self.momentum)? + g)?.detach();
+                    p.var.set(&(&w - (&*m * lr)?)?)?;
+                }
+                OptimizerKind::Adamw => {
+                    let (b1, b2) = ADAM_BETAS;
+                    *m = ((&*m * b1)? + (g * (1.0 - b1))?)?.detach();
+                    *v = ((&*v * b2)? + (g.sqr()? * (1.0 - b2))?)?.detach();
+                    let m_hat = (&*m / (1.0 - b1.powi(t)))?;
+                    let v_hat = (&*v / (1.0 - b2.powi(t)))?;
+                    let update = (m_hat / (v_hat.sqrt()? + ADAM_EPS)?)?;
+                    p.var.set(&((&w * (1.0 - lr * wd))? - (update * lr)?)?)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// The state as named tensors (`optimizer.<param>.m` / `.v`).
+    pub fn state_tensors(&self) -> HashMap<String, Tensor> {
+        let mut out = HashMap::new();
+        for (p, (m, v)) in self.params.iter().zip(&self.state) {
+            out.insert(format!("optimizer.{}.m", p.name), m.clone());
+            if self.kind == OptimizerKind::Adamw {
+                out.insert(format!("optimizer.{}.v", p.name), v.clone());
+            }
+        }
+        out
+    }
+
+    /// Restores the state saved by [`Optimizer::state_tensors`].
+    pub fn restore(&mut self, tensors: &HashMap<String, Tensor>, steps: usize) -> Result<()> {
+        for (p, (m, v)) in self.params.iter().zip(self.state.iter_mut()) {
+            let get = |suffix: &str| tensors.get(&format!("optimizer.{}.{suffix}", p.name)).with_context(|| format!("the checkpoint has no optimizer state for {}", p.name));
+            *m = get("m")?.clone();
+            if self.kind == OptimizerKind::Adamw {
+                *v = get("v")?.clone();
+            }
+        }
+        self.steps = steps;
+        Ok(())
+    }
+}
+
+/// Folded (inference-form) tensors turned into the training form: every unit `X` with `X.bias`
+/// gets `X.bn.weight = 1`, `X.bn.bias = bias`, `X.bn.running_mean = 0`,
+/// `X.bn.running_var = 1 - eps`, so BatchNorm in inference computes the folded unit exactly.
+/// The classifier keeps its bias; ECA kernels pass through; training-form tensors pass through.
+pub fn training_form(tensors: &HashMap<String, Tensor>) -> Result<HashMap<String, Tensor>> {
+    let mut out = HashMap::new();
+    for (name, t) in tensors {
+        match name.strip_suffix(".bias") {
+            Some(unit) if unit != "classifier" && !unit.ends_with(".bn") => {
+                out.insert(format!("{unit}.bn.bias"), t.clone());
+                out.insert(format!("{unit}.bn.weight"), t.ones_like()?);
+                out.insert(format!("{unit}.bn.running_mean"), t.zeros_like()?);
+                out.insert(format!("{unit}.bn.running_var"), (t.ones_like()? * (1.0 - BN_EPS))?);
+            }
+            _ => {
+                out.insert(name.clone(), t.clone());
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// A training-form network and the `VarMap` holding its variables.
+pub struct Trainable {
+    pub varmap: VarMap,
+    pub network: Network,
+}
+
+impl Trainable {
+    /// `arch` with `classes` outputs (or none), its variables taken from `init` where present
+    /// (in training form: see [`training_form`]) and freshly initialised otherwise.
+    pub fn new(arch: Arch, classes: Option<usize>, init: &HashMap<String, Tensor>) -> Result<Self> {
+        let varmap = VarMap::new();
+        {
+            let mut data = varmap.data().lock().expect("VarMap lock");
+            for (name, t) in init {
+                data.insert(name.clone(), Var::from_tensor(&t.to_dtype(DType::F32)?.contiguous()?)?);
+            }
+        }
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+        let network = Network::load(arch.spec(), vb, classes, true).with_context(|| format!("the initial weights do not fit {arch}"))?;
+        Ok(Trainable { varmap, network })
+    }
+
+    /// Every variable as a named tensor (training form).
+    pub fn tensors(&self) -> HashMap<String, Tensor> {
+        let data = self.varmap.data().lock().expect("VarMap lock");
+        data.iter().map(|(n, v)| (n.clone(), v.as_tensor().detach())).collect()
+    }
+
+    /// The inference-form weights (BatchNorm folded with the current running statistics).
+    pub fn inference_weights(&self, source: &str) -> Result<Weights> {
+        Ok(Weights {
+            arch: self.network.arch(),
+            classes: self.network.classes(),
+            source: source.to_string(),
+            tensors: inference_tensors(&self.network)?,
+        })
+    }
+
+    /// Recomputes every BatchNorm's running mean and variance as the average of the batch
+    /// statistics over `batches` (see the module doc).
+    pub fn precise_batch_norm(&self, batches: &[Tensor]) -> Result<()> {
+        if batches.is_empty() {
+            return Ok(());
+        }
+        let stats: Vec<(String, Var)> = {
+            let data = self.varmap.data().lock().expect("VarMap lock");
+            data.iter().filter(|(n, _)| n.ends_with("running_mean") || n.ends_with("running_var")).map(|(n, v)| (n.clone(), v.clone())).collect()
+        };
+        let mut sums: Vec<Tensor> = stats.iter().map(|(_, v)| v.zeros_like()).collect::<candle_core::Result<_>>()?;
+        for x in batches {
+            for (_, v) in &stats {
+                v.set(&v.zeros_like()?)?;
+            }
+            self.network.features(x, Mode::Train)?;
+            for (sum, (_, v)) in sums.iter_mut().zip(&stats) {
+                *sum = (&*sum + (v.as_tensor().detach() / BN_MOMENTUM)?)?;
+            }
+        }
+        for (sum, (_, v)) in sums.into_iter().zip(&stats) {
+            v.set(&(sum / batches.len() as f64)?)?;
+        }
+        Ok(())
+    }
+}
+
+/// Top-1 accuracy of an inference-form network over a labelled set at `size`.
+pub fn accuracy(network: &Network, set: Arc<dyn ImageSet>, size: usize, batch: usize) -> Result<f64> {
+    let total = set.len();
+    ensure!(total > 0, "no validation images");
+    let mut correct = 0usize;
+    let loader = Loader::spawn(set, batch, size, Augment::NONE, false, 0);
+    for b in loader.batches.iter() {
+        let b = b?;
+        let predicted = network.logits(&b.tensor(size)?, Mode::Inference)?.argmax(D::Minus1)?.to_vec1::<u32>()?;
+        correct += predicted.iter().zip(&b.labels).filter(|(p, l)| p == l).count();
+    }
+    Ok(correct as f64 / total as f64)
+}
+
+/// Up to `max_images` of `set` without augmentation, as batches (for [`Trainable::precise_batch_norm`]).
+pub fn calibration_batches(set: Arc<dyn ImageSet>, size: usize, batch: usize, max_images: usize, seed: u64) -> Result<Vec<Tensor>> {
+    let loader = Loader::spawn(set, batch, size, Augment::NONE, true, seed);
+    let mut out = Vec::new();
+    let mut seen = 0;
+    for b in loader.batches.iter() {
+        let b = b?;
+        seen += b.len();
+        out.push(b.tensor(size)?);
+        if seen >= max_images {
+            break;
+        }
+    }
+    Ok(out)
+}
+
+/// One epoch's results.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct EpochResult {
+    pub epoch: usize,
+    pub train_loss: f64,
+    pub train_accuracy: f64,
+    pub val_accuracy: f64,
+    pub learning_rate: f64,
+    pub images_per_second: f64,
+    pub seconds: f64,
+}
+
+/// The run's JSON: settings, results, and where the schedule stands (for `--resume`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunRecord {
+    pub command: String,
+    pub data: PathBuf,
+    pub arch: Arch,
+    pub classes: Vec<String>,
+    pub split: String,
+    pub train_images: usize,
+    pub val_images: usize,
+    pub init: Option<String>,
+    pub hyper: Hyper,
+    pub steps_per_epoch: usize,
+    pub epochs_done: usize,
+    pub steps_done: usize,
+    pub best_val_accuracy: f64,
+    pub best_epoch: usize,
+    pub history: Vec<EpochResult>,
+}
+
+/// The files of a run whose best weights go to `out`.
+#[derive(Clone, Debug)]
+pub struct RunFiles {
+    pub best: PathBuf,
+    pub last: PathBuf,
+    pub training: PathBuf,
+    pub json: PathBuf,
+}
+
+impl RunFiles {
+    pub fn new(out: &Path) -> Self {
+        let stem = out.with_extension("");
+        let with = |suffix: &str| PathBuf::from(format!("{}{suffix}", stem.display()));
+        RunFiles { best: out.to_path_buf(), last: with(".last.safetensors"), training: with(".train.safetensors"), json: with(".json") }
+    }
+
+    /// The files of the run that wrote `checkpoint` (any of its files, or `-o` of that run).
+    pub fn of_checkpoint(checkpoint: &Path) -> Self {
+        let s = checkpoint.display().to_string();
+        let base = [".train.safetensors", ".last.safetensors", ".safetensors", ".json"].iter().find_map(|suffix| s.strip_suffix(suffix)).unwrap_or(&s).to_string();
+        RunFiles::new(Path::new(&format!("{base}.safetensors")))
+    }
+}
+
+/// A classification training run.
+#[derive(Clone, Debug)]
+pub struct TrainConfig {
+    pub data: PathBuf,
+    pub arch: Arch,
+    pub init: Option<PathBuf>,
+    /// Expected number of classes (`None`: as many as the data has).
+    pub classes: Option<usize>,
+    pub val_fraction: f64,
+    pub hyper: Hyper,
+    pub out: PathBuf,
+    pub resume: Option<PathBuf>,
+    pub progress: bool,
+    /// Stop after this many epochs of this invocation (the schedule still spans `hyper.epochs`).
+    pub stop_after: Option<usize>,
+}
+
+/// Runs (or resumes) a classification training; returns the record also written as JSON.
+pub fn train(config: &TrainConfig) -> Result<RunRecord> {
+    let mut hyper = config.hyper.clone();
+    let files = RunFiles::new(&config.out);
+    let resumed: Option<(RunRecord, Weights)> = match &config.resume {
+        Some(checkpoint) => {
+            let from = RunFiles::of_checkpoint(checkpoint);
+            let text = std::fs::read_to_string(&from.json).with_context(|| format!("cannot read the run record {}", from.json.display()))?;
+            let record: RunRecord = serde_json::from_str(&text).with_context(|| format!("{} is not a run record", from.json.display()))?;
+            ensure!(record.arch == config.arch, "{} trained {}, not {}", from.json.display(), record.arch, config.arch);
+            hyper = record.hyper.clone();
+            Some((record, Weights::load(&from.training)?))
+        }
+        None => None,
+    };
+    check_input_size(hyper.size)?;
+    ensure!(hyper.batch >= 2, "batch size {} is below 2 (BatchNorm needs two images)", hyper.batch);
+    ensure!(hyper.epochs >= 1, "--epochs must be at least 1");
+    let folder = ImageFolder::open(&config.data, hyper.seed, config.val_fraction)?;
+    if let Some(k) = config.classes {
+        ensure!(k == folder.classes.len(), "--classes {k} but {} has {} classes", config.data.display(), folder.classes.len());
+    }
+    if let Some((record, _)) = &resumed {
+        ensure!(record.classes == folder.classes, "the classes of {} differ from those of the resumed run", config.data.display());
+    }
+    let classes = folder.classes.len();
+    ensure!(!folder.val.is_empty(), "no validation images (use --val-fraction > 0 or TestImages.txt)");
+    let steps_per_epoch = {
+        let n = folder.train.len();
+        let full = n / hyper.batch;
+        full + usize::from(n % hyper.batch >= 2)
+    };
+    ensure!(steps_per_epoch > 0, "{} training images are too few for a batch", folder.train.len());
+    let total_steps = steps_per_epoch * hyper.epochs;
+    let warmup = (hyper.warmup_epochs * steps_per_epoch as f64).round() as usize;
+
+    let init_tensors: HashMap<String, Tensor> = match (&resumed, &config.init) {
+        (Some((_, w)), _) => w.tensors.iter().filter(|(n, _)| !n.starts_with("optimizer.")).map(|(n, t)| (n.clone(), t.clone())).collect(),
+        (None, Some(path)) => {
+            let w = crate::model::weights::resolve::load_file(path)?.weights.for_arch(config.arch)?;
+            let mut t = training_form(&w.tensors)?;
+            if w.classes != Some(classes) {
+                t.retain(|n, _| !n.starts_with("classifier."));
+            }
+            t
+        }
+        (None, None) => HashMap::new(),
+    };
+    let model = Trainable::new(config.arch, Some(classes), &init_tensors)?;
+    let mut optimizer = Optimizer::new(hyper.optimizer, trainable_params(&model.varmap), hyper.momentum, hyper.weight_decay)?;
+    let mut record = match resumed {
+        Some((record, w)) => {
+            optimizer.restore(&w.tensors, record.steps_done)?;
+            record
+        }
+        None => RunRecord {
+            command: "train".into(),
+            data: config.data.clone(),
+            arch: config.arch,
+            classes: folder.classes.clone(),
+            split: folder.split.clone(),
+            train_images: folder.train.len(),
+            val_images: folder.val.len(),
+            init: config.init.as_ref().map(|p| p.display().to_string()),
+            hyper: hyper.clone(),
+            steps_per_epoch,
+            epochs_done: 0,
+            steps_done: 0,
+            best_val_accuracy: -1.0,
+            best_epoch: 0,
+            history: Vec::new(),
+        },
+    };
+    ensure!(record.steps_per_epoch == steps_per_epoch, "the resumed run had {} steps per epoch, the data now gives {steps_per_epoch}", record.steps_per_epoch);
+
+    let train_set: Arc<dyn ImageSet> = Arc::new(FileSet(folder.train.clone()));
+    let val_set: Arc<dyn ImageSet> = Arc::new(FileSet(folder.val.clone()));
+    let calibration = calibration_batches(train_set.clone(), hyper.size, hyper.batch, PRECISE_BN_IMAGES, hyper.seed)?;
+    let last_epoch = config.stop_after.map(|n| (record.epochs_done + n).min(hyper.epochs)).unwrap_or(hyper.epochs);
+    for epoch in record.epochs_done..last_epoch {
+        let started = Instant::now();
+        let bar = progress_bar(config.progress, steps_per_epoch as u64, &format!("epoch {}/{}", epoch + 1, hyper.epochs));
+        let loader = Loader::spawn(train_set.clone(), hyper.batch, hyper.size, hyper.augment, true, hyper.seed.wrapping_add(1 + epoch as u64));
+        let (mut loss_sum, mut correct, mut seen, mut lr) = (0.0, 0usize, 0usize, 0.0);
+        for batch in loader.batches.iter() {
+            let batch = batch?;
+            lr = learning_rate(record.steps_done, total_steps, warmup, hyper.lr);
+            let labels = Tensor::new(batch.labels.as_slice(), &Device::Cpu)?;
+            let logits = model.network.logits(&batch.tensor(hyper.size)?, Mode::Train)?;
+            let loss = smoothed_cross_entropy(&logits, &labels, hyper.label_smoothing)?;
+            let grads = loss.backward()?;
+            optimizer.step(&grads, lr)?;
+            record.steps_done += 1;
+            let predicted = logits.argmax(D::Minus1)?.to_vec1::<u32>()?;
+            correct += predicted.iter().zip(&batch.labels).filter(|(p, l)| p == l).count();
+            let loss = loss.to_scalar::<f32>()? as f64;
+            ensure!(loss.is_finite(), "the loss diverged at step {} (learning rate {lr})", record.steps_done);
+            loss_sum += loss * batch.len() as f64;
+            seen += batch.len();
+            bar.set_message(format!("loss {:.3} acc {:.1}% {:.1} img/s lr {lr:.2e}", loss_sum / seen as f64, 100.0 * correct as f64 / seen as f64, seen as f64 / started.elapsed().as_secs_f64()));
+            bar.inc(1);
+        }
+        drop(loader);
+        model.precise_batch_norm(&calibration)?;
+        let weights = model.inference_weights(&format!("ecm-lcd train on {} (epoch {})", config.data.display(), epoch + 1))?;
+        let val_accuracy = accuracy(&weights.network(true)?, val_set.clone(), hyper.size, hyper.batch)?;
+        bar.finish_with_message(format!("loss {:.3} train acc {:.1}% val acc {:.1}%", loss_sum / seen.max(1) as f64, 100.0 * correct as f64 / seen.max(1) as f64, 100.0 * val_accuracy));
+        let seconds = started.elapsed().as_secs_f64();
+        record.history.push(EpochResult {
+            epoch: epoch + 1,
+            train_loss: loss_sum / seen.max(1) as f64,
+            train_accuracy: correct as f64 / seen.max(1) as f64,
+            val_accuracy,
+            learning_rate: lr,
+            images_per_second: seen as f64 / seconds,
+            seconds,
+        });
+        record.epochs_done = epoch + 1;
+        weights.save(&files.last)?;
+        if val_accuracy > record.best_val_accuracy {
+            record.best_val_accuracy = val_accuracy;
+            record.best_epoch = epoch + 1;
+            weights.save(&files.best)?;
+        }
+        let mut training = model.tensors();
+        training.extend(optimizer.state_tensors());
+        Weights { arch: config.arch, classes: Some(classes), source: "ecm-lcd training form".into(), tensors: training }.save(&files.training)?;
+        write_json(&files.json, &record)?;
+    }
+    Ok(record)
+}
+
+/// Writes `value` as pretty JSON to `path`.
+pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
+    let text = serde_json::to_string_pretty(value)?;
+    std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
+}
+
+/// A progress bar (hidden when `show` is false, e.g. in tests).
+pub fn progress_bar(show: bool, len: u64, prefix: &str) -> indicatif::ProgressBar {
+    if !show {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(len);
+    bar.set_style(indicatif::ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg}").expect("valid template").progress_chars("=> "));
+    bar.set_prefix(prefix.to_string());
+    bar
+}
+
+/// The compute device: only the CPU is built in.
+pub fn check_device(name: &str) -> Result<()> {
+    match name {
+        "cpu" => Ok(()),
+        "cuda" | "metal" => bail!("device '{name}' is not built in: this ecm-lcd is built without candle's {name} feature (use --device cpu)"),
+        other => bail!("unknown device '{other}' (expected cpu)"),
+    }
+}
+
+#[cfg(test)]
+mod tests;
