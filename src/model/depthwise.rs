@@ -8,7 +8,8 @@
 //!   epilogue for the 1x1 convolutions, which are plain matrix multiplies).
 //!
 //! Both are inference-only (no backward); training uses stock candle ops, and the tests check
-//! that the two agree.
+//! that the two agree. The per-plane kernel is also what [`super::fused`]'s whole-bottleneck op
+//! runs on each expanded channel.
 
 use candle_core::{CpuStorage, CustomOp3, InplaceOp2, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -102,20 +103,20 @@ impl CustomOp3 for DepthwiseConv {
 }
 
 /// Sizes of one channel plane's convolution.
-struct PlaneGeometry {
-    height: usize,
-    width: usize,
-    kh: usize,
-    kw: usize,
-    stride: usize,
-    ow: usize,
-    pad_top: usize,
-    pad_left: usize,
+pub(crate) struct PlaneGeometry {
+    pub height: usize,
+    pub width: usize,
+    pub kh: usize,
+    pub kw: usize,
+    pub stride: usize,
+    pub ow: usize,
+    pub pad_top: usize,
+    pub pad_left: usize,
 }
 
 /// Convolves one channel plane, choosing the widest SIMD the CPU has at run time: the same
 /// code compiled for AVX2+FMA, or for the baseline.
-fn convolve_plane(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
+pub(crate) fn convolve_plane(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
     {
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
@@ -187,6 +188,7 @@ fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act:
     // Interior output columns: ox*s - pad_left >= 0 and ox*s - pad_left + 2 < width.
     let lo = g.pad_left.div_ceil(s).min(g.ow);
     let hi = if width + g.pad_left >= 3 { ((width + g.pad_left - 3) / s + 1).clamp(lo, g.ow) } else { lo };
+    let mut split = Vec::new();
     for (oy, out_row) in out.chunks_exact_mut(g.ow).enumerate() {
         let top = (oy * s) as isize - g.pad_top as isize;
         let (r0, r1, r2) = (row(top), row(top + 1), row(top + 2));
@@ -212,6 +214,27 @@ fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act:
                         + w[0] * a[i] + w[1] * a[i + 1] + w[2] * a[i + 2]
                         + w[3] * b[i] + w[4] * b[i + 1] + w[5] * b[i + 2]
                         + w[6] * c[i] + w[7] * c[i + 1] + w[8] * c[i + 2];
+                }
+            } else if s == 2 {
+                // Even and odd columns split once, so that every tap is a unit-stride load
+                // (vectorisable) instead of a gather.
+                let n = hi - lo;
+                split.resize(3 * (2 * n + 1), 0.0);
+                let (even, odd) = split.split_at_mut(3 * (n + 1));
+                for (k, r) in [a, b, c].into_iter().enumerate() {
+                    for i in 0..n {
+                        even[k * (n + 1) + i] = r[2 * i];
+                        odd[k * n + i] = r[2 * i + 1];
+                    }
+                    even[k * (n + 1) + n] = r[2 * n];
+                }
+                let (ea, eb, ec) = (&even[..n + 1], &even[n + 1..2 * n + 2], &even[2 * n + 2..]);
+                let (oa, ob, oc) = (&odd[..n], &odd[n..2 * n], &odd[2 * n..3 * n]);
+                for (i, o) in dst.iter_mut().enumerate() {
+                    *o = bias
+                        + w[0] * ea[i] + w[1] * oa[i] + w[2] * ea[i + 1]
+                        + w[3] * eb[i] + w[4] * ob[i] + w[5] * eb[i + 1]
+                        + w[6] * ec[i] + w[7] * oc[i] + w[8] * ec[i + 1];
                 }
             } else {
                 for (i, o) in dst.iter_mut().enumerate() {
@@ -314,7 +337,7 @@ mod tests {
     fn depthwise_kernel_equals_stock_grouped_conv() -> Result<()> {
         let dev = Device::Cpu;
         // Even and odd sizes, kernels 3 and 5, strides 1 and 2, batch 2.
-        for &(h, w, k, stride) in &[(14, 14, 3, 1), (14, 14, 3, 2), (15, 9, 3, 2), (11, 12, 5, 1), (8, 7, 5, 2), (2, 3, 3, 2)] {
+        for &(h, w, k, stride) in &[(14, 14, 3, 1), (14, 14, 3, 2), (15, 9, 3, 2), (11, 12, 5, 1), (8, 7, 5, 2), (2, 3, 3, 2), (29, 31, 3, 2), (30, 28, 3, 2)] {
             let channels = 7;
             let x = Tensor::randn(0f32, 1.0, (2, channels, h, w), &dev)?;
             let weight = Tensor::randn(0f32, 1.0, (channels, 1, k, k), &dev)?;

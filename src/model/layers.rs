@@ -4,10 +4,13 @@
 //! Tensor names inside a unit: `weight` (OIHW), then either `bias` (BatchNorm folded, inference
 //! form) or `bn.weight`, `bn.bias`, `bn.running_mean`, `bn.running_var` (training form).
 
+use std::sync::Arc;
+
 use candle_core::{Module, ModuleT, Result, Tensor};
 use candle_nn::{BatchNorm, BatchNormConfig, VarBuilder};
 
 use super::depthwise::{self, Activation};
+use super::fused::{DenseConv, FusedBottleneck};
 
 /// How a forward pass runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -44,9 +47,26 @@ pub struct ConvUnit {
     bn: Option<BatchNorm>,
     kind: ConvKind,
     activation: Activation,
+    /// The fused kernel of a folded full or 1x1 convolution (inference fast path).
+    dense: Option<Arc<DenseConv>>,
+}
+
+/// Fast kernels copy the weights, so they are built only for constant (non-trainable) tensors.
+fn frozen(weight: &Tensor) -> bool {
+    !weight.is_variable()
 }
 
 impl ConvUnit {
+    /// A folded unit (bias, no BatchNorm), with its fused kernel where it has one.
+    fn with_bias(weight: Tensor, bias: Tensor, kind: ConvKind, activation: Activation) -> Result<Self> {
+        let dense = match kind {
+            ConvKind::Full { stride } if frozen(&weight) => Some(Arc::new(DenseConv::new(&weight, &bias, stride, activation)?)),
+            ConvKind::Pointwise if frozen(&weight) => Some(Arc::new(DenseConv::new(&weight, &bias, 1, activation)?)),
+            _ => None,
+        };
+        Ok(ConvUnit { weight, bias: Some(bias), bn: None, kind, activation, dense })
+    }
+
     /// Loads `weight` `[out, in, kh, kw]` and the BatchNorm or bias under `vb`.
     /// `batch_norm`: keep BatchNorm as a layer (training); otherwise fold it into a bias.
     pub fn load(
@@ -62,11 +82,11 @@ impl ConvUnit {
         if batch_norm || (has_bn && !vb.contains_tensor("bias")) {
             let config = BatchNormConfig { eps: BN_EPS, remove_mean: true, affine: true, momentum: BN_MOMENTUM };
             let bn = candle_nn::batch_norm(out, config, vb.pp("bn"))?;
-            let unit = ConvUnit { weight, bias: None, bn: Some(bn), kind, activation };
+            let unit = ConvUnit { weight, bias: None, bn: Some(bn), kind, activation, dense: None };
             return if batch_norm { Ok(unit) } else { unit.folded() };
         }
         let bias = vb.get(out, "bias")?;
-        Ok(ConvUnit { weight, bias: Some(bias), bn: None, kind, activation })
+        ConvUnit::with_bias(weight, bias, kind, activation)
     }
 
     /// The inference form: BatchNorm folded into the convolution's weight and bias.
@@ -80,7 +100,7 @@ impl ConvUnit {
         let scale = (gamma / (bn.running_var().affine(1.0, BN_EPS)?.sqrt()?))?;
         let weight = self.weight.broadcast_mul(&scale.reshape((out, 1, 1, 1))?)?;
         let bias = (beta - bn.running_mean().mul(&scale)?)?;
-        Ok(ConvUnit { weight, bias: Some(bias), bn: None, kind: self.kind, activation: self.activation })
+        ConvUnit::with_bias(weight, bias, self.kind, self.activation)
     }
 
     pub fn weight(&self) -> &Tensor {
@@ -95,14 +115,15 @@ impl ConvUnit {
         let fast = mode == Mode::Inference && self.bn.is_none();
         if fast {
             let bias = self.bias.as_ref().expect("a unit without BatchNorm has a bias");
-            return match self.kind {
-                ConvKind::Depthwise { stride } => depthwise::depthwise_conv(x, &self.weight, bias, stride, self.activation),
-                ConvKind::Pointwise => {
+            return match (self.kind, &self.dense) {
+                (ConvKind::Depthwise { stride }, _) => depthwise::depthwise_conv(x, &self.weight, bias, stride, self.activation),
+                (_, Some(dense)) => x.contiguous()?.apply_op1_no_bwd(dense.as_ref()),
+                (ConvKind::Pointwise, None) => {
                     let y = pointwise(x, &self.weight)?;
                     depthwise::bias_activation_(&y, bias, self.activation)?;
                     Ok(y)
                 }
-                ConvKind::Full { stride } => {
+                (ConvKind::Full { stride }, None) => {
                     let y = self.convolve(x, stride, 1)?;
                     depthwise::bias_activation_(&y, bias, self.activation)?;
                     Ok(y)
@@ -120,20 +141,6 @@ impl ConvUnit {
             (None, None) => y,
         };
         self.activation.forward(&y)
-    }
-
-    /// A pointwise unit applied to `x` scaled channel-wise by `scale` `[C]`, computed as the
-    /// unit with its weight columns scaled instead: `W (s ⊙ x) = (W diag(s)) x`. Touches an
-    /// `O x C` matrix instead of the whole `C x H x W` activation (fast path, batch 1).
-    pub fn forward_channel_scaled(&self, x: &Tensor, scale: &Tensor) -> Result<Tensor> {
-        let (Some(bias), None, ConvKind::Pointwise) = (&self.bias, &self.bn, self.kind) else {
-            candle_core::bail!("channel-scaled forward needs a folded pointwise unit");
-        };
-        let (out, channels) = (self.weight.dim(0)?, self.weight.dim(1)?);
-        let weight = self.weight.reshape((out, channels))?.broadcast_mul(&scale.reshape((1, channels))?)?;
-        let y = pointwise(x, &weight.reshape((out, channels, 1, 1))?)?;
-        depthwise::bias_activation_(&y, bias, self.activation)?;
-        Ok(y)
     }
 
     fn convolve(&self, x: &Tensor, stride: usize, groups: usize) -> Result<Tensor> {
@@ -220,6 +227,8 @@ pub struct InvertedResidual {
     depthwise: ConvUnit,
     eca: Option<Eca>,
     project: ConvUnit,
+    /// The whole block as one kernel (inference fast path), for folded constant weights.
+    fused: Option<Arc<FusedBottleneck>>,
 }
 
 impl InvertedResidual {
@@ -238,7 +247,17 @@ impl InvertedResidual {
         )?;
         let eca = shape.eca_kernel.map(|k| Eca::load(vb.pp("eca"), k)).transpose()?;
         let project = ConvUnit::load(vb.pp("project"), (shape.output, shape.hidden, 1, 1), ConvKind::Pointwise, Activation::Identity, batch_norm)?;
-        Ok(InvertedResidual { shape, expand, depthwise, eca, project })
+        let fused = match (&expand, &depthwise, &project) {
+            (_, ConvUnit { bias: Some(dw_bias), bn: None, .. }, ConvUnit { bias: Some(p_bias), bn: None, .. })
+                if frozen(&depthwise.weight) && expand.as_ref().is_none_or(|e| e.bn.is_none()) =>
+            {
+                let expand = expand.as_ref().map(|e| (&e.weight, e.bias.as_ref().expect("folded"))) ;
+                let eca = eca.as_ref().map(|e| &e.weight);
+                Some(Arc::new(FusedBottleneck::new(shape.stride, expand, (&depthwise.weight, dw_bias), eca, (&project.weight, p_bias))?))
+            }
+            _ => None,
+        };
+        Ok(InvertedResidual { shape, expand, depthwise, eca, project, fused })
     }
 
     /// The convolution units with their names: `expand` (if any), `depthwise`, `project`.
@@ -257,16 +276,15 @@ impl InvertedResidual {
     }
 
     pub fn forward_t(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
+        if let (Mode::Inference, Some(fused)) = (mode, &self.fused) {
+            return x.contiguous()?.apply_op1_no_bwd(fused.as_ref());
+        }
         let mut y = match &self.expand {
             Some(expand) => expand.forward_t(x, mode)?,
             None => x.clone(),
         };
         y = self.depthwise.forward_t(&y, mode)?;
         y = match &self.eca {
-            // Fast path: the gate scales the projection's weights, not the activation.
-            Some(eca) if mode == Mode::Inference && y.dim(0)? == 1 && self.project.bn.is_none() => {
-                self.project.forward_channel_scaled(&y, &eca.gate(&y)?.flatten_all()?)?
-            }
             Some(eca) => self.project.forward_t(&eca.forward(&y)?, mode)?,
             None => self.project.forward_t(&y, mode)?,
         };

@@ -8,6 +8,7 @@
 
 pub mod depthwise;
 pub mod embedder;
+pub mod fused;
 pub mod ecmobilenet;
 pub mod layers;
 pub mod mobilenetv2;
@@ -113,37 +114,53 @@ impl NetworkSpec {
     /// Trainable parameters (convolution weights, BatchNorm scale and shift, ECA kernels, the
     /// classifier's weight and bias), as PyTorch counts them, and multiply-accumulates per image.
     pub fn cost(&self, classes: Option<usize>, input_size: usize) -> ModelCost {
-        let (mut params, mut macs) = (0, 0);
+        let stages = self.stage_costs(classes, input_size);
+        ModelCost { arch: self.arch, params: stages.iter().map(|s| s.params).sum(), macs: stages.iter().map(|s| s.macs).sum() }
+    }
+
+    /// [`NetworkSpec::cost`] stage by stage: `stem`, `blocks.{i}`, `head` and `classifier`.
+    pub fn stage_costs(&self, classes: Option<usize>, input_size: usize) -> Vec<StageCost> {
+        let mut stages = Vec::new();
         let mut size = input_size.div_ceil(2);
         // (params, macs) of a convolution followed by BatchNorm (gamma and beta).
         let conv = |inp: usize, out: usize, k: usize, groups: usize, spatial: usize| {
             let weights = out * (inp / groups) * k * k;
             (weights + 2 * out, weights * spatial * spatial)
         };
-        let mut add = |(p, m): (usize, usize)| {
-            params += p;
-            macs += m;
+        let stage = |name: String, parts: &[(usize, usize)]| StageCost {
+            name,
+            params: parts.iter().map(|p| p.0).sum(),
+            macs: parts.iter().map(|p| p.1).sum(),
         };
-        add(conv(3, self.stem_channels, 3, 1, size));
-        for b in self.blocks() {
+        stages.push(stage("stem".into(), &[conv(3, self.stem_channels, 3, 1, size)]));
+        for (i, b) in self.blocks().into_iter().enumerate() {
+            let mut parts = Vec::new();
             if b.has_expansion() {
-                add(conv(b.input, b.hidden, 1, 1, size));
+                parts.push(conv(b.input, b.hidden, 1, 1, size));
             }
             size = size.div_ceil(b.stride);
-            add(conv(b.hidden, b.hidden, 3, b.hidden, size));
+            parts.push(conv(b.hidden, b.hidden, 3, b.hidden, size));
             if let Some(k) = b.eca_kernel {
-                add((k, k * b.hidden + b.hidden * size * size)); // 1-D conv + channel scaling
+                parts.push((k, k * b.hidden + b.hidden * size * size)); // 1-D conv + channel scaling
             }
-            add(conv(b.hidden, b.output, 1, 1, size));
+            parts.push(conv(b.hidden, b.output, 1, 1, size));
+            stages.push(stage(format!("blocks.{i}"), &parts));
         }
         let last = self.blocks().last().map(|b| b.output).unwrap_or(self.stem_channels);
-        add(conv(last, self.head_channels, 1, 1, size));
+        stages.push(stage("head".into(), &[conv(last, self.head_channels, 1, 1, size)]));
         if let Some(k) = classes {
-            params += self.head_channels * k + k;
-            macs += self.head_channels * k;
+            stages.push(stage("classifier".into(), &[(self.head_channels * k + k, self.head_channels * k)]));
         }
-        ModelCost { arch: self.arch, params, macs }
+        stages
     }
+}
+
+/// Parameters and multiply-accumulates of one stage of a network.
+#[derive(Clone, Debug, Serialize, PartialEq, Eq)]
+pub struct StageCost {
+    pub name: String,
+    pub params: usize,
+    pub macs: usize,
 }
 
 /// Size and arithmetic of a network.
@@ -203,6 +220,36 @@ impl Network {
         }
         self.head.forward_t(&y, mode)
     }
+
+    /// Mean time of each stage (`stem`, `blocks.{i}`, `head`) over `runs` passes of `x` in `mode`,
+    /// after one warm-up pass: the profile behind the benchmark's totals.
+    pub fn profile(&self, x: &Tensor, mode: Mode, runs: usize) -> Result<Vec<(String, std::time::Duration)>> {
+        let mut totals = vec![std::time::Duration::ZERO; self.blocks.len() + 2];
+        for run in 0..=runs {
+            let mut timed = |i: usize, f: &dyn Fn() -> Result<Tensor>| -> Result<Tensor> {
+                let started = std::time::Instant::now();
+                let y = f()?;
+                if run > 0 {
+                    totals[i] += started.elapsed();
+                }
+                Ok(y)
+            };
+            let mut y = timed(0, &|| self.stem.forward_t(x, mode))?;
+            for (i, block) in self.blocks.iter().enumerate() {
+                y = timed(i + 1, &|| block.forward_t(&y, mode))?;
+            }
+            timed(self.blocks.len() + 1, &|| self.head.forward_t(&y, mode))?;
+        }
+        let names = std::iter::once("stem".to_string())
+            .chain((0..self.blocks.len()).map(|i| format!("blocks.{i}")))
+            .chain(std::iter::once("head".to_string()));
+        Ok(names.zip(totals).map(|(n, t)| (n, t / runs.max(1) as u32)).collect())
+    }
+
+    #[doc(hidden)]
+    pub fn stem_forward(&self, x: &Tensor, mode: Mode) -> Result<Tensor> { self.stem.forward_t(x, mode) }
+    #[doc(hidden)]
+    pub fn head_forward(&self, x: &Tensor, mode: Mode) -> Result<Tensor> { self.head.forward_t(x, mode) }
 
     /// Calls `f(name, weight, bias)` for every parameter tensor group in inference form
     /// (BatchNorm folded), with the names of [`weights`].
