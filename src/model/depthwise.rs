@@ -209,12 +209,7 @@ fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act:
             let (a, b, c) = (&r0[start..start + span], &r1[start..start + span], &r2[start..start + span]);
             let dst = &mut out_row[lo..hi];
             if s == 1 {
-                for (i, o) in dst.iter_mut().enumerate() {
-                    *o = bias
-                        + w[0] * a[i] + w[1] * a[i + 1] + w[2] * a[i + 2]
-                        + w[3] * b[i] + w[4] * b[i + 1] + w[5] * b[i + 2]
-                        + w[6] * c[i] + w[7] * c[i + 1] + w[8] * c[i + 2];
-                }
+                tap_sum(dst, bias, w, [a, &a[1..], &a[2..], b, &b[1..], &b[2..], c, &c[1..], &c[2..]]);
             } else if s == 2 {
                 // Even and odd columns split once, so that every tap is a unit-stride load
                 // (vectorisable) instead of a gather.
@@ -230,12 +225,7 @@ fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act:
                 }
                 let (ea, eb, ec) = (&even[..n + 1], &even[n + 1..2 * n + 2], &even[2 * n + 2..]);
                 let (oa, ob, oc) = (&odd[..n], &odd[n..2 * n], &odd[2 * n..3 * n]);
-                for (i, o) in dst.iter_mut().enumerate() {
-                    *o = bias
-                        + w[0] * ea[i] + w[1] * oa[i] + w[2] * ea[i + 1]
-                        + w[3] * eb[i] + w[4] * ob[i] + w[5] * eb[i + 1]
-                        + w[6] * ec[i] + w[7] * oc[i] + w[8] * ec[i + 1];
-                }
+                tap_sum(dst, bias, w, [ea, oa, &ea[1..], eb, ob, &eb[1..], ec, oc, &ec[1..]]);
             } else {
                 for (i, o) in dst.iter_mut().enumerate() {
                     let j = i * s;
@@ -247,6 +237,28 @@ fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act:
             }
         }
         act.apply(out_row);
+    }
+}
+
+/// `dst[i] = bias + Σ_k w[k] · taps[k][i]` over a row segment. Every tap is cut to `dst`'s length
+/// first, so the loop runs without bounds checks and vectorises (one FMA per tap and lane).
+#[inline(always)]
+fn tap_sum(dst: &mut [f32], bias: f32, w: &[f32], taps: [&[f32]; 9]) {
+    let n = dst.len();
+    let w: &[f32; 9] = w.try_into().expect("3x3 taps");
+    let [t0, t1, t2, t3, t4, t5, t6, t7, t8] = taps;
+    let (t0, t1, t2, t3, t4, t5, t6, t7, t8) =
+        (&t0[..n], &t1[..n], &t2[..n], &t3[..n], &t4[..n], &t5[..n], &t6[..n], &t7[..n], &t8[..n]);
+    for i in 0..n {
+        let mut acc = t0[i].mul_add(w[0], bias);
+        acc = t1[i].mul_add(w[1], acc);
+        acc = t2[i].mul_add(w[2], acc);
+        acc = t3[i].mul_add(w[3], acc);
+        acc = t4[i].mul_add(w[4], acc);
+        acc = t5[i].mul_add(w[5], acc);
+        acc = t6[i].mul_add(w[6], acc);
+        acc = t7[i].mul_add(w[7], acc);
+        dst[i] = t8[i].mul_add(w[8], acc);
     }
 }
 

@@ -84,6 +84,19 @@ fn eca_gate(sums: &[f64], count: usize, taps: &[f32]) -> Vec<f32> {
         .collect()
 }
 
+/// Sum of a plane: eight f32 lanes (vectorised; each adds at most plane/8 values of ReLU6
+/// outputs), combined in f64.
+fn plane_sum(plane: &[f32]) -> f64 {
+    let mut lanes = [0f32; 8];
+    let mut chunks = plane.chunks_exact(8);
+    for chunk in &mut chunks {
+        for (l, v) in lanes.iter_mut().zip(chunk) {
+            *l += v;
+        }
+    }
+    lanes.iter().chain(chunks.remainder()).map(|&v| v as f64).sum()
+}
+
 /// The folded weights of one inverted-residual bottleneck with 3x3 depthwise convolution.
 #[derive(Debug)]
 pub struct FusedBottleneck {
@@ -167,7 +180,7 @@ impl FusedBottleneck {
                         let weights = &self.depthwise_weight[c * 9..(c + 1) * 9];
                         let src = &source[i * plane_in..(i + 1) * plane_in];
                         convolve_plane(&geometry, src, weights, self.depthwise_bias[c], Activation::Relu6, plane);
-                        *sum = plane.iter().map(|&v| v as f64).sum();
+                        *sum = plane_sum(plane);
                     }
                 };
                 match &self.expand {
@@ -188,7 +201,6 @@ impl FusedBottleneck {
             },
         );
 
-        // Projection (+ bias + residual preloaded), ECA folded into the weight columns.
         let scaled;
         let weight = match &self.eca_taps {
             Some(taps) => {
@@ -212,6 +224,7 @@ impl FusedBottleneck {
                 false => row.fill(self.project_bias[o]),
             }
         }
+        // Projection (+ bias + residual preloaded), ECA folded into the weight columns.
         matmul(self.output, plane_out, self.hidden, out, true, weight, &depthwise_out, true);
     }
 }

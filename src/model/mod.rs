@@ -246,11 +246,6 @@ impl Network {
         Ok(names.zip(totals).map(|(n, t)| (n, t / runs.max(1) as u32)).collect())
     }
 
-    #[doc(hidden)]
-    pub fn stem_forward(&self, x: &Tensor, mode: Mode) -> Result<Tensor> { self.stem.forward_t(x, mode) }
-    #[doc(hidden)]
-    pub fn head_forward(&self, x: &Tensor, mode: Mode) -> Result<Tensor> { self.head.forward_t(x, mode) }
-
     /// Calls `f(name, weight, bias)` for every parameter tensor group in inference form
     /// (BatchNorm folded), with the names of [`weights`].
     pub fn visit_units(&self, f: &mut dyn FnMut(&str, &Tensor, Option<&Tensor>)) -> Result<()> {
