@@ -33,12 +33,9 @@ thread_local! {
     static EXPANDED: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
 }
 
-/// Row-major `dst[m×n] = (dst if accumulate) + lhs[m×k] · rhs[k×n]`, on rayon's threads when
-/// `parallel`.
-fn matmul(m: usize, n: usize, k: usize, dst: &mut [f32], accumulate: bool, lhs: &[f32], rhs: &[f32], parallel: bool) {
+/// Row-major `dst[m×n] = (dst if accumulate) + lhs[m×k] · rhs[k×n]` on the calling thread.
+fn matmul(m: usize, n: usize, k: usize, dst: &mut [f32], accumulate: bool, lhs: &[f32], rhs: &[f32]) {
     assert!(dst.len() >= m * n && lhs.len() >= m * k && rhs.len() >= k * n, "matmul operand sizes");
-    let threads = rayon::current_num_threads();
-    let parallelism = if parallel && threads > 1 { gemm::Parallelism::Rayon(threads) } else { gemm::Parallelism::None };
     // SAFETY: the slices hold the row-major matrices whose sizes were checked above; dst does
     // not alias the inputs (distinct borrows).
     unsafe {
@@ -47,9 +44,23 @@ fn matmul(m: usize, n: usize, k: usize, dst: &mut [f32], accumulate: bool, lhs: 
             dst.as_mut_ptr(), 1, n as isize, accumulate,
             lhs.as_ptr(), 1, k as isize,
             rhs.as_ptr(), 1, n as isize,
-            1.0, 1.0, false, false, false, parallelism,
+            1.0, 1.0, false, false, false, gemm::Parallelism::None,
         );
     }
+}
+
+/// [`matmul`] (accumulating) with the rows of `dst` and `lhs` split across rayon's threads, one
+/// block of rows (a multiple of 8) per thread: every thread reads all of `rhs` and writes its own
+/// rows, which scales better on these small products than splitting inside the multiply.
+fn matmul_parallel(m: usize, n: usize, k: usize, dst: &mut [f32], lhs: &[f32], rhs: &[f32]) {
+    if m == 0 || n == 0 {
+        return;
+    }
+    let threads = rayon::current_num_threads().max(1);
+    let rows = m.div_ceil(threads).next_multiple_of(8).min(m).max(1);
+    dst[..m * n].par_chunks_mut(rows * n).zip(lhs[..m * k].par_chunks(rows * k)).for_each(|(dst, lhs)| {
+        matmul(dst.len() / n, n, k, dst, true, lhs, rhs);
+    });
 }
 
 fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
@@ -191,7 +202,7 @@ impl FusedBottleneck {
                             row.fill(b);
                         }
                         let weight = &weight[first * self.input..(first + count) * self.input];
-                        matmul(count, plane_in, self.input, expanded, true, weight, x, false);
+                        matmul(count, plane_in, self.input, expanded, true, weight, x);
                         for v in expanded.iter_mut() {
                             *v = v.clamp(0.0, 6.0);
                         }
@@ -225,7 +236,7 @@ impl FusedBottleneck {
             }
         }
         // Projection (+ bias + residual preloaded), ECA folded into the weight columns.
-        matmul(self.output, plane_out, self.hidden, out, true, weight, &depthwise_out, true);
+        matmul_parallel(self.output, plane_out, self.hidden, out, weight, &depthwise_out);
     }
 }
 
@@ -331,7 +342,7 @@ impl CustomOp1 for DenseConv {
             for (row, &b) in out.chunks_exact_mut(plane_out).zip(&self.bias) {
                 row.fill(b);
             }
-            matmul(self.out_channels, plane_out, taps, out, true, &self.weight, rhs, true);
+            matmul_parallel(self.out_channels, plane_out, taps, out, &self.weight, rhs);
             if self.activation == Activation::Relu6 {
                 out.par_chunks_mut(plane_out).for_each(|row| row.iter_mut().for_each(|v| *v = v.clamp(0.0, 6.0)));
             }
