@@ -135,7 +135,7 @@ unsafe fn convolve_plane_avx2(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f
 
 #[inline(always)]
 fn convolve_plane_generic(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
-    if g.kh == 3 && g.kw == 3 {
+    if g.kh == 3 && g.kw == 3 && (g.stride == 1 || g.stride == 2) {
         return convolve_plane_3x3(g, src, w, bias, act, out);
     }
     let s = g.stride;
@@ -165,85 +165,92 @@ fn convolve_plane_generic(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, 
     }
 }
 
-/// The 3x3 case (all of MobileNetV2): each output is computed in one pass from three input rows,
-/// rows outside the image read as a zero row; interior columns run without bounds tests.
+/// A channel plane copied into a zero border ("SAME" padding made explicit), reused across
+/// planes of one geometry so that only the interior is rewritten. At stride 2 its even and odd
+/// columns are kept apart, so each output row reads unit-stride runs.
+#[derive(Default)]
+struct PaddedPlane {
+    key: (usize, usize, usize, usize, usize, usize),
+    /// Stride 1: the padded plane, `rows x cols`. Stride 2: the even columns (`rows x (cols/2 + 1)`)
+    /// then the odd ones (`rows x cols/2`).
+    data: Vec<f32>,
+}
+
+thread_local! {
+    static PADDED: std::cell::Cell<PaddedPlane> = std::cell::Cell::new(PaddedPlane::default());
+}
+
+/// The 3x3 case (all of MobileNetV2), strides 1 and 2: the plane is copied into a zero border,
+/// then every output row is one bounds-check-free, vectorised pass over three padded rows with the
+/// bias and activation fused. Other strides take the general path.
 #[inline(always)]
 fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
-    let (s, width) = (g.stride, g.width);
-    let zero = vec![0f32; width];
-    let row = |iy: isize| -> &[f32] {
-        if iy < 0 || iy >= g.height as isize {
-            &zero
-        } else {
-            &src[iy as usize * width..(iy as usize + 1) * width]
+    let (s, width, ow) = (g.stride, g.width, g.ow);
+    let oh = out.len() / ow;
+    // The padded extent each output needs: exactly the input plus its "SAME" padding.
+    let (rows, cols) = ((oh - 1) * s + 3, (ow - 1) * s + 3);
+    // Taken out of the thread-local rather than used in a closure: a closure would be compiled
+    // without this function's AVX2/FMA features, and `mul_add` would become a library call.
+    let mut padded = PADDED.take();
+    {
+        let key = (rows, cols, s, g.pad_top, g.pad_left, width);
+        if padded.key != key || padded.data.len() != rows * cols {
+            padded.key = key;
+            padded.data.clear();
+            padded.data.resize(rows * cols, 0.0);
         }
-    };
-    let tap = |r: &[f32], ix: isize| -> f32 {
-        if ix < 0 || ix >= width as isize {
-            0.0
-        } else {
-            r[ix as usize]
-        }
-    };
-    // Interior output columns: ox*s - pad_left >= 0 and ox*s - pad_left + 2 < width.
-    let lo = g.pad_left.div_ceil(s).min(g.ow);
-    let hi = if width + g.pad_left >= 3 { ((width + g.pad_left - 3) / s + 1).clamp(lo, g.ow) } else { lo };
-    let mut split = Vec::new();
-    for (oy, out_row) in out.chunks_exact_mut(g.ow).enumerate() {
-        let top = (oy * s) as isize - g.pad_top as isize;
-        let (r0, r1, r2) = (row(top), row(top + 1), row(top + 2));
-        let edge = |ox: usize| {
-            let ix = (ox * s) as isize - g.pad_left as isize;
-            let mut acc = bias;
-            for (k, r) in [r0, r1, r2].into_iter().enumerate() {
-                acc += w[3 * k] * tap(r, ix) + w[3 * k + 1] * tap(r, ix + 1) + w[3 * k + 2] * tap(r, ix + 2);
+        let data = &mut padded.data;
+        // Input rows/columns that land inside the padded extent.
+        let (y_end, x_end) = (g.height.min(rows - g.pad_top), width.min(cols - g.pad_left));
+        let relu6 = act == Activation::Relu6;
+        if s == 1 {
+            for y in 0..y_end {
+                let at = (y + g.pad_top) * cols + g.pad_left;
+                data[at..at + x_end].copy_from_slice(&src[y * width..y * width + x_end]);
             }
-            acc
-        };
-        for ox in (0..lo).chain(hi..g.ow) {
-            out_row[ox] = edge(ox);
-        }
-        if hi > lo {
-            let start = lo * s - g.pad_left;
-            let span = (hi - lo - 1) * s + 3;
-            let (a, b, c) = (&r0[start..start + span], &r1[start..start + span], &r2[start..start + span]);
-            let dst = &mut out_row[lo..hi];
-            if s == 1 {
-                tap_sum(dst, bias, w, [a, &a[1..], &a[2..], b, &b[1..], &b[2..], c, &c[1..], &c[2..]]);
-            } else if s == 2 {
-                // Even and odd columns split once, so that every tap is a unit-stride load
-                // (vectorisable) instead of a gather.
-                let n = hi - lo;
-                split.resize(3 * (2 * n + 1), 0.0);
-                let (even, odd) = split.split_at_mut(3 * (n + 1));
-                for (k, r) in [a, b, c].into_iter().enumerate() {
-                    for i in 0..n {
-                        even[k * (n + 1) + i] = r[2 * i];
-                        odd[k * n + i] = r[2 * i + 1];
+            for (oy, out_row) in out.chunks_exact_mut(ow).enumerate() {
+                let [a, b, c] = [0, 1, 2].map(|k| &data[(oy + k) * cols..(oy + k + 1) * cols]);
+                let taps = [a, &a[1..], &a[2..], b, &b[1..], &b[2..], c, &c[1..], &c[2..]];
+                tap_sum(out_row, bias, w, taps, relu6);
+            }
+        } else {
+            let (even_cols, odd_cols) = (cols / 2 + 1, cols / 2);
+            let (even, odd) = data.split_at_mut(rows * even_cols);
+            for y in 0..y_end {
+                let row = &src[y * width..y * width + x_end];
+                let (e, o) = (&mut even[(y + g.pad_top) * even_cols..], &mut odd[(y + g.pad_top) * odd_cols..]);
+                for (x, &v) in row.iter().enumerate() {
+                    let col = x + g.pad_left;
+                    if col % 2 == 0 {
+                        e[col / 2] = v;
+                    } else {
+                        o[col / 2] = v;
                     }
-                    even[k * (n + 1) + n] = r[2 * n];
-                }
-                let (ea, eb, ec) = (&even[..n + 1], &even[n + 1..2 * n + 2], &even[2 * n + 2..]);
-                let (oa, ob, oc) = (&odd[..n], &odd[n..2 * n], &odd[2 * n..3 * n]);
-                tap_sum(dst, bias, w, [ea, oa, &ea[1..], eb, ob, &eb[1..], ec, oc, &ec[1..]]);
-            } else {
-                for (i, o) in dst.iter_mut().enumerate() {
-                    let j = i * s;
-                    *o = bias
-                        + w[0] * a[j] + w[1] * a[j + 1] + w[2] * a[j + 2]
-                        + w[3] * b[j] + w[4] * b[j + 1] + w[5] * b[j + 2]
-                        + w[6] * c[j] + w[7] * c[j + 1] + w[8] * c[j + 2];
                 }
             }
+            for (oy, out_row) in out.chunks_exact_mut(ow).enumerate() {
+                let r = |k: usize| (&even[(2 * oy + k) * even_cols..][..even_cols], &odd[(2 * oy + k) * odd_cols..][..odd_cols]);
+                let ((ea, oa), (eb, ob), (ec, oc)) = (r(0), r(1), r(2));
+                tap_sum(out_row, bias, w, [ea, oa, &ea[1..], eb, ob, &eb[1..], ec, oc, &ec[1..]], relu6);
+            }
         }
-        act.apply(out_row);
+    }
+    PADDED.set(padded);
+}
+
+/// `dst[i] = act(bias + Σ_k w[k] · taps[k][i])` over a row. Every tap is cut to `dst`'s length
+/// first, so the loop runs without bounds checks and vectorises (one FMA per tap and lane).
+#[inline(always)]
+fn tap_sum(dst: &mut [f32], bias: f32, w: &[f32], taps: [&[f32]; 9], relu6: bool) {
+    if relu6 {
+        tap_sum_with::<true>(dst, bias, w, taps)
+    } else {
+        tap_sum_with::<false>(dst, bias, w, taps)
     }
 }
 
-/// `dst[i] = bias + Σ_k w[k] · taps[k][i]` over a row segment. Every tap is cut to `dst`'s length
-/// first, so the loop runs without bounds checks and vectorises (one FMA per tap and lane).
 #[inline(always)]
-fn tap_sum(dst: &mut [f32], bias: f32, w: &[f32], taps: [&[f32]; 9]) {
+fn tap_sum_with<const RELU6: bool>(dst: &mut [f32], bias: f32, w: &[f32], taps: [&[f32]; 9]) {
     let n = dst.len();
     let w: &[f32; 9] = w.try_into().expect("3x3 taps");
     let [t0, t1, t2, t3, t4, t5, t6, t7, t8] = taps;
@@ -258,7 +265,8 @@ fn tap_sum(dst: &mut [f32], bias: f32, w: &[f32], taps: [&[f32]; 9]) {
         acc = t5[i].mul_add(w[5], acc);
         acc = t6[i].mul_add(w[6], acc);
         acc = t7[i].mul_add(w[7], acc);
-        dst[i] = t8[i].mul_add(w[8], acc);
+        acc = t8[i].mul_add(w[8], acc);
+        dst[i] = if RELU6 { acc.clamp(0.0, 6.0) } else { acc };
     }
 }
 
