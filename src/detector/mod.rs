@@ -32,7 +32,7 @@ pub mod store;
 use crate::descriptor::Descriptor;
 use index::{IndexPolicy, IvfIndex, TopK};
 use crate::types::{LoopCandidate, Stamp};
-use anyhow::ensure;
+use anyhow::{ensure, Context};
 use std::collections::VecDeque;
 
 /// The acceptance threshold, on the distance or on the score (see [`crate::descriptor::Descriptor::score`]).
@@ -101,6 +101,8 @@ pub struct KeyframeDb {
     dropped: usize,
     index_policy: IndexPolicy,
     index: Option<IvfIndex>,
+    /// While set, inserts leave the index alone (bulk loading: one training at the end, not one per growth step).
+    index_deferred: bool,
 }
 
 impl KeyframeDb {
@@ -118,16 +120,24 @@ impl KeyframeDb {
             dropped: 0,
             index_policy: IndexPolicy::default(),
             index: None,
+            index_deferred: false,
         }
     }
 
     /// Changes when the approximate index is used; builds or drops it at once to match.
-    pub fn set_index_policy(&mut self, policy: IndexPolicy) {
+    pub fn set_index_policy(&mut self, policy: IndexPolicy) -> anyhow::Result<()> {
         self.index_policy = policy;
         if self.len() < policy.threshold(self.dim) {
             self.index = None;
         }
-        self.update_index();
+        self.update_index()
+    }
+
+    /// Defers index maintenance while `deferred` (a bulk load); clearing it builds or extends the index
+    /// for everything inserted meanwhile. Searches stay correct in between (unindexed keyframes are scanned).
+    pub fn defer_index(&mut self, deferred: bool) -> anyhow::Result<()> {
+        self.index_deferred = deferred;
+        self.update_index()
     }
 
     pub fn index_policy(&self) -> IndexPolicy {
@@ -140,19 +150,23 @@ impl KeyframeDb {
     }
 
     /// Trains, retrains or extends the index as the policy and the database length require.
-    fn update_index(&mut self) {
+    fn update_index(&mut self) -> anyhow::Result<()> {
+        if self.index_deferred {
+            return Ok(());
+        }
         let len = self.len();
         let retrain = match &self.index {
             None => len >= self.index_policy.threshold(self.dim),
             Some(index) => len >= index.trained_len().saturating_mul(self.index_policy.retrain_growth.max(2)),
         };
         if retrain {
-            self.index = Some(IvfIndex::train(&self.descriptors, self.dim, self.dropped));
+            self.index = Some(IvfIndex::train(&self.descriptors, self.dim, self.dropped).context("training the search index")?);
         } else if let Some(index) = &mut self.index {
             if index.pending(&self.descriptors) >= index::ASSIGN_BATCH {
-                index.assign_pending(&self.descriptors);
+                index.assign_pending(&self.descriptors).context("extending the search index")?;
             }
         }
+        Ok(())
     }
 
     /// Drops the `count` oldest keyframes (all, if fewer); later positions shift down by `count`.
@@ -208,7 +222,7 @@ impl KeyframeDb {
         self.ids.push(id);
         self.stamps.push(stamp);
         self.descriptors.extend_from_slice(descriptor);
-        self.update_index();
+        self.update_index()?;
         Ok(self.len() - 1)
     }
 
