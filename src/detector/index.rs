@@ -5,7 +5,7 @@
 //!   (baseline and AVX2, picked at run time). Every lane does the same additions in the same order as
 //!   [`crate::descriptor::squared_distance`], so the distances are bit-identical to it.
 //! - IVF: k-means centroids (a few Lloyd iterations on a sample) split the stored descriptors into
-//!   `nlist` lists; a query ranks the centroids and scans only the `nprobe` nearest lists, computing exact
+//!   `nlist` lists (spherical for unit descriptors: see [`IvfIndex::train`]); a query ranks the centroids and scans only the `nprobe` nearest lists, computing exact
 //!   distances on the stored `f32` descriptors, so a returned distance is always the true one and only
 //!   the *set* of neighbours can differ from the exact search. Chosen over a graph index (HNSW) because
 //!   it is small (4 bytes per keyframe besides the descriptors, against 100+ for an HNSW graph), inserts
@@ -35,19 +35,23 @@ pub struct IndexPolicy {
     pub scan_values: usize,
     /// Retrain when the database has grown this many times since the last training.
     pub retrain_growth: usize,
+    /// Fraction of the lists a query scans (at least 8): the speed/recall trade-off.
+    pub probe_fraction: f64,
 }
 
 impl Default for IndexPolicy {
     fn default() -> Self {
         // 2.5M values = 10 MB of f32: 20k keyframes at 128-d, 5k at 1280-d (the `min_len` floor),
         // where an exact scan costs about a millisecond and a half (128-d) to a few (1280-d).
-        IndexPolicy { min_len: 5000, scan_values: 2_621_440, retrain_growth: 8 }
+        // A sixteenth of the lists kept recall@10 >= 0.99 on clustered data (unit tests; `ecm-lcd bench
+        // --only search` measures it at each size).
+        IndexPolicy { min_len: 5000, scan_values: 2_621_440, retrain_growth: 4, probe_fraction: 1.0 / 16.0 }
     }
 }
 
 impl IndexPolicy {
     /// Always exact.
-    pub const EXACT: IndexPolicy = IndexPolicy { min_len: usize::MAX, scan_values: usize::MAX, retrain_growth: 8 };
+    pub const EXACT: IndexPolicy = IndexPolicy { min_len: usize::MAX, scan_values: usize::MAX, retrain_growth: 8, probe_fraction: 1.0 };
 
     /// The database length from which descriptors of length `dim` are indexed.
     pub fn threshold(&self, dim: usize) -> usize {
@@ -238,15 +242,21 @@ pub(crate) struct IvfIndex {
 
 /// k-means iterations (Lloyd) when training; more change the lists little on descriptor-like data.
 const KMEANS_ITERATIONS: usize = 6;
+/// Lists probed at least.
+const MIN_PROBE: usize = 8;
+/// Bound on `nlist * dim`, the cost of assigning one keyframe to its list.
+const MAX_ASSIGN_VALUES: usize = 262_144;
 /// Training sample per list.
 const SAMPLE_PER_LIST: usize = 32;
 
 impl IvfIndex {
     /// Trains on the live rows `rows[first_live..]` (`dim` values each) and assigns every row.
-    pub fn train(rows: &[f32], dim: usize, first_live: usize) -> anyhow::Result<Self> {
+    pub fn train(rows: &[f32], dim: usize, first_live: usize, probe_fraction: f64) -> anyhow::Result<Self> {
         let total = rows.len() / dim;
         let live = total - first_live;
-        let nlist = ((live as f64).sqrt().round() as usize).clamp(1, 1024);
+        // 2 sqrt(n) lists, up to 1024, and at most MAX_ASSIGN_VALUES / dim so assigning one keyframe
+        // stays cheap (200 lists at 1280-d, 1024 at 128-d).
+        let nlist = ((2.0 * (live as f64).sqrt()).round() as usize).clamp(1, (MAX_ASSIGN_VALUES / dim.max(1)).clamp(1, 1024));
         // A fixed sample: evenly spread over the history, then jittered, so training is reproducible.
         let mut sampler = Sampler(0x9E37_79B9_7F4A_7C15 ^ live as u64);
         let sample_len = (nlist * SAMPLE_PER_LIST).min(live).max(1);
@@ -264,8 +274,10 @@ impl IvfIndex {
             let assignment = nearest_centroids(&centroids, dim, &sample)?;
             let mut sums = vec![0f64; nlist * dim];
             let mut counts = vec![0usize; nlist];
+            let mut norm_sums = vec![0f64; nlist];
             for (i, &c) in assignment.iter().enumerate() {
                 counts[c] += 1;
+                norm_sums[c] += row(i).iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>().sqrt();
                 sums[c * dim..(c + 1) * dim].iter_mut().zip(row(i)).for_each(|(s, &x)| *s += x as f64);
             }
             for c in 0..nlist {
@@ -274,14 +286,17 @@ impl IvfIndex {
                     // An empty list takes a random sample row, so no centroid is wasted.
                     centroid.copy_from_slice(row(sampler.next(sample_len)));
                 } else {
-                    let n = counts[c] as f64;
-                    centroid.iter_mut().zip(&sums[c * dim..(c + 1) * dim]).for_each(|(x, &s)| *x = (s / n) as f32);
+                    // The members' mean direction at their mean length: for unit descriptors this is
+                    // spherical k-means. A plain mean is shorter than its members, and short centroids
+                    // attract ever more points, giving a few huge lists that every query probes.
+                    let sum = &sums[c * dim..(c + 1) * dim];
+                    let sum_norm = sum.iter().map(|s| s * s).sum::<f64>().sqrt().max(f64::MIN_POSITIVE);
+                    let scale = norm_sums[c] / counts[c] as f64 / sum_norm;
+                    centroid.iter_mut().zip(sum).for_each(|(x, &s)| *x = (s * scale) as f32);
                 }
             }
         }
-        // Probing a sixteenth of the lists (at least 8) gave recall@10 >= 0.99 on clustered data
-        // (unit tests; `ecm-lcd bench --only search` measures it at each size).
-        let nprobe = (nlist / 16).max(8).min(nlist);
+        let nprobe = ((nlist as f64 * probe_fraction).round() as usize).max(MIN_PROBE).min(nlist);
         let mut index = IvfIndex { dim, centroids, lists: vec![Vec::new(); nlist], assigned: first_live, trained_len: live, nprobe };
         index.assign_pending(rows)?;
         Ok(index)
@@ -293,6 +308,10 @@ impl IvfIndex {
 
     pub fn nprobe(&self) -> usize {
         self.nprobe
+    }
+
+    pub fn largest_list(&self) -> usize {
+        self.lists.iter().map(Vec::len).max().unwrap_or(0)
     }
 
     pub fn trained_len(&self) -> usize {
@@ -373,7 +392,7 @@ mod tests {
     #[test]
     fn index_is_chosen_by_size_and_keeps_recall() -> anyhow::Result<()> {
         let (dim, count) = (32, 6000);
-        let policy = IndexPolicy { min_len: 2000, scan_values: 0, retrain_growth: 8 };
+        let policy = IndexPolicy { min_len: 2000, scan_values: 0, ..IndexPolicy::default() };
         assert_eq!(policy.threshold(dim), 2000);
         assert_eq!(IndexPolicy::EXACT.threshold(dim), usize::MAX);
         let data = clustered(count, dim, 60, 7);
@@ -409,7 +428,7 @@ mod tests {
         let dim = 16;
         let data = clustered(3000, dim, 30, 3);
         let mut db = KeyframeDb::new(dim);
-        db.set_index_policy(IndexPolicy { min_len: 1000, scan_values: 0, retrain_growth: 2 })?;
+        db.set_index_policy(IndexPolicy { min_len: 1000, scan_values: 0, retrain_growth: 2, ..IndexPolicy::default() })?;
         for (i, v) in data.chunks_exact(dim).enumerate() {
             db.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
         }

@@ -87,6 +87,8 @@ pub struct IndexInfo {
     pub nprobe: usize,
     /// Keyframes the index was last trained on.
     pub trained_len: usize,
+    /// Keyframes in the largest list (balance: the mean is `len / nlist`).
+    pub largest_list: usize,
 }
 
 /// Keyframes (id, stamp, descriptor) in insertion order, with top-k search (exact, or indexed once large).
@@ -146,7 +148,7 @@ impl KeyframeDb {
 
     /// The approximate index's shape, or `None` while searches are exact.
     pub fn index_info(&self) -> Option<IndexInfo> {
-        self.index.as_ref().map(|i| IndexInfo { nlist: i.nlist(), nprobe: i.nprobe(), trained_len: i.trained_len() })
+        self.index.as_ref().map(|i| IndexInfo { nlist: i.nlist(), nprobe: i.nprobe(), trained_len: i.trained_len(), largest_list: i.largest_list() })
     }
 
     /// Trains, retrains or extends the index as the policy and the database length require.
@@ -160,7 +162,7 @@ impl KeyframeDb {
             Some(index) => len >= index.trained_len().saturating_mul(self.index_policy.retrain_growth.max(2)),
         };
         if retrain {
-            self.index = Some(IvfIndex::train(&self.descriptors, self.dim, self.dropped).context("training the search index")?);
+            self.index = Some(IvfIndex::train(&self.descriptors, self.dim, self.dropped, self.index_policy.probe_fraction).context("training the search index")?);
         } else if let Some(index) = &mut self.index {
             if index.pending(&self.descriptors) >= index::ASSIGN_BATCH {
                 index.assign_pending(&self.descriptors).context("extending the search index")?;
