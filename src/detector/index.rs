@@ -1,9 +1,9 @@
 //! Nearest-neighbour search for [`super::KeyframeDb`]: a SIMD brute-force scan (exact) and an
 //! inverted-file index (IVF, approximate) that the database builds by itself once it is large.
 //!
-//! - Exact scan: squared Euclidean distances with eight independent partial sums, compiled twice
-//!   (baseline and AVX2, picked at run time). Every lane does the same additions in the same order as
-//!   [`crate::descriptor::squared_distance`], so the distances are bit-identical to it.
+//! - Exact scan: [`crate::descriptor::squared_distance`] (eight independent partial sums) inlined into a
+//!   loop compiled twice, baseline and AVX2, picked at run time; the additions are the same in both, so
+//!   the distances are bit-identical to the plain function.
 //! - IVF: k-means centroids (a few Lloyd iterations on a sample) split the stored descriptors into
 //!   `nlist` lists (spherical for unit descriptors: see [`IvfIndex::train`]); a query ranks the centroids and scans only the `nprobe` nearest lists, computing exact
 //!   distances on the stored `f32` descriptors, so a returned distance is always the true one and only
@@ -22,6 +22,7 @@
 //!   fewer results than the exact search would.
 
 use super::Neighbour;
+use crate::descriptor::squared_distance;
 
 /// Keyframes assigned to the index's lists at once (the rest of the tail is scanned exactly).
 pub const ASSIGN_BATCH: usize = 1024;
@@ -94,27 +95,11 @@ impl TopK {
     }
 }
 
-/// Same arithmetic as [`crate::descriptor::squared_distance`] (eight lanes, then the tail).
-#[inline(always)]
-fn squared_l2(a: &[f32], b: &[f32]) -> f32 {
-    const LANES: usize = 8;
-    let mut lanes = [0.0f32; LANES];
-    let (a_chunks, b_chunks) = (a.chunks_exact(LANES), b.chunks_exact(LANES));
-    let tail: f32 = a_chunks.remainder().iter().zip(b_chunks.remainder()).map(|(x, y)| (x - y) * (x - y)).sum();
-    for (ca, cb) in a_chunks.zip(b_chunks) {
-        for lane in 0..LANES {
-            let d = ca[lane] - cb[lane];
-            lanes[lane] += d * d;
-        }
-    }
-    lanes.iter().sum::<f32>() + tail
-}
-
-/// Calls `visit(i, d2)` for each row `i` of `rows` (`dim` values each) that `rows_of` yields.
+/// Calls `visit(i, d2)` for each `(i, row)` that `rows` yields.
 #[inline(always)]
 fn scan_portable<'a>(query: &[f32], rows: impl Iterator<Item = (usize, &'a [f32])>, visit: &mut impl FnMut(usize, f32)) {
     for (i, row) in rows {
-        visit(i, squared_l2(query, row));
+        visit(i, squared_distance(query, row));
     }
 }
 
