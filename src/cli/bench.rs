@@ -817,3 +817,20 @@ fn print_report(args: &BenchArgs, report: &Report) {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn order_statistics_and_memory_specs() {
+        let mut samples: Vec<f64> = (1..=100).rev().map(f64::from).collect();
+        let s = Stats::of(&mut samples);
+        assert_eq!((s.runs, s.median_ms, s.p90_ms, s.p99_ms), (100, 51.0, 90.0, 99.0));
+        assert!(Stats::of(&mut []).median_ms.is_nan());
+        assert_eq!(parse_memory_spec("1000000:128").unwrap(), (1_000_000, 128));
+        for bad in ["1000000", "x:128", "10:"] {
+            assert!(format!("{:#}", parse_memory_spec(bad).unwrap_err()).contains(bad), "{bad}");
+        }
+    }
+}

@@ -432,6 +432,26 @@ mod tests {
     }
 
     #[test]
+    fn a_deferred_bulk_load_builds_the_index_once_at_the_end() -> anyhow::Result<()> {
+        let dim = 8;
+        let data = clustered(3000, dim, 20, 5);
+        let mut db = KeyframeDb::new(dim);
+        db.set_index_policy(IndexPolicy { min_len: 500, scan_values: 0, ..IndexPolicy::default() })?;
+        db.defer_index(true)?;
+        for (i, v) in data.chunks_exact(dim).enumerate() {
+            db.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
+        }
+        assert!(db.index_info().is_none(), "no index while deferred");
+        db.defer_index(false)?;
+        assert_eq!(db.index_info().unwrap().trained_len, 3000);
+        // Incremental afterwards: the next keyframe is found at once (scanned as the unassigned tail).
+        db.insert(3000, Stamp::from_nanos(3000), &data[..dim])?;
+        let got = db.nearest(&data[..dim], 2, |_| true)?;
+        assert_eq!(got.iter().map(|n| n.position).collect::<Vec<_>>(), vec![0, 3000]);
+        Ok(())
+    }
+
+    #[test]
     fn short_filtered_results_fall_back_to_exact_and_drops_renumber() -> anyhow::Result<()> {
         let dim = 16;
         let data = clustered(3000, dim, 30, 3);
