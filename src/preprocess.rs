@@ -1,6 +1,12 @@
 //! Image -> network input: resize the whole image (no crop) to the network's square input with a
 //! bilinear filter, and scale RGB to [-1, 1] as (p - 128) / 128, which is exactly the TFLite
 //! model's input quantisation (scale 1/128, zero point 128).
+//!
+//! Speed: the resize reads straight from the caller's pixels (an [`RgbImage`] or the data of an
+//! rgb8 `sensor_msgs/Image` whose rows are packed, so no intermediate copy), uses fast_image_resize's
+//! SIMD convolution, and the normalisation is fused into the HWC -> CHW transposition through a
+//! 256-entry table (each table value is the same expression as before, so results are bit-identical).
+//! Other encodings and padded rows go through [`crate::io::image_msg::decode_image`] first.
 
 use std::path::Path;
 
@@ -8,6 +14,9 @@ use anyhow::{Context, Result};
 use candle_core::{Device, Tensor};
 use fast_image_resize::{images::Image as FirImage, images::ImageRef, FilterType, PixelType, ResizeAlg, ResizeOptions, Resizer};
 use image::RgbImage;
+
+use crate::io::image_msg::{decode_compressed_image, decode_image};
+use crate::io::msgs::{CompressedImage, Image};
 
 /// Reads an image file of any supported format (PNG, JPEG, BMP) as RGB.
 pub fn read_image(path: &Path) -> Result<RgbImage> {
@@ -19,12 +28,18 @@ pub fn read_image(path: &Path) -> Result<RgbImage> {
     Ok(image.into_rgb8())
 }
 
+/// `(p - 128) / 128` for every byte value.
+fn normalisation_table() -> [f32; 256] {
+    std::array::from_fn(|p| (p as f32 - 128.0) / 128.0)
+}
+
 /// Resizes and normalises images into network input; keeps its buffers between frames.
 pub struct Preprocessor {
     size: usize,
     resizer: Resizer,
     resized: FirImage<'static>,
     options: ResizeOptions,
+    table: [f32; 256],
 }
 
 impl Preprocessor {
@@ -34,6 +49,7 @@ impl Preprocessor {
             resizer: Resizer::new(),
             resized: FirImage::new(size as u32, size as u32, PixelType::U8x3),
             options: ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Bilinear)),
+            table: normalisation_table(),
         }
     }
 
@@ -44,24 +60,58 @@ impl Preprocessor {
     /// The image as a `[1, 3, S, S]` tensor.
     pub fn tensor(&mut self, image: &RgbImage) -> Result<Tensor> {
         let data = self.chw(image)?;
+        self.to_tensor(data)
+    }
+
+    fn to_tensor(&self, data: Vec<f32>) -> Result<Tensor> {
         Ok(Tensor::from_vec(data, (1, 3, self.size, self.size), &Device::Cpu)?)
     }
 
     /// The image resized and normalised, channel-major (`[3, S, S]` flattened).
     pub fn chw(&mut self, image: &RgbImage) -> Result<Vec<f32>> {
-        anyhow::ensure!(image.width() > 0 && image.height() > 0, "empty image ({}x{})", image.width(), image.height());
-        let src = ImageRef::new(image.width(), image.height(), image.as_raw(), PixelType::U8x3)?;
+        self.chw_packed_rgb8(image.width(), image.height(), image.as_raw())
+    }
+
+    /// Packed rgb8 pixels (`width * height * 3` bytes, rows without padding) resized and normalised,
+    /// channel-major (`[3, S, S]` flattened).
+    pub fn chw_packed_rgb8(&mut self, width: u32, height: u32, pixels: &[u8]) -> Result<Vec<f32>> {
+        anyhow::ensure!(width > 0 && height > 0, "empty image ({width}x{height})");
+        let src = ImageRef::new(width, height, pixels, PixelType::U8x3)
+            .with_context(|| format!("{width}x{height} rgb8 image with {} bytes", pixels.len()))?;
         self.resizer.resize(&src, &mut self.resized, &self.options)?;
         let plane = self.size * self.size;
         let mut out = vec![0f32; 3 * plane];
         let (r, rest) = out.split_at_mut(plane);
         let (g, b) = rest.split_at_mut(plane);
-        for (i, px) in self.resized.buffer().chunks_exact(3).enumerate() {
-            r[i] = (px[0] as f32 - 128.0) / 128.0;
-            g[i] = (px[1] as f32 - 128.0) / 128.0;
-            b[i] = (px[2] as f32 - 128.0) / 128.0;
+        let table = &self.table;
+        for (((px, r), g), b) in self.resized.buffer().chunks_exact(3).zip(r).zip(g).zip(b) {
+            *r = table[px[0] as usize];
+            *g = table[px[1] as usize];
+            *b = table[px[2] as usize];
         }
         Ok(out)
+    }
+
+    /// A `sensor_msgs/Image` as a `[1, 3, S, S]` tensor. Packed rgb8 (the usual camera encoding) is
+    /// resized straight from the message data; every other encoding the decoder supports is converted
+    /// to RGB first.
+    pub fn tensor_from_image_msg(&mut self, msg: &Image) -> Result<Tensor> {
+        let packed = (msg.width as usize).checked_mul(3).is_some_and(|row| row == msg.step as usize)
+            && (msg.step as usize).checked_mul(msg.height as usize) == Some(msg.data.len());
+        let data = if msg.encoding == "rgb8" && packed {
+            self.chw_packed_rgb8(msg.width, msg.height, &msg.data)
+                .with_context(|| format!("rgb8 image {}x{}", msg.width, msg.height))?
+        } else {
+            let image = decode_image(msg)?;
+            self.chw(&image)?
+        };
+        self.to_tensor(data)
+    }
+
+    /// A `sensor_msgs/CompressedImage` (JPEG or PNG) as a `[1, 3, S, S]` tensor.
+    pub fn tensor_from_compressed(&mut self, msg: &CompressedImage) -> Result<Tensor> {
+        let image = decode_compressed_image(msg)?;
+        self.tensor(&image)
     }
 }
 
@@ -80,6 +130,79 @@ mod tests {
         assert!(v[1024..2048].iter().all(|&a| a == 0.0));
         assert!(v[2048..].iter().all(|&a| (a - 127.0 / 128.0).abs() < 1e-6));
         Ok(())
+    }
+
+    fn noise_image(width: u32, height: u32) -> RgbImage {
+        let mut seed = 0x9E3779B9u32;
+        RgbImage::from_fn(width, height, |_, _| {
+            seed ^= seed << 13;
+            seed ^= seed >> 17;
+            seed ^= seed << 5;
+            image::Rgb([seed as u8, (seed >> 8) as u8, (seed >> 16) as u8])
+        })
+    }
+
+    /// The straightforward form: resize into an image, then normalise pixel by pixel.
+    fn reference_chw(image: &RgbImage, size: usize) -> Vec<f32> {
+        let src = ImageRef::new(image.width(), image.height(), image.as_raw(), PixelType::U8x3).unwrap();
+        let mut resized = FirImage::new(size as u32, size as u32, PixelType::U8x3);
+        let options = ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Bilinear));
+        Resizer::new().resize(&src, &mut resized, &options).unwrap();
+        let mut out = vec![0f32; 3 * size * size];
+        for (i, px) in resized.buffer().chunks_exact(3).enumerate() {
+            for c in 0..3 {
+                out[c * size * size + i] = (px[c] as f32 - 128.0) / 128.0;
+            }
+        }
+        out
+    }
+
+    fn message(image: &RgbImage, encoding: &str, step_padding: usize) -> Image {
+        let row = image.width() as usize * 3;
+        let mut data = Vec::new();
+        for y in image.as_raw().chunks_exact(row) {
+            if encoding == "bgr8" {
+                y.chunks_exact(3).for_each(|p| data.extend_from_slice(&[p[2], p[1], p[0]]));
+            } else {
+                data.extend_from_slice(y);
+            }
+            data.extend(std::iter::repeat_n(7u8, step_padding));
+        }
+        Image {
+            width: image.width(),
+            height: image.height(),
+            encoding: encoding.into(),
+            step: (row + step_padding) as u32,
+            data,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn every_input_path_equals_the_reference() -> Result<()> {
+        let image = noise_image(64, 48);
+        let expected = reference_chw(&image, 32);
+        let mut p = Preprocessor::new(32);
+        assert_eq!(p.chw(&image)?, expected);
+        for (encoding, padding) in [("rgb8", 0), ("rgb8", 5), ("bgr8", 0)] {
+            let got = p.tensor_from_image_msg(&message(&image, encoding, padding))?.flatten_all()?.to_vec1::<f32>()?;
+            let worst = got.iter().zip(&expected).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+            assert!(worst <= 1e-4, "{encoding} with {padding} bytes of row padding: max abs diff {worst}");
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn bad_messages_are_errors_not_panics() {
+        let image = noise_image(8, 6);
+        let mut p = Preprocessor::new(32);
+        let mut short = message(&image, "rgb8", 0);
+        short.data.pop();
+        assert!(p.tensor_from_image_msg(&short).is_err());
+        let empty = Image { encoding: "rgb8".into(), ..Default::default() };
+        assert!(p.tensor_from_image_msg(&empty).is_err());
+        let bad_jpeg = CompressedImage { format: "jpeg".into(), data: vec![0xFF, 0xD8, 1, 2], ..Default::default() };
+        assert!(p.tensor_from_compressed(&bad_jpeg).is_err());
     }
 
     #[test]

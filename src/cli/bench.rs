@@ -1,20 +1,66 @@
-//! `ecm-lcd bench`: a benchmark program (not a test). Measures network forward time per image at
-//! batch 1 for each architecture and thread count, after warm-up, and prints median and p90.
+//! `ecm-lcd bench`: a benchmark program (not a test) that prints, in one run, the figures of issue #5
+//! side by side: network forward (ECMobileNet and MobileNetV2, per thread count), the same networks in
+//! ONNX Runtime with the same weights, preprocessing, search at growing database sizes (exact and
+//! indexed, with the index's recall), one keyframe end to end with a large database, and peak memory
+//! with a million stored descriptors. `--json` prints one object with every section; `--only` picks
+//! sections (the million-descriptor ones take a while).
+//!
+//! Interpretations, written down once:
+//! - Forward times the network alone on a prepared `[1, 3, S, S]` tensor (preprocessing has its own
+//!   section), which is also exactly what the ONNX Runtime script times, so their ratio compares like
+//!   with like. Median and p90 of `--runs` runs after 5 warm-up runs.
+//! - ONNX Runtime: the weights the bench runs are folded by the project (BatchNorm into the convolutions,
+//!   [`crate::model::Network::visit_units`]), saved with the project's safetensors writer, and turned into an
+//!   ONNX graph by `benches/ort/export_onnx.py`; `benches/ort/time_ort.py` checks the output equals ours
+//!   (max abs difference reported, goal 1e-4) and times it. Both run in a virtualenv the bench creates
+//!   (`target/bench-venv`, reused).
+//! - Search uses synthetic clustered unit vectors (see [`ClusteredVectors`]), stored through
+//!   [`KeyframeDb::insert`] as the node stores them, so the index is built the way the node builds it.
+//!   Queries exclude the newest 100 keyframes, as the detector's recency rule does. Recall is recall@k
+//!   of the automatic search against the exact scan.
+//! - End to end: a JPEG `CompressedImage` of a real TUM frame goes through decode -> preprocessing ->
+//!   network -> descriptor -> search -> candidates in a [`Pipeline`] whose detector already holds
+//!   `--e2e-stored` synthetic descriptors of the pipeline's descriptor length.
+//! - Memory: a child process (this program, hidden `--memory-child`) inserts the descriptors into a
+//!   [`Detector`] one by one, as a node does, queries it, and reports its peak RSS (`VmHWM`) and the
+//!   RSS before inserting, so the figure is the real process peak, not an estimate.
 
+use std::path::{Path, PathBuf};
+use std::process::Command;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{bail, ensure, Context, Result};
 use image::RgbImage;
 use serde::Serialize;
 
 use super::model::NetworkArgs;
+use crate::config::Params;
+use crate::detector::index::{ClusteredVectors, IndexPolicy};
+use crate::detector::{Detector, IndexInfo, KeyframeDb};
+use crate::io::image_msg::{decode_compressed_image, decode_image, jpeg_message, rgb8_message};
+use crate::model::layers::Mode;
+use crate::model::weights::resolve;
 use crate::model::Arch;
+use crate::pipeline::Pipeline;
+use crate::preprocess::Preprocessor;
+use crate::types::Stamp;
+
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Section {
+    Forward,
+    Ort,
+    Preprocess,
+    Search,
+    E2e,
+    Memory,
+}
 
 #[derive(clap::Args, Debug)]
 pub struct BenchArgs {
     /// Weights (default resolution as for every command).
     #[arg(long)]
-    pub weights: Option<std::path::PathBuf>,
+    pub weights: Option<PathBuf>,
     /// Input size.
     #[arg(long, default_value_t = 224)]
     pub size: usize,
@@ -27,8 +73,41 @@ pub struct BenchArgs {
     /// Also time the stock-candle reference path.
     #[arg(long)]
     pub reference: bool,
+    /// Sections to run (default: all).
+    #[arg(long, value_delimiter = ',', value_enum)]
+    pub only: Vec<Section>,
+    /// Database sizes for the search section.
+    #[arg(long, value_delimiter = ',', default_value = "1000,10000,100000,1000000")]
+    pub search_sizes: Vec<usize>,
+    /// Descriptor lengths for the search section (128: `paper`; 1280: `l2`).
+    #[arg(long, value_delimiter = ',', default_value = "128,1280")]
+    pub search_dims: Vec<usize>,
+    /// Skip search configurations whose descriptors take more than this many MB as f32.
+    #[arg(long, default_value_t = 1024)]
+    pub search_max_mb: usize,
+    /// Queries per search configuration.
+    #[arg(long, default_value_t = 100)]
+    pub queries: usize,
+    /// Fraction of the index's lists a query scans (default: the database's).
+    #[arg(long)]
+    pub probe_fraction: Option<f64>,
+    /// Neighbours per query (recall is recall@k).
+    #[arg(long, default_value_t = 10)]
+    pub k: usize,
+    /// Descriptors stored before the end-to-end runs.
+    #[arg(long, default_value_t = 100_000)]
+    pub e2e_stored: usize,
+    /// `stored:dim` pairs for the memory section.
+    #[arg(long, value_delimiter = ',', default_value = "1000000:128,100000:1280")]
+    pub memory: Vec<String>,
+    /// Virtualenv for ONNX Runtime (created when missing).
+    #[arg(long)]
+    pub venv: Option<PathBuf>,
     #[arg(long)]
     pub json: bool,
+    /// Internal: run one memory measurement (`stored:dim`) and print it as JSON.
+    #[arg(long, hide = true)]
+    pub memory_child: Option<String>,
 }
 
 #[derive(Serialize, Debug)]
@@ -45,13 +124,201 @@ pub struct Timing {
 
 /// Median and 90th percentile of `samples` (ms).
 pub fn median_p90(samples: &mut [f64]) -> (f64, f64) {
-    samples.sort_by(f64::total_cmp);
-    let at = |q: f64| samples[((samples.len() - 1) as f64 * q).round() as usize];
-    (at(0.5), at(0.9))
+    let s = Stats::of(samples);
+    (s.median_ms, s.p90_ms)
+}
+
+/// Order statistics of timed runs (ms).
+#[derive(Serialize, Debug, Clone, Copy)]
+pub struct Stats {
+    pub runs: usize,
+    pub median_ms: f64,
+    pub p90_ms: f64,
+    pub p99_ms: f64,
+}
+
+impl Stats {
+    pub fn of(samples: &mut [f64]) -> Stats {
+        samples.sort_by(f64::total_cmp);
+        let at = |q: f64| if samples.is_empty() { f64::NAN } else { samples[((samples.len() - 1) as f64 * q).round() as usize] };
+        Stats { runs: samples.len(), median_ms: at(0.5), p90_ms: at(0.9), p99_ms: at(0.99) }
+    }
+
+    /// Times `runs` calls of `f` after `warmup` untimed ones.
+    fn time(warmup: usize, runs: usize, mut f: impl FnMut() -> Result<()>) -> Result<Stats> {
+        for _ in 0..warmup {
+            f()?;
+        }
+        let mut samples = (0..runs.max(1))
+            .map(|_| {
+                let start = Instant::now();
+                f()?;
+                Ok(start.elapsed().as_secs_f64() * 1e3)
+            })
+            .collect::<Result<Vec<f64>>>()?;
+        Ok(Stats::of(&mut samples))
+    }
+}
+
+#[derive(Serialize, Debug)]
+pub struct Machine {
+    pub cpu: String,
+    pub logical_cores: usize,
+    pub os: String,
+}
+
+impl Machine {
+    fn this() -> Machine {
+        let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
+        let cpu = cpuinfo
+            .lines()
+            .find_map(|l| l.strip_prefix("model name").and_then(|r| r.split_once(':')).map(|(_, v)| v.trim().to_string()))
+            .unwrap_or_else(|| std::env::consts::ARCH.to_string());
+        let logical_cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
+        Machine { cpu, logical_cores, os: std::env::consts::OS.to_string() }
+    }
+}
+
+#[derive(Serialize, Debug)]
+pub struct OrtArch {
+    pub arch: Arch,
+    /// Largest |ONNX Runtime - ecm-lcd| over the feature map of the bench frame.
+    pub max_abs_diff: f64,
+    pub timings: Vec<OrtTiming>,
+}
+
+#[derive(Serialize, Debug, serde::Deserialize)]
+pub struct OrtTiming {
+    pub threads: usize,
+    pub runs: usize,
+    pub median_ms: f64,
+    pub p90_ms: f64,
+}
+
+#[derive(Serialize, Debug)]
+pub struct Ort {
+    pub onnxruntime: String,
+    pub archs: Vec<OrtArch>,
+}
+
+#[derive(Serialize, Debug)]
+pub struct PreprocessRow {
+    pub input: &'static str,
+    #[serde(flatten)]
+    pub stats: Stats,
+}
+
+#[derive(Serialize, Debug)]
+pub struct SearchRow {
+    pub dim: usize,
+    pub stored: usize,
+    /// Seconds to insert everything (index training included).
+    pub build_s: f64,
+    pub exact: Stats,
+    /// The automatic choice: `exact` below the index threshold, `ivf` above.
+    pub auto_method: &'static str,
+    pub auto: Stats,
+    pub index: Option<IndexInfo>,
+    pub k: usize,
+    /// recall@k of the automatic search against the exact scan.
+    pub recall: f64,
+}
+
+#[derive(Serialize, Debug)]
+pub struct EndToEnd {
+    pub stored: usize,
+    pub dim: usize,
+    pub descriptor: String,
+    pub arch: Arch,
+    pub frame: String,
+    /// JPEG decode through candidates, per keyframe.
+    pub total: Stats,
+    pub network: Stats,
+    pub detector: Stats,
+    pub index: Option<IndexInfo>,
+}
+
+#[derive(Serialize, Debug, serde::Deserialize)]
+pub struct MemoryRow {
+    pub stored: usize,
+    pub dim: usize,
+    /// RSS before any descriptor was stored.
+    pub baseline_mb: f64,
+    /// Peak RSS of the process (VmHWM) after storing and querying.
+    pub peak_mb: f64,
+    /// What the f32 descriptors alone take.
+    pub descriptors_mb: f64,
+    pub indexed: bool,
+}
+
+#[derive(Serialize, Debug)]
+pub struct Goal {
+    pub goal: String,
+    pub measured: String,
+    pub met: bool,
+}
+
+#[derive(Serialize, Debug, Default)]
+pub struct Report {
+    pub machine: Option<Machine>,
+    pub forward: Option<Vec<Timing>>,
+    pub ort: Option<Ort>,
+    pub preprocess: Option<Vec<PreprocessRow>>,
+    pub search: Option<Vec<SearchRow>>,
+    pub end_to_end: Option<EndToEnd>,
+    pub memory: Option<Vec<MemoryRow>>,
+    pub goals: Vec<Goal>,
 }
 
 pub fn run(args: BenchArgs) -> Result<()> {
-    // A fixed pseudo-random 640x480 frame: the content does not change the arithmetic.
+    if let Some(spec) = &args.memory_child {
+        let (stored, dim) = parse_memory_spec(spec)?;
+        println!("{}", serde_json::to_string(&memory_child(stored, dim)?)?);
+        return Ok(());
+    }
+    let wanted = |s: Section| args.only.is_empty() || args.only.contains(&s);
+    let mut report = Report { machine: Some(Machine::this()), ..Default::default() };
+    let frame = bench_frame()?;
+    if wanted(Section::Forward) {
+        report.forward = Some(forward(&args, &frame.0)?);
+    }
+    if wanted(Section::Ort) {
+        report.ort = Some(ort(&args, &frame.0)?);
+    }
+    if wanted(Section::Preprocess) {
+        report.preprocess = Some(preprocess(&args, &frame.0)?);
+    }
+    if wanted(Section::Search) {
+        report.search = Some(search(&args)?);
+    }
+    if wanted(Section::E2e) {
+        report.end_to_end = Some(end_to_end(&args, &frame)?);
+    }
+    if wanted(Section::Memory) {
+        report.memory = Some(args.memory.iter().map(|spec| memory(spec)).collect::<Result<_>>()?);
+    }
+    report.goals = goals(&report);
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print_report(&args, &report);
+    }
+    Ok(())
+}
+
+/// A real 640x480 TUM frame from the shared data when present, else a fixed pseudo-random frame (the
+/// forward pass does not depend on the content; the JPEG size does).
+fn bench_frame() -> Result<(RgbImage, String)> {
+    for dir in crate::runtime::shared_dirs() {
+        let rgb = dir.join("data/tum/fr3_long_office_household/rgb");
+        if let Ok(entries) = std::fs::read_dir(&rgb) {
+            let mut paths: Vec<PathBuf> = entries.filter_map(|e| e.ok().map(|e| e.path())).collect();
+            paths.sort();
+            if let Some(path) = paths.first() {
+                return Ok((crate::preprocess::read_image(path)?, path.display().to_string()));
+            }
+        }
+    }
     let mut seed = 0x2545F491u32;
     let image = RgbImage::from_fn(640, 480, |_, _| {
         seed ^= seed << 13;
@@ -59,59 +326,511 @@ pub fn run(args: BenchArgs) -> Result<()> {
         seed ^= seed << 5;
         image::Rgb([seed as u8, (seed >> 8) as u8, (seed >> 16) as u8])
     });
+    Ok((image, "synthetic 640x480 noise (shared TUM frames not found)".into()))
+}
+
+/// Runs `f` in a pool of `threads` threads, with candle's matmul split set to match.
+fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> Result<T> + Send) -> Result<T> {
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
+    // candle sizes its matmul split by this variable on every call.
+    std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
+    let out = pool.install(f);
+    std::env::set_var("RAYON_NUM_THREADS", crate::runtime::init_threads(None).to_string());
+    out
+}
+
+fn forward(args: &BenchArgs, image: &RgbImage) -> Result<Vec<Timing>> {
+    let x = Preprocessor::new(args.size).tensor(image)?;
     let mut timings = Vec::new();
     for arch in [Arch::EcMobileNet, Arch::MobileNetV2] {
         let paths: &[bool] = if args.reference { &[false, true] } else { &[false] };
         for &reference in paths {
             let network = NetworkArgs { weights: args.weights.clone(), arch: Some(arch), size: args.size, reference };
-            let (mut embedder, _) = network.embedder(arch, false)?;
+            let (embedder, _) = network.embedder(arch, false)?;
+            let mode = if reference { Mode::Reference } else { Mode::Inference };
             let cost = arch.spec().cost(None, args.size);
             for &threads in &args.threads {
-                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
-                // candle sizes its matmul split by this variable on every call.
-                std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
-                let mut samples = pool.install(|| -> Result<Vec<f64>> {
-                    for _ in 0..5 {
-                        embedder.feature_map(&image)?;
-                    }
-                    (0..args.runs.max(1))
-                        .map(|_| {
-                            let start = Instant::now();
-                            embedder.feature_map(&image)?;
-                            Ok(start.elapsed().as_secs_f64() * 1e3)
-                        })
-                        .collect()
-                })?;
-                let (median_ms, p90_ms) = median_p90(&mut samples);
+                let stats = with_threads(threads, || Stats::time(5, args.runs, || embedder.network.features(&x, mode).map(drop).map_err(Into::into)))?;
                 let path = if reference { "stock candle" } else { "fast" };
-                timings.push(Timing { arch, path, threads, params: cost.params, macs: cost.macs, runs: samples.len(), median_ms, p90_ms });
+                timings.push(Timing {
+                    arch,
+                    path,
+                    threads,
+                    params: cost.params,
+                    macs: cost.macs,
+                    runs: stats.runs,
+                    median_ms: stats.median_ms,
+                    p90_ms: stats.p90_ms,
+                });
             }
         }
     }
-    std::env::set_var("RAYON_NUM_THREADS", crate::runtime::init_threads(None).to_string());
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&timings)?);
-        return Ok(());
+    Ok(timings)
+}
+
+fn repo_dir() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// The bench's Python: a virtualenv with onnxruntime, onnx, numpy and safetensors, created when missing.
+fn bench_python(venv: &Path) -> Result<PathBuf> {
+    let python = venv.join("bin/python");
+    let check = |python: &Path| {
+        Command::new(python)
+            .args(["-c", "import onnxruntime, onnx, numpy, safetensors"])
+            .status()
+            .is_ok_and(|s| s.success())
+    };
+    if python.exists() && check(&python) {
+        return Ok(python);
     }
-    println!("forward, batch 1, {0}x{0} input incl. preprocessing of a 640x480 frame, {1} runs after 5 warm-up", args.size, args.runs);
-    println!("{:<12} {:<13} {:>7} {:>10} {:>12} {:>10} {:>9}", "arch", "path", "threads", "params", "MACs", "median ms", "p90 ms");
-    for t in &timings {
-        println!(
-            "{:<12} {:<13} {:>7} {:>10} {:>12} {:>10.2} {:>9.2}",
-            t.arch.name(),
-            t.path,
-            t.threads,
-            t.params,
-            t.macs,
-            t.median_ms,
-            t.p90_ms
-        );
+    eprintln!("creating the ONNX Runtime virtualenv {} (once)", venv.display());
+    let status = Command::new("python3").args(["-m", "venv"]).arg(venv).status().context("cannot run python3 (needed for the ONNX Runtime comparison)")?;
+    ensure!(status.success(), "python3 -m venv {} failed", venv.display());
+    let status = Command::new(venv.join("bin/pip"))
+        .args(["install", "--quiet", "onnxruntime", "onnx", "numpy", "safetensors"])
+        .status()
+        .with_context(|| format!("cannot run {}/bin/pip", venv.display()))?;
+    ensure!(
+        status.success() && check(&python),
+        "pip could not install onnxruntime, onnx, numpy and safetensors into {} (is PyPI reachable?); \
+         run `ecm-lcd bench --only forward,preprocess,search,e2e,memory` to skip the ONNX Runtime comparison",
+        venv.display()
+    );
+    Ok(python)
+}
+
+fn write_f32(path: &Path, values: &[f32]) -> Result<()> {
+    let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(path, bytes).with_context(|| format!("cannot write {}", path.display()))
+}
+
+fn run_python(python: &Path, script: &Path, args: &[&std::ffi::OsStr]) -> Result<String> {
+    let output = Command::new(python).arg(script).args(args).output().with_context(|| format!("cannot run {}", script.display()))?;
+    if !output.status.success() {
+        bail!("{} failed: {}", script.display(), String::from_utf8_lossy(&output.stderr).trim());
     }
-    for &threads in &args.threads {
-        let find = |arch| timings.iter().find(|t| t.arch == arch && t.threads == threads && t.path == "fast");
-        if let (Some(e), Some(m)) = (find(Arch::EcMobileNet), find(Arch::MobileNetV2)) {
-            println!("ratio ecmobilenet/mobilenetv2 at {threads} thread(s): {:.2}", e.median_ms / m.median_ms);
+    Ok(String::from_utf8_lossy(&output.stdout).into_owned())
+}
+
+fn ort(args: &BenchArgs, image: &RgbImage) -> Result<Ort> {
+    let venv = args.venv.clone().unwrap_or_else(|| repo_dir().join("target/bench-venv"));
+    let python = bench_python(&venv)?;
+    let scripts = repo_dir().join("benches/ort");
+    let work = tempfile_dir()?;
+    let resolved = resolve::resolve(args.weights.as_deref())?;
+    let x = Preprocessor::new(args.size).tensor(image)?;
+    write_f32(&work.join("input.f32"), &x.flatten_all()?.to_vec1::<f32>()?)?;
+    let mut archs = Vec::new();
+    let mut version = String::new();
+    for arch in [Arch::MobileNetV2, Arch::EcMobileNet] {
+        let network = resolved.weights.for_arch(arch)?.network(false)?;
+        // The exact weights our fast path runs, BatchNorm folded, in the project's own file format.
+        let mut tensors = std::collections::HashMap::new();
+        network.visit_units(&mut |name, weight, bias| {
+            tensors.insert(format!("{name}.weight"), weight.clone());
+            if let Some(b) = bias {
+                tensors.insert(format!("{name}.bias"), b.clone());
+            }
+        })?;
+        let folded = crate::model::weights::Weights { arch, classes: None, source: "ecm-lcd bench (folded)".into(), tensors };
+        let weights_path = work.join(format!("{}.safetensors", arch.name()));
+        folded.save(&weights_path)?;
+        let blocks: Vec<serde_json::Value> = arch
+            .spec()
+            .blocks()
+            .iter()
+            .map(|b| serde_json::json!({"input": b.input, "hidden": b.hidden, "output": b.output, "stride": b.stride, "eca_kernel": b.eca_kernel}))
+            .collect();
+        let spec_path = work.join(format!("{}.json", arch.name()));
+        std::fs::write(&spec_path, serde_json::json!({"input_size": args.size, "stem_stride": 2, "blocks": blocks}).to_string())?;
+        let expected = network.features(&x, Mode::Inference)?.flatten_all()?.to_vec1::<f32>()?;
+        let expected_path = work.join(format!("{}.expected.f32", arch.name()));
+        write_f32(&expected_path, &expected)?;
+        let onnx_path = work.join(format!("{}.onnx", arch.name()));
+        run_python(&python, &scripts.join("export_onnx.py"), &["--weights".as_ref(), weights_path.as_ref(), "--spec".as_ref(), spec_path.as_ref(), "--out".as_ref(), onnx_path.as_ref()])?;
+        let threads = args.threads.iter().map(|t| t.to_string()).collect::<Vec<_>>().join(",");
+        let (size, runs) = (args.size.to_string(), args.runs.to_string());
+        let out = run_python(
+            &python,
+            &scripts.join("time_ort.py"),
+            &[
+                "--model".as_ref(),
+                onnx_path.as_ref(),
+                "--input".as_ref(),
+                work.join("input.f32").as_ref(),
+                "--expected".as_ref(),
+                expected_path.as_ref(),
+                "--size".as_ref(),
+                size.as_ref(),
+                "--threads".as_ref(),
+                threads.as_ref(),
+                "--runs".as_ref(),
+                runs.as_ref(),
+            ],
+        )?;
+        #[derive(serde::Deserialize)]
+        struct OrtOut {
+            onnxruntime: String,
+            max_abs_diff: f64,
+            timings: Vec<OrtTiming>,
+        }
+        let parsed: OrtOut = serde_json::from_str(out.trim()).with_context(|| format!("time_ort.py printed {out:?}"))?;
+        version = parsed.onnxruntime;
+        archs.push(OrtArch { arch, max_abs_diff: parsed.max_abs_diff, timings: parsed.timings });
+    }
+    std::fs::remove_dir_all(&work).ok();
+    Ok(Ort { onnxruntime: version, archs })
+}
+
+/// A fresh scratch folder under the system temp dir.
+fn tempfile_dir() -> Result<PathBuf> {
+    let dir = std::env::temp_dir().join(format!("ecm-lcd-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    Ok(dir)
+}
+
+fn preprocess(args: &BenchArgs, image: &RgbImage) -> Result<Vec<PreprocessRow>> {
+    let runs = args.runs.max(200);
+    let mut pre = Preprocessor::new(args.size);
+    let rgb8 = rgb8_message(Stamp::default(), "camera", image);
+    let jpeg = jpeg_message(Stamp::default(), "camera", image, 90)?;
+    let mut rows = Vec::new();
+    let mut row = |input, f: &mut dyn FnMut() -> Result<()>| -> Result<()> {
+        rows.push(PreprocessRow { input, stats: Stats::time(10, runs, f)? });
+        Ok(())
+    };
+    row("rgb8 Image 640x480 -> tensor (direct)", &mut || pre.tensor_from_image_msg(&rgb8).map(drop))?;
+    row("rgb8 Image 640x480 -> RgbImage -> tensor", &mut || pre.tensor(&decode_image(&rgb8)?).map(drop))?;
+    row("JPEG CompressedImage (q90) -> tensor", &mut || pre.tensor_from_compressed(&jpeg).map(drop))?;
+    row("JPEG decode alone", &mut || decode_compressed_image(&jpeg).map(drop))?;
+    Ok(rows)
+}
+
+/// Clusters for `stored` synthetic descriptors: about 50 views per place.
+fn clusters_for(stored: usize) -> usize {
+    (stored / 50).clamp(10, 20_000)
+}
+
+/// Newest keyframes a bench query may not match (the detector's recency rule).
+const BENCH_EXCLUDE_RECENT: usize = 100;
+
+fn search(args: &BenchArgs) -> Result<Vec<SearchRow>> {
+    let mut rows = Vec::new();
+    for &dim in &args.search_dims {
+        for &stored in &args.search_sizes {
+            let mb = stored * dim * 4 / 1_000_000;
+            if mb > args.search_max_mb {
+                eprintln!("search: skipping {stored} x {dim}-d ({mb} MB of f32 > --search-max-mb {})", args.search_max_mb);
+                continue;
+            }
+            eprintln!("search: {stored} x {dim}-d ...");
+            rows.push(search_one(args, dim, stored)?);
         }
     }
-    Ok(())
+    Ok(rows)
+}
+
+fn search_one(args: &BenchArgs, dim: usize, stored: usize) -> Result<SearchRow> {
+    let mut generator = ClusteredVectors::new(dim, clusters_for(stored), 42);
+    let mut queries_gen = generator.clone().reseed(7);
+    let mut db = KeyframeDb::with_capacity(dim, stored);
+    if let Some(probe_fraction) = args.probe_fraction {
+        db.set_index_policy(IndexPolicy { probe_fraction, ..db.index_policy() })?;
+    }
+    let mut v = vec![0f32; dim];
+    let started = Instant::now();
+    for i in 0..stored {
+        generator.next_into(&mut v);
+        db.insert(i as u64, Stamp::from_nanos(i as i64), &v)?;
+    }
+    let build_s = started.elapsed().as_secs_f64();
+    let queries = queries_gen.take(args.queries.max(1));
+    let eligible = |p: usize| p + BENCH_EXCLUDE_RECENT < stored;
+    let mut exact_results = Vec::new();
+    let mut exact_samples = Vec::new();
+    for q in queries.chunks_exact(dim) {
+        let start = Instant::now();
+        exact_results.push(db.nearest_exact(q, args.k, eligible)?);
+        exact_samples.push(start.elapsed().as_secs_f64() * 1e3);
+    }
+    let mut auto_samples = Vec::new();
+    let mut hits = 0;
+    let mut wanted = 0;
+    for (q, exact) in queries.chunks_exact(dim).zip(&exact_results) {
+        let start = Instant::now();
+        let got = db.nearest(q, args.k, eligible)?;
+        auto_samples.push(start.elapsed().as_secs_f64() * 1e3);
+        hits += got.iter().filter(|n| exact.iter().any(|e| e.position == n.position)).count();
+        wanted += exact.len();
+    }
+    let index = db.index_info();
+    Ok(SearchRow {
+        dim,
+        stored,
+        build_s,
+        exact: Stats::of(&mut exact_samples),
+        auto_method: if index.is_some() { "ivf" } else { "exact" },
+        auto: Stats::of(&mut auto_samples),
+        index,
+        k: args.k,
+        recall: hits as f64 / wanted.max(1) as f64,
+    })
+}
+
+fn end_to_end(args: &BenchArgs, frame: &(RgbImage, String)) -> Result<EndToEnd> {
+    let params = Params::default();
+    let mut pipeline = Pipeline::new(params, args.weights.as_deref())?;
+    let dim = pipeline.descriptor().dim();
+    let stored = args.e2e_stored;
+    eprintln!("end to end: storing {stored} synthetic {dim}-d descriptors ...");
+    let mut generator = ClusteredVectors::new(dim, clusters_for(stored), 43);
+    let mut v = vec![0f32; dim];
+    for i in 0..stored {
+        generator.next_into(&mut v);
+        // Stamped a day before the live frames, so the recency rule leaves them all eligible.
+        pipeline.detector_mut().insert(i as u64, Stamp::from_nanos(i as i64 * 1_000_000), &v)?;
+    }
+    let jpeg = jpeg_message(Stamp::default(), "camera", &frame.0, 90)?;
+    let mut next_id = stored as u64;
+    let base = 86_400_000_000_000i64;
+    let (mut total, mut network, mut detector) = (Vec::new(), Vec::new(), Vec::new());
+    for i in 0..(5 + args.runs.max(100)) {
+        let start = Instant::now();
+        let image = decode_compressed_image(&jpeg)?;
+        let outcome = pipeline.process_keyframe(next_id, Stamp::from_nanos(base + i as i64 * 1_000_000_000), &image)?;
+        let elapsed = start.elapsed().as_secs_f64() * 1e3;
+        next_id += 1;
+        if i >= 5 {
+            total.push(elapsed);
+            network.push(outcome.timings.network_ms);
+            detector.push(outcome.timings.detector_ms);
+        }
+    }
+    Ok(EndToEnd {
+        stored,
+        dim,
+        descriptor: pipeline.params().descriptor_mode().name().to_string(),
+        arch: pipeline.params().arch().parse()?,
+        frame: frame.1.clone(),
+        total: Stats::of(&mut total),
+        network: Stats::of(&mut network),
+        detector: Stats::of(&mut detector),
+        index: pipeline.detector().db().index_info(),
+    })
+}
+
+fn parse_memory_spec(spec: &str) -> Result<(usize, usize)> {
+    let (stored, dim) = spec.split_once(':').with_context(|| format!("memory spec {spec:?}: expected stored:dim, e.g. 1000000:128"))?;
+    Ok((
+        stored.trim().parse().with_context(|| format!("memory spec {spec:?}: bad count"))?,
+        dim.trim().parse().with_context(|| format!("memory spec {spec:?}: bad dim"))?,
+    ))
+}
+
+/// Runs one memory measurement in a child process, so each peak is its own.
+fn memory(spec: &str) -> Result<MemoryRow> {
+    parse_memory_spec(spec)?;
+    eprintln!("memory: {spec} in a child process ...");
+    let exe = std::env::current_exe().context("cannot find this program to run the memory child")?;
+    let output = Command::new(exe).args(["bench", "--memory-child", spec]).output().context("cannot run the memory child")?;
+    ensure!(output.status.success(), "memory child {spec} failed: {}", String::from_utf8_lossy(&output.stderr).trim());
+    let out = String::from_utf8_lossy(&output.stdout);
+    serde_json::from_str(out.trim()).with_context(|| format!("memory child printed {out:?}"))
+}
+
+/// `VmRSS` and `VmHWM` (MB) of this process.
+fn rss_mb() -> Result<(f64, f64)> {
+    let status = std::fs::read_to_string("/proc/self/status").context("reading /proc/self/status (Linux only)")?;
+    let field = |name: &str| -> Result<f64> {
+        let line = status.lines().find(|l| l.starts_with(name)).with_context(|| format!("no {name} in /proc/self/status"))?;
+        let kb: f64 = line[name.len()..].trim().trim_end_matches("kB").trim().parse().with_context(|| format!("bad {line:?}"))?;
+        Ok(kb * 1024.0 / 1e6)
+    };
+    Ok((field("VmRSS:")?, field("VmHWM:")?))
+}
+
+fn memory_child(stored: usize, dim: usize) -> Result<MemoryRow> {
+    let (baseline_mb, _) = rss_mb()?;
+    let descriptor = crate::descriptor::Descriptor::new(crate::descriptor::DescriptorMode::default(), dim);
+    let mut params = crate::detector::DetectorParams::default();
+    params.min_history = 1;
+    let mut detector = Detector::new(descriptor, params);
+    let mut generator = ClusteredVectors::new(dim, clusters_for(stored), 44);
+    let mut v = vec![0f32; dim];
+    for i in 0..stored {
+        generator.next_into(&mut v);
+        detector.insert(i as u64, Stamp::from_nanos(i as i64), &v)?;
+    }
+    for i in 0..10 {
+        generator.next_into(&mut v);
+        detector.best_match(Stamp::from_nanos((stored + i) as i64), &v)?;
+    }
+    let (_, peak_mb) = rss_mb()?;
+    Ok(MemoryRow {
+        stored,
+        dim,
+        baseline_mb,
+        peak_mb,
+        descriptors_mb: (stored * dim * 4) as f64 / 1e6,
+        indexed: detector.db().index_info().is_some(),
+    })
+}
+
+fn goals(report: &Report) -> Vec<Goal> {
+    let mut goals = Vec::new();
+    let mut goal = |goal: &str, measured: String, met: bool| goals.push(Goal { goal: goal.into(), measured, met });
+    let ours = |arch: Arch, threads: usize| {
+        report.forward.as_ref()?.iter().find(|t| t.arch == arch && t.threads == threads && t.path == "fast").map(|t| t.median_ms)
+    };
+    let theirs = |arch: Arch, threads: usize| {
+        report.ort.as_ref()?.archs.iter().find(|a| a.arch == arch)?.timings.iter().find(|t| t.threads == threads).map(|t| t.median_ms)
+    };
+    if let (Some(e), Some(o)) = (ours(Arch::EcMobileNet, 2), theirs(Arch::MobileNetV2, 2)) {
+        goal("ECMobileNet forward <= 1.0 x ORT MobileNetV2 (2 threads)", format!("{:.2} x", e / o), e / o <= 1.0);
+    }
+    if let (Some(m), Some(o)) = (ours(Arch::MobileNetV2, 2), theirs(Arch::MobileNetV2, 2)) {
+        goal("MobileNetV2 forward <= 1.3 x ORT MobileNetV2 (2 threads)", format!("{:.2} x", m / o), m / o <= 1.3);
+    }
+    if let Some(ort) = &report.ort {
+        for a in &ort.archs {
+            goal(&format!("ORT {} output equals ecm-lcd's within 1e-4", a.arch.name()), format!("max abs diff {:.2e}", a.max_abs_diff), a.max_abs_diff <= 1e-4);
+        }
+    }
+    if let Some(p) = report.preprocess.as_ref().and_then(|rows| rows.first()) {
+        goal("preprocessing 640x480 rgb8 -> tensor <= 1.5 ms", format!("{:.3} ms median", p.stats.median_ms), p.stats.median_ms <= 1.5);
+    }
+    if let Some(e) = &report.end_to_end {
+        goal(
+            &format!("keyframe -> candidate p99 <= 15 ms with {} stored ({}-d)", e.stored, e.dim),
+            format!("{:.1} ms p99", e.total.p99_ms),
+            e.total.p99_ms <= 15.0,
+        );
+    }
+    if let Some(rows) = &report.search {
+        for r in rows.iter().filter(|r| r.stored >= 1_000_000) {
+            goal(
+                &format!("query at 1M ({}-d) <= 5 ms with recall >= 0.99", r.dim),
+                format!("{:.2} ms median, recall@{} {:.4}", r.auto.median_ms, r.k, r.recall),
+                r.auto.median_ms <= 5.0 && r.recall >= 0.99,
+            );
+        }
+    }
+    if let Some(rows) = &report.memory {
+        for r in rows.iter().filter(|r| r.stored >= 1_000_000) {
+            goal(&format!("1M stored ({}-d) <= 600 MB RSS", r.dim), format!("{:.0} MB peak", r.peak_mb), r.peak_mb <= 600.0);
+        }
+    }
+    goals
+}
+
+fn print_report(args: &BenchArgs, report: &Report) {
+    if let Some(m) = &report.machine {
+        println!("machine: {} ({} logical cores, {})", m.cpu, m.logical_cores, m.os);
+    }
+    let ort_time = |arch: Arch, threads: usize| {
+        report.ort.as_ref().and_then(|o| o.archs.iter().find(|a| a.arch == arch)).and_then(|a| a.timings.iter().find(|t| t.threads == threads))
+    };
+    if report.forward.is_some() || report.ort.is_some() {
+        println!("\nforward, batch 1, {0}x{0} tensor (network only), {1} runs after 5 warm-up", args.size, args.runs);
+        println!("{:<12} {:<14} {:>7} {:>10} {:>12} {:>10} {:>9}", "arch", "runtime", "threads", "params", "MACs", "median ms", "p90 ms");
+        for t in report.forward.iter().flatten() {
+            let runtime = if t.path == "fast" { "ecm-lcd" } else { "ecm-lcd stock" };
+            println!("{:<12} {:<14} {:>7} {:>10} {:>12} {:>10.2} {:>9.2}", t.arch.name(), runtime, t.threads, t.params, t.macs, t.median_ms, t.p90_ms);
+        }
+        if let Some(o) = &report.ort {
+            for a in &o.archs {
+                for t in &a.timings {
+                    let runtime = format!("ORT {}", o.onnxruntime);
+                    println!("{:<12} {:<14} {:>7} {:>10} {:>12} {:>10.2} {:>9.2}", a.arch.name(), runtime, t.threads, "", "", t.median_ms, t.p90_ms);
+                }
+                println!("  ORT {} output vs ecm-lcd: max abs diff {:.2e}", a.arch.name(), a.max_abs_diff);
+            }
+        }
+        for &threads in &args.threads {
+            let ours = |arch| report.forward.iter().flatten().find(|t| t.arch == arch && t.threads == threads && t.path == "fast").map(|t| t.median_ms);
+            let mut ratios = Vec::new();
+            if let (Some(e), Some(m)) = (ours(Arch::EcMobileNet), ours(Arch::MobileNetV2)) {
+                ratios.push(format!("ecmobilenet/mobilenetv2 {:.2}", e / m));
+            }
+            if let Some(o) = ort_time(Arch::MobileNetV2, threads) {
+                if let Some(m) = ours(Arch::MobileNetV2) {
+                    ratios.push(format!("mobilenetv2/ORT mobilenetv2 {:.2}", m / o.median_ms));
+                }
+                if let Some(e) = ours(Arch::EcMobileNet) {
+                    ratios.push(format!("ecmobilenet/ORT mobilenetv2 {:.2}", e / o.median_ms));
+                }
+            }
+            if let (Some(e), Some(o)) = (ours(Arch::EcMobileNet), ort_time(Arch::EcMobileNet, threads)) {
+                ratios.push(format!("ecmobilenet/ORT ecmobilenet {:.2}", e / o.median_ms));
+            }
+            if !ratios.is_empty() {
+                println!("ratios at {threads} thread(s): {}", ratios.join(", "));
+            }
+        }
+    }
+    if let Some(rows) = &report.preprocess {
+        println!("\npreprocessing to a [1, 3, {0}, {0}] tensor (1 thread)", args.size);
+        println!("{:<42} {:>6} {:>10} {:>9} {:>9}", "input", "runs", "median ms", "p90 ms", "p99 ms");
+        for r in rows {
+            println!("{:<42} {:>6} {:>10.3} {:>9.3} {:>9.3}", r.input, r.stats.runs, r.stats.median_ms, r.stats.p90_ms, r.stats.p99_ms);
+        }
+    }
+    if let Some(rows) = &report.search {
+        println!("\nsearch: top-{} of clustered unit vectors, newest {BENCH_EXCLUDE_RECENT} excluded, {} queries, 1 thread per query", args.k, args.queries);
+        println!(
+            "{:>5} {:>8} {:>8} {:>10} {:>9} {:>6} {:>10} {:>9} {:>22} {:>8}",
+            "dim", "stored", "build s", "exact med", "exact p90", "auto", "auto med", "auto p90", "lists/probed, largest", "recall"
+        );
+        for r in rows {
+            let lists = r.index.map(|i| format!("{}/{} max {}", i.nlist, i.nprobe, i.largest_list)).unwrap_or_else(|| "-".into());
+            println!(
+                "{:>5} {:>8} {:>8.1} {:>10.3} {:>9.3} {:>6} {:>10.3} {:>9.3} {:>22} {:>8.4}",
+                r.dim, r.stored, r.build_s, r.exact.median_ms, r.exact.p90_ms, r.auto_method, r.auto.median_ms, r.auto.p90_ms, lists, r.recall
+            );
+        }
+    }
+    if let Some(e) = &report.end_to_end {
+        println!(
+            "\nend to end: JPEG CompressedImage -> decode -> {} -> {} descriptor ({}-d) -> search among {} stored -> candidates",
+            e.arch.name(),
+            e.descriptor,
+            e.dim,
+            e.stored
+        );
+        println!("  frame: {}; index: {}", e.frame, e.index.map(|i| format!("ivf {}/{}", i.nlist, i.nprobe)).unwrap_or_else(|| "exact".into()));
+        for (what, s) in [("total", e.total), ("network (preprocess + forward)", e.network), ("detector (search + insert)", e.detector)] {
+            println!("  {what:<32} median {:>7.2} ms  p90 {:>7.2} ms  p99 {:>7.2} ms  ({} runs)", s.median_ms, s.p90_ms, s.p99_ms, s.runs);
+        }
+    }
+    if let Some(rows) = &report.memory {
+        println!("\npeak memory (VmHWM of a child process that stores descriptors in a Detector, then queries)");
+        println!("{:>8} {:>5} {:>12} {:>10} {:>15} {:>8}", "stored", "dim", "baseline MB", "peak MB", "f32 data MB", "indexed");
+        for r in rows {
+            println!("{:>8} {:>5} {:>12.0} {:>10.0} {:>15.0} {:>8}", r.stored, r.dim, r.baseline_mb, r.peak_mb, r.descriptors_mb, r.indexed);
+        }
+    }
+    if !report.goals.is_empty() {
+        println!("\ngoals (issue #5)");
+        for g in &report.goals {
+            println!("  [{}] {:<62} {}", if g.met { "met" } else { "NOT met" }, g.goal, g.measured);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn order_statistics_and_memory_specs() {
+        let mut samples: Vec<f64> = (1..=100).rev().map(f64::from).collect();
+        let s = Stats::of(&mut samples);
+        assert_eq!((s.runs, s.median_ms, s.p90_ms, s.p99_ms), (100, 51.0, 90.0, 99.0));
+        assert!(Stats::of(&mut []).median_ms.is_nan());
+        assert_eq!(parse_memory_spec("1000000:128").unwrap(), (1_000_000, 128));
+        for bad in ["1000000", "x:128", "10:"] {
+            assert!(format!("{:#}", parse_memory_spec(bad).unwrap_err()).contains(bad), "{bad}");
+        }
+    }
 }

@@ -97,6 +97,8 @@ pub fn distance(a: &[f32], b: &[f32]) -> f32 {
 }
 
 /// Squared Euclidean distance; the database ranks by it to skip the square root per stored keyframe.
+/// Inlined so that the database's scan compiles it for the widest SIMD the CPU has ([`crate::detector::index`]).
+#[inline(always)]
 pub fn squared_distance(a: &[f32], b: &[f32]) -> f32 {
     // Eight independent partial sums let the compiler vectorise (a single running f32 sum cannot be
     // reordered, so it would stay scalar).

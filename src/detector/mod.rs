@@ -1,8 +1,8 @@
 //! Keyframe database and loop-closure detector: which earlier keyframe, if any, does a new one revisit.
 //!
 //! [`KeyframeDb`] stores every keyframe's descriptor in one contiguous `f32` buffer and answers top-k
-//! nearest-neighbour queries by brute force (it is the single place that stores and searches, so an
-//! approximate index or persistence can replace its internals without touching the detector).
+//! nearest-neighbour queries: by an exact SIMD scan while small, and through an approximate inverted-file
+//! index it builds by itself once large ([`index`]: when, how, and the recall it keeps).
 //!
 //! [`Detector`] applies the policy ([`DetectorParams`]) to each new keyframe: query the history, then
 //! insert. Rules, in order:
@@ -25,12 +25,14 @@
 //! from the oldest kept keyframe and the consistency history follows. A persistent store ([`store`])
 //! keeps every keyframe on disk regardless; a restart loads only the newest `n`.
 
+pub mod index;
 pub mod selection;
 pub mod store;
 
-use crate::descriptor::{squared_distance, Descriptor};
+use crate::descriptor::Descriptor;
+use index::{IndexPolicy, IvfIndex, TopK};
 use crate::types::{LoopCandidate, Stamp};
-use anyhow::ensure;
+use anyhow::{ensure, Context};
 use std::collections::VecDeque;
 
 /// The acceptance threshold, on the distance or on the score (see [`crate::descriptor::Descriptor::score`]).
@@ -76,7 +78,20 @@ pub struct Neighbour {
     pub squared_distance: f32,
 }
 
-/// Keyframes (id, stamp, descriptor) in insertion order, with exact top-k search.
+/// What the approximate index of a [`KeyframeDb`] looks like (for logs and benchmarks).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct IndexInfo {
+    /// Inverted lists (k-means centroids).
+    pub nlist: usize,
+    /// Lists scanned per query.
+    pub nprobe: usize,
+    /// Keyframes the index was last trained on.
+    pub trained_len: usize,
+    /// Keyframes in the largest list (balance: the mean is `len / nlist`).
+    pub largest_list: usize,
+}
+
+/// Keyframes (id, stamp, descriptor) in insertion order, with top-k search (exact, or indexed once large).
 #[derive(Clone, Debug)]
 pub struct KeyframeDb {
     dim: usize,
@@ -86,6 +101,10 @@ pub struct KeyframeDb {
     descriptors: Vec<f32>,
     /// Dropped keyframes still at the front of the vectors (removed in batches: see [`KeyframeDb::drop_oldest`]).
     dropped: usize,
+    index_policy: IndexPolicy,
+    index: Option<IvfIndex>,
+    /// While set, inserts leave the index alone (bulk loading: one training at the end, not one per growth step).
+    index_deferred: bool,
 }
 
 impl KeyframeDb {
@@ -101,7 +120,55 @@ impl KeyframeDb {
             stamps: Vec::with_capacity(keyframes),
             descriptors: Vec::with_capacity(keyframes * dim),
             dropped: 0,
+            index_policy: IndexPolicy::default(),
+            index: None,
+            index_deferred: false,
         }
+    }
+
+    /// Changes when the approximate index is used; builds or drops it at once to match.
+    pub fn set_index_policy(&mut self, policy: IndexPolicy) -> anyhow::Result<()> {
+        self.index_policy = policy;
+        if self.len() < policy.threshold(self.dim) {
+            self.index = None;
+        }
+        self.update_index()
+    }
+
+    /// Defers index maintenance while `deferred` (a bulk load); clearing it builds or extends the index
+    /// for everything inserted meanwhile. Searches stay correct in between (unindexed keyframes are scanned).
+    pub fn defer_index(&mut self, deferred: bool) -> anyhow::Result<()> {
+        self.index_deferred = deferred;
+        self.update_index()
+    }
+
+    pub fn index_policy(&self) -> IndexPolicy {
+        self.index_policy
+    }
+
+    /// The approximate index's shape, or `None` while searches are exact.
+    pub fn index_info(&self) -> Option<IndexInfo> {
+        self.index.as_ref().map(|i| IndexInfo { nlist: i.nlist(), nprobe: i.nprobe(), trained_len: i.trained_len(), largest_list: i.largest_list() })
+    }
+
+    /// Trains, retrains or extends the index as the policy and the database length require.
+    fn update_index(&mut self) -> anyhow::Result<()> {
+        if self.index_deferred {
+            return Ok(());
+        }
+        let len = self.len();
+        let retrain = match &self.index {
+            None => len >= self.index_policy.threshold(self.dim),
+            Some(index) => len >= index.trained_len().saturating_mul(self.index_policy.retrain_growth.max(2)),
+        };
+        if retrain {
+            self.index = Some(IvfIndex::train(&self.descriptors, self.dim, self.dropped, self.index_policy.probe_fraction).context("training the search index")?);
+        } else if let Some(index) = &mut self.index {
+            if index.pending(&self.descriptors) >= index::ASSIGN_BATCH {
+                index.assign_pending(&self.descriptors).context("extending the search index")?;
+            }
+        }
+        Ok(())
     }
 
     /// Drops the `count` oldest keyframes (all, if fewer); later positions shift down by `count`.
@@ -113,6 +180,9 @@ impl KeyframeDb {
             self.ids.drain(..self.dropped);
             self.stamps.drain(..self.dropped);
             self.descriptors.drain(..self.dropped * self.dim);
+            if let Some(index) = &mut self.index {
+                index.drain(self.dropped);
+            }
             self.dropped = 0;
         }
     }
@@ -154,6 +224,7 @@ impl KeyframeDb {
         self.ids.push(id);
         self.stamps.push(stamp);
         self.descriptors.extend_from_slice(descriptor);
+        self.update_index()?;
         Ok(self.len() - 1)
     }
 
@@ -173,7 +244,8 @@ impl KeyframeDb {
     }
 
     /// The `k` keyframes nearest to `query` among the positions `eligible` accepts, nearest first (equal
-    /// distances: earlier position first). Allocates only the result.
+    /// distances: earlier position first). Exact while the database is below the index threshold,
+    /// approximate above it ([`index`]). Allocates only the result.
     pub fn nearest(
         &self,
         query: &[f32],
@@ -181,7 +253,17 @@ impl KeyframeDb {
         eligible: impl Fn(usize) -> bool,
     ) -> anyhow::Result<Vec<Neighbour>> {
         self.check_descriptor(query, "query")?;
-        let mut best: Vec<Neighbour> = Vec::with_capacity(k + 1);
+        if let Some(index) = self.index.as_ref().filter(|_| k > 0) {
+            if let Some(found) = index.nearest(&self.descriptors, self.dropped, query, k, &eligible) {
+                return Ok(found);
+            }
+        }
+        self.nearest_exact(query, k, eligible)
+    }
+
+    /// [`KeyframeDb::nearest`] by the exact scan, whatever the size (the reference for the index's recall).
+    pub fn nearest_exact(&self, query: &[f32], k: usize, eligible: impl Fn(usize) -> bool) -> anyhow::Result<Vec<Neighbour>> {
+        self.check_descriptor(query, "query")?;
         if k == 0 || self.dim == 0 {
             // A zero-length descriptor makes every keyframe equally near; take the first eligible ones.
             return Ok((0..self.len())
@@ -190,19 +272,10 @@ impl KeyframeDb {
                 .map(|position| Neighbour { position, squared_distance: 0.0 })
                 .collect());
         }
-        for (position, stored) in self.descriptors[self.dropped * self.dim..].chunks_exact(self.dim).enumerate() {
-            if !eligible(position) {
-                continue;
-            }
-            let d2 = squared_distance(query, stored);
-            if best.len() == k && d2 >= best[k - 1].squared_distance {
-                continue;
-            }
-            let at = best.partition_point(|n| n.squared_distance <= d2);
-            best.insert(at, Neighbour { position, squared_distance: d2 });
-            best.truncate(k);
-        }
-        Ok(best)
+        let mut top = TopK::new(k);
+        let live = self.descriptors[self.dropped * self.dim..].chunks_exact(self.dim).enumerate().filter(|&(p, _)| eligible(p));
+        index::scan(query, live, |position, d2| top.offer(position, d2));
+        Ok(top.into_vec())
     }
 }
 

@@ -1,0 +1,481 @@
+//! Nearest-neighbour search for [`super::KeyframeDb`]: a SIMD brute-force scan (exact) and an
+//! inverted-file index (IVF, approximate) that the database builds by itself once it is large.
+//!
+//! - Exact scan: [`crate::descriptor::squared_distance`] (eight independent partial sums) inlined into a
+//!   loop compiled twice, baseline and AVX2, picked at run time; the additions are the same in both, so
+//!   the distances are bit-identical to the plain function.
+//! - IVF: k-means centroids (a few Lloyd iterations on a sample) split the stored descriptors into
+//!   `nlist` lists (spherical for unit descriptors: see [`IvfIndex::train`]); a query ranks the centroids and scans only the `nprobe` nearest lists, computing exact
+//!   distances on the stored `f32` descriptors, so a returned distance is always the true one and only
+//!   the *set* of neighbours can differ from the exact search. Chosen over a graph index (HNSW) because
+//!   it is small (4 bytes per keyframe besides the descriptors, against 100+ for an HNSW graph), inserts
+//!   incrementally at a fixed cost, tolerates dropping the oldest keyframes (the memory budget) with a
+//!   linear pass, and its build time is bounded and predictable (seconds at 1M keyframes).
+//! - Automatic choice ([`IndexPolicy`]): the index is trained when the database reaches
+//!   `max(min_len, scan_values / dim)` keyframes (brute force then scans about 10 MB per query) and
+//!   retrained from scratch each time the database has grown `retrain_growth` times since the last
+//!   training (the lists would otherwise grow unevenly). Below the threshold the search is the exact scan.
+//! - Newly inserted keyframes are assigned to lists in batches ([`ASSIGN_BATCH`], one matrix product); the
+//!   not-yet-assigned tail is scanned exactly on every query, so no keyframe is ever invisible.
+//! - Filters (recent-keyframe exclusion) are applied while scanning; when the probed lists yield fewer
+//!   than `k` eligible keyframes, the query falls back to the exact scan, so a query never returns
+//!   fewer results than the exact search would.
+
+use super::Neighbour;
+use crate::descriptor::squared_distance;
+
+/// Keyframes assigned to the index's lists at once (the rest of the tail is scanned exactly).
+pub const ASSIGN_BATCH: usize = 1024;
+
+/// When the database builds and rebuilds its approximate index.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct IndexPolicy {
+    /// Never index fewer keyframes than this (`usize::MAX` disables the index: always exact).
+    pub min_len: usize,
+    /// Index once `len * dim` reaches this many values (the size of one exact scan).
+    pub scan_values: usize,
+    /// Retrain when the database has grown this many times since the last training.
+    pub retrain_growth: usize,
+    /// Fraction of the lists a query scans (at least 8): the speed/recall trade-off.
+    pub probe_fraction: f64,
+}
+
+impl Default for IndexPolicy {
+    fn default() -> Self {
+        // 2.5M values = 10 MB of f32: 20k keyframes at 128-d, 5k at 1280-d (the `min_len` floor),
+        // where an exact scan costs about a millisecond and a half (128-d) to a few (1280-d).
+        // A 64th of the lists (at least 8) kept recall@10 >= 0.99 on clustered data from 10k to 1M
+        // keyframes at 128-d and 1280-d (0.996 at 1M: `ecm-lcd bench --only search` measures it).
+        IndexPolicy { min_len: 5000, scan_values: 2_621_440, retrain_growth: 4, probe_fraction: 1.0 / 64.0 }
+    }
+}
+
+impl IndexPolicy {
+    /// Always exact.
+    pub const EXACT: IndexPolicy = IndexPolicy { min_len: usize::MAX, scan_values: usize::MAX, retrain_growth: 8, probe_fraction: 1.0 };
+
+    /// The database length from which descriptors of length `dim` are indexed.
+    pub fn threshold(&self, dim: usize) -> usize {
+        if self.min_len == usize::MAX || dim == 0 {
+            return usize::MAX;
+        }
+        self.min_len.max(self.scan_values.div_ceil(dim)).max(1)
+    }
+}
+
+/// The `k` smallest `(squared distance, position)` pairs seen so far, smallest first; ties go to the
+/// earlier position, so the order does not depend on the order of the scan.
+pub(crate) struct TopK {
+    k: usize,
+    best: Vec<Neighbour>,
+}
+
+impl TopK {
+    pub fn new(k: usize) -> Self {
+        TopK { k, best: Vec::with_capacity(k + 1) }
+    }
+
+    #[inline]
+    pub fn offer(&mut self, position: usize, squared_distance: f32) {
+        let before = |n: &Neighbour| (n.squared_distance, n.position) < (squared_distance, position);
+        if self.best.len() == self.k && self.best.last().is_some_and(before) {
+            return;
+        }
+        let at = self.best.partition_point(before);
+        self.best.insert(at, Neighbour { position, squared_distance });
+        self.best.truncate(self.k);
+    }
+
+    pub fn len(&self) -> usize {
+        self.best.len()
+    }
+
+    pub fn into_vec(self) -> Vec<Neighbour> {
+        self.best
+    }
+}
+
+/// Calls `visit(i, d2)` for each `(i, row)` that `rows` yields.
+#[inline(always)]
+fn scan_portable<'a>(query: &[f32], rows: impl Iterator<Item = (usize, &'a [f32])>, visit: &mut impl FnMut(usize, f32)) {
+    for (i, row) in rows {
+        visit(i, squared_distance(query, row));
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn scan_avx2<'a>(query: &[f32], rows: impl Iterator<Item = (usize, &'a [f32])>, visit: &mut impl FnMut(usize, f32)) {
+    scan_portable(query, rows, visit)
+}
+
+/// Squared distances from `query` to each `(i, row)`, with the widest SIMD the CPU has.
+pub(crate) fn scan<'a>(query: &[f32], rows: impl Iterator<Item = (usize, &'a [f32])>, mut visit: impl FnMut(usize, f32)) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        return unsafe { scan_avx2(query, rows, &mut visit) };
+    }
+    scan_portable(query, rows, &mut visit)
+}
+
+/// Rows ahead of the scan whose memory is requested early (see [`IvfIndex::nearest`]).
+const PREFETCH_AHEAD: usize = 8;
+
+/// Asks the CPU to start loading `row` (its first 512 bytes; the hardware prefetcher follows a longer row).
+#[inline(always)]
+fn prefetch(row: &[f32]) {
+    #[cfg(target_arch = "x86_64")]
+    for offset in (0..row.len().min(128)).step_by(16) {
+        // SAFETY: SSE is part of x86_64; prefetching a valid address has no side effect.
+        #[allow(unused_unsafe)]
+        unsafe {
+            std::arch::x86_64::_mm_prefetch(row.as_ptr().add(offset) as *const i8, std::arch::x86_64::_MM_HINT_T0)
+        };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = row;
+}
+
+/// Rows assigned per matrix product (bounds the `rows x nlist` product to a few MB per thousand lists).
+const ASSIGN_CHUNK: usize = 2048;
+
+/// The nearest centroid of each row of `rows` (`dim` values each). Computed as the largest
+/// `x.c - |c|^2 / 2` with one matrix product per chunk (candle's gemm: SIMD and multi-threaded), which is
+/// an order of magnitude faster than a distance scan per row and ranks centroids the same way up to
+/// rounding (only the list a keyframe lands in depends on it, never a reported distance).
+fn nearest_centroids(centroids: &[f32], dim: usize, rows: &[f32]) -> anyhow::Result<Vec<usize>> {
+    use candle_core::{Device, Tensor};
+    let nlist = centroids.len() / dim;
+    let half_norms: Vec<f32> = centroids.chunks_exact(dim).map(|c| 0.5 * c.iter().map(|x| x * x).sum::<f32>()).collect();
+    let centroids_t = Tensor::from_slice(centroids, (nlist, dim), &Device::Cpu)?.t()?.contiguous()?;
+    let mut out = Vec::with_capacity(rows.len() / dim);
+    for chunk in rows.chunks(ASSIGN_CHUNK * dim) {
+        let x = Tensor::from_slice(chunk, (chunk.len() / dim, dim), &Device::Cpu)?;
+        let dots = x.matmul(&centroids_t)?.flatten_all()?.to_vec1::<f32>()?;
+        out.extend(dots.chunks_exact(nlist).map(|row| {
+            let mut best = (f32::NEG_INFINITY, 0);
+            for (c, (&d, &h)) in row.iter().zip(&half_norms).enumerate() {
+                if d - h > best.0 {
+                    best = (d - h, c);
+                }
+            }
+            best.1
+        }));
+    }
+    Ok(out)
+}
+
+/// A small deterministic generator (xorshift64*) for sampling; no statistical quality needed.
+#[derive(Clone)]
+struct Sampler(u64);
+
+impl Sampler {
+    fn next(&mut self, below: usize) -> usize {
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        (self.0.wrapping_mul(0x2545F4914F6CDD1D) >> 11) as usize % below.max(1)
+    }
+
+    /// Roughly normal (a sum of four uniforms, centred): enough for synthetic data.
+    fn gauss(&mut self) -> f32 {
+        (0..4).map(|_| self.next(1 << 20) as f32 / (1 << 20) as f32).sum::<f32>() - 2.0
+    }
+}
+
+/// Synthetic descriptor-like vectors for tests and benchmarks: unit vectors scattered around `clusters`
+/// random centres (places seen again and again), unlike uniform noise, in which every point is nearly
+/// equidistant from every other and no index (nor a real detector) could do well.
+#[derive(Clone)]
+pub struct ClusteredVectors {
+    dim: usize,
+    centres: Vec<f32>,
+    rng: Sampler,
+}
+
+impl ClusteredVectors {
+    /// Relative spread of a cluster (noise per value against the centres' spread).
+    const SPREAD: f32 = 0.25;
+
+    pub fn new(dim: usize, clusters: usize, seed: u64) -> Self {
+        let mut rng = Sampler(seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1);
+        let centres = (0..clusters.max(1) * dim).map(|_| rng.gauss()).collect();
+        ClusteredVectors { dim, centres, rng }
+    }
+
+    /// The same centres, another sequence of points (queries near the stored vectors).
+    pub fn reseed(mut self, seed: u64) -> Self {
+        self.rng = Sampler(seed.wrapping_mul(0xD1B5_4A32_D192_ED03) | 1);
+        self
+    }
+
+    /// The next vector into `out` (`dim` values).
+    pub fn next_into(&mut self, out: &mut [f32]) {
+        let clusters = self.centres.len() / self.dim.max(1);
+        let centre = &self.centres[self.rng.next(clusters) * self.dim..][..self.dim];
+        for (o, &c) in out.iter_mut().zip(centre) {
+            *o = c + Self::SPREAD * self.rng.gauss();
+        }
+        let norm = out.iter().map(|x| x * x).sum::<f32>().sqrt().max(f32::MIN_POSITIVE);
+        out.iter_mut().for_each(|x| *x /= norm);
+    }
+
+    /// The next `count` vectors, one after the other.
+    pub fn take(&mut self, count: usize) -> Vec<f32> {
+        let mut out = vec![0f32; count * self.dim];
+        out.chunks_exact_mut(self.dim.max(1)).for_each(|v| self.next_into(v));
+        out
+    }
+}
+
+/// Inverted lists over the database's descriptor buffer. Entries are *slots*: row numbers in that
+/// buffer, counted from its start (including keyframes dropped but not yet drained).
+#[derive(Clone, Debug)]
+pub(crate) struct IvfIndex {
+    dim: usize,
+    centroids: Vec<f32>,
+    lists: Vec<Vec<u32>>,
+    /// Slots `[0, assigned)` are in the lists; later ones are scanned exactly.
+    assigned: usize,
+    /// Live keyframes when the index was trained.
+    trained_len: usize,
+    nprobe: usize,
+}
+
+/// k-means iterations (Lloyd) when training; more change the lists little on descriptor-like data.
+const KMEANS_ITERATIONS: usize = 6;
+/// Lists probed at least.
+const MIN_PROBE: usize = 8;
+/// Bound on `nlist * dim`, the cost of assigning one keyframe to its list.
+const MAX_ASSIGN_VALUES: usize = 262_144;
+/// Training sample per list.
+const SAMPLE_PER_LIST: usize = 32;
+
+impl IvfIndex {
+    /// Trains on the live rows `rows[first_live..]` (`dim` values each) and assigns every row.
+    pub fn train(rows: &[f32], dim: usize, first_live: usize, probe_fraction: f64) -> anyhow::Result<Self> {
+        let total = rows.len() / dim;
+        let live = total - first_live;
+        // 2 sqrt(n) lists, up to 1024, and at most MAX_ASSIGN_VALUES / dim so assigning one keyframe
+        // stays cheap (200 lists at 1280-d, 1024 at 128-d).
+        let nlist = ((2.0 * (live as f64).sqrt()).round() as usize).clamp(1, (MAX_ASSIGN_VALUES / dim.max(1)).clamp(1, 1024));
+        // A fixed sample: evenly spread over the history, then jittered, so training is reproducible.
+        let mut sampler = Sampler(0x9E37_79B9_7F4A_7C15 ^ live as u64);
+        let sample_len = (nlist * SAMPLE_PER_LIST).min(live).max(1);
+        let stride = live / sample_len;
+        let sample: Vec<f32> = (0..sample_len)
+            .flat_map(|i| {
+                let slot = first_live + (i * stride + sampler.next(stride)).min(live - 1);
+                rows[slot * dim..(slot + 1) * dim].iter().copied()
+            })
+            .collect();
+        let row = |i: usize| &sample[i * dim..(i + 1) * dim];
+        // Initial centroids: sample rows spread over the sample.
+        let mut centroids: Vec<f32> = (0..nlist).flat_map(|c| row(c * sample_len / nlist).iter().copied()).collect();
+        for _ in 0..KMEANS_ITERATIONS {
+            let assignment = nearest_centroids(&centroids, dim, &sample)?;
+            let mut sums = vec![0f64; nlist * dim];
+            let mut counts = vec![0usize; nlist];
+            let mut norm_sums = vec![0f64; nlist];
+            for (i, &c) in assignment.iter().enumerate() {
+                counts[c] += 1;
+                norm_sums[c] += row(i).iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>().sqrt();
+                sums[c * dim..(c + 1) * dim].iter_mut().zip(row(i)).for_each(|(s, &x)| *s += x as f64);
+            }
+            for c in 0..nlist {
+                let centroid = &mut centroids[c * dim..(c + 1) * dim];
+                if counts[c] == 0 {
+                    // An empty list takes a random sample row, so no centroid is wasted.
+                    centroid.copy_from_slice(row(sampler.next(sample_len)));
+                } else {
+                    // The members' mean direction at their mean length: for unit descriptors this is
+                    // spherical k-means. A plain mean is shorter than its members, and short centroids
+                    // attract ever more points, giving a few huge lists that every query probes.
+                    let sum = &sums[c * dim..(c + 1) * dim];
+                    let sum_norm = sum.iter().map(|s| s * s).sum::<f64>().sqrt().max(f64::MIN_POSITIVE);
+                    let scale = norm_sums[c] / counts[c] as f64 / sum_norm;
+                    centroid.iter_mut().zip(sum).for_each(|(x, &s)| *x = (s * scale) as f32);
+                }
+            }
+        }
+        let nprobe = ((nlist as f64 * probe_fraction).round() as usize).max(MIN_PROBE).min(nlist);
+        let mut index = IvfIndex { dim, centroids, lists: vec![Vec::new(); nlist], assigned: first_live, trained_len: live, nprobe };
+        index.assign_pending(rows)?;
+        Ok(index)
+    }
+
+    pub fn nlist(&self) -> usize {
+        self.lists.len()
+    }
+
+    pub fn nprobe(&self) -> usize {
+        self.nprobe
+    }
+
+    pub fn largest_list(&self) -> usize {
+        self.lists.iter().map(Vec::len).max().unwrap_or(0)
+    }
+
+    pub fn trained_len(&self) -> usize {
+        self.trained_len
+    }
+
+    /// Rows not yet in a list.
+    pub fn pending(&self, rows: &[f32]) -> usize {
+        rows.len() / self.dim - self.assigned
+    }
+
+    /// Puts every not-yet-assigned row into its list.
+    pub fn assign_pending(&mut self, rows: &[f32]) -> anyhow::Result<()> {
+        let start = self.assigned;
+        let lists = nearest_centroids(&self.centroids, self.dim, &rows[start * self.dim..])?;
+        for (offset, c) in lists.into_iter().enumerate() {
+            self.lists[c].push((start + offset) as u32);
+        }
+        self.assigned = rows.len() / self.dim;
+        Ok(())
+    }
+
+    /// The first `count` slots were removed from the buffer: forget them and renumber the rest.
+    pub fn drain(&mut self, count: usize) {
+        let count32 = count as u32;
+        for list in &mut self.lists {
+            list.retain(|&slot| slot >= count32);
+            list.iter_mut().for_each(|slot| *slot -= count32);
+        }
+        self.assigned = self.assigned.saturating_sub(count);
+    }
+
+    /// The approximate top `k` over live rows (slots from `first_live`) that `eligible` accepts
+    /// (positions = slot - first_live). `None` when fewer than `k` eligible rows were found, so the
+    /// caller falls back to the exact scan.
+    pub fn nearest(&self, rows: &[f32], first_live: usize, query: &[f32], k: usize, eligible: &dyn Fn(usize) -> bool) -> Option<Vec<Neighbour>> {
+        let dim = self.dim;
+        let mut probe = TopK::new(self.nprobe);
+        scan(query, self.centroids.chunks_exact(dim).enumerate(), |c, d2| probe.offer(c, d2));
+        let mut top = TopK::new(k);
+        let row = |slot: usize| &rows[slot * dim..(slot + 1) * dim];
+        for list in probe.into_vec() {
+            let list = &self.lists[list.position];
+            let slots = list.iter().enumerate().filter_map(|(j, &slot)| {
+                // A list's rows are scattered over the buffer: fetch a few rows ahead so the memory
+                // latency overlaps the arithmetic (the scan is latency-bound otherwise).
+                if let Some(&ahead) = list.get(j + PREFETCH_AHEAD) {
+                    prefetch(&rows[ahead as usize * dim..(ahead as usize + 1) * dim]);
+                }
+                let slot = slot as usize;
+                (slot >= first_live && eligible(slot - first_live)).then(|| (slot - first_live, row(slot)))
+            });
+            scan(query, slots, |p, d2| top.offer(p, d2));
+        }
+        let total = rows.len() / dim;
+        let tail = (self.assigned.max(first_live)..total).map(|s| s - first_live).filter(|&p| eligible(p));
+        scan(query, tail.map(|p| (p, row(p + first_live))), |p, d2| top.offer(p, d2));
+        (top.len() == k).then(|| top.into_vec())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::detector::KeyframeDb;
+    use crate::types::Stamp;
+
+    fn clustered(count: usize, dim: usize, clusters: usize, seed: u64) -> Vec<f32> {
+        ClusteredVectors::new(dim, clusters, seed).take(count)
+    }
+
+    #[test]
+    fn simd_scan_is_bit_identical_to_the_descriptor_distance() {
+        for dim in [1, 7, 8, 13, 128, 1280] {
+            let rows = clustered(5, dim, 2, dim as u64);
+            let query = &rows[..dim];
+            scan(query, rows.chunks_exact(dim).enumerate(), |i, d2| {
+                assert_eq!(d2.to_bits(), crate::descriptor::squared_distance(query, &rows[i * dim..][..dim]).to_bits());
+            });
+        }
+    }
+
+    #[test]
+    fn index_is_chosen_by_size_and_keeps_recall() -> anyhow::Result<()> {
+        let (dim, count) = (32, 6000);
+        let policy = IndexPolicy { min_len: 2000, scan_values: 0, ..IndexPolicy::default() };
+        assert_eq!(policy.threshold(dim), 2000);
+        assert_eq!(IndexPolicy::EXACT.threshold(dim), usize::MAX);
+        let data = clustered(count, dim, 60, 7);
+        let mut db = KeyframeDb::new(dim);
+        db.set_index_policy(policy)?;
+        let mut exact = KeyframeDb::new(dim);
+        exact.set_index_policy(IndexPolicy::EXACT)?;
+        for (i, v) in data.chunks_exact(dim).enumerate() {
+            db.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
+            exact.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
+            assert_eq!(db.index_info().is_some(), i + 1 >= 2000, "after {} keyframes", i + 1);
+        }
+        let info = db.index_info().unwrap();
+        assert!(info.nlist > 1 && info.nprobe < info.nlist, "{info:?}");
+        let queries = ClusteredVectors::new(dim, 60, 7).reseed(99).take(100);
+        let (k, mut hits) = (10, 0);
+        for q in queries.chunks_exact(dim) {
+            // Exclude the newest 500 as the detector does.
+            let eligible = |p: usize| p < count - 500;
+            let got = db.nearest(q, k, eligible)?;
+            let want = exact.nearest(q, k, eligible)?;
+            assert_eq!(got.len(), k);
+            assert!(got.iter().all(|n| eligible(n.position)));
+            hits += got.iter().filter(|n| want.contains(n)).count();
+        }
+        let recall = hits as f64 / (100 * k) as f64;
+        assert!(recall >= 0.99, "recall@{k} {recall}");
+        Ok(())
+    }
+
+    #[test]
+    fn a_deferred_bulk_load_builds_the_index_once_at_the_end() -> anyhow::Result<()> {
+        let dim = 8;
+        let data = clustered(3000, dim, 20, 5);
+        let mut db = KeyframeDb::new(dim);
+        db.set_index_policy(IndexPolicy { min_len: 500, scan_values: 0, ..IndexPolicy::default() })?;
+        db.defer_index(true)?;
+        for (i, v) in data.chunks_exact(dim).enumerate() {
+            db.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
+        }
+        assert!(db.index_info().is_none(), "no index while deferred");
+        db.defer_index(false)?;
+        assert_eq!(db.index_info().unwrap().trained_len, 3000);
+        // Incremental afterwards: the next keyframe is found at once (scanned as the unassigned tail).
+        db.insert(3000, Stamp::from_nanos(3000), &data[..dim])?;
+        let got = db.nearest(&data[..dim], 2, |_| true)?;
+        assert_eq!(got.iter().map(|n| n.position).collect::<Vec<_>>(), vec![0, 3000]);
+        Ok(())
+    }
+
+    #[test]
+    fn short_filtered_results_fall_back_to_exact_and_drops_renumber() -> anyhow::Result<()> {
+        let dim = 16;
+        let data = clustered(3000, dim, 30, 3);
+        let mut db = KeyframeDb::new(dim);
+        db.set_index_policy(IndexPolicy { min_len: 1000, scan_values: 0, retrain_growth: 2, ..IndexPolicy::default() })?;
+        for (i, v) in data.chunks_exact(dim).enumerate() {
+            db.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
+        }
+        // Retrained at 2000 (growth 2 from 1000).
+        assert_eq!(db.index_info().unwrap().trained_len, 2000);
+        let mut exact = db.clone();
+        exact.set_index_policy(IndexPolicy::EXACT)?;
+        // Only three positions are eligible: the probed lists may miss them, the fallback may not.
+        let eligible = |p: usize| p % 1000 == 17;
+        let q = &data[5 * dim..6 * dim];
+        assert_eq!(db.nearest(q, 3, eligible)?, exact.nearest(q, 3, eligible)?);
+        // Drop the oldest 1200 (drained, since 1200 >= 1800 / 8): positions renumber, ids follow.
+        db.drop_oldest(1200);
+        exact.drop_oldest(1200);
+        assert_eq!(db.len(), 1800);
+        let q = &data[2500 * dim..2501 * dim];
+        let got = db.nearest(q, 1, |_| true)?;
+        assert_eq!(db.id(got[0].position), 2500);
+        assert_eq!(got, exact.nearest(q, 1, |_| true)?);
+        Ok(())
+    }
+}

@@ -1,0 +1,65 @@
+//! `ecm-lcd bench` end to end as a user runs it, on small sizes: the sections run, `--json` parses, and the
+//! ONNX export of the project's weights computes the same feature map as ecm-lcd (within 1e-4). The ONNX
+//! Runtime check creates `target/bench-venv` on its first run (needs PyPI then), like `io_fixtures.rs`.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn tflite() -> PathBuf {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
+    assert!(dir.join("models").is_dir(), "shared data missing at {}: tests need ../shared (see README)", dir.display());
+    dir.join("models/mobilenet_v2_1.0_224_quant.tflite")
+}
+
+fn bench_json(cache: &Path, args: &[&str]) -> serde_json::Value {
+    let out = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+        .arg("bench")
+        .args(args)
+        .arg("--json")
+        .env("ECM_LCD_CACHE", cache)
+        .env_remove("ECM_LCD_WEIGHTS")
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "ecm-lcd bench {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("bench printed no JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
+}
+
+#[test]
+fn onnx_export_of_the_weights_equals_ecm_lcd() {
+    let cache = tempfile::tempdir().unwrap();
+    let weights = tflite();
+    let report = bench_json(cache.path(), &["--only", "ort", "--weights", weights.to_str().unwrap(), "--runs", "2", "--threads", "1"]);
+    let archs = report["ort"]["archs"].as_array().expect("an ort section");
+    assert_eq!(archs.len(), 2, "{report}");
+    for arch in archs {
+        let diff = arch["max_abs_diff"].as_f64().unwrap();
+        assert!(diff <= 1e-4, "{}: ONNX Runtime differs from ecm-lcd by {diff}", arch["arch"]);
+        let timing = &arch["timings"][0];
+        assert_eq!(timing["threads"], 1);
+        assert!(timing["median_ms"].as_f64().unwrap() > 0.0, "{arch}");
+    }
+    assert!(report["goals"].as_array().unwrap().iter().any(|g| g["goal"].as_str().unwrap().contains("within 1e-4")));
+}
+
+#[test]
+fn search_and_memory_sections_report_exact_and_indexed_search() {
+    let cache = tempfile::tempdir().unwrap();
+    let report = bench_json(
+        cache.path(),
+        &["--only", "search,memory", "--search-sizes", "1000,8000", "--search-dims", "400", "--queries", "20", "--memory", "7000:400"],
+    );
+    let rows = report["search"].as_array().unwrap();
+    assert_eq!(rows.len(), 2, "{report}");
+    // 1000 x 400 is below the index threshold (exact), 8000 x 400 above it (IVF).
+    assert_eq!(rows[0]["auto_method"], "exact");
+    assert_eq!(rows[0]["recall"], 1.0);
+    assert_eq!(rows[1]["auto_method"], "ivf");
+    assert!(rows[1]["recall"].as_f64().unwrap() >= 0.99, "{}", rows[1]);
+    let memory = &report["memory"][0];
+    assert_eq!(memory["stored"], 7000);
+    assert_eq!(memory["indexed"], true);
+    // 7000 x 400 f32 = 11.2 MB: the peak includes at least the descriptors.
+    let (baseline, peak) = (memory["baseline_mb"].as_f64().unwrap(), memory["peak_mb"].as_f64().unwrap());
+    assert!(peak >= baseline + 11.2, "{memory}");
+}
