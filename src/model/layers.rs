@@ -8,6 +8,7 @@ use candle_core::{Module, ModuleT, Result, Tensor};
 use candle_nn::{BatchNorm, BatchNormConfig, VarBuilder};
 
 use super::depthwise::{self, Activation};
+use super::depthwise_grad;
 
 /// How a forward pass runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -16,8 +17,18 @@ pub enum Mode {
     Inference,
     /// Inference with stock candle ops only: the reference the fast path is checked against.
     Reference,
-    /// Training: stock differentiable ops, BatchNorm with batch statistics.
+    /// Training: BatchNorm with batch statistics; differentiable ops, the depthwise convolution
+    /// by [`super::depthwise_grad`] (tested equal to the stock grouped convolution).
     Train,
+    /// Fine-tuning (distillation): as [`Mode::Train`] but BatchNorm uses its frozen running statistics.
+    FineTune,
+}
+
+impl Mode {
+    /// Whether gradients flow (the differentiable fast kernels are used).
+    pub fn is_training(self) -> bool {
+        matches!(self, Mode::Train | Mode::FineTune)
+    }
 }
 
 /// What kind of convolution a unit is.
@@ -111,6 +122,7 @@ impl ConvUnit {
         }
         let y = match self.kind {
             ConvKind::Full { stride } => self.convolve(x, stride, 1)?,
+            ConvKind::Depthwise { stride } if mode.is_training() && std::env::var_os("ECM_STOCK").is_none() => depthwise_grad::depthwise_conv_train(x, &self.weight, stride)?,
             ConvKind::Depthwise { stride } => self.convolve(x, stride, x.dim(1)?)?,
             ConvKind::Pointwise => x.conv2d(&self.weight, 0, 1, 1, 1)?,
         };

@@ -7,6 +7,7 @@
 //! Layout is NCHW throughout; input is RGB scaled to [-1, 1].
 
 pub mod depthwise;
+pub mod depthwise_grad;
 pub mod embedder;
 pub mod ecmobilenet;
 pub mod layers;

@@ -358,6 +358,17 @@ impl RunFiles {
     }
 }
 
+/// The class names of a classifier trained by `ecm-lcd train`: the `classes` of the run record
+/// beside `weights_path` (any of the run's files), when there are exactly `classes` of them.
+/// `None` for weights that no training run wrote (e.g. the imported ImageNet classifier).
+pub fn class_names_of(weights_path: &Path, classes: usize) -> Option<Vec<String>> {
+    let json = RunFiles::of_checkpoint(weights_path).json;
+    let text = std::fs::read_to_string(json).ok()?;
+    let value: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let names: Vec<String> = value.get("classes")?.as_array()?.iter().map(|v| v.as_str().map(str::to_string)).collect::<Option<_>>()?;
+    (names.len() == classes).then_some(names)
+}
+
 /// A classification training run.
 #[derive(Clone, Debug)]
 pub struct TrainConfig {

@@ -237,3 +237,36 @@ fn distillation_halves_the_heldout_descriptor_error() -> Result<()> {
     assert_eq!(student.arch, Arch::EcMobileNet);
     Ok(())
 }
+
+/// Where a training step's time goes (forward, backward, optimizer), printed per architecture
+/// and input size. `cargo test --release --lib profile_training_step -- --ignored --nocapture`.
+#[test]
+#[ignore = "a profile, not a check"]
+fn profile_training_step() -> Result<()> {
+    for (arch, size, batch) in [(Arch::EcMobileNet, 32, 16), (Arch::EcMobileNet, 64, 16), (Arch::MobileNetV2, 64, 16)] {
+        let model = Trainable::new(arch, Some(4), &HashMap::new())?;
+        let mut optimizer = Optimizer::new(OptimizerKind::Adamw, trainable_params(&model.varmap), 0.9, 1e-4)?;
+        let x = Tensor::randn(0f32, 1.0, (batch, 3, size, size), &Device::Cpu)?;
+        let labels = Tensor::new((0..batch as u32).map(|i| i % 4).collect::<Vec<_>>().as_slice(), &Device::Cpu)?;
+        let (mut fwd, mut bwd, mut opt) = (0.0, 0.0, 0.0);
+        let steps = 4;
+        for step in 0..=steps {
+            let t = Instant::now();
+            let loss = smoothed_cross_entropy(&model.network.logits(&x, Mode::Train)?, &labels, 0.1)?;
+            let t_fwd = t.elapsed().as_secs_f64();
+            let grads = loss.backward()?;
+            let t_bwd = t.elapsed().as_secs_f64() - t_fwd;
+            optimizer.step(&grads, 1e-3)?;
+            let t_opt = t.elapsed().as_secs_f64() - t_fwd - t_bwd;
+            if step > 0 {
+                // The first step warms up allocations and is not counted.
+                fwd += t_fwd;
+                bwd += t_bwd;
+                opt += t_opt;
+            }
+        }
+        let ms = |s: f64| 1e3 * s / steps as f64;
+        eprintln!("{arch} {size}px batch {batch}: {:.0} ms/step (forward {:.0}, backward {:.0}, optimizer {:.0})", ms(fwd + bwd + opt), ms(fwd), ms(bwd), ms(opt));
+    }
+    Ok(())
+}
