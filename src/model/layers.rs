@@ -122,14 +122,14 @@ impl ConvUnit {
         }
         let y = match self.kind {
             ConvKind::Full { stride } => self.convolve(x, stride, 1)?,
-            ConvKind::Depthwise { stride } if mode.is_training() && std::env::var_os("ECM_STOCK").is_none() => depthwise_grad::depthwise_conv_train(x, &self.weight, stride)?,
+            ConvKind::Depthwise { stride } if mode.is_training() => depthwise_grad::depthwise_conv_train(x, &self.weight, stride)?,
             ConvKind::Depthwise { stride } => self.convolve(x, stride, x.dim(1)?)?,
             // A matrix multiply: its backward is two matrix multiplies, not a transposed convolution.
-            ConvKind::Pointwise if mode.is_training() && std::env::var_os("ECM_STOCK_PW").is_none() => pointwise(x, &self.weight)?,
+            ConvKind::Pointwise if mode.is_training() => pointwise(x, &self.weight)?,
             ConvKind::Pointwise => x.conv2d(&self.weight, 0, 1, 1, 1)?,
         };
         let y = match (&self.bn, &self.bias) {
-            (Some(bn), _) if mode == Mode::Train && std::env::var_os("ECM_STOCK_BN").is_none() => batch_norm_train::batch_norm_train(bn, &y)?,
+            (Some(bn), _) if mode == Mode::Train => batch_norm_train::batch_norm_train(bn, &y)?,
             (Some(bn), _) => bn.forward_t(&y, mode == Mode::Train)?,
             (None, Some(b)) => y.broadcast_add(&b.reshape((1, b.dim(0)?, 1, 1))?)?,
             (None, None) => y,

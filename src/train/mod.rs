@@ -3,8 +3,11 @@
 //! ECMobileNet ([`distill`]).
 //!
 //! - The network is built in its training form (`Network::load(.., batch_norm = true)`) from a
-//!   `VarMap`. In [`Mode::Train`] every op is a stock, differentiable candle op (the fast kernels
-//!   are inference-only and are tested equal to the stock ops), so no custom-op gradients exist.
+//!   `VarMap`. [`Mode::Train`] runs differentiable ops: stock candle ops, plus two custom ops with
+//!   hand-written backward passes, the depthwise convolution ([`crate::model::depthwise_grad`])
+//!   and training-mode BatchNorm ([`crate::model::batch_norm_train`]), both tested against
+//!   finite differences and candle's stock ops. Distillation uses [`Mode::FineTune`] (BatchNorm
+//!   frozen). The inference kernels have no backward.
 //! - `--init` loads folded (inference-form) weights into the training form: convolution weight as
 //!   is, BatchNorm gamma = 1, beta = the folded bias, running mean 0, running variance 1 - eps, so
 //!   the initial network computes exactly the folded one ([`training_form`]).
