@@ -7,7 +7,7 @@ use anyhow::Result;
 use crate::model::weights::resolve;
 use crate::train::data::Augment;
 use crate::train::distill::{distill, DistillConfig, DistillLoss};
-use crate::train::{check_device, OptimizerKind};
+use crate::train::{check_device, Optimisation, OptimizerKind};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -61,18 +61,20 @@ pub fn run(args: Args) -> Result<()> {
     let config = DistillConfig {
         data: args.data,
         size: args.size,
-        epochs: args.epochs,
-        batch: args.batch,
-        optimizer: args.optimizer,
-        lr: args.lr,
-        momentum: args.momentum,
-        weight_decay: args.weight_decay,
-        warmup_epochs: args.warmup_epochs,
+        opt: Optimisation {
+            epochs: args.epochs,
+            batch: args.batch,
+            optimizer: args.optimizer,
+            lr: args.lr,
+            momentum: args.momentum,
+            weight_decay: args.weight_decay,
+            warmup_epochs: args.warmup_epochs,
+            augment: Augment { min_crop_area: args.min_crop_area, flip: true, colour_jitter: args.colour_jitter },
+            seed: args.seed,
+        },
         loss: args.loss,
-        augment: Augment { min_crop_area: args.min_crop_area, flip: true, colour_jitter: args.colour_jitter },
         val_fraction: args.val_fraction,
         max_images: args.max_images,
-        seed: args.seed,
         out: args.out,
         progress: true,
     };

@@ -134,13 +134,17 @@ fn read_labels(path: Option<&Path>) -> Result<Vec<String>> {
 }
 
 pub fn classify(args: ClassifyArgs) -> Result<()> {
-    let (mut embedder, _) = args.network.embedder(Arch::MobileNetV2, true)?;
+    let (mut embedder, resolved) = args.network.embedder(Arch::MobileNetV2, true)?;
     let classes = embedder.network.classes().unwrap_or(0);
-    // The shared ImageNet labels only name an ImageNet classifier's 1001 outputs.
+    // A trained checkpoint's class names are in its run record; the shared ImageNet labels only
+    // name an ImageNet classifier's 1001 outputs.
     let labels = match &args.labels {
         Some(path) => read_labels(Some(path))?,
-        None if classes == 1001 => read_labels(None)?,
-        None => vec![],
+        None => match crate::train::class_names_of(&resolved.path, classes) {
+            Some(names) => names,
+            None if classes == 1001 => read_labels(None)?,
+            None => vec![],
+        },
     };
     let mut results = Vec::new();
     for path in &args.images {

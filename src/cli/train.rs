@@ -6,7 +6,7 @@ use anyhow::{bail, Result};
 
 use crate::model::Arch;
 use crate::train::data::Augment;
-use crate::train::{check_device, train, Hyper, OptimizerKind, RunFiles, TrainConfig};
+use crate::train::{check_device, train, Hyper, Optimisation, OptimizerKind, RunFiles, TrainConfig};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -76,16 +76,18 @@ pub fn run(args: Args) -> Result<()> {
     };
     let hyper = Hyper {
         size: args.size,
-        epochs: args.epochs,
-        batch: args.batch,
-        optimizer: args.optimizer,
-        lr: args.lr,
-        momentum: args.momentum,
-        weight_decay: args.weight_decay,
-        warmup_epochs: args.warmup_epochs,
+        opt: Optimisation {
+            epochs: args.epochs,
+            batch: args.batch,
+            optimizer: args.optimizer,
+            lr: args.lr,
+            momentum: args.momentum,
+            weight_decay: args.weight_decay,
+            warmup_epochs: args.warmup_epochs,
+            augment: Augment { min_crop_area: args.min_crop_area, flip: !args.no_flip, colour_jitter: args.colour_jitter },
+            seed: args.seed,
+        },
         label_smoothing: args.label_smoothing,
-        augment: Augment { min_crop_area: args.min_crop_area, flip: !args.no_flip, colour_jitter: args.colour_jitter },
-        seed: args.seed,
     };
     let config = TrainConfig {
         data: args.data,

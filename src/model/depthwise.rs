@@ -7,8 +7,8 @@
 //! - [`bias_activation_`]: adds a per-channel bias and applies the activation in place (fused
 //!   epilogue for the 1x1 convolutions, which are plain matrix multiplies).
 //!
-//! Both are inference-only (no backward); training uses stock candle ops, and the tests check
-//! that the two agree. The per-plane kernel is also what [`super::fused`]'s whole-bottleneck op
+//! Both are inference-only (no backward); training uses the differentiable op of
+//! [`super::depthwise_grad`], and the tests check all of them against stock candle ops. The per-plane kernel is also what [`super::fused`]'s whole-bottleneck op
 //! runs on each expanded channel.
 
 use candle_core::{CpuStorage, CustomOp3, InplaceOp2, Layout, Result, Shape, Tensor};

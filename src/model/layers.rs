@@ -11,6 +11,7 @@ use candle_nn::{BatchNorm, BatchNormConfig, VarBuilder};
 
 use super::depthwise::{self, Activation};
 use super::fused::{DenseConv, FusedBottleneck};
+use super::{batch_norm_train, depthwise_grad};
 
 /// How a forward pass runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -19,8 +20,18 @@ pub enum Mode {
     Inference,
     /// Inference with stock candle ops only: the reference the fast path is checked against.
     Reference,
-    /// Training: stock differentiable ops, BatchNorm with batch statistics.
+    /// Training: BatchNorm with batch statistics; differentiable ops, the depthwise convolution
+    /// by [`super::depthwise_grad`] (tested equal to the stock grouped convolution).
     Train,
+    /// Fine-tuning (distillation): as [`Mode::Train`] but BatchNorm uses its frozen running statistics.
+    FineTune,
+}
+
+impl Mode {
+    /// Whether gradients flow (the differentiable fast kernels are used).
+    pub fn is_training(self) -> bool {
+        matches!(self, Mode::Train | Mode::FineTune)
+    }
 }
 
 /// What kind of convolution a unit is.
@@ -132,10 +143,14 @@ impl ConvUnit {
         }
         let y = match self.kind {
             ConvKind::Full { stride } => self.convolve(x, stride, 1)?,
+            ConvKind::Depthwise { stride } if mode.is_training() => depthwise_grad::depthwise_conv_train(x, &self.weight, stride)?,
             ConvKind::Depthwise { stride } => self.convolve(x, stride, x.dim(1)?)?,
+            // A matrix multiply: its backward is two matrix multiplies, not a transposed convolution.
+            ConvKind::Pointwise if mode.is_training() => pointwise(x, &self.weight)?,
             ConvKind::Pointwise => x.conv2d(&self.weight, 0, 1, 1, 1)?,
         };
         let y = match (&self.bn, &self.bias) {
+            (Some(bn), _) if mode == Mode::Train => batch_norm_train::batch_norm_train(bn, &y)?,
             (Some(bn), _) => bn.forward_t(&y, mode == Mode::Train)?,
             (None, Some(b)) => y.broadcast_add(&b.reshape((1, b.dim(0)?, 1, 1))?)?,
             (None, None) => y,

@@ -6,7 +6,9 @@
 //! convolution to 1280 channels, global average pooling and an optional classifier.
 //! Layout is NCHW throughout; input is RGB scaled to [-1, 1].
 
+pub mod batch_norm_train;
 pub mod depthwise;
+pub mod depthwise_grad;
 pub mod embedder;
 pub mod fused;
 pub mod ecmobilenet;

@@ -27,7 +27,7 @@ use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
 
 use super::data::{load_unlabelled, Augment, ImageSet, Loader, MemorySet};
-use super::{learning_rate, progress_bar, training_form, trainable_params, write_json, Optimizer, OptimizerKind, Trainable};
+use super::{learning_rate, progress_bar, training_form, trainable_params, write_json, Optimisation, Trainable};
 use crate::model::layers::Mode;
 use crate::model::weights::Weights;
 use crate::model::{check_input_size, Arch, Network};
@@ -45,18 +45,11 @@ pub enum DistillLoss {
 pub struct DistillConfig {
     pub data: PathBuf,
     pub size: usize,
-    pub epochs: usize,
-    pub batch: usize,
-    pub optimizer: OptimizerKind,
-    pub lr: f64,
-    pub momentum: f64,
-    pub weight_decay: f64,
-    pub warmup_epochs: f64,
+    #[serde(flatten)]
+    pub opt: Optimisation,
     pub loss: DistillLoss,
-    pub augment: Augment,
     pub val_fraction: f64,
     pub max_images: usize,
-    pub seed: u64,
     pub out: PathBuf,
     #[serde(skip)]
     pub progress: bool,
@@ -112,7 +105,7 @@ pub fn descriptor_error(student: &Network, teacher: &Network, set: Arc<dyn Image
 pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) -> Result<DistillReport> {
     let started = Instant::now();
     check_input_size(config.size)?;
-    ensure!(config.batch >= 2, "batch size {} is below 2", config.batch);
+    ensure!(config.opt.batch >= 2, "batch size {} is below 2", config.opt.batch);
     ensure!((0.0..1.0).contains(&config.val_fraction) && config.val_fraction > 0.0, "--val-fraction {} is not in (0, 1)", config.val_fraction);
     let teacher_net = teacher.network(false)?;
     let student_init = teacher.for_arch(Arch::EcMobileNet)?;
@@ -121,30 +114,30 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
     let student = Trainable::new(Arch::EcMobileNet, None, &init)?;
 
     let mut images = load_unlabelled(&config.data, (config.size as u32 * 5).div_ceil(4), config.max_images)?;
-    images.shuffle(&mut StdRng::seed_from_u64(config.seed));
+    images.shuffle(&mut StdRng::seed_from_u64(config.opt.seed));
     let heldout = ((images.len() as f64 * config.val_fraction).round() as usize).clamp(1, images.len() - 2);
     let train_images = images.split_off(heldout);
     let (train_set, heldout_set): (Arc<dyn ImageSet>, Arc<dyn ImageSet>) = (Arc::new(MemorySet(train_images)), Arc::new(MemorySet(images)));
 
-    let before = descriptor_error(&student_init.network(false)?, &teacher_net, heldout_set.clone(), config.size, config.batch)?;
-    let mut optimizer = Optimizer::new(config.optimizer, trainable_params(&student.varmap), config.momentum, config.weight_decay)?;
-    let steps_per_epoch = train_set.len() / config.batch + usize::from(train_set.len() % config.batch >= 2);
-    let total = steps_per_epoch * config.epochs;
-    let warmup = (config.warmup_epochs * steps_per_epoch as f64).round() as usize;
+    let before = descriptor_error(&student_init.network(false)?, &teacher_net, heldout_set.clone(), config.size, config.opt.batch)?;
+    let mut optimizer = config.opt.optimizer(trainable_params(&student.varmap))?;
+    let steps_per_epoch = config.opt.steps_per_epoch(train_set.len());
+    let total = steps_per_epoch * config.opt.epochs;
+    let warmup = config.opt.warmup_steps(steps_per_epoch);
     let mut step = 0;
     let mut epoch_train_loss = Vec::new();
-    for epoch in 0..config.epochs {
-        let bar = progress_bar(config.progress, steps_per_epoch as u64, &format!("epoch {}/{}", epoch + 1, config.epochs));
-        let loader = Loader::spawn(train_set.clone(), config.batch, config.size, config.augment, true, config.seed.wrapping_add(1 + epoch as u64));
+    for epoch in 0..config.opt.epochs {
+        let bar = progress_bar(config.progress, steps_per_epoch as u64, &format!("epoch {}/{}", epoch + 1, config.opt.epochs));
+        let loader = config.opt.epoch_loader(train_set.clone(), config.size, epoch);
         let (mut sum, mut seen) = (0.0, 0usize);
         let epoch_start = Instant::now();
         for b in loader.batches.iter() {
             let b = b?;
             let x = b.tensor(config.size)?;
             let target = descriptors(&teacher_net, &x, Mode::Inference)?.detach();
-            let s = descriptors(&student.network, &x, Mode::Reference)?;
+            let s = descriptors(&student.network, &x, Mode::FineTune)?;
             let loss = loss_of(&s, &target, config.loss)?;
-            let lr = learning_rate(step, total, warmup, config.lr);
+            let lr = learning_rate(step, total, warmup, config.opt.lr);
             optimizer.step(&loss.backward()?, lr)?;
             step += 1;
             let l = loss.to_scalar::<f32>()? as f64;
@@ -158,7 +151,7 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
         epoch_train_loss.push(sum / seen.max(1) as f64);
     }
     let weights = student.inference_weights(&format!("ecm-lcd distill of {teacher_name} on {}", config.data.display()))?;
-    let after = descriptor_error(&weights.network(false)?, &teacher_net, heldout_set.clone(), config.size, config.batch)?;
+    let after = descriptor_error(&weights.network(false)?, &teacher_net, heldout_set.clone(), config.size, config.opt.batch)?;
     weights.save(&config.out)?;
     let report = DistillReport {
         command: "distill".into(),

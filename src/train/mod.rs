@@ -3,8 +3,11 @@
 //! ECMobileNet ([`distill`]).
 //!
 //! - The network is built in its training form (`Network::load(.., batch_norm = true)`) from a
-//!   `VarMap`. In [`Mode::Train`] every op is a stock, differentiable candle op (the fast kernels
-//!   are inference-only and are tested equal to the stock ops), so no custom-op gradients exist.
+//!   `VarMap`. [`Mode::Train`] runs differentiable ops: stock candle ops, plus two custom ops with
+//!   hand-written backward passes, the depthwise convolution ([`crate::model::depthwise_grad`])
+//!   and training-mode BatchNorm ([`crate::model::batch_norm_train`]), both tested against
+//!   finite differences and candle's stock ops. Distillation uses [`Mode::FineTune`] (BatchNorm
+//!   frozen). The inference kernels have no backward.
 //! - `--init` loads folded (inference-form) weights into the training form: convolution weight as
 //!   is, BatchNorm gamma = 1, beta = the folded bias, running mean 0, running variance 1 - eps, so
 //!   the initial network computes exactly the folded one ([`training_form`]).
@@ -56,20 +59,52 @@ pub enum OptimizerKind {
     Adamw,
 }
 
-/// Everything a run needs besides the data.
+/// The optimisation settings classification training and distillation share.
 #[derive(Clone, Debug, Serialize, Deserialize)]
-pub struct Hyper {
-    pub size: usize,
+pub struct Optimisation {
     pub epochs: usize,
     pub batch: usize,
     pub optimizer: OptimizerKind,
+    /// Peak learning rate (reached after the warm-up).
     pub lr: f64,
+    /// SGD momentum (unused by AdamW).
     pub momentum: f64,
     pub weight_decay: f64,
     pub warmup_epochs: f64,
-    pub label_smoothing: f64,
     pub augment: Augment,
     pub seed: u64,
+}
+
+impl Optimisation {
+    /// Steps in an epoch of `images` (a last batch of one image is dropped: BatchNorm needs two).
+    pub fn steps_per_epoch(&self, images: usize) -> usize {
+        images / self.batch + usize::from(images % self.batch >= 2)
+    }
+
+    /// Warm-up steps for `steps_per_epoch`.
+    pub fn warmup_steps(&self, steps_per_epoch: usize) -> usize {
+        (self.warmup_epochs * steps_per_epoch as f64).round() as usize
+    }
+
+    /// The optimizer over `params` with these settings.
+    pub fn optimizer(&self, params: Vec<Param>) -> Result<Optimizer> {
+        Optimizer::new(self.optimizer, params, self.momentum, self.weight_decay)
+    }
+
+    /// A loader over one epoch of `set` (shuffled with a seed of this epoch, augmented).
+    pub fn epoch_loader(&self, set: Arc<dyn ImageSet>, size: usize, epoch: usize) -> Loader {
+        Loader::spawn(set, self.batch, size, self.augment, true, self.seed.wrapping_add(1 + epoch as u64))
+    }
+}
+
+/// Everything a classification run needs besides the data (serialised flat, as before the
+/// shared [`Optimisation`] existed, so older run records still resume).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Hyper {
+    pub size: usize,
+    #[serde(flatten)]
+    pub opt: Optimisation,
+    pub label_smoothing: f64,
 }
 
 /// Learning rate at `step` (from 0) of `total` steps: linear warm-up over `warmup` steps to
@@ -358,6 +393,17 @@ impl RunFiles {
     }
 }
 
+/// The class names of a classifier trained by `ecm-lcd train`: the `classes` of the run record
+/// beside `weights_path` (any of the run's files), when there are exactly `classes` of them.
+/// `None` for weights that no training run wrote (e.g. the imported ImageNet classifier).
+pub fn class_names_of(weights_path: &Path, classes: usize) -> Option<Vec<String>> {
+    let json = RunFiles::of_checkpoint(weights_path).json;
+    let text = std::fs::read_to_string(json).ok()?;
+    let value: serde_json::Value = serde_json::from_str(&text).ok()?;
+    let names: Vec<String> = value.get("classes")?.as_array()?.iter().map(|v| v.as_str().map(str::to_string)).collect::<Option<_>>()?;
+    (names.len() == classes).then_some(names)
+}
+
 /// A classification training run.
 #[derive(Clone, Debug)]
 pub struct TrainConfig {
@@ -371,7 +417,7 @@ pub struct TrainConfig {
     pub out: PathBuf,
     pub resume: Option<PathBuf>,
     pub progress: bool,
-    /// Stop after this many epochs of this invocation (the schedule still spans `hyper.epochs`).
+    /// Stop after this many epochs of this invocation (the schedule still spans `hyper.opt.epochs`).
     pub stop_after: Option<usize>,
 }
 
@@ -391,9 +437,9 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
         None => None,
     };
     check_input_size(hyper.size)?;
-    ensure!(hyper.batch >= 2, "batch size {} is below 2 (BatchNorm needs two images)", hyper.batch);
-    ensure!(hyper.epochs >= 1, "--epochs must be at least 1");
-    let folder = ImageFolder::open(&config.data, hyper.seed, config.val_fraction)?;
+    ensure!(hyper.opt.batch >= 2, "batch size {} is below 2 (BatchNorm needs two images)", hyper.opt.batch);
+    ensure!(hyper.opt.epochs >= 1, "--epochs must be at least 1");
+    let folder = ImageFolder::open(&config.data, hyper.opt.seed, config.val_fraction)?;
     if let Some(k) = config.classes {
         ensure!(k == folder.classes.len(), "--classes {k} but {} has {} classes", config.data.display(), folder.classes.len());
     }
@@ -402,14 +448,10 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
     }
     let classes = folder.classes.len();
     ensure!(!folder.val.is_empty(), "no validation images (use --val-fraction > 0 or TestImages.txt)");
-    let steps_per_epoch = {
-        let n = folder.train.len();
-        let full = n / hyper.batch;
-        full + usize::from(n % hyper.batch >= 2)
-    };
+    let steps_per_epoch = hyper.opt.steps_per_epoch(folder.train.len());
     ensure!(steps_per_epoch > 0, "{} training images are too few for a batch", folder.train.len());
-    let total_steps = steps_per_epoch * hyper.epochs;
-    let warmup = (hyper.warmup_epochs * steps_per_epoch as f64).round() as usize;
+    let total_steps = steps_per_epoch * hyper.opt.epochs;
+    let warmup = hyper.opt.warmup_steps(steps_per_epoch);
 
     let init_tensors: HashMap<String, Tensor> = match (&resumed, &config.init) {
         (Some((_, w)), _) => w.tensors.iter().filter(|(n, _)| !n.starts_with("optimizer.")).map(|(n, t)| (n.clone(), t.clone())).collect(),
@@ -424,7 +466,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
         (None, None) => HashMap::new(),
     };
     let model = Trainable::new(config.arch, Some(classes), &init_tensors)?;
-    let mut optimizer = Optimizer::new(hyper.optimizer, trainable_params(&model.varmap), hyper.momentum, hyper.weight_decay)?;
+    let mut optimizer = hyper.opt.optimizer(trainable_params(&model.varmap))?;
     let mut record = match resumed {
         Some((record, w)) => {
             optimizer.restore(&w.tensors, record.steps_done)?;
@@ -452,16 +494,16 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
 
     let train_set: Arc<dyn ImageSet> = Arc::new(FileSet(folder.train.clone()));
     let val_set: Arc<dyn ImageSet> = Arc::new(FileSet(folder.val.clone()));
-    let calibration = calibration_batches(train_set.clone(), hyper.size, hyper.batch, PRECISE_BN_IMAGES, hyper.seed)?;
-    let last_epoch = config.stop_after.map(|n| (record.epochs_done + n).min(hyper.epochs)).unwrap_or(hyper.epochs);
+    let calibration = calibration_batches(train_set.clone(), hyper.size, hyper.opt.batch, PRECISE_BN_IMAGES, hyper.opt.seed)?;
+    let last_epoch = config.stop_after.map(|n| (record.epochs_done + n).min(hyper.opt.epochs)).unwrap_or(hyper.opt.epochs);
     for epoch in record.epochs_done..last_epoch {
         let started = Instant::now();
-        let bar = progress_bar(config.progress, steps_per_epoch as u64, &format!("epoch {}/{}", epoch + 1, hyper.epochs));
-        let loader = Loader::spawn(train_set.clone(), hyper.batch, hyper.size, hyper.augment, true, hyper.seed.wrapping_add(1 + epoch as u64));
+        let bar = progress_bar(config.progress, steps_per_epoch as u64, &format!("epoch {}/{}", epoch + 1, hyper.opt.epochs));
+        let loader = hyper.opt.epoch_loader(train_set.clone(), hyper.size, epoch);
         let (mut loss_sum, mut correct, mut seen, mut lr) = (0.0, 0usize, 0usize, 0.0);
         for batch in loader.batches.iter() {
             let batch = batch?;
-            lr = learning_rate(record.steps_done, total_steps, warmup, hyper.lr);
+            lr = learning_rate(record.steps_done, total_steps, warmup, hyper.opt.lr);
             let labels = Tensor::new(batch.labels.as_slice(), &Device::Cpu)?;
             let logits = model.network.logits(&batch.tensor(hyper.size)?, Mode::Train)?;
             let loss = smoothed_cross_entropy(&logits, &labels, hyper.label_smoothing)?;
@@ -480,7 +522,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
         drop(loader);
         model.precise_batch_norm(&calibration)?;
         let weights = model.inference_weights(&format!("ecm-lcd train on {} (epoch {})", config.data.display(), epoch + 1))?;
-        let val_accuracy = accuracy(&weights.network(true)?, val_set.clone(), hyper.size, hyper.batch)?;
+        let val_accuracy = accuracy(&weights.network(true)?, val_set.clone(), hyper.size, hyper.opt.batch)?;
         bar.finish_with_message(format!("loss {:.3} train acc {:.1}% val acc {:.1}%", loss_sum / seen.max(1) as f64, 100.0 * correct as f64 / seen.max(1) as f64, 100.0 * val_accuracy));
         let seconds = started.elapsed().as_secs_f64();
         record.history.push(EpochResult {

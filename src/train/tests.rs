@@ -2,8 +2,10 @@ use super::*;
 use image::{Rgb, RgbImage};
 use rand::{Rng, SeedableRng};
 
-/// Writes a 4-class texture set (stripes, checkerboard, dots, noise; random colours, periods and
-/// offsets) of `per_class` 64x64 PNGs per class under `dir`.
+/// Writes a 4-class texture set (stripes, checkerboard, dots, blocky noise; random colours,
+/// periods, offsets and stripe orientation) of `per_class` 64x64 PNGs per class under `dir`.
+/// Every structure is at least 3 px wide after halving (the tests train at 32 px), so the classes
+/// stay distinct at the network's input.
 fn write_textures(dir: &Path, per_class: usize, seed: u64) {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
     for class in ["checker", "dots", "noise", "stripes"] {
@@ -15,20 +17,22 @@ fn write_textures(dir: &Path, per_class: usize, seed: u64) {
             if a.0.iter().zip(b.0).map(|(x, y)| (*x as i32 - y as i32).abs()).sum::<i32>() < 150 {
                 b = Rgb(a.0.map(|x| 255 - x));
             }
-            let period = rng.random_range(6..14u32);
+            let period = rng.random_range(12..21u32);
             let (ox, oy) = (rng.random_range(0..period), rng.random_range(0..period));
             let vertical = rng.random_bool(0.5);
-            let mut noise = rand::rngs::StdRng::seed_from_u64(rng.random());
+            let half = period / 2;
+            // Noise in 6x6 blocks.
+            let cells: Vec<bool> = (0..12 * 12).map(|_| rng.random_bool(0.5)).collect();
             let img = RgbImage::from_fn(64, 64, |x, y| {
                 let (u, v) = (x + ox, y + oy);
                 let on = match class {
-                    "stripes" => (if vertical { u } else { v } / (period / 2).max(1)) % 2 == 0,
-                    "checker" => ((u / (period / 2).max(1)) + (v / (period / 2).max(1))) % 2 == 0,
+                    "stripes" => (if vertical { u } else { v } / half) % 2 == 0,
+                    "checker" => ((u / half) + (v / half)) % 2 == 0,
                     "dots" => {
                         let (dx, dy) = ((u % period) as i32 - period as i32 / 2, (v % period) as i32 - period as i32 / 2);
-                        dx * dx + dy * dy <= (period as i32 / 4).pow(2)
+                        dx * dx + dy * dy <= (period as i32 / 3).pow(2)
                     }
-                    _ => noise.random_bool(0.5),
+                    _ => cells[(y / 6 * 12 + x / 6) as usize],
                 };
                 if on { a } else { b }
             });
@@ -40,16 +44,18 @@ fn write_textures(dir: &Path, per_class: usize, seed: u64) {
 fn hyper(size: usize, epochs: usize, batch: usize) -> Hyper {
     Hyper {
         size,
-        epochs,
-        batch,
-        optimizer: OptimizerKind::Adamw,
-        lr: 3e-3,
-        momentum: 0.9,
-        weight_decay: 1e-4,
-        warmup_epochs: 1.0,
+        opt: Optimisation {
+            epochs,
+            batch,
+            optimizer: OptimizerKind::Adamw,
+            lr: 3e-3,
+            momentum: 0.9,
+            weight_decay: 1e-4,
+            warmup_epochs: 1.0,
+            augment: Augment { min_crop_area: 0.5, flip: true, colour_jitter: 0.2 },
+            seed: 7,
+        },
         label_smoothing: 0.1,
-        augment: Augment { min_crop_area: 0.5, flip: true, colour_jitter: 0.2 },
-        seed: 7,
     }
 }
 
@@ -124,21 +130,25 @@ fn cuda_is_refused_clearly() {
     assert!(err.contains("not built in"), "{err}");
 }
 
-// Not yet passing, and too slow for the suite: on 2 shared cores MobileNetV2 from scratch at
-// 32 px, AdamW 3e-3, 8 epochs x 8 steps of 16 took 682 s and reached only 44% validation
-// accuracy (loss rose during warm-up). Run with `cargo test --release -- --ignored textures`.
+// Not met (see README "Training and distillation"): measured on the loaded 2-core machine, this
+// recipe took 158 s and reached 37.5% validation accuracy; every other recipe tried (AdamW 5e-4 to
+// 2e-3, SGD 0.01/0.05, batch 32, no augmentation, 64 px) stayed at 30-42%.
+/// From scratch: ECMobileNet at 32 px learns the 4 texture classes to >= 90% validation accuracy.
 #[test]
-#[ignore = "slow (minutes) and not yet reaching 90%: see the comment"]
+#[ignore = "not yet reaching 90%: see the comment"]
 fn textures_are_learned_from_scratch() -> Result<()> {
     let dir = tempfile::tempdir()?;
-    write_textures(&dir.path().join("data"), 40, 1);
+    write_textures(&dir.path().join("data"), 50, 1);
     let started = Instant::now();
     let out = dir.path().join("run/tex.safetensors");
-    let record = train(&config(&dir.path().join("data"), &out, Arch::MobileNetV2, hyper(32, 8, 16)))?;
+    let mut h = hyper(32, 12, 16);
+    h.opt.lr = 2e-3;
+    h.opt.augment = Augment { min_crop_area: 0.6, flip: true, colour_jitter: 0.2 };
+    let record = train(&config(&dir.path().join("data"), &out, Arch::EcMobileNet, h))?;
     let seconds = started.elapsed().as_secs_f64();
     eprintln!("texture training: {:?}", record.history.iter().map(|e| (e.train_loss, e.val_accuracy)).collect::<Vec<_>>());
     eprintln!("best validation accuracy {:.3} at epoch {} in {seconds:.1} s", record.best_val_accuracy, record.best_epoch);
-    assert_eq!((record.train_images, record.val_images), (128, 32));
+    assert_eq!((record.train_images, record.val_images), (160, 40));
     assert!(record.best_val_accuracy >= 0.9, "validation accuracy {}", record.best_val_accuracy);
     // The best checkpoint is what the record says.
     let best = Weights::load(&out)?;
@@ -153,8 +163,8 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     let data = dir.path().join("data");
     write_textures(&data, 6, 2);
     let mut h = hyper(32, 2, 8);
-    h.optimizer = OptimizerKind::Sgd;
-    h.lr = 0.01;
+    h.opt.optimizer = OptimizerKind::Sgd;
+    h.opt.lr = 0.01;
     // Both runs start from the same weights (candle's random init is not seeded).
     let init = dir.path().join("init.safetensors");
     Trainable::new(Arch::EcMobileNet, Some(4), &HashMap::new())?.inference_weights("random")?.save(&init)?;
@@ -169,6 +179,12 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     first.init = Some(init.clone());
     let after_one = train(&first)?;
     assert_eq!(after_one.epochs_done, 1);
+    // `classify` names the classes of a trained checkpoint from its run record.
+    let names: Vec<String> = ["checker", "dots", "noise", "stripes"].map(String::from).to_vec();
+    assert_eq!(class_names_of(&part_out, 4), Some(names.clone()));
+    assert_eq!(class_names_of(&RunFiles::new(&part_out).last, 4), Some(names));
+    assert_eq!(class_names_of(&part_out, 5), None);
+    assert_eq!(class_names_of(&init, 4), None);
     let mut second = config(&data, &part_out, Arch::EcMobileNet, h.clone());
     second.resume = Some(RunFiles::new(&part_out).training);
     let resumed = train(&second)?;
@@ -179,7 +195,7 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     }
     let total = full.steps_per_epoch * 2;
     let warmup = full.steps_per_epoch;
-    assert_eq!(resumed.history[1].learning_rate, learning_rate(2 * full.steps_per_epoch - 1, total, warmup, h.lr));
+    assert_eq!(resumed.history[1].learning_rate, learning_rate(2 * full.steps_per_epoch - 1, total, warmup, h.opt.lr));
     let (a, b) = (Weights::load(&RunFiles::new(&dir.path().join("full/run.safetensors")).last)?, Weights::load(&RunFiles::new(&part_out).last)?);
     // Same init, same data order, restored optimizer state: the resumed run is the same run.
     let drift = a.tensors.iter().map(|(n, t)| max_abs_diff(t, &b.tensors[n])).fold(0f32, f32::max);
@@ -199,10 +215,11 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     Ok(())
 }
 
-// Measured on 2 shared cores: 48 training / 12 held-out synthetic frames at 64 px, 12 AdamW
-// steps: held-out error 0.894 -> 0.621 (-31%, not yet the required half) in 185 s.
+/// 48 training / 12 held-out synthetic frames at 64 px, 72 AdamW steps (batch 8, lr 3e-4; higher
+/// rates generalise worse: 1e-3 gave 0.529, 3e-3 0.772). Everything is seeded (the student starts
+/// from the converted teacher), so the run is repeatable. Measured: 0.894 -> 0.420 in 233 s wall,
+/// 92 s CPU, on this 2-core machine while other jobs kept the load average at 8-10.
 #[test]
-#[ignore = "slow (minutes) and not yet halving the error: see the comment"]
 fn distillation_halves_the_heldout_descriptor_error() -> Result<()> {
     let teacher = crate::model::weights::resolve::resolve(None).context("the default MobileNetV2 weights (../shared) are needed")?;
     let dir = tempfile::tempdir()?;
@@ -215,18 +232,20 @@ fn distillation_halves_the_heldout_descriptor_error() -> Result<()> {
     let config = distill::DistillConfig {
         data: frames,
         size: 64,
-        epochs: 4,
-        batch: 16,
-        optimizer: OptimizerKind::Adamw,
-        lr: 1e-3,
-        momentum: 0.9,
-        weight_decay: 0.0,
-        warmup_epochs: 0.5,
+        opt: Optimisation {
+            epochs: 12,
+            batch: 8,
+            optimizer: OptimizerKind::Adamw,
+            lr: 3e-4,
+            momentum: 0.9,
+            weight_decay: 0.0,
+            warmup_epochs: 0.5,
+            augment: Augment { min_crop_area: 0.6, flip: true, colour_jitter: 0.1 },
+            seed: 3,
+        },
         loss: distill::DistillLoss::Mse,
-        augment: Augment { min_crop_area: 0.6, flip: true, colour_jitter: 0.1 },
         val_fraction: 0.2,
         max_images: 1000,
-        seed: 3,
         out: dir.path().join("student.safetensors"),
         progress: false,
     };
@@ -235,5 +254,38 @@ fn distillation_halves_the_heldout_descriptor_error() -> Result<()> {
     assert!(report.heldout_error_after <= 0.5 * report.heldout_error_before, "{} -> {}", report.heldout_error_before, report.heldout_error_after);
     let student = Weights::load(&config.out)?;
     assert_eq!(student.arch, Arch::EcMobileNet);
+    Ok(())
+}
+
+/// Where a training step's time goes (forward, backward, optimizer), printed per architecture
+/// and input size. `cargo test --release --lib profile_training_step -- --ignored --nocapture`.
+#[test]
+#[ignore = "a profile, not a check"]
+fn profile_training_step() -> Result<()> {
+    for (arch, size, batch) in [(Arch::EcMobileNet, 32, 16), (Arch::EcMobileNet, 64, 16), (Arch::MobileNetV2, 64, 16)] {
+        let model = Trainable::new(arch, Some(4), &HashMap::new())?;
+        let mut optimizer = Optimizer::new(OptimizerKind::Adamw, trainable_params(&model.varmap), 0.9, 1e-4)?;
+        let x = Tensor::randn(0f32, 1.0, (batch, 3, size, size), &Device::Cpu)?;
+        let labels = Tensor::new((0..batch as u32).map(|i| i % 4).collect::<Vec<_>>().as_slice(), &Device::Cpu)?;
+        let (mut fwd, mut bwd, mut opt) = (0.0, 0.0, 0.0);
+        let steps = 4;
+        for step in 0..=steps {
+            let t = Instant::now();
+            let loss = smoothed_cross_entropy(&model.network.logits(&x, Mode::Train)?, &labels, 0.1)?;
+            let t_fwd = t.elapsed().as_secs_f64();
+            let grads = loss.backward()?;
+            let t_bwd = t.elapsed().as_secs_f64() - t_fwd;
+            optimizer.step(&grads, 1e-3)?;
+            let t_opt = t.elapsed().as_secs_f64() - t_fwd - t_bwd;
+            if step > 0 {
+                // The first step warms up allocations and is not counted.
+                fwd += t_fwd;
+                bwd += t_bwd;
+                opt += t_opt;
+            }
+        }
+        let ms = |s: f64| 1e3 * s / steps as f64;
+        eprintln!("{arch} {size}px batch {batch}: {:.0} ms/step (forward {:.0}, backward {:.0}, optimizer {:.0})", ms(fwd + bwd + opt), ms(fwd), ms(bwd), ms(opt));
+    }
     Ok(())
 }

@@ -1,0 +1,66 @@
+//! What the measuring examples share: the two evaluation sets and one evaluation run.
+//!
+//! Real: the 17 shared TUM fr3 frames as a two-pass revisit sequence (odd frames forward, even
+//! frames backward; loops verified by the real poses: within 1 m and 30°, at least 2 s apart).
+//! Synthetic: `ecm-lcd synth` defaults (seed 1) but 600 frames at 5 Hz, 3 laps (default pose criteria).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use ecm_lcd::config::Params;
+use ecm_lcd::eval::{evaluate, loop_truth_from_poses, revisit::write_two_pass, Metrics, PoseLoopCriteria};
+use ecm_lcd::io::tum::read_groundtruth;
+use ecm_lcd::model::weights::resolve::Resolved;
+use ecm_lcd::pipeline::Pipeline;
+use ecm_lcd::replay::run_source;
+use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
+
+/// One evaluation sequence with its loop criteria and detector overrides.
+pub struct EvalSet {
+    pub name: &'static str,
+    pub path: PathBuf,
+    pub criteria: PoseLoopCriteria,
+    pub overrides: &'static [(&'static str, &'static str)],
+}
+
+/// Writes both sets under `dir`.
+pub fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
+    let shared = ecm_lcd::runtime::shared_dirs().into_iter().next().context("the shared data folder (../shared) is needed")?;
+    let real = dir.join("fr3_two_pass");
+    write_two_pass(&shared.join("data/tum/fr3_long_office_household"), &real, 1.0, 0.05)?;
+    let synthetic = dir.join("synthetic");
+    let scene = Scene::new(SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..SynthConfig::default() })?;
+    write_tum_folder(&scene, &synthetic)?;
+    Ok(vec![
+        EvalSet {
+            name: "TUM fr3 two-pass (real)",
+            path: real,
+            criteria: PoseLoopCriteria { min_gap_s: 2.0, ..PoseLoopCriteria::default() },
+            overrides: &[("detector.min_history", "2"), ("detector.exclude_recent.count", "1"), ("detector.exclude_recent.seconds", "2")],
+        },
+        EvalSet { name: "synthetic 600 frames, 3 laps", path: synthetic, criteria: PoseLoopCriteria::default(), overrides: &[] },
+    ])
+}
+
+/// Replays `set` with `weights` as `arch` and the descriptor `mode` (`None`: the default);
+/// returns the metrics and the descriptor's dimension.
+pub fn evaluate_on(set: &EvalSet, arch: &str, mode: Option<&str>, weights: &Resolved) -> Result<(Metrics, usize)> {
+    let groundtruth = read_groundtruth(&set.path.join("groundtruth.txt"))?;
+    let mut params = Params::default();
+    params.set_from_str("arch", arch).map_err(anyhow::Error::msg)?;
+    if let Some(mode) = mode {
+        params.set_from_str("descriptor.mode", mode).map_err(anyhow::Error::msg)?;
+    }
+    for (k, v) in set.overrides {
+        params.set_from_str(k, v).map_err(anyhow::Error::msg)?;
+    }
+    let mut pipeline = Pipeline::with_weights(params, weights.clone())?;
+    let run = run_source(&mut pipeline, &set.path, None, false)?;
+    let truth = loop_truth_from_poses(&run.frame_stamps, &groundtruth, &set.criteria);
+    Ok((evaluate(&run.query_results(), &truth)?, pipeline.descriptor().dim()))
+}
+
+/// A figure with three decimals, `-` when undefined.
+pub fn figure(v: Option<f64>) -> String {
+    v.map(|v| format!("{v:.3}")).unwrap_or_else(|| "-".into())
+}
