@@ -65,7 +65,7 @@ pub struct Latency {
 }
 
 /// The `q`-quantile of sorted samples (nearest rank).
-fn quantile(sorted: &[f64], q: f64) -> f64 {
+pub(crate) fn quantile(sorted: &[f64], q: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
 
@@ -76,21 +76,17 @@ pub fn run(args: Args) -> Result<()> {
     if !(args.timeout.is_finite() && args.timeout > 0.0) {
         bail!("--timeout must be a positive number of seconds, got {}", args.timeout);
     }
-    if !inside_private_netns() {
-        // DDS discovery must not reach other programs on this machine: run again in a private namespace.
-        let exe = std::env::current_exe().context("finding this program to run it in a private network namespace")?;
-        let status = private_netns_command(&exe)
-            .args(std::env::args_os().skip(1))
-            .status()
-            .context("running unshare (util-linux) for a private network namespace")?;
-        if !status.success() {
-            bail!("the benchmark in the private network namespace failed ({status})");
-        }
+    if rerun_in_private_netns("benchmark")? {
         return Ok(());
     }
     let frames = load_frames(&args)?;
     let log_path = std::env::temp_dir().join(format!("ecm-lcd-bench-node-{}.log", std::process::id()));
-    let mut node = start_node(&args, &log_path)?;
+    let mut node_args = Vec::new();
+    if let Some(weights) = &args.weights {
+        node_args.extend(["--weights".to_string(), weights.display().to_string()]);
+    }
+    node_args.extend(every_keyframe_matches_args("/bench"));
+    let mut node = start_node(&node_args, &log_path)?;
     let result = measure(&args, &frames);
     let counters = stop_node(&mut node, &log_path);
     let (mut samples, counters) = match (result, counters) {
@@ -135,7 +131,12 @@ pub fn run(args: Args) -> Result<()> {
 fn load_frames(args: &Args) -> Result<Vec<Frame>> {
     // Enough distinct frames that the descriptors differ; more would only cost rendering time.
     let wanted = (args.keyframes + args.warmup + 1).min(60);
-    if let Some(path) = &args.source {
+    frames_for_benchmark(args.source.as_deref(), wanted, args.width, args.height)
+}
+
+/// `wanted` frames from a replay source (fewer if it is shorter), or rendered synthetic frames.
+pub(crate) fn frames_for_benchmark(source: Option<&std::path::Path>, wanted: usize, width: u32, height: u32) -> Result<Vec<Frame>> {
+    if let Some(path) = source {
         let source = crate::io::open_source(path, None).with_context(|| format!("opening {}", path.display()))?;
         let frames: Vec<Frame> = source.take(wanted).collect::<Result<_>>().with_context(|| format!("reading {}", path.display()))?;
         if frames.is_empty() {
@@ -143,7 +144,7 @@ fn load_frames(args: &Args) -> Result<Vec<Frame>> {
         }
         return Ok(frames);
     }
-    let scene = Scene::new(SynthConfig { frames: wanted, laps: 1, width: args.width, height: args.height, ..SynthConfig::default() })?;
+    let scene = Scene::new(SynthConfig { frames: wanted, laps: 1, width, height, ..SynthConfig::default() })?;
     Ok((0..wanted)
         .map(|index| {
             let (stamp, image, _) = scene.frame(index);
@@ -152,19 +153,44 @@ fn load_frames(args: &Args) -> Result<Vec<Frame>> {
         .collect())
 }
 
-fn start_node(args: &Args, log_path: &std::path::Path) -> Result<Child> {
+/// Outside a private network namespace, runs this program again with the same arguments inside one
+/// and returns true once it succeeded (DDS discovery must not reach other programs on this machine);
+/// inside, returns false: the caller does its work.
+pub(crate) fn rerun_in_private_netns(what: &str) -> Result<bool> {
+    if inside_private_netns() {
+        return Ok(false);
+    }
+    let exe = std::env::current_exe().context("finding this program to run it in a private network namespace")?;
+    let status = private_netns_command(&exe)
+        .args(std::env::args_os().skip(1))
+        .status()
+        .context("running unshare (util-linux) for a private network namespace")?;
+    if !status.success() {
+        bail!("the {what} in the private network namespace failed ({status})");
+    }
+    Ok(true)
+}
+
+/// The node's arguments for the benchmarks: namespace `ns`, and parameters under which every keyframe
+/// after the first yields exactly one candidate (threshold 0, no history or recency limits).
+pub(crate) fn every_keyframe_matches_args(ns: &str) -> Vec<String> {
+    let mut args: Vec<String> = vec!["--ros-args".into(), "-r".into(), format!("__ns:={ns}")];
+    for param in ["detector.min_score:=0.0", "detector.min_history:=1", "detector.exclude_recent.count:=0", "detector.exclude_recent.seconds:=0.0"] {
+        args.extend(["-p".to_string(), param.to_string()]);
+    }
+    args
+}
+
+/// Starts `ecm-lcd node ARGS` (this program) with its log in `log_path`.
+pub(crate) fn start_node(args: &[String], log_path: &std::path::Path) -> Result<Child> {
     let exe = std::env::current_exe().context("finding this program to start the node")?;
     let log = std::fs::File::create(log_path).with_context(|| format!("creating {}", log_path.display()))?;
     let mut command = Command::new(exe);
-    command.arg("node");
-    if let Some(weights) = &args.weights {
-        command.arg("--weights").arg(weights);
-    }
     command
-        .args(["--ros-args", "-r", "__ns:=/bench"])
-        .args(["-p", "detector.min_score:=0.0", "-p", "detector.min_history:=1"])
-        .args(["-p", "detector.exclude_recent.count:=0", "-p", "detector.exclude_recent.seconds:=0.0"])
-        .env("RUST_LOG", std::env::var("RUST_LOG").unwrap_or_else(|_| "info,rustdds=error".into()))
+        .arg("node")
+        .args(args)
+        // The final counters line is logged at info: keep it whatever RUST_LOG says (later directives win).
+        .env("RUST_LOG", format!("ecm_lcd::ros::node=info,{}", std::env::var("RUST_LOG").unwrap_or_else(|_| "info,rustdds=error".into())))
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(log);
@@ -216,7 +242,7 @@ fn measure(args: &Args, frames: &[Frame]) -> Result<Vec<f64>> {
 }
 
 /// Stops the node with SIGTERM and returns its final counters line.
-fn stop_node(node: &mut Child, log_path: &std::path::Path) -> Result<String> {
+pub(crate) fn stop_node(node: &mut Child, log_path: &std::path::Path) -> Result<String> {
     let _ = Command::new("kill").args(["-TERM", &node.id().to_string()]).status();
     let deadline = Instant::now() + Duration::from_secs(15);
     let status = loop {

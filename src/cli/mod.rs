@@ -7,6 +7,7 @@ pub mod demo;
 pub mod distill;
 pub mod eval;
 pub mod listen;
+pub mod load_test;
 pub mod model;
 pub mod node;
 pub mod param;
@@ -56,6 +57,8 @@ pub enum Command {
     Param(param::Args),
     /// Benchmark: node latency from keyframe publish to candidate receipt (private network namespace).
     BenchNode(bench_node::Args),
+    /// Load test: a 10x keyframe burst into the node, parameter calls during it, drops and memory.
+    LoadTest(load_test::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
     Synth(synth::Args),
     /// Inspect, export and merge persistent keyframe databases (--db).
@@ -95,6 +98,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Listen(args) => listen::run(args),
         Command::Param(args) => param::run(args),
         Command::BenchNode(args) => bench_node::run(args),
+        Command::LoadTest(args) => load_test::run(args),
         Command::Synth(args) => synth::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),

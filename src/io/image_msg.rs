@@ -162,10 +162,10 @@ impl ImageMessage {
             Ok(parsed.map_err(|e| anyhow::anyhow!("{e}"))?.0)
         }
         let message = match kind {
-            ImageKind::Raw => ImageMessage::Raw(parse(body, little_endian)?),
-            ImageKind::Compressed => ImageMessage::Compressed(parse(body, little_endian)?),
+            ImageKind::Raw => parse(body, little_endian).map(ImageMessage::Raw),
+            ImageKind::Compressed => parse(body, little_endian).map(ImageMessage::Compressed),
         };
-        Ok(message)
+        message.with_context(|| format!("{} CDR message of {} bytes", kind.ros2_type(), bytes.len()))
     }
 
     /// Serialises to little-endian CDR with the encapsulation header, as rosbag2 stores it.

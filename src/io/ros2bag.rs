@@ -21,7 +21,8 @@ use crate::types::{Frame, Stamp};
 
 /// Decodes one CDR image payload into a frame.
 fn cdr_frame(kind: ImageKind, index: usize, payload: &[u8]) -> Result<Frame> {
-    let message = ImageMessage::from_cdr(kind, payload).with_context(|| format!("{} CDR payload", kind.ros2_type()))?;
+    // from_cdr names the message type and size.
+    let message = ImageMessage::from_cdr(kind, payload)?;
     Ok(Frame { index, stamp: message.stamp(), image: message.to_rgb()? })
 }
 

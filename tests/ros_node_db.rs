@@ -1,0 +1,160 @@
+//! `ecm-lcd node --db` over DDS: the node receives the first lap of a looped synthetic sequence, is
+//! killed with SIGKILL, and a new node started on the same database loads that history; the second
+//! lap (the revisit) published to it then closes loops on keyframes of the first run, exactly as the
+//! offline run of the whole sequence does. The tracker and the back end are RustDDS participants in
+//! this process; the whole test re-runs itself in a private network namespace (see `ros_support`).
+
+mod ros_support;
+mod support;
+
+use ecm_lcd::config::Params;
+use ecm_lcd::detector::store::KeyframeStore;
+use ecm_lcd::io::open_source;
+use ecm_lcd::pipeline::Pipeline;
+use ecm_lcd::ros::node::InputQos;
+use ecm_lcd::ros::peer::{CandidateListener, FramePublisher, SendAs};
+use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
+use ecm_lcd::types::Frame;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+const FRAMES: usize = 60;
+const FIRST_LAP: usize = FRAMES / 2;
+/// A lap is 30 keyframes: loops are searched early and only a few keyframes back are excluded.
+const PARAMS: &[(&str, &str)] = &[
+    ("detector.min_history", "5"),
+    ("detector.exclude_recent.count", "8"),
+    ("detector.exclude_recent.seconds", "0.0"),
+    ("detector.min_score", "0.975"),
+];
+
+fn weights() -> PathBuf {
+    let path = support::shared_dir().join("models/mobilenet_v2_1.0_224_quant.tflite");
+    assert!(path.is_file(), "{} missing", path.display());
+    path
+}
+
+struct Node {
+    child: Child,
+    log: PathBuf,
+}
+
+impl Node {
+    fn start(dir: &Path, db: &Path, run: usize) -> Node {
+        let log = dir.join(format!("node{run}.log"));
+        let mut command = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"));
+        command.args(["node", "--queue", "128", "--weights"]).arg(weights()).arg("--db").arg(db).args(["--ros-args", "-r", "__ns:=/dbtest"]);
+        for (name, value) in PARAMS {
+            command.args(["-p", &format!("{name}:={value}")]);
+        }
+        let child = command
+            .env("ECM_LCD_CACHE", dir.join("cache"))
+            .env("RUST_LOG", "info,ecm_lcd::ros::node=debug,rustdds=error")
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        Node { child, log }
+    }
+
+    fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    fn wait_for_log(&self, needle: &str, within: Duration) {
+        let end = Instant::now() + within;
+        while !self.log_text().contains(needle) {
+            assert!(Instant::now() < end, "node never logged {needle:?}:\n{}", self.log_text());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+/// The candidates `(query, match)` of the offline run of the whole sequence.
+fn offline(frames: &[Frame]) -> Vec<(u64, u64)> {
+    let mut params = Params::default();
+    for (name, value) in PARAMS {
+        params.set_from_str(name, value).unwrap();
+    }
+    let mut pipeline = Pipeline::new(params, Some(&weights())).unwrap();
+    let mut rows = Vec::new();
+    for frame in frames {
+        let outcome = pipeline.process_keyframe(frame.index as u64, frame.stamp, &frame.image).unwrap();
+        rows.extend(outcome.candidates.iter().map(|c| (c.query_id, c.match_id)));
+    }
+    rows
+}
+
+/// Publishes `frames` as keyframes from fresh participants (so that no match with a killed node
+/// lingers) and collects the candidates until `expected` arrived or nothing came for a while.
+fn publish_and_listen(frames: &[Frame], expected: usize) -> Vec<(u64, u64)> {
+    let tracker = ros2_client::Context::new().unwrap();
+    let back_end = ros2_client::Context::new().unwrap();
+    let publisher = FramePublisher::new(&tracker, "/dbtest/keyframes", SendAs::Keyframe, InputQos::Reliable, "camera").unwrap();
+    let listener = CandidateListener::new(&back_end, "/dbtest/loop_candidates").unwrap();
+    assert!(publisher.wait_for_subscriber(Duration::from_secs(60)), "the node did not subscribe");
+    assert!(listener.wait_for_publisher(Duration::from_secs(60)), "the node did not publish");
+    std::thread::sleep(Duration::from_millis(500));
+    let mut got = Vec::new();
+    for frame in frames {
+        publisher.publish(frame).unwrap();
+        std::thread::sleep(Duration::from_millis(50));
+        got.extend(listener.take_all().unwrap().iter().map(|c| (c.query_id, c.match_id)));
+    }
+    let mut last = Instant::now();
+    while got.len() < expected && last.elapsed() < Duration::from_secs(10) {
+        let more = listener.wait(Duration::from_millis(200)).unwrap();
+        if !more.is_empty() {
+            last = Instant::now();
+        }
+        got.extend(more.iter().map(|c| (c.query_id, c.match_id)));
+    }
+    // Anything late would show as a difference from the offline run.
+    std::thread::sleep(Duration::from_millis(300));
+    got.extend(listener.take_all().unwrap().iter().map(|c| (c.query_id, c.match_id)));
+    got
+}
+
+#[test]
+fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
+    if !ros_support::inside() {
+        return ros_support::check_inner_run("node_with_a_database_killed_and_restarted_detects_the_revisit");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let config = SynthConfig { frames: FRAMES, laps: 2, seed: 3, width: 160, height: 120, rate_hz: 10.0, ..SynthConfig::default() };
+    let seq = dir.path().join("seq");
+    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    let frames: Vec<Frame> = open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    let expected = offline(&frames);
+    let (before, after): (Vec<_>, Vec<_>) = expected.iter().partition(|(query, _)| (*query as usize) < FIRST_LAP);
+    assert!(after.len() >= 5, "the second lap should close loops on the first offline: {expected:?}");
+    assert!(after.iter().all(|(_, matched)| (*matched as usize) < FIRST_LAP), "{after:?}");
+
+    // First run: the first lap, then SIGKILL once the last keyframe was processed.
+    let db = dir.path().join("keyframes.db");
+    let mut first = Node::start(dir.path(), &db, 1);
+    let got = publish_and_listen(&frames[..FIRST_LAP], before.len());
+    assert_eq!(got, before, "first lap over DDS vs offline");
+    first.wait_for_log(&format!(" id {} stamp", FIRST_LAP - 1), Duration::from_secs(30));
+    first.child.kill().unwrap(); // SIGKILL
+    first.child.wait().unwrap();
+    let store = KeyframeStore::open_existing(&db).unwrap();
+    let stored: Vec<u64> = store.keyframes().unwrap().iter().map(|k| k.id).collect();
+    assert_eq!(stored, (0..FIRST_LAP as u64).collect::<Vec<_>>(), "keyframes stored by the killed node");
+    drop(store);
+
+    // Second run on the same database: the history is loaded and the revisit closes loops on it.
+    let second = Node::start(dir.path(), &db, 2);
+    second.wait_for_log(&format!("{FIRST_LAP} keyframes stored, {FIRST_LAP} loaded"), Duration::from_secs(60));
+    let got = publish_and_listen(&frames[FIRST_LAP..], after.len());
+    assert_eq!(got, after, "second lap after the restart vs the offline run of the whole sequence");
+    let mut second = second;
+    Command::new("kill").args(["-TERM", &second.child.id().to_string()]).status().unwrap();
+    assert!(second.child.wait().unwrap().success(), "{}", second.log_text());
+    let counters = second.log_text().lines().find_map(|l| l.split_once("stopped: ").map(|(_, c)| c.to_string())).unwrap();
+    assert!(counters.starts_with(&format!("received {0} processed {0} candidates {1} ", FRAMES - FIRST_LAP, after.len())), "{counters}");
+    let stored = KeyframeStore::open_existing(&db).unwrap().keyframes().unwrap().len();
+    assert_eq!(stored, FRAMES);
+    println!("INNER-DONE first lap {} candidates, after the restart {} candidates, all on the first run's keyframes; {counters}", before.len(), after.len());
+}
