@@ -54,6 +54,8 @@ pub enum Section {
     Search,
     E2e,
     Memory,
+    /// Time per stage of ECMobileNet's forward pass: where the time goes.
+    Profile,
 }
 
 #[derive(clap::Args, Debug)]
@@ -267,7 +269,32 @@ pub struct Report {
     pub search: Option<Vec<SearchRow>>,
     pub end_to_end: Option<EndToEnd>,
     pub memory: Option<Vec<MemoryRow>>,
+    pub profile: Option<Vec<ProfileRow>>,
     pub goals: Vec<Goal>,
+}
+
+/// One stage of ECMobileNet at one thread count.
+#[derive(Serialize, Debug)]
+pub struct ProfileRow {
+    pub stage: String,
+    pub threads: usize,
+    pub macs: usize,
+    pub ms: f64,
+}
+
+fn profile(args: &BenchArgs, image: &RgbImage) -> Result<Vec<ProfileRow>> {
+    let x = Preprocessor::new(args.size).tensor(image)?;
+    let network = NetworkArgs { weights: args.weights.clone(), arch: Some(Arch::EcMobileNet), size: args.size, reference: false };
+    let (embedder, _) = network.embedder(Arch::EcMobileNet, false)?;
+    let costs = Arch::EcMobileNet.spec().stage_costs(None, args.size);
+    let mut rows = Vec::new();
+    for &threads in &args.threads {
+        let stages = with_threads(threads, || Ok(embedder.network.profile(&x, Mode::Inference, args.runs)?))?;
+        for ((stage, time), cost) in stages.into_iter().zip(&costs) {
+            rows.push(ProfileRow { stage, threads, macs: cost.macs, ms: time.as_secs_f64() * 1e3 });
+        }
+    }
+    Ok(rows)
 }
 
 pub fn run(args: BenchArgs) -> Result<()> {
@@ -296,6 +323,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     if wanted(Section::Memory) {
         report.memory = Some(args.memory.iter().map(|spec| memory(spec)).collect::<Result<_>>()?);
+    }
+    if wanted(Section::Profile) {
+        report.profile = Some(profile(&args, &frame.0)?);
     }
     report.goals = goals(&report);
     if args.json {
@@ -727,6 +757,18 @@ fn goals(report: &Report) -> Vec<Goal> {
 fn print_report(args: &BenchArgs, report: &Report) {
     if let Some(m) = &report.machine {
         println!("machine: {} ({} logical cores, {})", m.cpu, m.logical_cores, m.os);
+    }
+    if let Some(rows) = &report.profile {
+        println!("\nprofile: ECMobileNet stage by stage, mean of {} runs", args.runs);
+        println!("{:<10} {:>7} {:>10} {:>9} {:>8} {:>7}", "stage", "threads", "MACs", "ms", "GMAC/s", "share");
+        for &threads in &args.threads {
+            let total: f64 = rows.iter().filter(|r| r.threads == threads).map(|r| r.ms).sum();
+            for r in rows.iter().filter(|r| r.threads == threads) {
+                let rate = r.macs as f64 / r.ms / 1e6;
+                println!("{:<10} {:>7} {:>10} {:>9.3} {:>8.1} {:>6.1}%", r.stage, threads, r.macs, r.ms, rate, 100.0 * r.ms / total);
+            }
+            println!("{:<10} {:>7} {:>10} {:>9.3}", "total", threads, "", total);
+        }
     }
     let ort_time = |arch: Arch, threads: usize| {
         report.ort.as_ref().and_then(|o| o.archs.iter().find(|a| a.arch == arch)).and_then(|a| a.timings.iter().find(|t| t.threads == threads))

@@ -216,16 +216,17 @@ fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act:
         } else {
             let (even_cols, odd_cols) = (cols / 2 + 1, cols / 2);
             let (even, odd) = data.split_at_mut(rows * even_cols);
+            // Input column x lands in padded column x + pad_left: even ones in `even`, odd in `odd`.
+            let first_even = g.pad_left % 2;
             for y in 0..y_end {
                 let row = &src[y * width..y * width + x_end];
                 let (e, o) = (&mut even[(y + g.pad_top) * even_cols..], &mut odd[(y + g.pad_top) * odd_cols..]);
-                for (x, &v) in row.iter().enumerate() {
-                    let col = x + g.pad_left;
-                    if col % 2 == 0 {
-                        e[col / 2] = v;
-                    } else {
-                        o[col / 2] = v;
-                    }
+                let (e, o) = (&mut e[(first_even + g.pad_left) / 2..], &mut o[(1 - first_even + g.pad_left) / 2..]);
+                for (d, &v) in e.iter_mut().zip(row.iter().skip(first_even).step_by(2)) {
+                    *d = v;
+                }
+                for (d, &v) in o.iter_mut().zip(row.iter().skip(1 - first_even).step_by(2)) {
+                    *d = v;
                 }
             }
             for (oy, out_row) in out.chunks_exact_mut(ow).enumerate() {
