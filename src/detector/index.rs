@@ -442,8 +442,14 @@ mod tests {
             db.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
         }
         assert!(db.index_info().is_none(), "no index while deferred");
+        let mut later = db.clone();
         db.defer_index(false)?;
         assert_eq!(db.index_info().unwrap().trained_len, 3000);
+        // Ending the deferral for later: built by the next insert.
+        later.index_at_next_insert();
+        assert!(later.index_info().is_none());
+        later.insert(3000, Stamp::from_nanos(3000), &data[..dim])?;
+        assert_eq!(later.index_info().unwrap().trained_len, 3001);
         // Incremental afterwards: the next keyframe is found at once (scanned as the unassigned tail).
         db.insert(3000, Stamp::from_nanos(3000), &data[..dim])?;
         let got = db.nearest(&data[..dim], 2, |_| true)?;

@@ -280,7 +280,7 @@ impl KeyframeStore {
         };
         let mut db = KeyframeDb::with_capacity(self.identity.dim, (self.count - skip) as usize);
         let mut descriptor = vec![0f32; self.identity.dim];
-        // One index build for the whole history, not one per growth step.
+        // One index build for the whole history (at the next insert), not one per growth step.
         db.defer_index(true)?;
         self.for_each(skip, |id, stamp, blob| {
             decode_descriptor_into(blob, &mut descriptor);
@@ -288,7 +288,8 @@ impl KeyframeStore {
                 .with_context(|| format!("keyframe database {}: stored keyframe {id}", self.path.display()))?;
             Ok(())
         })?;
-        db.defer_index(false).with_context(|| format!("keyframe database {}: building the search index", self.path.display()))?;
+        // The index is built by the first keyframe inserted after the load, not here.
+        db.index_at_next_insert();
         Ok(db)
     }
 
