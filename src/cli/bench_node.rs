@@ -22,14 +22,9 @@ use crate::ros::peer::{CandidateListener, FramePublisher, SendAs};
 use crate::synth::{Scene, SynthConfig};
 use crate::types::Frame;
 
+/// What the benchmark publishes and the node runs with (shared by `bench-node` and `load-test`).
 #[derive(clap::Args, Debug)]
-pub struct Args {
-    /// Keyframes timed (after the warm-up).
-    #[arg(long, default_value_t = 100)]
-    pub keyframes: usize,
-    /// Keyframes sent first and not timed.
-    #[arg(long, default_value_t = 5)]
-    pub warmup: usize,
+pub struct FrameArgs {
     /// Frames from this replay source instead of the synthetic sequence (cycled if shorter).
     #[arg(long)]
     pub source: Option<PathBuf>,
@@ -41,6 +36,18 @@ pub struct Args {
     /// Weights for the node (default: the usual resolution).
     #[arg(long)]
     pub weights: Option<PathBuf>,
+}
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Keyframes timed (after the warm-up).
+    #[arg(long, default_value_t = 100)]
+    pub keyframes: usize,
+    /// Keyframes sent first and not timed.
+    #[arg(long, default_value_t = 5)]
+    pub warmup: usize,
+    #[command(flatten)]
+    pub frames: FrameArgs,
     /// Seconds to wait for one keyframe's candidate before giving up on the run.
     #[arg(long, default_value_t = 10.0)]
     pub timeout: f64,
@@ -82,7 +89,7 @@ pub fn run(args: Args) -> Result<()> {
     let frames = load_frames(&args)?;
     let log_path = std::env::temp_dir().join(format!("ecm-lcd-bench-node-{}.log", std::process::id()));
     let mut node_args = Vec::new();
-    if let Some(weights) = &args.weights {
+    if let Some(weights) = &args.frames.weights {
         node_args.extend(["--weights".to_string(), weights.display().to_string()]);
     }
     node_args.extend(every_keyframe_matches_args("/bench"));
@@ -131,7 +138,7 @@ pub fn run(args: Args) -> Result<()> {
 fn load_frames(args: &Args) -> Result<Vec<Frame>> {
     // Enough distinct frames that the descriptors differ; more would only cost rendering time.
     let wanted = (args.keyframes + args.warmup + 1).min(60);
-    frames_for_benchmark(args.source.as_deref(), wanted, args.width, args.height)
+    frames_for_benchmark(args.frames.source.as_deref(), wanted, args.frames.width, args.frames.height)
 }
 
 /// `wanted` frames from a replay source (fewer if it is shorter), or rendered synthetic frames.

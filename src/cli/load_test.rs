@@ -18,7 +18,6 @@
 use anyhow::{bail, Context as _, Result};
 use serde::Serialize;
 use std::collections::HashMap;
-use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -48,17 +47,8 @@ pub struct Args {
     /// Seconds between parameter service calls (one get and one set each time) during the burst.
     #[arg(long, default_value_t = 0.5)]
     pub param_period: f64,
-    /// Frames from this replay source instead of the synthetic sequence (cycled).
-    #[arg(long)]
-    pub source: Option<PathBuf>,
-    /// Size of the synthetic frames.
-    #[arg(long, default_value_t = 640)]
-    pub width: u32,
-    #[arg(long, default_value_t = 480)]
-    pub height: u32,
-    /// Weights for the node (default: the usual resolution).
-    #[arg(long)]
-    pub weights: Option<PathBuf>,
+    #[command(flatten)]
+    pub frames: super::bench_node::FrameArgs,
     /// Extra node parameters, `name:=value` (as `-p` after --ros-args).
     #[arg(long = "node-param", value_name = "NAME:=VALUE")]
     pub node_params: Vec<String>,
@@ -152,10 +142,10 @@ pub fn run(args: Args) -> Result<()> {
     if rerun_in_private_netns("load test")? {
         return Ok(());
     }
-    let frames = frames_for_benchmark(args.source.as_deref(), 30, args.width, args.height)?;
+    let frames = frames_for_benchmark(args.frames.source.as_deref(), 30, args.frames.width, args.frames.height)?;
     let log_path = std::env::temp_dir().join(format!("ecm-lcd-load-test-{}.log", std::process::id()));
     let mut node_args = vec!["--queue".to_string(), args.queue.to_string()];
-    if let Some(weights) = &args.weights {
+    if let Some(weights) = &args.frames.weights {
         node_args.extend(["--weights".to_string(), weights.display().to_string()]);
     }
     node_args.extend(every_keyframe_matches_args(NAMESPACE));
