@@ -191,8 +191,7 @@ impl Pipeline {
         if let Some(store) = &mut self.store {
             store.append(id, stamp, &descriptor)?;
         }
-        outcome.best = self.detector.best_match(stamp, &descriptor)?;
-        outcome.candidates = self.detector.process(id, stamp, &descriptor)?;
+        (outcome.best, outcome.candidates) = self.detector.process_with_best(id, stamp, &descriptor)?;
         outcome.keyframe = Some(id);
         outcome.timings.detector_ms = after_descriptor.elapsed().as_secs_f64() * 1e3;
         Ok(outcome)

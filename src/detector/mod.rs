@@ -395,7 +395,14 @@ impl Detector {
     /// Queries the history with a new keyframe, then inserts it; returns the loop candidates reported
     /// under the full policy (module doc).
     pub fn process(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Vec<LoopCandidate>> {
+        Ok(self.process_with_best(id, stamp, descriptor)?.1)
+    }
+
+    /// [`Detector::process`] that also returns the nearest eligible keyframe whether or not it passes
+    /// (what [`Detector::best_match`] gives), from the same search: one search per keyframe, not two.
+    pub fn process_with_best(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<(Option<Match>, Vec<LoopCandidate>)> {
         let neighbours = self.eligible_nearest(stamp, descriptor, self.params.top_k)?;
+        let best = neighbours.first().map(|n| self.to_match(n));
         let passing: Vec<(usize, f32, f32)> = neighbours
             .iter()
             .map(|n| {
@@ -437,22 +444,19 @@ impl Detector {
             }
         }
         self.enforce_budget();
-        Ok(candidates)
+        Ok((best, candidates))
     }
 
     /// The nearest keyframe the history and recency rules allow, ignoring the threshold, `top_k` and
     /// consistency (for precision-recall sweeps); `None` before the minimum history or when no keyframe is
     /// eligible. Does not insert: call [`Detector::insert`] afterwards.
     pub fn best_match(&self, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Option<Match>> {
-        Ok(self.eligible_nearest(stamp, descriptor, 1)?.first().map(|n| {
-            let distance = n.squared_distance.sqrt();
-            Match {
-                id: self.db.id(n.position),
-                stamp: self.db.stamp(n.position),
-                distance,
-                score: self.descriptor.score(distance),
-            }
-        }))
+        Ok(self.eligible_nearest(stamp, descriptor, 1)?.first().map(|n| self.to_match(n)))
+    }
+
+    fn to_match(&self, n: &Neighbour) -> Match {
+        let distance = n.squared_distance.sqrt();
+        Match { id: self.db.id(n.position), stamp: self.db.stamp(n.position), distance, score: self.descriptor.score(distance) }
     }
 
     /// Inserts a keyframe without querying (pairs with [`Detector::best_match`]).
