@@ -25,10 +25,10 @@ fn stamp(id: u64) -> Stamp {
     Stamp::from_nanos(1_700_000_000_000_000_000 + id as i64 * 500_000_000)
 }
 
-/// CPU seconds this thread has used (Linux: /proc/thread-self/stat, 10 ms resolution), so a timing
-/// bound holds however busy the machine is; `None` elsewhere.
-fn thread_cpu_secs() -> Option<f64> {
-    let stat = std::fs::read_to_string("/proc/thread-self/stat").ok()?;
+/// CPU seconds this process has used, all threads (Linux: /proc/self/stat, 10 ms resolution);
+/// `None` elsewhere.
+fn process_cpu_secs() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
     // Fields after the parenthesised command name: state is field 3, utime 14, stime 15.
     let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
     let ticks: f64 = fields.get(11)?.parse::<f64>().ok()? + fields.get(12)?.parse::<f64>().ok()?;
@@ -36,8 +36,8 @@ fn thread_cpu_secs() -> Option<f64> {
 }
 
 /// Append latency (each a committed, fsynced transaction) and the load time of 100k 1280-value
-/// keyframes, printed; the load must take under a second of CPU time (wall time is printed too: on
-/// an idle machine they agree, on a shared one only the CPU time measures the code).
+/// keyframes, printed; the load must take under a second, as a restarted node waits for it (wall
+/// time; the load runs on the rayon threads, and the CPU time of all threads is printed beside it).
 #[test]
 fn append_latency_and_loading_100k_keyframes() {
     let dir = tempfile::tempdir().unwrap();
@@ -69,17 +69,17 @@ fn append_latency_and_loading_100k_keyframes() {
     assert!(synced, "sync failed");
     let store = KeyframeStore::open_existing(&path).unwrap();
     let started = Instant::now();
-    let cpu_before = thread_cpu_secs();
+    let cpu_before = process_cpu_secs();
     let db = store.load_db(None).unwrap();
     let wall_secs = started.elapsed().as_secs_f64();
-    let cpu_secs = thread_cpu_secs().zip(cpu_before).map(|(after, before)| after - before);
-    let load_secs = cpu_secs.unwrap_or(wall_secs);
+    let cpu_secs = process_cpu_secs().zip(cpu_before).map(|(after, before)| after - before);
     println!(
-        "load of {total} keyframes x {dim} f32 ({} MB on disk): {wall_secs:.3} s wall, {cpu_secs:.2?} s CPU",
-        store.summary().unwrap().bytes >> 20
+        "load of {total} keyframes x {dim} f32 ({} MB on disk) on {} threads: {wall_secs:.3} s wall, {cpu_secs:.2?} s CPU",
+        store.summary().unwrap().bytes >> 20,
+        rayon::current_num_threads()
     );
     assert_eq!(db.len(), total as usize);
     assert_eq!((db.id(0), db.id(total as usize - 1)), (0, total - 1));
     assert_eq!(db.descriptor(3), descriptor(3, dim).as_slice());
-    assert!(load_secs < 1.0, "loading {total} keyframes took {load_secs:.3} s");
+    assert!(wall_secs < 1.0, "loading {total} keyframes took {wall_secs:.3} s");
 }

@@ -126,6 +126,21 @@ impl KeyframeDb {
         }
     }
 
+    /// A database holding a loaded history: `ids[i]`, `stamps[i]` and the `i`th `dim` values of
+    /// `descriptors` are one keyframe, in insertion order; every descriptor must have passed
+    /// [`KeyframeDb::check_descriptor`]. The index is deferred to the next insert, as after
+    /// [`KeyframeDb::index_at_next_insert`].
+    pub(crate) fn from_history(dim: usize, ids: Vec<u64>, stamps: Vec<Stamp>, descriptors: Vec<f32>) -> anyhow::Result<Self> {
+        ensure!(
+            ids.len() == stamps.len() && ids.len() * dim == descriptors.len(),
+            "a history of {} ids, {} stamps and {} values of {dim}-value descriptors does not add up",
+            ids.len(),
+            stamps.len(),
+            descriptors.len()
+        );
+        Ok(KeyframeDb { ids, stamps, descriptors, ..Self::new(dim) })
+    }
+
     /// Changes when the approximate index is used; builds or drops it at once to match.
     pub fn set_index_policy(&mut self, policy: IndexPolicy) -> anyhow::Result<()> {
         self.index_policy = policy;
@@ -211,12 +226,12 @@ impl KeyframeDb {
         self.len() == 0
     }
 
-    fn check_descriptor(&self, descriptor: &[f32], what: impl std::fmt::Display) -> anyhow::Result<()> {
+    /// Ok when `descriptor` has `dim` values, all finite; otherwise an error naming `what` and the fault.
+    pub(crate) fn check_descriptor(dim: usize, descriptor: &[f32], what: impl std::fmt::Display) -> anyhow::Result<()> {
         ensure!(
-            descriptor.len() == self.dim,
-            "{what} descriptor has {} values, the database holds {}-value descriptors",
+            descriptor.len() == dim,
+            "{what} descriptor has {} values, the database holds {dim}-value descriptors",
             descriptor.len(),
-            self.dim
         );
         // A branch-free pass (it vectorises); the position is looked for only on failure.
         if !descriptor.iter().fold(true, |ok, x| ok & x.is_finite()) {
@@ -229,7 +244,7 @@ impl KeyframeDb {
     /// Appends a keyframe; returns its position. Refuses a descriptor of the wrong length or with a
     /// non-finite value (it would poison every later distance).
     pub fn insert(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<usize> {
-        self.check_descriptor(descriptor, format_args!("keyframe {id}"))?;
+        Self::check_descriptor(self.dim, descriptor, format_args!("keyframe {id}"))?;
         self.ids.push(id);
         self.stamps.push(stamp);
         self.descriptors.extend_from_slice(descriptor);
@@ -261,7 +276,7 @@ impl KeyframeDb {
         k: usize,
         eligible: impl Fn(usize) -> bool,
     ) -> anyhow::Result<Vec<Neighbour>> {
-        self.check_descriptor(query, "query")?;
+        Self::check_descriptor(self.dim, query, "query")?;
         if let Some(index) = self.index.as_ref().filter(|_| k > 0) {
             if let Some(found) = index.nearest(&self.descriptors, self.dropped, query, k, &eligible) {
                 return Ok(found);
@@ -272,7 +287,7 @@ impl KeyframeDb {
 
     /// [`KeyframeDb::nearest`] by the exact scan, whatever the size (the reference for the index's recall).
     pub fn nearest_exact(&self, query: &[f32], k: usize, eligible: impl Fn(usize) -> bool) -> anyhow::Result<Vec<Neighbour>> {
-        self.check_descriptor(query, "query")?;
+        Self::check_descriptor(self.dim, query, "query")?;
         if k == 0 || self.dim == 0 {
             // A zero-length descriptor makes every keyframe equally near; take the first eligible ones.
             return Ok((0..self.len())
@@ -380,7 +395,7 @@ impl Detector {
     fn eligible_nearest(&self, stamp: Stamp, descriptor: &[f32], k: usize) -> anyhow::Result<Vec<Neighbour>> {
         if self.db.len() < self.params.min_history.max(1) {
             // Still validate the query so bad input is reported at once, not only later.
-            self.db.check_descriptor(descriptor, "query")?;
+            KeyframeDb::check_descriptor(self.db.dim, descriptor, "query")?;
             return Ok(Vec::new());
         }
         let last_eligible = self.db.len().saturating_sub(self.params.exclude_recent_count);

@@ -13,7 +13,7 @@
 //!   milliseconds of network time, so one fsync per keyframe (about a millisecond, see the tests) is
 //!   cheap, and "stored before published" then holds for power loss too.
 //! - `page_size=16384`: a 1280-value `f32` descriptor (5120 bytes) then fits three to a page with no
-//!   overflow pages, which keeps loading a sequential scan (100k keyframes load in well under a second).
+//!   overflow pages, which keeps loading a sequential scan, split across threads ([`KeyframeStore::load_db`]).
 //! - Descriptors are little-endian `f32` blobs; stamps are nanoseconds; ids are SQLite integers, so ids
 //!   above `i64::MAX` are refused. Rows keep insertion order (`seq`), which is the detector's history order.
 //!
@@ -32,6 +32,9 @@ use rusqlite::{params, Connection, OpenFlags, OptionalExtension};
 
 use crate::detector::KeyframeDb;
 use crate::types::Stamp;
+
+/// Fewer rows than this per thread are not worth a thread of their own when loading.
+const LOAD_ROWS_PER_THREAD_MIN: usize = 4096;
 
 /// Written into every store; a file with another format value is refused.
 const FORMAT: &str = "ecm-lcd keyframes 1";
@@ -236,29 +239,30 @@ impl KeyframeStore {
     }
 
     /// Calls `each` with every stored keyframe in insertion order, skipping the first `skip`.
-    pub fn for_each(&self, skip: u64, mut each: impl FnMut(u64, Stamp, &[u8]) -> Result<()>) -> Result<()> {
-        let context = || format!("reading keyframe database {}", self.path.display());
-        // Reading through a memory map skips a copy per page (the whole history is read once).
-        self.connection.query_row("PRAGMA mmap_size = 4294967296", [], |_| Ok(())).optional().with_context(context)?;
-        let mut query = self
-            .connection
-            .prepare("SELECT id, stamp_nanos, descriptor FROM keyframes ORDER BY seq LIMIT -1 OFFSET ?1")
-            .with_context(context)?;
-        let mut rows = query.query([skip as i64]).with_context(context)?;
-        let bytes_per_descriptor = self.identity.dim * 4;
-        while let Some(row) = rows.next().with_context(context)? {
-            let id: i64 = row.get(0).with_context(context)?;
-            let stamp = Stamp::from_nanos(row.get(1).with_context(context)?);
-            let blob = row.get_ref(2).and_then(|v| Ok(v.as_blob()?)).with_context(context)?;
-            ensure!(
-                blob.len() == bytes_per_descriptor,
-                "{}: keyframe {id} has a {}-byte descriptor, expected {bytes_per_descriptor}",
-                context(),
-                blob.len()
-            );
-            each(id as u64, stamp, blob)?;
+    pub fn for_each(&self, skip: u64, each: impl FnMut(u64, Stamp, &[u8]) -> Result<()>) -> Result<()> {
+        match self.seq_at(skip)? {
+            Some(first_seq) => scan_rows(&self.connection, &self.path, self.identity.dim, first_seq, None, each),
+            None => Ok(()),
         }
-        Ok(())
+    }
+
+    /// The `seq` of the row at position `position` in insertion order (`None` past the end).
+    fn seq_at(&self, position: u64) -> Result<Option<i64>> {
+        let context = || format!("reading keyframe database {}", self.path.display());
+        if position >= self.count {
+            return Ok(None);
+        }
+        // Rows are never deleted, so seq normally runs without gaps and the position is arithmetic;
+        // otherwise SQLite steps through the rows before it.
+        let (first, last): (Option<i64>, Option<i64>) =
+            self.connection.query_row("SELECT min(seq), max(seq) FROM keyframes", [], |r| Ok((r.get(0)?, r.get(1)?))).with_context(context)?;
+        if let Some((first, last)) = first.zip(last).filter(|(first, last)| (last - first) as u64 + 1 == self.count) {
+            return Ok(Some(first + position as i64).filter(|&seq| seq <= last));
+        }
+        self.connection
+            .query_row("SELECT seq FROM keyframes ORDER BY seq LIMIT 1 OFFSET ?1", [position as i64], |r| r.get(0))
+            .optional()
+            .with_context(context)
     }
 
     /// Every stored keyframe, in insertion order (small stores; the detector loads with [`KeyframeStore::load_db`]).
@@ -273,21 +277,54 @@ impl KeyframeStore {
 
     /// The newest `limit` keyframes (all of them when `limit` is `None`) as a detector database, in
     /// insertion order.
+    ///
+    /// Loading is split into one contiguous range of rows per rayon thread, each read through a
+    /// connection of its own straight into its part of the result: most of a large load is the first
+    /// touch of the freshly allocated descriptor memory (page faults), which threads share.
     pub fn load_db(&self, limit: Option<usize>) -> Result<KeyframeDb> {
+        self.load_db_on(limit, rayon::current_num_threads())
+    }
+
+    /// [`KeyframeStore::load_db`] on at most `threads` threads.
+    fn load_db_on(&self, limit: Option<usize>, threads: usize) -> Result<KeyframeDb> {
         let skip = match limit {
             Some(limit) => self.count.saturating_sub(limit as u64),
             None => 0,
         };
-        let mut db = KeyframeDb::with_capacity(self.identity.dim, (self.count - skip) as usize);
-        let mut descriptor = vec![0f32; self.identity.dim];
-        // One index build for the whole history (at the next insert), not one per growth step.
-        db.defer_index(true)?;
-        self.for_each(skip, |id, stamp, blob| {
-            decode_descriptor_into(blob, &mut descriptor);
-            db.insert(id, stamp, &descriptor)
-                .with_context(|| format!("keyframe database {}: stored keyframe {id}", self.path.display()))?;
-            Ok(())
+        let len = (self.count - skip) as usize;
+        let dim = self.identity.dim;
+        let threads = threads.min(len.div_ceil(LOAD_ROWS_PER_THREAD_MIN)).max(1);
+        let rows_per_thread = len.div_ceil(threads).max(1);
+        let mut ids = vec![0u64; len];
+        let mut stamps = vec![Stamp::from_nanos(0); len];
+        let mut descriptors = vec![0f32; len * dim];
+        let starts = (0..len).step_by(rows_per_thread).map(|row| self.seq_at(skip + row as u64)).collect::<Result<Vec<_>>>()?;
+        let path = self.path.as_path();
+        let parts = ids.chunks_mut(rows_per_thread).zip(stamps.chunks_mut(rows_per_thread)).zip(descriptors.chunks_mut(rows_per_thread * dim.max(1)));
+        std::thread::scope(|scope| -> Result<()> {
+            let mut workers = Vec::new();
+            for (((ids, stamps), descriptors), first_seq) in parts.zip(starts) {
+                let first_seq = first_seq.with_context(|| format!("keyframe database {}: changed while loading", path.display()))?;
+                workers.push(scope.spawn(move || -> Result<()> {
+                    let connection = open_connection(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)?;
+                    prefault(descriptors);
+                    let mut row = 0;
+                    scan_rows(&connection, path, dim, first_seq, Some(ids.len()), |id, stamp, blob| {
+                        let descriptor = &mut descriptors[row * dim..(row + 1) * dim];
+                        decode_descriptor_into(blob, descriptor);
+                        KeyframeDb::check_descriptor(dim, descriptor, format_args!("stored keyframe {id}"))
+                            .with_context(|| format!("keyframe database {}", path.display()))?;
+                        (ids[row], stamps[row]) = (id, stamp);
+                        row += 1;
+                        Ok(())
+                    })?;
+                    ensure!(row == ids.len(), "keyframe database {}: changed while loading", path.display());
+                    Ok(())
+                }));
+            }
+            workers.into_iter().try_for_each(|worker| worker.join().expect("a keyframe loading thread panicked"))
         })?;
+        let mut db = KeyframeDb::from_history(dim, ids, stamps, descriptors)?;
         // The index is built by the first keyframe inserted after the load, not here.
         db.index_at_next_insert();
         Ok(db)
@@ -337,6 +374,59 @@ impl KeyframeStore {
         self.max_id = max_id;
         Ok(added)
     }
+}
+
+/// Calls `each` with the stored keyframes from the row whose `seq` is `first_seq` on, in insertion
+/// order, at most `limit` of them (all when `None`); checks every descriptor's length.
+fn scan_rows(
+    connection: &Connection,
+    path: &Path,
+    dim: usize,
+    first_seq: i64,
+    limit: Option<usize>,
+    mut each: impl FnMut(u64, Stamp, &[u8]) -> Result<()>,
+) -> Result<()> {
+    let context = || format!("reading keyframe database {}", path.display());
+    // Reading through a memory map skips a copy per page (the whole history is read once).
+    connection.query_row("PRAGMA mmap_size = 4294967296", [], |_| Ok(())).optional().with_context(context)?;
+    let mut query = connection
+        .prepare("SELECT id, stamp_nanos, descriptor FROM keyframes WHERE seq >= ?1 ORDER BY seq LIMIT ?2")
+        .with_context(context)?;
+    let limit = limit.map_or(-1, |l| l as i64);
+    let mut rows = query.query([first_seq, limit]).with_context(context)?;
+    let bytes_per_descriptor = dim * 4;
+    while let Some(row) = rows.next().with_context(context)? {
+        let id: i64 = row.get(0).with_context(context)?;
+        let stamp = Stamp::from_nanos(row.get(1).with_context(context)?);
+        let blob = row.get_ref(2).and_then(|v| Ok(v.as_blob()?)).with_context(context)?;
+        ensure!(
+            blob.len() == bytes_per_descriptor,
+            "{}: keyframe {id} has a {}-byte descriptor, expected {bytes_per_descriptor}",
+            context(),
+            blob.len()
+        );
+        each(id as u64, stamp, blob)?;
+    }
+    Ok(())
+}
+
+/// Maps in the pages of `buffer` (fresh, untouched memory) with one call: the kernel then fills them in
+/// a loop instead of taking one page fault per 4 KiB as they are first written, which made up about
+/// a third of a large load's CPU time. Best effort: without `MADV_POPULATE_WRITE` (Linux < 5.14, other
+/// systems) the pages simply fault in as before.
+fn prefault(buffer: &mut [f32]) {
+    #[cfg(target_os = "linux")]
+    {
+        const PAGE: usize = 4096;
+        let start = (buffer.as_ptr() as usize).div_ceil(PAGE) * PAGE;
+        let end = (buffer.as_ptr() as usize + std::mem::size_of_val(buffer)) / PAGE * PAGE;
+        if end > start {
+            // SAFETY: [start, end) lies inside `buffer`, which we borrow mutably; populating changes no contents.
+            unsafe { libc::madvise(start as *mut libc::c_void, end - start, libc::MADV_POPULATE_WRITE) };
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = buffer;
 }
 
 /// A stored descriptor blob as `f32` values.

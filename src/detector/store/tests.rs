@@ -56,6 +56,34 @@ fn keyframes_round_trip_in_insertion_order() {
     assert!(summary.bytes > 0);
 }
 
+/// A load large enough to be split across threads gives every keyframe once, in order, whole or the
+/// newest n, also when `seq` has gaps (then the split positions are looked up row by row).
+#[test]
+fn a_load_split_across_threads_keeps_every_keyframe_in_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("kf.db");
+    let dim = 8;
+    let total = 3 * LOAD_ROWS_PER_THREAD_MIN as u64 + 17;
+    let mut store = KeyframeStore::open_or_create(&path, &identity(dim)).unwrap();
+    store.append_batch((0..total).map(|id| (id * 3, stamp(id), descriptor(id, dim)))).unwrap();
+    let check = |store: &KeyframeStore, limit: Option<usize>| {
+        let db = store.load_db_on(limit, 3).unwrap();
+        let first = total - db.len() as u64;
+        assert_eq!(db.len() as u64, limit.map_or(total, |l| l as u64));
+        for position in 0..db.len() {
+            let id = first + position as u64;
+            assert_eq!((db.id(position), db.stamp(position)), (id * 3, stamp(id)), "position {position}");
+            assert_eq!(db.descriptor(position), descriptor(id, dim).as_slice(), "position {position}");
+        }
+    };
+    check(&store, None);
+    check(&store, Some(LOAD_ROWS_PER_THREAD_MIN * 2 + 5));
+    // Gaps in seq: renumber every row (not something the store does itself).
+    store.connection.execute_batch("UPDATE keyframes SET seq = -seq; UPDATE keyframes SET seq = 100 - seq * 2;").unwrap();
+    check(&store, None);
+    check(&store, Some(LOAD_ROWS_PER_THREAD_MIN + 1));
+}
+
 #[test]
 fn a_store_of_other_weights_mode_arch_or_size_is_refused_naming_both() {
     let dir = tempfile::tempdir().unwrap();
