@@ -179,7 +179,7 @@ fn convolve_plane_generic(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, 
 /// planes of one geometry so that only the interior is rewritten, and the flat output it gives.
 #[derive(Default)]
 struct PaddedPlane {
-    key: (usize, usize, usize, usize, usize, usize),
+    key: Padded3x3,
     /// Stride 1: the padded plane, `rows x pitch`. Stride 2: its four phases (even/odd rows x
     /// even/odd columns), each `(oh + 1) x pitch`.
     data: Vec<f32>,
@@ -209,53 +209,24 @@ const WHOLE_PLANE_BELOW_WIDTH: usize = 32;
 /// take the general path.
 #[inline(always)]
 fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
-    let (s, width, ow) = (g.stride, g.width, g.ow);
+    let ow = g.ow;
     let oh = out.len() / ow;
-    // The padded extent each output needs: exactly the input plus its "SAME" padding.
-    let (rows, cols) = ((oh - 1) * s + 3, (ow - 1) * s + 3);
-    let (pitch, phase_rows) = if s == 1 { (cols, rows) } else { (ow + 1, oh + 1) };
+    let layout = g.padded_3x3(oh);
     // Taken out of the thread-local rather than used in a closure: a closure would be compiled
     // without this function's SIMD features, and `mul_add` would become a library call.
     let mut padded = PADDED.take();
     {
-        let key = (rows, cols, s, g.pad_top, g.pad_left, width);
-        let size = if s == 1 { rows * pitch } else { 4 * phase_rows * pitch };
-        if padded.key != key || padded.data.len() != size {
-            padded.key = key;
+        if padded.key != layout || padded.data.len() != layout.size {
+            padded.key = layout;
             padded.data.clear();
-            padded.data.resize(size, 0.0);
+            padded.data.resize(layout.size, 0.0);
         }
         if ow < WHOLE_PLANE_BELOW_WIDTH {
-            padded.flat_out.resize((oh - 1) * pitch + ow, 0.0);
+            padded.flat_out.resize(layout.flat_len, 0.0);
         }
         let PaddedPlane { data, flat_out, .. } = &mut padded;
-        // Input rows/columns that land inside the padded extent.
-        let (y_end, x_end) = (g.height.min(rows - g.pad_top), width.min(cols - g.pad_left));
-        let offsets: [usize; 9] = if s == 1 {
-            for y in 0..y_end {
-                let at = (y + g.pad_top) * pitch + g.pad_left;
-                data[at..at + x_end].copy_from_slice(&src[y * width..y * width + x_end]);
-            }
-            std::array::from_fn(|k| k / 3 * pitch + k % 3)
-        } else {
-            let phase_size = phase_rows * pitch;
-            // Padded column x: phase column x / 2 of the even (x even) or odd (x odd) phases.
-            let first_even = g.pad_left % 2;
-            for y in 0..y_end {
-                let py = y + g.pad_top;
-                let row = &src[y * width..y * width + x_end];
-                let (even_phase, odd_phase) = data.split_at_mut(2 * phase_size);
-                let at = (py % 2) * phase_size + py / 2 * pitch;
-                let e = &mut even_phase[at..at + pitch][(first_even + g.pad_left) / 2..];
-                let o = &mut odd_phase[at..at + pitch][(1 - first_even + g.pad_left) / 2..];
-                split_columns(row, first_even, e, o);
-            }
-            // Phases in `data`: (even row, even col), (odd row, even col), (even row, odd col), (odd row, odd col).
-            std::array::from_fn(|k| {
-                let (ky, kx) = (k / 3, k % 3);
-                ((kx % 2) * 2 + ky % 2) * phase_size + (ky / 2) * pitch + kx / 2
-            })
-        };
+        g.fill_padded_3x3(&layout, src, data);
+        let (pitch, offsets) = (layout.pitch, layout.offsets);
         let relu6 = act == Activation::Relu6;
         if ow >= WHOLE_PLANE_BELOW_WIDTH {
             for (oy, out_row) in out.chunks_exact_mut(ow).enumerate() {
@@ -269,6 +240,75 @@ fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act:
         }
     }
     PADDED.set(padded);
+}
+
+/// Where a plane's "SAME"-padded copy for a 3x3 kernel keeps its pixels ([`convolve_plane_3x3`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub(crate) struct Padded3x3 {
+    /// Floats from one padded row (of a phase, at stride 2) to the next.
+    pub pitch: usize,
+    /// Floats of the whole padded copy.
+    pub size: usize,
+    /// Output `(oy, ox)` reads tap `ky * 3 + kx` at `offsets[tap] + oy * pitch + ox`.
+    pub offsets: [usize; 9],
+    /// Flat outputs at the pitch, `(oh - 1) * pitch + ow` (the last row needs no padding columns).
+    pub flat_len: usize,
+    /// The padded extent (rows, columns) before any phase split.
+    extent: (usize, usize),
+    /// Input geometry this is for (a reused buffer is valid while this stays the same).
+    geometry: (usize, usize, usize, usize, usize),
+}
+
+impl PlaneGeometry {
+    /// The padded layout for `oh` output rows (3x3 kernel, stride 1 or 2).
+    pub(crate) fn padded_3x3(&self, oh: usize) -> Padded3x3 {
+        let (s, ow) = (self.stride, self.ow);
+        debug_assert!((self.kh, self.kw) == (3, 3) && (s == 1 || s == 2));
+        // The padded extent the outputs need: exactly the input plus its "SAME" padding.
+        let (rows, cols) = ((oh - 1) * s + 3, (ow - 1) * s + 3);
+        let (pitch, size, offsets) = if s == 1 {
+            (cols, rows * cols, std::array::from_fn(|k| k / 3 * cols + k % 3))
+        } else {
+            let pitch = ow + 1;
+            let phase_size = (oh + 1) * pitch;
+            // Phases in order: (even row, even col), (odd row, even col), (even row, odd col), (odd row, odd col).
+            let offsets = std::array::from_fn(|k| {
+                let (ky, kx) = (k / 3, k % 3);
+                ((kx % 2) * 2 + ky % 2) * phase_size + (ky / 2) * pitch + kx / 2
+            });
+            (pitch, 4 * phase_size, offsets)
+        };
+        let geometry = (self.height, self.width, s, self.pad_top, self.pad_left);
+        Padded3x3 { pitch, size, offsets, flat_len: (oh - 1) * pitch + ow, extent: (rows, cols), geometry }
+    }
+
+    /// Copies plane `src` into `data` (`layout.size` floats) at `layout`; the border is not written,
+    /// so a buffer zeroed once serves every plane of one layout.
+    #[inline(always)]
+    pub(crate) fn fill_padded_3x3(&self, layout: &Padded3x3, src: &[f32], data: &mut [f32]) {
+        let (width, pitch, (rows, cols)) = (self.width, layout.pitch, layout.extent);
+        // Input rows/columns that land inside the padded extent.
+        let (y_end, x_end) = (self.height.min(rows - self.pad_top), width.min(cols - self.pad_left));
+        if self.stride == 1 {
+            for y in 0..y_end {
+                let at = (y + self.pad_top) * pitch + self.pad_left;
+                data[at..at + x_end].copy_from_slice(&src[y * width..y * width + x_end]);
+            }
+        } else {
+            let phase_size = layout.size / 4;
+            // Padded column x: phase column x / 2 of the even (x even) or odd (x odd) phases.
+            let first_even = self.pad_left % 2;
+            for y in 0..y_end {
+                let py = y + self.pad_top;
+                let row = &src[y * width..y * width + x_end];
+                let (even_phase, odd_phase) = data.split_at_mut(2 * phase_size);
+                let at = (py % 2) * phase_size + py / 2 * pitch;
+                let e = &mut even_phase[at..at + pitch][(first_even + self.pad_left) / 2..];
+                let o = &mut odd_phase[at..at + pitch][(1 - first_even + self.pad_left) / 2..];
+                split_columns(row, first_even, e, o);
+            }
+        }
+    }
 }
 
 /// Deals `row`'s columns out to `even` and `odd` (the first column is even unless

@@ -9,7 +9,7 @@
 //!   convolution at once, so it never travels to memory. ECA's channel means are summed while the
 //!   depthwise output is written, and its gate scales the projection's weight columns
 //!   (`W (g ⊙ x) = (W diag(g)) x`) instead of the activation.
-//! - [`DenseConv`]: a full convolution (the stem) as im2col plus one matrix multiply, and a 1x1
+//! - [`DenseConv`]: a full convolution (the stem) as padded-plane columns plus one matrix multiply, and a 1x1
 //!   convolution (the head) as a plain matrix multiply on the NCHW planes.
 //!
 //! The matrix multiplies are calls to `gemm`, the crate behind candle's own CPU matmul, built
@@ -290,6 +290,41 @@ impl DenseConv {
         })
     }
 
+    /// One image through a 3x3 kernel (the stem), without per-pixel im2col: each input channel is
+    /// padded once ([`PlaneGeometry::padded_3x3`]), after which every tap's column row is one
+    /// contiguous run of the padded plane at the padded pitch. The product is computed at that
+    /// pitch and the extra columns dropped when the rows are copied out (with the activation).
+    fn forward_3x3(&self, x: &[f32], h: usize, w: usize, out: &mut [f32]) {
+        let s = self.stride;
+        let (oh, pad_top, _) = same_padding(h, 3, s);
+        let (ow, pad_left, _) = same_padding(w, 3, s);
+        let geometry = PlaneGeometry { height: h, width: w, kh: 3, kw: 3, stride: s, ow, pad_top, pad_left };
+        let layout = geometry.padded_3x3(oh);
+        let flat = layout.flat_len;
+        let mut cols = vec![0f32; self.in_channels * 9 * flat];
+        cols.par_chunks_mut(9 * flat).zip(x.par_chunks(h * w)).for_each(|(rows, plane)| {
+            let mut padded = vec![0f32; layout.size];
+            geometry.fill_padded_3x3(&layout, plane, &mut padded);
+            for (row, offset) in rows.chunks_exact_mut(flat).zip(layout.offsets) {
+                row.copy_from_slice(&padded[offset..offset + flat]);
+            }
+        });
+        let mut at_pitch = vec![0f32; self.out_channels * flat];
+        for (row, &b) in at_pitch.chunks_exact_mut(flat).zip(&self.bias) {
+            row.fill(b);
+        }
+        matmul_parallel(self.out_channels, flat, self.in_channels * 9, &mut at_pitch, &self.weight, &cols);
+        let relu6 = self.activation == Activation::Relu6;
+        out.par_chunks_mut(oh * ow).zip(at_pitch.par_chunks(flat)).for_each(|(plane, source)| {
+            for (row, source_row) in plane.chunks_exact_mut(ow).zip(source.chunks(layout.pitch)) {
+                row.copy_from_slice(&source_row[..ow]);
+                if relu6 {
+                    row.iter_mut().for_each(|v| *v = v.clamp(0.0, 6.0));
+                }
+            }
+        });
+    }
+
     /// The columns of one image `x` `[in, h, w]`: row `(c, ky, kx)` holds the input pixel each
     /// output position sees through that tap (zero outside the image).
     fn im2col(&self, x: &[f32], h: usize, w: usize) -> Vec<f32> {
@@ -334,6 +369,10 @@ impl CustomOp1 for DenseConv {
         let (plane_out, taps) = (oh * ow, channels * kh * kw);
         let mut out = vec![0f32; batch * self.out_channels * plane_out];
         for (image, out) in x.chunks_exact(channels * h * w).zip(out.chunks_exact_mut(self.out_channels * plane_out)) {
+            if kh == 3 && kw == 3 && (s == 1 || s == 2) {
+                self.forward_3x3(image, h, w, out);
+                continue;
+            }
             let cols;
             let rhs = if (kh, kw, s) == (1, 1, 1) {
                 image
