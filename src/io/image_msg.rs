@@ -310,10 +310,22 @@ fn compressed_codec(format: &str) -> Result<image::ImageFormat> {
     }
 }
 
+/// An `image` crate error as one message. Its decoding errors display their cause and also
+/// return it as their source, so an error chain would say the cause twice ("Invalid PNG
+/// signature.: Invalid PNG signature."); the source is kept only where the message lacks it.
+pub fn image_error(error: image::ImageError) -> anyhow::Error {
+    use std::error::Error as _;
+    let message = error.to_string();
+    match error.source().map(|s| s.to_string()) {
+        Some(source) if !message.contains(&source) => anyhow::anyhow!("{message}: {source}"),
+        _ => anyhow::anyhow!(message),
+    }
+}
+
 /// Decodes a `sensor_msgs/CompressedImage` (JPEG or PNG) to RGB.
 pub fn decode_compressed_image(msg: &CompressedImage) -> Result<RgbImage> {
     let codec = compressed_codec(&msg.format)?;
-    let decoded = image::load_from_memory_with_format(&msg.data, codec).with_context(|| {
+    let decoded = image::load_from_memory_with_format(&msg.data, codec).map_err(image_error).with_context(|| {
         format!("CompressedImage format {:?}: {} bytes do not decode as {codec:?}", msg.format, msg.data.len())
     })?;
     Ok(decoded.to_rgb8())
@@ -498,6 +510,7 @@ mod tests {
         jpeg.format = "png".into();
         let err = format!("{:#}", decode_compressed_image(&jpeg).unwrap_err());
         assert!(err.contains("do not decode as Png"), "{err}");
+        assert_eq!(err.matches("Invalid PNG signature").count(), 1, "the cause once: {err}");
         jpeg.format = "tiff".into();
         assert!(decode_compressed_image(&jpeg).unwrap_err().to_string().contains("unsupported CompressedImage format \"tiff\""));
     }

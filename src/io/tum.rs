@@ -105,6 +105,7 @@ impl Iterator for ImageFilesSource {
         let index = self.next;
         self.next += 1;
         let loaded = image::open(&entry.path)
+            .map_err(crate::io::image_msg::image_error)
             .with_context(|| format!("{}: cannot decode image {}", entry.origin, entry.path.display()));
         Some(loaded.map(|img| Frame { index, stamp: entry.stamp, image: img.to_rgb8() }))
     }
