@@ -15,8 +15,10 @@ use ecm_lcd::ros::node::InputQos;
 use ecm_lcd::ros::peer::{CandidateListener, FramePublisher, SendAs};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 use ecm_lcd::types::Frame;
+use ros_support::NodeProcess;
+use std::ffi::OsString;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 const FRAMES: usize = 60;
@@ -35,40 +37,14 @@ fn weights() -> PathBuf {
     path
 }
 
-struct Node {
-    child: Child,
-    log: PathBuf,
-}
-
-impl Node {
-    fn start(dir: &Path, db: &Path, run: usize) -> Node {
-        let log = dir.join(format!("node{run}.log"));
-        let mut command = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"));
-        command.args(["node", "--queue", "128", "--weights"]).arg(weights()).arg("--db").arg(db).args(["--ros-args", "-r", "__ns:=/dbtest"]);
-        for (name, value) in PARAMS {
-            command.args(["-p", &format!("{name}:={value}")]);
-        }
-        let child = command
-            .env("ECM_LCD_CACHE", dir.join("cache"))
-            .env("RUST_LOG", "info,ecm_lcd::ros::node=debug,rustdds=error")
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap();
-        Node { child, log }
+/// The node on `db` with the test's weights and parameters, logging to `node{run}.log`.
+fn start_node(dir: &Path, db: &Path, run: usize) -> NodeProcess {
+    let mut args: Vec<OsString> = vec!["--weights".into(), weights().into(), "--db".into(), db.into()];
+    args.extend(["--ros-args", "-r", "__ns:=/dbtest"].map(OsString::from));
+    for (name, value) in PARAMS {
+        args.extend(["-p".into(), format!("{name}:={value}").into()]);
     }
-
-    fn log_text(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-
-    fn wait_for_log(&self, needle: &str, within: Duration) {
-        let end = Instant::now() + within;
-        while !self.log_text().contains(needle) {
-            assert!(Instant::now() < end, "node never logged {needle:?}:\n{}", self.log_text());
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
+    NodeProcess::start(dir, dir.join(format!("node{run}.log")), args)
 }
 
 /// The candidates `(query, match)` of the offline run of the whole sequence.
@@ -133,7 +109,7 @@ fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
 
     // First run: the first lap, then SIGKILL once the last keyframe was processed.
     let db = dir.path().join("keyframes.db");
-    let mut first = Node::start(dir.path(), &db, 1);
+    let mut first = start_node(dir.path(), &db, 1);
     let got = publish_and_listen(&frames[..FIRST_LAP], before.len());
     assert_eq!(got, before, "first lap over DDS vs offline");
     first.wait_for_log(&format!(" id {} stamp", FIRST_LAP - 1), Duration::from_secs(30));
@@ -145,7 +121,7 @@ fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
     drop(store);
 
     // Second run on the same database: the history is loaded and the revisit closes loops on it.
-    let second = Node::start(dir.path(), &db, 2);
+    let second = start_node(dir.path(), &db, 2);
     second.wait_for_log(&format!("{FIRST_LAP} keyframes stored, {FIRST_LAP} loaded"), Duration::from_secs(60));
     let got = publish_and_listen(&frames[FIRST_LAP..], after.len());
     assert_eq!(got, after, "second lap after the restart vs the offline run of the whole sequence");

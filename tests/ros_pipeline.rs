@@ -20,8 +20,10 @@ use ecm_lcd::config::Params;
 use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::ros::args::parse_param_value;
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
+use ros_support::NodeProcess;
+use std::ffi::OsString;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 const EXE: &str = env!("CARGO_BIN_EXE_ecm-lcd");
@@ -93,41 +95,14 @@ fn assert_rows_equal(got: &[Row], expected: &[Row], context: &str) {
     }
 }
 
-/// `ecm-lcd node` as a child process, its log in a file.
-struct NodeProcess {
-    child: Child,
-    log: PathBuf,
+/// The node with the test's weights and parameters (`detector.min_score` = `min_score`).
+fn start_node(dir: &Path, min_score: &str) -> NodeProcess {
+    let mut args = vec![OsString::from("--weights"), weights().into()];
+    args.extend(ros_param_args(min_score).into_iter().map(OsString::from));
+    NodeProcess::start(dir, dir.join("node.log"), args)
 }
 
 impl NodeProcess {
-    fn start(dir: &Path, extra: &[String]) -> NodeProcess {
-        let log = dir.join("node.log");
-        let child = Command::new(EXE)
-            .args(["node", "--queue", "128", "--weights"])
-            .arg(weights())
-            .args(extra)
-            .env("ECM_LCD_CACHE", dir.join("cache"))
-            .env("RUST_LOG", "info,ecm_lcd::ros::node=debug,rustdds=error")
-            .stdout(Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap();
-        NodeProcess { child, log }
-    }
-
-    fn log_text(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-
-    /// Waits until the node logged `needle` (e.g. a keyframe's debug line).
-    fn wait_for_log(&self, needle: &str, within: Duration) {
-        let end = Instant::now() + within;
-        while !self.log_text().contains(needle) {
-            assert!(Instant::now() < end, "node never logged {needle:?}:\n{}", self.log_text());
-            std::thread::sleep(Duration::from_millis(50));
-        }
-    }
-
     /// Sends `signal` (TERM or INT), checks that the node exits 0, returns its final counters line.
     fn stop(mut self, signal: &str) -> String {
         let status = Command::new("kill").arg(format!("-{signal}")).arg(self.child.id().to_string()).status().unwrap();
@@ -192,7 +167,7 @@ fn tracker_stand_in_node_and_listener_processes_match_the_offline_run() {
     let expected = offline(&seq, LOOSE, None);
     assert!(expected.len() >= 10, "the sequence should close loops offline: {expected:?}");
 
-    let node = NodeProcess::start(dir.path(), &ros_param_args(LOOSE));
+    let node = start_node(dir.path(), LOOSE);
     let listener = ros_support::Listener::start(expected.len());
     let played = play(&seq, &[]);
     assert!(played.contains(&format!("published {FRAMES} frames")), "{played}");
@@ -219,7 +194,7 @@ fn threshold_set_by_another_process_mid_run_changes_the_output() {
     assert!(expected.len() >= 5, "the loose threshold should find loops in the second lap: {expected:?}");
     assert!(expected.iter().all(|r| r.0 >= SWITCH_AT as u64), "the strict threshold finds none: {expected:?}");
 
-    let node = NodeProcess::start(dir.path(), &ros_param_args(STRICT));
+    let node = start_node(dir.path(), STRICT);
     let listener = ros_support::Listener::start(expected.len());
     play(&seq, &["--limit", &SWITCH_AT.to_string()]);
     // The change must reach the node after these keyframes, as it does offline.

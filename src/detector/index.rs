@@ -19,7 +19,9 @@
 //!   not-yet-assigned tail is scanned exactly on every query, so no keyframe is ever invisible.
 //! - Filters (recent-keyframe exclusion) are applied while scanning; when the probed lists yield fewer
 //!   than `k` eligible keyframes, the query falls back to the exact scan, so a query never returns
-//!   fewer results than the exact search would.
+//!   fewer results than the exact search would. The probed lists are scanned in parallel.
+
+use rayon::prelude::*;
 
 use super::Neighbour;
 use crate::descriptor::squared_distance;
@@ -88,6 +90,14 @@ impl TopK {
 
     pub fn len(&self) -> usize {
         self.best.len()
+    }
+
+    /// The top k of both.
+    pub fn merge(mut self, other: TopK) -> TopK {
+        for n in other.best {
+            self.offer(n.position, n.squared_distance);
+        }
+        self
     }
 
     pub fn into_vec(self) -> Vec<Neighbour> {
@@ -350,25 +360,40 @@ impl IvfIndex {
     /// The approximate top `k` over live rows (slots from `first_live`) that `eligible` accepts
     /// (positions = slot - first_live). `None` when fewer than `k` eligible rows were found, so the
     /// caller falls back to the exact scan.
-    pub fn nearest(&self, rows: &[f32], first_live: usize, query: &[f32], k: usize, eligible: &dyn Fn(usize) -> bool) -> Option<Vec<Neighbour>> {
+    pub fn nearest(
+        &self,
+        rows: &[f32],
+        first_live: usize,
+        query: &[f32],
+        k: usize,
+        eligible: &(dyn Fn(usize) -> bool + Sync),
+    ) -> Option<Vec<Neighbour>> {
         let dim = self.dim;
         let mut probe = TopK::new(self.nprobe);
         scan(query, self.centroids.chunks_exact(dim).enumerate(), |c, d2| probe.offer(c, d2));
-        let mut top = TopK::new(k);
         let row = |slot: usize| &rows[slot * dim..(slot + 1) * dim];
-        for list in probe.into_vec() {
-            let list = &self.lists[list.position];
-            let slots = list.iter().enumerate().filter_map(|(j, &slot)| {
-                // A list's rows are scattered over the buffer: fetch a few rows ahead so the memory
-                // latency overlaps the arithmetic (the scan is latency-bound otherwise).
-                if let Some(&ahead) = list.get(j + PREFETCH_AHEAD) {
-                    prefetch(&rows[ahead as usize * dim..(ahead as usize + 1) * dim]);
-                }
-                let slot = slot as usize;
-                (slot >= first_live && eligible(slot - first_live)).then(|| (slot - first_live, row(slot)))
-            });
-            scan(query, slots, |p, d2| top.offer(p, d2));
-        }
+        // The probed lists are scanned on rayon's threads, each into a top-k of its own, merged
+        // after: the scan waits on memory (rows are scattered), and two threads overlap twice the
+        // misses. TopK breaks ties by position, so the result does not depend on the split.
+        let mut top = probe
+            .into_vec()
+            .into_par_iter()
+            .map(|list| {
+                let list = &self.lists[list.position];
+                let mut top = TopK::new(k);
+                let slots = list.iter().enumerate().filter_map(|(j, &slot)| {
+                    // A list's rows are scattered over the buffer: fetch a few rows ahead so the memory
+                    // latency overlaps the arithmetic (the scan is latency-bound otherwise).
+                    if let Some(&ahead) = list.get(j + PREFETCH_AHEAD) {
+                        prefetch(&rows[ahead as usize * dim..(ahead as usize + 1) * dim]);
+                    }
+                    let slot = slot as usize;
+                    (slot >= first_live && eligible(slot - first_live)).then(|| (slot - first_live, row(slot)))
+                });
+                scan(query, slots, |p, d2| top.offer(p, d2));
+                top
+            })
+            .reduce(|| TopK::new(k), TopK::merge);
         let total = rows.len() / dim;
         let tail = (self.assigned.max(first_live)..total).map(|s| s - first_live).filter(|&p| eligible(p));
         scan(query, tail.map(|p| (p, row(p + first_live))), |p, d2| top.offer(p, d2));

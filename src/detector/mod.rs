@@ -274,7 +274,7 @@ impl KeyframeDb {
         &self,
         query: &[f32],
         k: usize,
-        eligible: impl Fn(usize) -> bool,
+        eligible: impl Fn(usize) -> bool + Sync,
     ) -> anyhow::Result<Vec<Neighbour>> {
         Self::check_descriptor(self.dim, query, "query")?;
         if let Some(index) = self.index.as_ref().filter(|_| k > 0) {

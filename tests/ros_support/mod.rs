@@ -1,14 +1,14 @@
 //! Helpers shared by the ROS integration tests: re-running one test inside a private network namespace
 //! (every DDS participant of the test then lives there; the outer run only checks the inner one's
-//! result), `ecm-lcd listen` as a child process, and the test-only Python virtualenv with Eclipse
-//! Cyclone DDS.
+//! result), `ecm-lcd node` and `ecm-lcd listen` as child processes, and the test-only Python
+//! virtualenv with Eclipse Cyclone DDS.
 #![allow(dead_code)] // each test binary uses a different subset
 
 use ecm_lcd::ros::netns::{inside_private_netns, private_netns_command};
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdout, Command, Stdio};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// True inside the re-run (then the logger is set up for the test too).
 pub fn inside() -> bool {
@@ -87,5 +87,40 @@ impl Listener {
         self.stdout.read_to_string(&mut csv).unwrap();
         assert!(self.child.wait().unwrap().success(), "listen failed:\n{csv}");
         csv
+    }
+}
+
+/// `ecm-lcd node` as a child process, its log (debug lines of the node module) in a file.
+pub struct NodeProcess {
+    pub child: Child,
+    pub log: PathBuf,
+}
+
+impl NodeProcess {
+    /// Starts `ecm-lcd node --queue 128 ARGS...`, with its weights cache under `dir` and its log at `log`.
+    pub fn start<S: AsRef<std::ffi::OsStr>>(dir: &Path, log: PathBuf, args: impl IntoIterator<Item = S>) -> NodeProcess {
+        let child = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+            .args(["node", "--queue", "128"])
+            .args(args)
+            .env("ECM_LCD_CACHE", dir.join("cache"))
+            .env("RUST_LOG", "info,ecm_lcd::ros::node=debug,rustdds=error")
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        NodeProcess { child, log }
+    }
+
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Waits until the node logged `needle` (e.g. a keyframe's debug line).
+    pub fn wait_for_log(&self, needle: &str, within: Duration) {
+        let end = Instant::now() + within;
+        while !self.log_text().contains(needle) {
+            assert!(Instant::now() < end, "node never logged {needle:?}:\n{}", self.log_text());
+            std::thread::sleep(Duration::from_millis(50));
+        }
     }
 }
