@@ -51,14 +51,40 @@ fn matmul(m: usize, n: usize, k: usize, dst: &mut [f32], accumulate: bool, lhs: 
     }
 }
 
-/// [`matmul`] (accumulating) with the rows of `dst` and `lhs` split across rayon's threads, one
-/// block of rows (a multiple of 8) per thread: every thread reads all of `rhs` and writes its own
-/// rows, which scales better on these small products than splitting inside the multiply.
+/// Columns per thread from which [`matmul_parallel`] splits by columns rather than rows.
+const COLUMN_SPLIT_MIN: usize = 256;
+
+/// [`matmul`] (accumulating) split across rayon's threads. With many columns (pixels), each thread
+/// takes a block of columns (a multiple of 16) and all rows: the blocks are even whatever the row
+/// count (24 rows split by rows in multiples of 8 gave one thread twice the other's work), and each
+/// thread reads only its part of `rhs`. With few columns (the 7x7 layers: 49), each thread takes a
+/// block of rows (a multiple of 8) and reads all of `rhs`.
 fn matmul_parallel(m: usize, n: usize, k: usize, dst: &mut [f32], lhs: &[f32], rhs: &[f32]) {
     if m == 0 || n == 0 {
         return;
     }
+    assert!(dst.len() >= m * n && lhs.len() >= m * k && rhs.len() >= k * n, "matmul operand sizes");
     let threads = rayon::current_num_threads().max(1);
+    if threads > 1 && n >= COLUMN_SPLIT_MIN * threads {
+        let block = n.div_ceil(threads).next_multiple_of(16);
+        // Passed as an address: the threads write disjoint column blocks of one buffer.
+        let dst_address = dst.as_mut_ptr() as usize;
+        (0..n.div_ceil(block)).into_par_iter().for_each(|b| {
+            let (first, cols) = (b * block, block.min(n - b * block));
+            // SAFETY: sizes checked above; block `b` reads and writes only columns
+            // [first, first + cols) of every row of dst, which no other block touches.
+            unsafe {
+                gemm::gemm(
+                    m, cols, k,
+                    (dst_address as *mut f32).add(first), 1, n as isize, true,
+                    lhs.as_ptr(), 1, k as isize,
+                    rhs.as_ptr().add(first), 1, n as isize,
+                    1.0, 1.0, false, false, false, gemm::Parallelism::None,
+                );
+            }
+        });
+        return;
+    }
     let rows = m.div_ceil(threads).next_multiple_of(8).min(m).max(1);
     dst[..m * n].par_chunks_mut(rows * n).zip(lhs[..m * k].par_chunks(rows * k)).for_each(|(dst, lhs)| {
         matmul(dst.len() / n, n, k, dst, true, lhs, rhs);
@@ -412,13 +438,18 @@ mod tests {
 
     #[test]
     fn fused_bottleneck_equals_stock_ops() -> Result<()> {
-        // With and without expansion, ECA and residual; strides 1 and 2; odd and even sizes; batch 2.
+        // With and without expansion, ECA and residual; strides 1 and 2; odd and even sizes; batch 2;
+        // on three threads, the last two with enough pixels that the projection is split by columns
+        // and rows wide enough for the row-by-row depthwise pass.
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
         let cases = [
             (BlockShape { input: 8, hidden: 48, output: 8, stride: 1, eca_kernel: Some(3) }, 9, 11),
             (BlockShape { input: 8, hidden: 48, output: 16, stride: 2, eca_kernel: Some(5) }, 14, 14),
             (BlockShape { input: 16, hidden: 16, output: 8, stride: 1, eca_kernel: None }, 12, 7),
             (BlockShape { input: 12, hidden: 72, output: 12, stride: 1, eca_kernel: None }, 5, 5),
             (BlockShape { input: 12, hidden: 72, output: 24, stride: 2, eca_kernel: Some(3) }, 7, 9),
+            (BlockShape { input: 8, hidden: 24, output: 8, stride: 1, eca_kernel: Some(3) }, 23, 41),
+            (BlockShape { input: 8, hidden: 24, output: 12, stride: 2, eca_kernel: None }, 61, 66),
         ];
         for (shape, h, w) in cases {
             let mut tensors = HashMap::new();
@@ -435,7 +466,7 @@ mod tests {
             tensors.insert("project.bias".to_string(), random(&[shape.output], 1.0));
             let block = InvertedResidual::load(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), shape, false)?;
             let x = random(&[2, shape.input, h, w], 2.0);
-            let fast = block.forward_t(&x, Mode::Inference)?;
+            let fast = pool.install(|| block.forward_t(&x, Mode::Inference))?;
             let reference = block.forward_t(&x, Mode::Reference)?;
             assert_eq!(fast.dims(), reference.dims(), "{shape:?}");
             let diff = max_diff(&fast, &reference);
@@ -446,10 +477,18 @@ mod tests {
 
     #[test]
     fn dense_conv_equals_stock_ops() -> Result<()> {
-        // The stem (3x3, stride 2, odd and even sizes) and 1x1 units, batch 2.
-        for (kernel, stride, h, w, activation) in
-            [(3, 2, 16, 16, Activation::Relu6), (3, 2, 9, 12, Activation::Relu6), (3, 1, 7, 6, Activation::Identity), (1, 1, 5, 4, Activation::Relu6)]
-        {
+        // The stem (3x3, stride 2, odd and even sizes) and 1x1 units, batch 2; on three threads,
+        // the larger ones with enough pixels that the product is split by columns.
+        let cases = [
+            (3, 2, 16, 16, Activation::Relu6),
+            (3, 2, 9, 12, Activation::Relu6),
+            (3, 1, 7, 6, Activation::Identity),
+            (1, 1, 5, 4, Activation::Relu6),
+            (3, 2, 70, 57, Activation::Relu6),
+            (1, 1, 31, 40, Activation::Identity),
+        ];
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        for (kernel, stride, h, w, activation) in cases {
             let kind = if kernel == 1 { ConvKind::Pointwise } else { ConvKind::Full { stride } };
             let tensors = HashMap::from([
                 ("weight".to_string(), random(&[6, 3, kernel, kernel], 1.0)),
@@ -457,7 +496,7 @@ mod tests {
             ]);
             let unit = ConvUnit::load(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), (6, 3, kernel, kernel), kind, activation, false)?;
             let x = random(&[2, 3, h, w], 2.0);
-            let (fast, reference) = (unit.forward_t(&x, Mode::Inference)?, unit.forward_t(&x, Mode::Reference)?);
+            let (fast, reference) = (pool.install(|| unit.forward_t(&x, Mode::Inference))?, unit.forward_t(&x, Mode::Reference)?);
             assert_eq!(fast.dims(), reference.dims());
             let diff = max_diff(&fast, &reference);
             assert!(diff < 1e-4, "{kernel}x{kernel} s{stride} {h}x{w}: max diff {diff}");
