@@ -11,7 +11,7 @@ use candle_nn::{BatchNorm, BatchNormConfig, VarBuilder};
 
 use super::depthwise::{self, Activation};
 use super::fused::{DenseConv, FusedBottleneck};
-use super::{batch_norm_train, depthwise_grad};
+use super::{batch_norm_train, depthwise_grad, train_ops};
 
 /// How a forward pass runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -141,12 +141,13 @@ impl ConvUnit {
                 }
             };
         }
+        // Training runs ops with hand-written backward passes (tested equal to the stock ones).
         let y = match self.kind {
+            ConvKind::Full { stride } if mode.is_training() => train_ops::conv_same(x, &self.weight, stride)?,
             ConvKind::Full { stride } => self.convolve(x, stride, 1)?,
             ConvKind::Depthwise { stride } if mode.is_training() => depthwise_grad::depthwise_conv_train(x, &self.weight, stride)?,
             ConvKind::Depthwise { stride } => self.convolve(x, stride, x.dim(1)?)?,
-            // A matrix multiply: its backward is two matrix multiplies, not a transposed convolution.
-            ConvKind::Pointwise if mode.is_training() => pointwise(x, &self.weight)?,
+            ConvKind::Pointwise if mode.is_training() => train_ops::pointwise_conv(x, &self.weight)?,
             ConvKind::Pointwise => x.conv2d(&self.weight, 0, 1, 1, 1)?,
         };
         let y = match (&self.bn, &self.bias) {
@@ -155,7 +156,10 @@ impl ConvUnit {
             (None, Some(b)) => y.broadcast_add(&b.reshape((1, b.dim(0)?, 1, 1))?)?,
             (None, None) => y,
         };
-        self.activation.forward(&y)
+        match self.activation {
+            Activation::Relu6 if mode.is_training() => train_ops::relu6(&y),
+            activation => activation.forward(&y),
+        }
     }
 
     fn convolve(&self, x: &Tensor, stride: usize, groups: usize) -> Result<Tensor> {
@@ -198,12 +202,30 @@ impl Eca {
 
     /// The per-channel gate in (0, 1), shape `[B, C, 1, 1]`.
     pub fn gate(&self, x: &Tensor) -> Result<Tensor> {
+        self.gate_t(x, Mode::Reference)
+    }
+
+    fn gate_t(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
         let (b, c, h, w) = x.dims4()?;
-        // One reduction over each contiguous channel plane.
-        let pooled = x.contiguous()?.reshape((b, c, h * w))?.mean(2)?.reshape((b, 1, c))?;
+        let pooled = if mode.is_training() {
+            train_ops::channel_mean(x)?
+        } else {
+            // One reduction over each contiguous channel plane.
+            x.contiguous()?.reshape((b, c, h * w))?.mean(2)?
+        };
         let k = self.kernel();
-        let y = pooled.conv1d(&self.weight, (k - 1) / 2, 1, 1, 1)?;
+        let y = pooled.reshape((b, 1, c))?.conv1d(&self.weight, (k - 1) / 2, 1, 1, 1)?;
         candle_nn::ops::sigmoid(&y)?.reshape((b, c, 1, 1))
+    }
+
+    /// `x` scaled by its gate; the training modes use the ops of [`train_ops`].
+    pub fn forward_t(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
+        let gate = self.gate_t(x, mode)?;
+        if mode.is_training() {
+            train_ops::channel_scale(x, &gate)
+        } else {
+            x.broadcast_mul(&gate)
+        }
     }
 }
 
@@ -300,7 +322,7 @@ impl InvertedResidual {
         };
         y = self.depthwise.forward_t(&y, mode)?;
         y = match &self.eca {
-            Some(eca) => self.project.forward_t(&eca.forward(&y)?, mode)?,
+            Some(eca) => self.project.forward_t(&eca.forward_t(&y, mode)?, mode)?,
             None => self.project.forward_t(&y, mode)?,
         };
         if self.shape.has_residual() {

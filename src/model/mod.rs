@@ -14,6 +14,7 @@ pub mod fused;
 pub mod ecmobilenet;
 pub mod layers;
 pub mod mobilenetv2;
+pub mod train_ops;
 pub mod weights;
 
 use anyhow::{bail, Context};

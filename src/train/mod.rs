@@ -11,9 +11,9 @@
 //! - `--init` loads folded (inference-form) weights into the training form: convolution weight as
 //!   is, BatchNorm gamma = 1, beta = the folded bias, running mean 0, running variance 1 - eps, so
 //!   the initial network computes exactly the folded one ([`training_form`]).
-//! - Optimizers: SGD with (PyTorch-style) momentum and AdamW, written here against candle's
-//!   `Optimizer` trait because candle's SGD has no momentum and candle's AdamW keeps its moments
-//!   private; owning the state lets `--resume` restore it exactly. Weight decay applies to
+//! - Optimizers: SGD with (PyTorch-style) momentum and AdamW, written here (in-place updates,
+//!   [`update`]) rather than with candle's `Optimizer` trait because candle's SGD has no momentum
+//!   and candle's AdamW keeps its moments private; owning the state lets `--resume` restore it exactly. Weight decay applies to
 //!   convolution, ECA and classifier weights, not to BatchNorm parameters or biases.
 //! - Learning rate: linear warm-up from 0, then a cosine decay to 0 over the remaining steps.
 //! - Loss: cross-entropy with label smoothing.
@@ -31,6 +31,7 @@
 
 pub mod data;
 pub mod distill;
+mod update;
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -167,27 +168,32 @@ impl Optimizer {
     }
 
     /// One update with learning rate `lr`; parameters without a gradient are left alone.
+    /// Parameters and state are updated in place ([`update`]).
     pub fn step(&mut self, grads: &GradStore, lr: f64) -> Result<()> {
         self.steps += 1;
         let t = self.steps as i32;
         for (p, (m, v)) in self.params.iter().zip(self.state.iter_mut()) {
             let Some(g) = grads.get(p.var.as_tensor()) else { continue };
-            let w = p.var.as_tensor().detach();
+            let g = g.contiguous()?;
+            let w = p.var.as_tensor();
             let wd = if p.decay { self.weight_decay } else { 0.0 };
             match self.kind {
                 OptimizerKind::Sgd => {
-                    let g = (g + (&w * wd)?)?;
-                    *m = ((&*m * self.momentum)? + g)?.detach();
-                    p.var.set(&(&w - (&*m * lr)?)?)?;
+                    m.inplace_op3(&g, w, &update::SgdMomentum { momentum: self.momentum as f32, weight_decay: wd as f32 })?;
+                    w.inplace_op2(m, &update::SgdStep { lr: lr as f32 })?;
                 }
                 OptimizerKind::Adamw => {
                     let (b1, b2) = ADAM_BETAS;
-                    *m = ((&*m * b1)? + (g * (1.0 - b1))?)?.detach();
-                    *v = ((&*v * b2)? + (g.sqr()? * (1.0 - b2))?)?.detach();
-                    let m_hat = (&*m / (1.0 - b1.powi(t)))?;
-                    let v_hat = (&*v / (1.0 - b2.powi(t)))?;
-                    let update = (m_hat / (v_hat.sqrt()? + ADAM_EPS)?)?;
-                    p.var.set(&((&w * (1.0 - lr * wd))? - (update * lr)?)?)?;
+                    m.inplace_op2(&g, &update::Moment { decay: b1 as f32, squared: false })?;
+                    v.inplace_op2(&g, &update::Moment { decay: b2 as f32, squared: true })?;
+                    let step = update::AdamWStep {
+                        lr: lr as f32,
+                        weight_decay: wd as f32,
+                        correction1: (1.0 - b1.powi(t)) as f32,
+                        correction2: (1.0 - b2.powi(t)) as f32,
+                        eps: ADAM_EPS as f32,
+                    };
+                    w.inplace_op3(m, v, &step)?;
                 }
             }
         }
@@ -195,24 +201,25 @@ impl Optimizer {
     }
 
     /// The state as named tensors (`optimizer.<param>.m` / `.v`).
-    pub fn state_tensors(&self) -> HashMap<String, Tensor> {
+    pub fn state_tensors(&self) -> Result<HashMap<String, Tensor>> {
         let mut out = HashMap::new();
         for (p, (m, v)) in self.params.iter().zip(&self.state) {
-            out.insert(format!("optimizer.{}.m", p.name), m.clone());
+            // Copies: the state is updated in place.
+            out.insert(format!("optimizer.{}.m", p.name), m.copy()?);
             if self.kind == OptimizerKind::Adamw {
-                out.insert(format!("optimizer.{}.v", p.name), v.clone());
+                out.insert(format!("optimizer.{}.v", p.name), v.copy()?);
             }
         }
-        out
+        Ok(out)
     }
 
     /// Restores the state saved by [`Optimizer::state_tensors`].
     pub fn restore(&mut self, tensors: &HashMap<String, Tensor>, steps: usize) -> Result<()> {
         for (p, (m, v)) in self.params.iter().zip(self.state.iter_mut()) {
             let get = |suffix: &str| tensors.get(&format!("optimizer.{}.{suffix}", p.name)).with_context(|| format!("the checkpoint has no optimizer state for {}", p.name));
-            *m = get("m")?.clone();
+            *m = update::owned(get("m")?)?;
             if self.kind == OptimizerKind::Adamw {
-                *v = get("v")?.clone();
+                *v = update::owned(get("v")?)?;
             }
         }
         self.steps = steps;
@@ -542,7 +549,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             weights.save(&files.best)?;
         }
         let mut training = model.tensors();
-        training.extend(optimizer.state_tensors());
+        training.extend(optimizer.state_tensors()?);
         Weights { arch: config.arch, classes: Some(classes), source: "ecm-lcd training form".into(), tensors: training }.save(&files.training)?;
         write_json(&files.json, &record)?;
     }
