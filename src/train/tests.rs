@@ -130,31 +130,34 @@ fn cuda_is_refused_clearly() {
     assert!(err.contains("not built in"), "{err}");
 }
 
-// Not met (see README "Training and distillation"): with the faster training ops this recipe
-// takes 22 s (it took 158 s) and reaches 37.5% validation accuracy. Longer runs on the loaded
-// 2-core machine: 32 px, 100 images per class, 800 AdamW steps: 43.8%; 64 px, 150 per class,
-// 600 steps (299 s): 63.3%; black/white textures at 64 px, 120 steps: 70%. The same pipeline
-// learns 4 colour classes to 93.8% in 40 steps and memorises a fixed batch in 5 steps.
 /// From scratch: ECMobileNet at 32 px learns the 4 texture classes to >= 90% validation accuracy.
+/// 200 images per class (640 training, 160 validation), batch 64, AdamW 8e-3 (3 warm-up epochs,
+/// cosine), 40 epochs = 400 steps. The batch matters: at 32 px the last stages are 1x1 maps whose
+/// BatchNorm normalises over the batch only, and with batch 16 the network memorised but hardly
+/// generalised (44% after 800 steps); batch 64 with a learning rate scaled up from 2e-3 to 8e-3
+/// learns the textures (1.6e-2 diverged). Not yet reliable, hence ignored: measured on the shared
+/// 2-core machine (load 2-4), best validation accuracy 91.2% (data seed 1, this test, 216 s),
+/// 93.8% (seed 2, 187 s), 85.6% (seed 3, 249 s); see the README, "Training and distillation".
 #[test]
-#[ignore = "not yet reaching 90%: see the comment"]
+#[ignore = "reaches 90% on 2 of 3 data seeds: see the comment"]
 fn textures_are_learned_from_scratch() -> Result<()> {
     let dir = tempfile::tempdir()?;
-    write_textures(&dir.path().join("data"), 50, 1);
+    write_textures(&dir.path().join("data"), 200, 1);
     let started = Instant::now();
     let out = dir.path().join("run/tex.safetensors");
-    let mut h = hyper(32, 12, 16);
-    h.opt.lr = 2e-3;
+    let mut h = hyper(32, 40, 64);
+    h.opt.lr = 8e-3;
+    h.opt.warmup_epochs = 3.0;
     h.opt.augment = Augment { min_crop_area: 0.6, flip: true, colour_jitter: 0.2 };
     let record = train(&config(&dir.path().join("data"), &out, Arch::EcMobileNet, h))?;
     let seconds = started.elapsed().as_secs_f64();
     eprintln!("texture training: {:?}", record.history.iter().map(|e| (e.train_loss, e.val_accuracy)).collect::<Vec<_>>());
     eprintln!("best validation accuracy {:.3} at epoch {} in {seconds:.1} s", record.best_val_accuracy, record.best_epoch);
-    assert_eq!((record.train_images, record.val_images), (160, 40));
+    assert_eq!((record.train_images, record.val_images), (640, 160));
     assert!(record.best_val_accuracy >= 0.9, "validation accuracy {}", record.best_val_accuracy);
     // The best checkpoint is what the record says.
     let best = Weights::load(&out)?;
-    let acc = accuracy(&best.network(true)?, Arc::new(FileSet(ImageFolder::open(&dir.path().join("data"), 7, 0.2)?.val)), 32, 16)?;
+    let acc = accuracy(&best.network(true)?, Arc::new(FileSet(ImageFolder::open(&dir.path().join("data"), 7, 0.2)?.val)), 32, 64)?;
     assert_eq!(acc, record.best_val_accuracy);
     Ok(())
 }
