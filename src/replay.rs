@@ -76,6 +76,17 @@ pub fn run_source_with(
     source: &Path,
     topic: Option<&str>,
     progress: bool,
+    on_keyframe: impl FnMut(&ReplayedKeyframe, &[LoopCandidate]) -> Result<()> + Send,
+) -> Result<ReplayRun> {
+    // The whole replay on a rayon worker: see `runtime::on_worker`.
+    crate::runtime::on_worker(|| replay_frames(pipeline, source, topic, progress, on_keyframe))
+}
+
+fn replay_frames(
+    pipeline: &mut Pipeline,
+    source: &Path,
+    topic: Option<&str>,
+    progress: bool,
     mut on_keyframe: impl FnMut(&ReplayedKeyframe, &[LoopCandidate]) -> Result<()>,
 ) -> Result<ReplayRun> {
     let resume_after = pipeline.store().and_then(|store| store.max_id());

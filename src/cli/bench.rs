@@ -319,7 +319,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
         report.search = Some(search(&args)?);
     }
     if wanted(Section::E2e) {
-        report.end_to_end = Some(end_to_end(&args, &frame)?);
+        // A node runs its keyframes on a rayon worker (runtime::on_worker); so does this.
+        report.end_to_end = Some(crate::runtime::on_worker(|| end_to_end(&args, &frame))?);
     }
     if wanted(Section::Memory) {
         report.memory = Some(args.memory.iter().map(|spec| memory(spec)).collect::<Result<_>>()?);

@@ -76,7 +76,7 @@ const CSV_HEADER: [&str; 6] = ["query_id", "query_stamp", "match_id", "match_sta
 /// Candidates as CSV (`query_id,query_stamp,match_id,match_stamp,distance,score`), written in pieces,
 /// each flushed.
 pub struct CandidateCsv {
-    out: csv::Writer<Box<dyn Write>>,
+    out: csv::Writer<Box<dyn Write + Send>>,
     name: String,
 }
 
@@ -97,7 +97,7 @@ impl CandidateCsv {
         Self::new(Box::new(std::io::stdout()), "standard output".into(), true)
     }
 
-    fn new(out: Box<dyn Write>, name: String, header: bool) -> Result<Self> {
+    fn new(out: Box<dyn Write + Send>, name: String, header: bool) -> Result<Self> {
         let mut csv = CandidateCsv { out: csv::WriterBuilder::new().has_headers(false).from_writer(out), name };
         if header {
             csv.out.write_record(CSV_HEADER)?;

@@ -31,17 +31,22 @@ impl Embedder {
         self.preprocessor.size()
     }
 
+    /// The feature map of `image`, computed on a rayon worker ([`crate::runtime::on_worker`]).
     pub fn feature_map(&mut self, image: &RgbImage) -> Result<FeatureMap> {
-        let x = self.preprocessor.tensor(image)?;
-        let y = self.network.features(&x, self.mode)?;
-        let (_, channels, height, width) = y.dims4()?;
-        Ok(FeatureMap { channels, height, width, data: y.flatten_all()?.to_vec1::<f32>()? })
+        crate::runtime::on_worker(|| {
+            let x = self.preprocessor.tensor(image)?;
+            let y = self.network.features(&x, self.mode)?;
+            let (_, channels, height, width) = y.dims4()?;
+            Ok(FeatureMap { channels, height, width, data: y.flatten_all()?.to_vec1::<f32>()? })
+        })
     }
 
-    /// Class probabilities (softmax of the classifier's logits).
+    /// Class probabilities (softmax of the classifier's logits), computed on a rayon worker.
     pub fn probabilities(&mut self, image: &RgbImage) -> Result<Vec<f32>> {
-        let x = self.preprocessor.tensor(image)?;
-        let logits = self.network.logits(&x, self.mode)?;
-        Ok(candle_nn::ops::softmax_last_dim(&logits)?.flatten_all()?.to_vec1::<f32>()?)
+        crate::runtime::on_worker(|| {
+            let x = self.preprocessor.tensor(image)?;
+            let logits = self.network.logits(&x, self.mode)?;
+            Ok(candle_nn::ops::softmax_last_dim(&logits)?.flatten_all()?.to_vec1::<f32>()?)
+        })
     }
 }

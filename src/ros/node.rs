@@ -301,7 +301,8 @@ pub fn run_node(
         let live = live.clone();
         std::thread::Builder::new()
             .name("lcd-worker".into())
-            .spawn(move || worker_loop(&fqn, processor, &queue, &publisher, &counters, &live))
+            // On a rayon worker for its whole life: see `runtime::on_worker`.
+            .spawn(move || crate::runtime::on_worker(|| worker_loop(&fqn, processor, &queue, &publisher, &counters, &live)))
             .context("starting the worker thread")?
     };
 
