@@ -22,7 +22,7 @@ pub mod import;
 pub mod resolve;
 pub mod tflite;
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 use anyhow::{bail, Context, Result};
@@ -32,6 +32,9 @@ use candle_nn::VarBuilder;
 use super::{Arch, Network};
 
 pub const FORMAT: &str = "ecm-lcd-weights/1";
+
+/// The safetensors metadata entry under which [`Weights::save`] writes its fields.
+const METADATA_KEY: &str = "ecm-lcd";
 
 /// A set of named weights with what they are.
 #[derive(Clone, Debug)]
@@ -45,21 +48,26 @@ pub struct Weights {
 impl Weights {
     /// Saves as safetensors with the metadata in the header.
     pub fn save(&self, path: &Path) -> Result<()> {
-        let mut metadata = HashMap::new();
-        metadata.insert("format".to_string(), FORMAT.to_string());
-        metadata.insert("arch".to_string(), self.arch.name().to_string());
-        metadata.insert("source".to_string(), self.source.clone());
+        let mut fields = BTreeMap::new();
+        fields.insert("format", FORMAT.to_string());
+        fields.insert("arch", self.arch.name().to_string());
+        fields.insert("source", self.source.clone());
         if let Some(k) = self.classes {
-            metadata.insert("classes".to_string(), k.to_string());
+            fields.insert("classes", k.to_string());
         }
+        // One metadata entry holding the fields as sorted JSON: safetensors writes its metadata map in
+        // hash order, which differs from process to process, and the file's SHA-256 is the weights'
+        // identity in keyframe databases, so the same weights must always give the same bytes.
+        let metadata = HashMap::from([(METADATA_KEY.to_string(), serde_json::to_string(&fields)?)]);
         let mut names: Vec<&String> = self.tensors.keys().collect();
         names.sort();
         let data: Vec<(&str, &Tensor)> = names.iter().map(|n| (n.as_str(), &self.tensors[*n])).collect();
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         }
-        // Write then rename, so a crash never leaves a half-written weights file behind.
-        let tmp = path.with_extension("safetensors.part");
+        // Write then rename, so a crash never leaves a half-written weights file behind; the
+        // temporary name is this process's own, so that concurrent writers never share one.
+        let tmp = path.with_extension(format!("safetensors.part{}", std::process::id()));
         safetensors::serialize_to_file(data, Some(metadata), &tmp).with_context(|| format!("cannot write {}", tmp.display()))?;
         std::fs::rename(&tmp, path).with_context(|| format!("cannot move {} to {}", tmp.display(), path.display()))?;
         Ok(())
@@ -74,7 +82,14 @@ impl Weights {
 
     pub fn from_bytes(bytes: &[u8]) -> Result<Self> {
         let (_, header) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| anyhow::anyhow!("safetensors header: {e}"))?;
-        let metadata = header.metadata().clone().unwrap_or_default();
+        let mut metadata = header.metadata().clone().unwrap_or_default();
+        // Files from [`Weights::save`] hold their fields as JSON under one key; older ones (and
+        // other writers) as separate entries.
+        if let Some(json) = metadata.remove(METADATA_KEY) {
+            let fields: BTreeMap<String, String> =
+                serde_json::from_str(&json).with_context(|| format!("bad '{METADATA_KEY}' entry in the safetensors metadata"))?;
+            metadata.extend(fields);
+        }
         let arch: Arch = metadata.get("arch").context("no 'arch' in the safetensors metadata")?.parse()?;
         let classes = metadata.get("classes").map(|k| k.parse::<usize>()).transpose().context("bad 'classes' in metadata")?;
         let source = metadata.get("source").cloned().unwrap_or_default();
@@ -122,4 +137,53 @@ pub fn inference_tensors(network: &Network) -> Result<HashMap<String, Tensor>> {
         }
     })?;
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny() -> Weights {
+        let tensors = HashMap::from([
+            ("a.weight".to_string(), Tensor::new(&[1f32, 2.0, 3.0], &Device::Cpu).unwrap()),
+            ("b.bias".to_string(), Tensor::new(&[4f32], &Device::Cpu).unwrap()),
+        ]);
+        Weights { arch: Arch::EcMobileNet, classes: Some(4), source: "test".into(), tensors }
+    }
+
+    /// The file is the weights' identity (its SHA-256 names them in keyframe databases), so the same
+    /// weights always give the same bytes, and the fields round-trip.
+    #[test]
+    fn saving_the_same_weights_gives_the_same_bytes() {
+        let dir = tempfile::tempdir().unwrap();
+        let weights = tiny();
+        let files: Vec<Vec<u8>> = (0..8)
+            .map(|i| {
+                let path = dir.path().join(format!("w{i}.safetensors"));
+                weights.save(&path).unwrap();
+                std::fs::read(&path).unwrap()
+            })
+            .collect();
+        assert!(files.iter().all(|f| f == &files[0]), "two saves of the same weights differ");
+        let back = Weights::from_bytes(&files[0]).unwrap();
+        assert_eq!((back.arch, back.classes, back.source.as_str()), (Arch::EcMobileNet, Some(4), "test"));
+        assert_eq!(back.tensors["a.weight"].to_vec1::<f32>().unwrap(), [1.0, 2.0, 3.0]);
+    }
+
+    /// Files written before the fields moved under one key still load.
+    #[test]
+    fn files_with_separate_metadata_entries_still_load() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("old.safetensors");
+        let weights = tiny();
+        let metadata = HashMap::from([
+            ("format".to_string(), FORMAT.to_string()),
+            ("arch".to_string(), "mobilenetv2".to_string()),
+            ("source".to_string(), "old".to_string()),
+        ]);
+        let data: Vec<(&str, &Tensor)> = weights.tensors.iter().map(|(n, t)| (n.as_str(), t)).collect();
+        safetensors::serialize_to_file(data, Some(metadata), &path).unwrap();
+        let back = Weights::load(&path).unwrap();
+        assert_eq!((back.arch, back.classes, back.source.as_str()), (Arch::MobileNetV2, None, "old"));
+    }
 }
