@@ -18,10 +18,7 @@ use candle_nn::BatchNorm;
 use rayon::prelude::*;
 
 fn contiguous<'a>(storage: &'a CpuStorage, layout: &Layout, what: &str) -> Result<&'a [f32]> {
-    let (start, end) = layout
-        .contiguous_offsets()
-        .ok_or_else(|| candle_core::Error::Msg(format!("batch norm (training): {what} must be contiguous")))?;
-    Ok(&storage.as_slice::<f32>()?[start..end])
+    super::contiguous_f32(storage, layout, "batch norm (training)", what)
 }
 
 /// `[B, C, rest...]` as (batch, channels, plane size).

@@ -53,10 +53,7 @@ struct DepthwiseConv {
 }
 
 fn contiguous<'a>(storage: &'a CpuStorage, layout: &Layout, what: &str) -> Result<&'a [f32]> {
-    let (start, end) = layout
-        .contiguous_offsets()
-        .ok_or_else(|| candle_core::Error::Msg(format!("depthwise conv: {what} must be contiguous")))?;
-    Ok(&storage.as_slice::<f32>()?[start..end])
+    super::contiguous_f32(storage, layout, "depthwise conv", what)
 }
 
 impl CustomOp3 for DepthwiseConv {

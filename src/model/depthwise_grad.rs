@@ -69,10 +69,7 @@ impl Geometry {
 }
 
 fn contiguous<'a>(storage: &'a CpuStorage, layout: &Layout, what: &str) -> Result<&'a [f32]> {
-    let (start, end) = layout
-        .contiguous_offsets()
-        .ok_or_else(|| candle_core::Error::Msg(format!("depthwise conv (training): {what} must be contiguous")))?;
-    Ok(&storage.as_slice::<f32>()?[start..end])
+    super::contiguous_f32(storage, layout, "depthwise conv (training)", what)
 }
 
 /// The forward op: `(x, weight) -> y`.

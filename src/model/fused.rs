@@ -96,10 +96,7 @@ fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
 }
 
 fn input<'a>(storage: &'a CpuStorage, layout: &Layout, op: &str) -> Result<&'a [f32]> {
-    let (start, end) = layout
-        .contiguous_offsets()
-        .ok_or_else(|| candle_core::Error::Msg(format!("{op}: the input must be contiguous")))?;
-    Ok(&storage.as_slice::<f32>()?[start..end])
+    super::contiguous_f32(storage, layout, op, "the input")
 }
 
 /// ECA's gate from per-channel sums over `count` values: mean, 1-D convolution across channels

@@ -288,3 +288,17 @@ pub fn check_input_size(size: usize) -> anyhow::Result<usize> {
     }
     Ok(size)
 }
+
+/// The `f32` values of a custom op's operand, which must be contiguous (`op` and `what` name it in
+/// the error).
+pub(crate) fn contiguous_f32<'a>(
+    storage: &'a candle_core::CpuStorage,
+    layout: &candle_core::Layout,
+    op: &str,
+    what: &str,
+) -> candle_core::Result<&'a [f32]> {
+    let (start, end) = layout
+        .contiguous_offsets()
+        .ok_or_else(|| candle_core::Error::Msg(format!("{op}: {what} must be contiguous")))?;
+    Ok(&storage.as_slice::<f32>()?[start..end])
+}

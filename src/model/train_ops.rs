@@ -24,12 +24,7 @@ use rayon::prelude::*;
 
 use super::depthwise::same_padding;
 
-fn contiguous<'a>(storage: &'a CpuStorage, layout: &Layout, op: &str, what: &str) -> Result<&'a [f32]> {
-    let (start, end) = layout
-        .contiguous_offsets()
-        .ok_or_else(|| candle_core::Error::Msg(format!("{op}: {what} must be contiguous")))?;
-    Ok(&storage.as_slice::<f32>()?[start..end])
-}
+use super::contiguous_f32 as contiguous;
 
 /// A row-major or transposed matrix view: element `(i, j)` at `data[i * row_stride + j * col_stride]`.
 #[derive(Clone, Copy)]
