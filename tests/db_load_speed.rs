@@ -37,7 +37,9 @@ fn process_cpu_secs() -> Option<f64> {
 
 /// Append latency (each a committed, fsynced transaction) and the load time of 100k 1280-value
 /// keyframes, printed; the load must take under a second, as a restarted node waits for it (wall
-/// time; the load runs on the rayon threads, and the CPU time of all threads is printed beside it).
+/// time; the CPU time of all threads is printed beside it). A restart maps the descriptors from the
+/// store's vector file; the first load of a store without one (written by an older version, or just
+/// merged) reads them from SQLite and writes the file, which is timed and printed too.
 #[test]
 fn append_latency_and_loading_100k_keyframes() {
     let dir = tempfile::tempdir().unwrap();
@@ -81,5 +83,15 @@ fn append_latency_and_loading_100k_keyframes() {
     assert_eq!(db.len(), total as usize);
     assert_eq!((db.id(0), db.id(total as usize - 1)), (0, total - 1));
     assert_eq!(db.descriptor(3), descriptor(3, dim).as_slice());
+    assert!(db.is_mapped(), "the descriptors were not mapped from the vector file");
     assert!(wall_secs < 1.0, "loading {total} keyframes took {wall_secs:.3} s");
+    drop(db);
+
+    let mut vector_file = path.as_os_str().to_owned();
+    vector_file.push("-vectors");
+    std::fs::remove_file(&vector_file).unwrap();
+    let started = Instant::now();
+    let db = store.load_db(None).unwrap();
+    println!("first load without a vector file (read from SQLite, file written): {:.3} s", started.elapsed().as_secs_f64());
+    assert_eq!((db.len(), db.descriptor(total as usize - 1)), (total as usize, descriptor(7, dim).as_slice()));
 }

@@ -26,11 +26,13 @@
 //! keeps every keyframe on disk regardless; a restart loads only the newest `n`.
 
 pub mod index;
+pub mod rows;
 pub mod selection;
 pub mod store;
 
 use crate::descriptor::Descriptor;
 use index::{IndexPolicy, IvfIndex, TopK};
+use rows::DescriptorRows;
 use crate::types::{LoopCandidate, Stamp};
 use anyhow::{ensure, Context};
 use std::collections::VecDeque;
@@ -98,7 +100,7 @@ pub struct KeyframeDb {
     ids: Vec<u64>,
     stamps: Vec<Stamp>,
     /// `len * dim` values, keyframe after keyframe.
-    descriptors: Vec<f32>,
+    descriptors: DescriptorRows,
     /// Dropped keyframes still at the front of the vectors (removed in batches: see [`KeyframeDb::drop_oldest`]).
     dropped: usize,
     index_policy: IndexPolicy,
@@ -118,7 +120,7 @@ impl KeyframeDb {
             dim,
             ids: Vec::with_capacity(keyframes),
             stamps: Vec::with_capacity(keyframes),
-            descriptors: Vec::with_capacity(keyframes * dim),
+            descriptors: DescriptorRows::with_capacity(keyframes * dim),
             dropped: 0,
             index_policy: IndexPolicy::default(),
             index: None,
@@ -130,7 +132,7 @@ impl KeyframeDb {
     /// `descriptors` are one keyframe, in insertion order; every descriptor must have passed
     /// [`KeyframeDb::check_descriptor`]. The index is deferred to the next insert, as after
     /// [`KeyframeDb::index_at_next_insert`].
-    pub(crate) fn from_history(dim: usize, ids: Vec<u64>, stamps: Vec<Stamp>, descriptors: Vec<f32>) -> anyhow::Result<Self> {
+    pub(crate) fn from_history(dim: usize, ids: Vec<u64>, stamps: Vec<Stamp>, descriptors: DescriptorRows) -> anyhow::Result<Self> {
         ensure!(
             ids.len() == stamps.len() && ids.len() * dim == descriptors.len(),
             "a history of {} ids, {} stamps and {} values of {dim}-value descriptors does not add up",
@@ -201,7 +203,7 @@ impl KeyframeDb {
         if self.dropped > 0 && self.dropped >= self.len() / 8 {
             self.ids.drain(..self.dropped);
             self.stamps.drain(..self.dropped);
-            self.descriptors.drain(..self.dropped * self.dim);
+            self.descriptors.drain_front(self.dropped * self.dim);
             if let Some(index) = &mut self.index {
                 index.drain(self.dropped);
             }
@@ -211,6 +213,11 @@ impl KeyframeDb {
 
     fn stamps(&self) -> &[Stamp] {
         &self.stamps[self.dropped..]
+    }
+
+    /// Whether the descriptors are a map of a keyframe store's vector file ([`rows`]).
+    pub fn is_mapped(&self) -> bool {
+        self.descriptors.is_mapped()
     }
 
     /// Descriptor length every keyframe must have.

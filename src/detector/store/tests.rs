@@ -161,3 +161,123 @@ fn merge_keeps_ids_refuses_clashes_and_other_identities() {
     assert!(err.contains(&"ab".repeat(32)) && err.contains(&"ef".repeat(32)), "{err}");
     assert!(!out2.exists());
 }
+
+/// Checks that `db` holds exactly the keyframes `ids` (in order) of `dim` values.
+#[cfg(unix)]
+fn assert_holds(db: &KeyframeDb, ids: &[u64], dim: usize) {
+    assert_eq!(db.len(), ids.len());
+    for (position, &id) in ids.iter().enumerate() {
+        assert_eq!((db.id(position), db.stamp(position)), (id, stamp(id)), "position {position}");
+        assert_eq!(db.descriptor(position), descriptor(id, dim).as_slice(), "position {position}");
+    }
+}
+
+#[cfg(unix)]
+fn vector_rows(path: &Path) -> u64 {
+    VectorFile::open(&vectors::path_for(path)).unwrap().unwrap().header().unwrap().rows
+}
+
+/// Rows stored behind the vector file's back (as by a crash between a commit and the append, or a
+/// writer that does not know the file) are read from the database, and the file catches up.
+#[cfg(unix)]
+#[test]
+fn a_load_maps_the_vector_file_and_catches_it_up() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("kf.db");
+    let dim = 8;
+    let empty = store_with(&path, [], dim);
+    let inode = || std::os::unix::fs::MetadataExt::ino(&std::fs::metadata(vectors::path_for(&path)).unwrap());
+    let created = inode();
+    assert!(empty.load_db(None).unwrap().is_empty());
+    assert_eq!(inode(), created, "an empty store's vector file was rebuilt");
+    drop(empty);
+    let store = store_with(&path, 0..20, dim);
+    assert_eq!(vector_rows(&path), 20, "every append reaches the vector file");
+    let db = store.load_db(None).unwrap();
+    assert!(db.is_mapped());
+    assert_holds(&db, &(0..20).collect::<Vec<_>>(), dim);
+    for id in 20..25u64 {
+        store
+            .connection
+            .execute(
+                "INSERT INTO keyframes (id, stamp_nanos, descriptor) VALUES (?1, ?2, ?3)",
+                params![id as i64, stamp(id).nanos, descriptor_blob(&descriptor(id, dim))],
+            )
+            .unwrap();
+    }
+    let mut store = KeyframeStore::open_existing(&path).unwrap();
+    assert_eq!(vector_rows(&path), 20);
+    let all: Vec<u64> = (0..25).collect();
+    let db = store.load_db(None).unwrap();
+    assert!(db.is_mapped());
+    assert_holds(&db, &all, dim);
+    assert_eq!(vector_rows(&path), 25, "the load appended the rows the file lacked");
+    // The newest n, whether the file covers them or not.
+    assert_holds(&store.load_db(Some(7)).unwrap(), &all[18..], dim);
+    store.append(25, stamp(25), &descriptor(25, dim)).unwrap();
+    assert_eq!(vector_rows(&path), 26);
+    let mut db = store.load_db(Some(10)).unwrap();
+    assert!(db.is_mapped());
+    // A loaded history keeps growing and dropping like any other.
+    for id in 26..40 {
+        db.insert(id, stamp(id), &descriptor(id, dim)).unwrap();
+    }
+    db.drop_oldest(3);
+    assert_holds(&db, &(19..40).collect::<Vec<_>>(), dim);
+}
+
+/// A vector file that is damaged, torn, from another database or not finite is rebuilt from the
+/// database; the load's keyframes are exact either way, and the next load maps the rebuilt file.
+#[cfg(unix)]
+#[test]
+fn a_damaged_or_foreign_vector_file_is_rebuilt() {
+    let dir = tempfile::tempdir().unwrap();
+    let dim = 8;
+    let ids: Vec<u64> = (0..30).collect();
+    let path = dir.path().join("kf.db");
+    let vector_path = vectors::path_for(&path);
+    drop(store_with(&path, ids.iter().copied(), dim));
+    let other = dir.path().join("other.db");
+    drop(store_with(&other, ids.iter().copied(), dim));
+    let pristine = std::fs::read(&vector_path).unwrap();
+    let value_at = |row: usize, value: usize| vectors::ROWS_OFFSET as usize + (row * dim + value) * 4;
+    let nan_with_its_checksum = {
+        let mut bytes = pristine.clone();
+        bytes[value_at(29, 3)..value_at(29, 4)].copy_from_slice(&f32::NAN.to_le_bytes());
+        let rows = &bytes[vectors::ROWS_OFFSET as usize..];
+        let header = vectors::Header { crc: crc32fast::hash(rows), ..VectorFile::open(&vector_path).unwrap().unwrap().header().unwrap() };
+        let file = VectorFile::create_empty(&dir.path().join("scratch"), dim, header.uid).unwrap();
+        file.append_after(dim, &header.uid, None, header.last_seq, bytemuck::cast_slice(rows)).unwrap();
+        std::fs::read(dir.path().join("scratch")).unwrap()
+    };
+    let damages: Vec<(&str, Vec<u8>)> = vec![
+        ("a changed value", {
+            let mut bytes = pristine.clone();
+            bytes[value_at(11, 2)] ^= 1;
+            bytes
+        }),
+        ("a torn end", pristine[..value_at(29, 5)].to_vec()),
+        ("a damaged header", {
+            let mut bytes = pristine.clone();
+            bytes[60] ^= 1;
+            bytes
+        }),
+        ("another database's file", std::fs::read(vectors::path_for(&other)).unwrap()),
+        ("a value that is not finite", nan_with_its_checksum),
+        ("not a vector file", b"hello".to_vec()),
+    ];
+    for (damage, bytes) in damages {
+        std::fs::write(&vector_path, &bytes).unwrap();
+        let store = KeyframeStore::open_existing(&path).unwrap();
+        let db = store.load_db(None).unwrap();
+        assert!(!db.is_mapped(), "{damage}: the damaged file was used");
+        assert_holds(&db, &ids, dim);
+        assert!(std::fs::read(&vector_path).unwrap() == pristine, "{damage}: not rebuilt as it was");
+        assert!(store.load_db(None).unwrap().is_mapped(), "{damage}: the rebuilt file was not used");
+    }
+    // A missing file is written by the first load.
+    std::fs::remove_file(&vector_path).unwrap();
+    let store = KeyframeStore::open_existing(&path).unwrap();
+    assert_holds(&store.load_db(None).unwrap(), &ids, dim);
+    assert!(std::fs::read(&vector_path).unwrap() == pristine, "a missing vector file was not written as it was");
+}
