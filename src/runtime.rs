@@ -27,6 +27,55 @@ pub fn on_worker<R: Send>(f: impl FnOnce() -> R + Send) -> R {
     rayon::scope(|_| f())
 }
 
+/// How long a worker kept hot by [`with_hot_workers`] polls without finding work before it stops
+/// (longer than the sequential stretches of a forward pass, which are tens of microseconds).
+pub const HOT_WORKER_PATIENCE: std::time::Duration = std::time::Duration::from_millis(2);
+
+/// Runs `f` on the current rayon worker while every other worker of its pool busy-waits for work
+/// (polling with `rayon::yield_now`, which runs whatever they can steal) until `f` returns.
+///
+/// A forward pass opens about a hundred short parallel regions with short sequential stretches
+/// between them. Idle rayon workers go to sleep after a few microseconds, and on a virtual machine
+/// waking one means waking a halted virtual CPU, which cost more than the region saved: 2 threads
+/// were no faster than 1. Kept polling, they pick up each region's work at once (ONNX Runtime's
+/// thread pool spins between operators for the same reason). Outside a pool, or with one thread,
+/// `f` simply runs. A poller that has found nothing for [`HOT_WORKER_PATIENCE`] stops: it may have
+/// been started inside a wait of its own (a worker waiting on a stolen job runs other jobs), where
+/// polling until `f` returned could wait on itself.
+pub fn with_hot_workers<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let Some(caller) = rayon::current_thread_index() else { return f() };
+    let others = rayon::current_num_threads().saturating_sub(1);
+    if others == 0 {
+        return f();
+    }
+    let done = AtomicBool::new(false);
+    rayon::scope(|scope| {
+        for _ in 0..others {
+            scope.spawn(|_| {
+                // The caller may run this job itself while it waits inside `f`; spinning there would
+                // never return to `f`, so only other workers poll.
+                if rayon::current_thread_index() == Some(caller) {
+                    return;
+                }
+                let mut last_work = std::time::Instant::now();
+                while !done.load(Ordering::Acquire) {
+                    if rayon::yield_now() == Some(rayon::Yield::Executed) {
+                        last_work = std::time::Instant::now();
+                    } else if last_work.elapsed() > HOT_WORKER_PATIENCE {
+                        return;
+                    } else {
+                        std::hint::spin_loop();
+                    }
+                }
+            });
+        }
+        let out = f();
+        done.store(true, Ordering::Release);
+        out
+    })
+}
+
 /// Candidate locations of the shared data folder (models, ImageNet samples, TUM frames):
 /// `$ECM_LCD_SHARED` alone when set, else `./../shared`, `./shared`, and the `shared` folder
 /// beside the source tree this binary was built from. Only existing folders are returned.
@@ -49,4 +98,29 @@ pub fn shared_dirs() -> Vec<std::path::PathBuf> {
             new
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use rayon::prelude::*;
+
+    /// Nested parallel work inside `f` completes with hot workers on pools of 2 to 4 threads (a
+    /// poller started inside a nested wait must not wait on itself).
+    #[test]
+    fn hot_workers_finish_nested_parallel_work() {
+        for threads in 2..=4 {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let started = std::time::Instant::now();
+            for round in 0..200u64 {
+                let sum = pool.install(|| {
+                    super::with_hot_workers(|| {
+                        (0..64u64).into_par_iter().map(|i| (0..100u64).into_par_iter().map(|j| i * j + round).sum::<u64>()).sum::<u64>()
+                    })
+                });
+                let expected: u64 = (0..64u64).map(|i| (0..100u64).map(|j| i * j + round).sum::<u64>()).sum();
+                assert_eq!(sum, expected, "{threads} threads, round {round}");
+            }
+            assert!(started.elapsed() < std::time::Duration::from_secs(20), "{threads} threads: {:?}", started.elapsed());
+        }
+    }
 }

@@ -217,11 +217,13 @@ impl Network {
 
     /// The last feature map, `[B, head_channels, S/32, S/32]`, for input `x` `[B, 3, S, S]`.
     pub fn features(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
-        let mut y = self.stem.forward_t(x, mode)?;
-        for block in &self.blocks {
-            y = block.forward_t(&y, mode)?;
-        }
-        self.head.forward_t(&y, mode)
+        crate::runtime::with_hot_workers(|| {
+            let mut y = self.stem.forward_t(x, mode)?;
+            for block in &self.blocks {
+                y = block.forward_t(&y, mode)?;
+            }
+            self.head.forward_t(&y, mode)
+        })
     }
 
     /// Mean time of each stage (`stem`, `blocks.{i}`, `head`) over `runs` passes of `x` in `mode`,
