@@ -335,7 +335,7 @@ impl KeyframeStore {
         let (vector_file, covered) = match self.checked_vector_file(len * dim) {
             Some((file, header, mut rows)) => {
                 if skip < header.rows {
-                    (ids, stamps, _) = self.read_range(skip, (header.rows - skip) as usize, threads, false)?;
+                    (ids, stamps, _) = self.read_range(skip, (header.rows - skip) as usize, threads, Columns::IdAndStamp)?;
                     rows.drain_front(skip as usize * dim);
                     descriptors = rows;
                 }
@@ -346,7 +346,7 @@ impl KeyframeStore {
         #[cfg(not(unix))]
         let covered = 0;
         if covered < self.count {
-            let (tail_ids, tail_stamps, tail_values) = self.read_range(covered, (self.count - covered) as usize, threads, true)?;
+            let (tail_ids, tail_stamps, tail_values) = self.read_range(covered, (self.count - covered) as usize, threads, Columns::All)?;
             #[cfg(unix)]
             if let Some((file, header)) = &vector_file {
                 let last_seq = self.seq_at(self.count - 1)?.context("keyframe database changed while loading")?;
@@ -413,15 +413,15 @@ impl KeyframeStore {
         }
     }
 
-    /// Ids, stamps and (with `with_descriptors`) descriptors of the `len` rows from position `first`,
+    /// Ids, stamps and (with [`Columns::All`]) descriptors of the `len` rows from position `first`,
     /// read on up to `threads` threads (one contiguous range and connection each).
-    fn read_range(&self, first: u64, len: usize, threads: usize, with_descriptors: bool) -> Result<(Vec<u64>, Vec<Stamp>, Vec<f32>)> {
+    fn read_range(&self, first: u64, len: usize, threads: usize, columns: Columns) -> Result<(Vec<u64>, Vec<Stamp>, Vec<f32>)> {
         let dim = self.identity.dim;
         let threads = threads.min(len.div_ceil(LOAD_ROWS_PER_THREAD_MIN)).max(1);
         let rows_per_thread = len.div_ceil(threads).max(1);
         let mut ids = vec![0u64; len];
         let mut stamps = vec![Stamp::from_nanos(0); len];
-        let mut descriptors = vec![0f32; if with_descriptors { len * dim } else { 0 }];
+        let mut descriptors = vec![0f32; if columns == Columns::All { len * dim } else { 0 }];
         let starts = (0..len).step_by(rows_per_thread).map(|row| self.seq_at(first + row as u64)).collect::<Result<Vec<_>>>()?;
         let path = self.path.as_path();
         let descriptor_parts = descriptors.chunks_mut(rows_per_thread * dim.max(1)).map(Some).chain(std::iter::repeat_with(|| None));
@@ -436,7 +436,6 @@ impl KeyframeStore {
                         prefault(descriptors);
                     }
                     let mut row = 0;
-                    let columns = if descriptors.is_some() { Columns::All } else { Columns::IdAndStamp };
                     scan_rows(&connection, path, dim, first_seq, Some(ids.len()), columns, |id, stamp, blob| {
                         if let Some(descriptors) = descriptors.as_deref_mut() {
                             let descriptor = &mut descriptors[row * dim..(row + 1) * dim];

@@ -229,6 +229,11 @@ impl Network {
     /// Mean time of each stage (`stem`, `blocks.{i}`, `head`) over `runs` passes of `x` in `mode`,
     /// after one warm-up pass: the profile behind the benchmark's totals.
     pub fn profile(&self, x: &Tensor, mode: Mode, runs: usize) -> Result<Vec<(String, std::time::Duration)>> {
+        // With the workers kept hot as in `features`, so that the stages add up to its time.
+        crate::runtime::with_hot_workers(|| self.profile_stages(x, mode, runs))
+    }
+
+    fn profile_stages(&self, x: &Tensor, mode: Mode, runs: usize) -> Result<Vec<(String, std::time::Duration)>> {
         let mut totals = vec![std::time::Duration::ZERO; self.blocks.len() + 2];
         for run in 0..=runs {
             let mut timed = |i: usize, f: &dyn Fn() -> Result<Tensor>| -> Result<Tensor> {
