@@ -76,6 +76,7 @@ pub fn main() -> ExitCode {
         .format_timestamp_millis()
         .init();
     crate::runtime::init_threads(cli.threads);
+    crate::runtime::keep_freed_memory();
     match run(cli.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
