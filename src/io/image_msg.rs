@@ -328,7 +328,8 @@ pub fn decode_compressed_image(msg: &CompressedImage) -> Result<RgbImage> {
     let decoded = image::load_from_memory_with_format(&msg.data, codec).map_err(image_error).with_context(|| {
         format!("CompressedImage format {:?}: {} bytes do not decode as {codec:?}", msg.format, msg.data.len())
     })?;
-    Ok(decoded.to_rgb8())
+    // `into_rgb8` hands over an rgb8 decode without copying it (JPEG colour images are rgb8).
+    Ok(decoded.into_rgb8())
 }
 
 /// The pixel encodings our writers can produce (the inverse of the decoders above).

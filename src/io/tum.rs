@@ -107,7 +107,7 @@ impl Iterator for ImageFilesSource {
         let loaded = image::open(&entry.path)
             .map_err(crate::io::image_msg::image_error)
             .with_context(|| format!("{}: cannot decode image {}", entry.origin, entry.path.display()));
-        Some(loaded.map(|img| Frame { index, stamp: entry.stamp, image: img.to_rgb8() }))
+        Some(loaded.map(|img| Frame { index, stamp: entry.stamp, image: img.into_rgb8() }))
     }
 
     fn size_hint(&self) -> (usize, Option<usize>) {
