@@ -174,10 +174,15 @@ impl Pipeline {
     }
 
     fn run(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
-        let mut outcome = Outcome::default();
+        let outcome = Outcome::default();
         if select && self.selector.offer(stamp) == Verdict::Reject {
             return Ok(outcome);
         }
+        // The workers stay hot for the search too (its probed lists are scanned in parallel).
+        crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, stamp, image, outcome))
+    }
+
+    fn describe_and_detect(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage, mut outcome: Outcome) -> Result<Outcome> {
         let start = Instant::now();
         let feature_map = self.embedder.feature_map(image)?;
         let after_network = Instant::now();

@@ -55,6 +55,28 @@ pub fn on_worker<R: Send>(f: impl FnOnce() -> R + Send) -> R {
 /// (longer than the sequential stretches of a forward pass, which are tens of microseconds).
 pub const HOT_WORKER_PATIENCE: std::time::Duration = std::time::Duration::from_millis(2);
 
+thread_local! {
+    /// Set while this thread runs the `f` of a [`with_hot_workers`]: a nested call (the forward
+    /// pass inside a keyframe's processing) finds the workers hot already and just runs.
+    static KEEPING_HOT: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
+}
+
+/// Sets [`KEEPING_HOT`] for its lifetime (cleared on unwinding too).
+struct KeepingHot;
+
+impl KeepingHot {
+    fn enter() -> Self {
+        KEEPING_HOT.set(true);
+        KeepingHot
+    }
+}
+
+impl Drop for KeepingHot {
+    fn drop(&mut self) {
+        KEEPING_HOT.set(false);
+    }
+}
+
 /// Runs `f` on the current rayon worker while every other worker of its pool busy-waits for work
 /// (polling with `rayon::yield_now`, which runs whatever they can steal) until `f` returns.
 ///
@@ -65,12 +87,14 @@ pub const HOT_WORKER_PATIENCE: std::time::Duration = std::time::Duration::from_m
 /// thread pool spins between operators for the same reason). Outside a pool, or with one thread,
 /// `f` simply runs. A poller that has found nothing for [`HOT_WORKER_PATIENCE`] stops: it may have
 /// been started inside a wait of its own (a worker waiting on a stolen job runs other jobs), where
-/// polling until `f` returned could wait on itself.
+/// polling until `f` returned could wait on itself. A nested call from `f`'s thread just runs: the
+/// pipeline keeps the workers hot for a whole keyframe (forward pass, then the search's parallel
+/// scan), and the forward pass inside it makes the nested call.
 pub fn with_hot_workers<R: Send>(f: impl FnOnce() -> R + Send) -> R {
     use std::sync::atomic::{AtomicBool, Ordering};
     let Some(caller) = rayon::current_thread_index() else { return f() };
     let others = rayon::current_num_threads().saturating_sub(1);
-    if others == 0 {
+    if others == 0 || KEEPING_HOT.get() {
         return f();
     }
     let done = AtomicBool::new(false);
@@ -94,7 +118,10 @@ pub fn with_hot_workers<R: Send>(f: impl FnOnce() -> R + Send) -> R {
                 }
             });
         }
-        let out = f();
+        let out = {
+            let _hot = KeepingHot::enter();
+            f()
+        };
         done.store(true, Ordering::Release);
         out
     })
@@ -143,6 +170,17 @@ mod tests {
                 });
                 let expected: u64 = (0..64u64).map(|i| (0..100u64).map(|j| i * j + round).sum::<u64>()).sum();
                 assert_eq!(sum, expected, "{threads} threads, round {round}");
+                // Nested: the inner call runs inside the outer one's hot period.
+                let (inner, flag_inside, flag_after) = pool.install(|| {
+                    let (inner, flag_inside) = super::with_hot_workers(|| {
+                        let inner = super::with_hot_workers(|| (0..1000u64).into_par_iter().map(|i| i + round).sum::<u64>());
+                        (inner, super::KEEPING_HOT.get())
+                    });
+                    (inner, flag_inside, super::KEEPING_HOT.get())
+                });
+                assert_eq!(inner, (0..1000u64).map(|i| i + round).sum::<u64>());
+                assert!(flag_inside, "the outer call marks its thread as keeping the workers hot");
+                assert!(!flag_after, "cleared when the call returns");
             }
             assert!(started.elapsed() < std::time::Duration::from_secs(20), "{threads} threads: {:?}", started.elapsed());
         }
