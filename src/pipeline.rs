@@ -174,15 +174,17 @@ impl Pipeline {
     }
 
     fn run(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
-        let outcome = Outcome::default();
         if select && self.selector.offer(stamp) == Verdict::Reject {
-            return Ok(outcome);
+            return Ok(Outcome::default());
         }
-        // The workers stay hot for the search too (its probed lists are scanned in parallel).
-        crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, stamp, image, outcome))
+        // The workers stay hot from the forward pass through the search (its probed lists are
+        // scanned in parallel). During a `--db` append (an fsynced transaction) a poller gives up
+        // after `runtime::HOT_WORKER_PATIENCE`.
+        crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, stamp, image))
     }
 
-    fn describe_and_detect(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage, mut outcome: Outcome) -> Result<Outcome> {
+    fn describe_and_detect(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
+        let mut outcome = Outcome::default();
         let start = Instant::now();
         let feature_map = self.embedder.feature_map(image)?;
         let after_network = Instant::now();
