@@ -1,95 +1,41 @@
-//! Fused CPU inference kernels as candle custom ops (the fast path of [`Mode::Inference`]
-//! once BatchNorm is folded; [`Mode::Reference`] runs stock candle ops and the tests check that
-//! the two agree within 1e-4):
+//! Fused CPU inference kernels on channels-last (NHWC) feature maps, as candle custom ops (the
+//! fast path of [`Mode::Inference`] once BatchNorm is folded; [`Mode::Reference`] runs stock candle
+//! ops and the tests check that the two agree within 1e-4):
 //!
-//! - [`FusedBottleneck`]: a whole inverted-residual bottleneck in one op: 1x1 expansion + ReLU6,
-//!   3x3 depthwise + ReLU6, optional ECA, the linear 1x1 projection and the residual. The expanded
-//!   activation is the largest tensor of MobileNetV2 (6x the block's input); here it is computed a
-//!   few channels at a time into a buffer that stays in cache and is consumed by the depthwise
-//!   convolution at once, so it never travels to memory. ECA's channel means are summed while the
-//!   depthwise output is written, and its gate scales the projection's weight columns
-//!   (`W (g ⊙ x) = (W diag(g)) x`) instead of the activation.
-//! - [`DenseConv`]: a full convolution (the stem) as padded-plane columns plus one matrix multiply, and a 1x1
-//!   convolution (the head) as a plain matrix multiply on the NCHW planes.
+//! - [`FusedBottleneck`]: a whole inverted-residual bottleneck in one op, `[B, H, W, C]` ->
+//!   `[B, OH, OW, C']`: 1x1 expansion + ReLU6, 3x3 depthwise + ReLU6, optional ECA, the linear
+//!   1x1 projection and the residual.
+//! - [`DenseConv`]: a full convolution (the stem) from the NCHW image to a channels-last map, or a
+//!   1x1 convolution (the head) from channels-last to channels-last.
 //!
-//! The matrix multiplies are calls to `gemm`, the crate behind candle's own CPU matmul, built
-//! with its `x86-v4` feature so that it picks AVX-512 kernels at run time where the CPU has them
-//! (1.4-1.7x the AVX2 kernels on this project's 1x1 shapes), with the
-//! bias (and residual) preloaded into the destination so that no extra pass adds them.
+//! Why channels-last: a pixel's channels are contiguous, so a 1x1 convolution is a matrix product
+//! whose rows are pixels, tiled in registers by [`super::simd::pointwise`], and the depthwise
+//! convolution runs sixteen channels per vector at any stride. The bottleneck splits its hidden
+//! channels among the threads; each thread walks the rows once, expanding input rows into a ring
+//! of three padded rows just before the depthwise convolution reads them, so the expanded
+//! activation (the largest tensor of MobileNetV2, 6x the block's input) never leaves the cache
+//! and no row is expanded twice. ECA's channel sums are taken as the depthwise output is written;
+//! its gate then scales the projection's weight rows (`W (g ⊙ x) = (W diag(g)) x`) or the
+//! depthwise output, whichever is smaller. The projection splits pixels (or, for 7x7 maps,
+//! output channels) among the threads.
+//!
+//! Hidden channels are padded to a multiple of 16 with zero weights, whose outputs are zero.
 //!
 //! [`Mode::Inference`]: super::layers::Mode::Inference
 //! [`Mode::Reference`]: super::layers::Mode::Reference
 
-use std::cell::RefCell;
+use std::ops::Range;
 
 use candle_core::{CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
-use super::depthwise::{convolve_plane, same_padding, Activation, PlaneGeometry};
-
-/// Floats of the expanded-activation buffer each task works in: sized to stay in L2.
-const EXPANDED_BUFFER_FLOATS: usize = 64 * 1024;
-
+use super::depthwise::{same_padding, Activation};
 thread_local! {
-    /// Reused across frames: one expanded-activation buffer per worker thread.
-    static EXPANDED: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
+    /// The depthwise output of the bottleneck being run on this thread, reused across frames.
+    static DEPTHWISE_OUT: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
-/// Row-major `dst[m×n] = (dst if accumulate) + lhs[m×k] · rhs[k×n]` on the calling thread.
-fn matmul(m: usize, n: usize, k: usize, dst: &mut [f32], accumulate: bool, lhs: &[f32], rhs: &[f32]) {
-    assert!(dst.len() >= m * n && lhs.len() >= m * k && rhs.len() >= k * n, "matmul operand sizes");
-    // SAFETY: the slices hold the row-major matrices whose sizes were checked above; dst does
-    // not alias the inputs (distinct borrows).
-    unsafe {
-        gemm::gemm(
-            m, n, k,
-            dst.as_mut_ptr(), 1, n as isize, accumulate,
-            lhs.as_ptr(), 1, k as isize,
-            rhs.as_ptr(), 1, n as isize,
-            1.0, 1.0, false, false, false, gemm::Parallelism::None,
-        );
-    }
-}
-
-/// Columns per thread from which [`matmul_parallel`] splits by columns rather than rows.
-const COLUMN_SPLIT_MIN: usize = 256;
-
-/// [`matmul`] (accumulating) split across rayon's threads. With many columns (pixels), each thread
-/// takes a block of columns (a multiple of 16) and all rows: the blocks are even whatever the row
-/// count (24 rows split by rows in multiples of 8 gave one thread twice the other's work), and each
-/// thread reads only its part of `rhs`. With few columns (the 7x7 layers: 49), each thread takes a
-/// block of rows (a multiple of 8) and reads all of `rhs`.
-fn matmul_parallel(m: usize, n: usize, k: usize, dst: &mut [f32], lhs: &[f32], rhs: &[f32]) {
-    if m == 0 || n == 0 {
-        return;
-    }
-    assert!(dst.len() >= m * n && lhs.len() >= m * k && rhs.len() >= k * n, "matmul operand sizes");
-    let threads = rayon::current_num_threads().max(1);
-    if threads > 1 && n >= COLUMN_SPLIT_MIN * threads {
-        let block = n.div_ceil(threads).next_multiple_of(16);
-        // Passed as an address: the threads write disjoint column blocks of one buffer.
-        let dst_address = dst.as_mut_ptr() as usize;
-        (0..n.div_ceil(block)).into_par_iter().for_each(|b| {
-            let (first, cols) = (b * block, block.min(n - b * block));
-            // SAFETY: sizes checked above; block `b` reads and writes only columns
-            // [first, first + cols) of every row of dst, which no other block touches.
-            unsafe {
-                gemm::gemm(
-                    m, cols, k,
-                    (dst_address as *mut f32).add(first), 1, n as isize, true,
-                    lhs.as_ptr(), 1, k as isize,
-                    rhs.as_ptr().add(first), 1, n as isize,
-                    1.0, 1.0, false, false, false, gemm::Parallelism::None,
-                );
-            }
-        });
-        return;
-    }
-    let rows = m.div_ceil(threads).next_multiple_of(8).min(m).max(1);
-    dst[..m * n].par_chunks_mut(rows * n).zip(lhs[..m * k].par_chunks(rows * k)).for_each(|(dst, lhs)| {
-        matmul(dst.len() / n, n, k, dst, true, lhs, rhs);
-    });
-}
+use super::simd::{depthwise_row, pointwise, tile_rows_of, DepthwiseRow, PackedWeights, Pointwise, LANES};
 
 fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
     t.flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()
@@ -120,17 +66,63 @@ fn eca_gate(sums: &[f64], count: usize, taps: &[f32]) -> Vec<f32> {
         .collect()
 }
 
-/// Sum of a plane: eight f32 lanes (vectorised; each adds at most plane/8 values of ReLU6
-/// outputs), combined in f64.
-fn plane_sum(plane: &[f32]) -> f64 {
-    let mut lanes = [0f32; 8];
-    let mut chunks = plane.chunks_exact(8);
-    for chunk in &mut chunks {
-        for (l, v) in lanes.iter_mut().zip(chunk) {
-            *l += v;
-        }
+/// A pointer that rayon's tasks may share: each task writes a part no other task touches.
+#[derive(Clone, Copy)]
+struct SharedMut(*mut f32);
+// SAFETY: used only where the tasks write disjoint elements (said at each use).
+unsafe impl Send for SharedMut {}
+unsafe impl Sync for SharedMut {}
+
+impl SharedMut {
+    fn get(self) -> *mut f32 {
+        self.0
     }
-    lanes.iter().chain(chunks.remainder()).map(|&v| v as f64).sum()
+}
+
+/// `units` split into `parts` contiguous ranges whose sizes differ by at most one.
+fn split(units: usize, parts: usize) -> Vec<Range<usize>> {
+    let parts = parts.clamp(1, units.max(1));
+    (0..parts).map(|i| units * i / parts..units * (i + 1) / parts).collect()
+}
+
+/// `p` over all its rows and columns on rayon's threads: by blocks of rows where there are
+/// enough row tiles to keep every thread busy, else by whole weight panels (the 7x7 maps: 49
+/// rows are 9 tiles of 6).
+///
+/// # Safety
+/// As [`pointwise`] for the whole call.
+unsafe fn pointwise_parallel(p: &Pointwise) {
+    let threads = rayon::current_num_threads().max(1);
+    let tile = tile_rows_of(p.weights);
+    let row_tiles = p.rows.div_ceil(tile);
+    let panel = p.weights.panel;
+    let panels = p.columns.end.div_ceil(panel) - p.columns.start / panel;
+    if threads == 1 || (row_tiles < 2 * threads && panels < 2 * threads) {
+        // SAFETY: as the caller's.
+        return unsafe { pointwise(p) };
+    }
+    if row_tiles >= 4 * threads || panels < 2 * threads {
+        split(row_tiles, threads).into_par_iter().for_each(|tiles| {
+            let rows = tiles.start * tile..(tiles.end * tile).min(p.rows);
+            let part = Pointwise {
+                rows: rows.len(),
+                a: p.a.wrapping_add(rows.start * p.lda),
+                out: p.out.wrapping_add(rows.start * p.ldo),
+                residual: if p.residual.is_null() { p.residual } else { p.residual.wrapping_add(rows.start * p.ldr) },
+                columns: p.columns.clone(),
+                ..*p
+            };
+            // SAFETY: each part writes its own rows.
+            unsafe { pointwise(&part) }
+        });
+    } else {
+        let first = p.columns.start / panel;
+        split(panels, threads).into_par_iter().for_each(|part| {
+            let columns = ((first + part.start) * panel).max(p.columns.start)..((first + part.end) * panel).min(p.columns.end);
+            // SAFETY: each part writes its own columns.
+            unsafe { pointwise(&Pointwise { columns, ..*p }) }
+        });
+    }
 }
 
 /// The folded weights of one inverted-residual bottleneck with 3x3 depthwise convolution.
@@ -138,15 +130,18 @@ fn plane_sum(plane: &[f32]) -> f64 {
 pub struct FusedBottleneck {
     input: usize,
     hidden: usize,
+    /// `hidden` rounded up to a multiple of 16: floats per pixel of the expanded rows.
+    pitch: usize,
     output: usize,
     stride: usize,
-    /// `[hidden, input]` weight and `[hidden]` bias, absent when the block has no expansion.
-    expand: Option<(Vec<f32>, Vec<f32>)>,
+    /// `[input, pitch]`, absent when the block has no expansion.
+    expand: Option<PackedWeights>,
+    /// Tap-major `[9, pitch]` and `[pitch]`.
     depthwise_weight: Vec<f32>,
     depthwise_bias: Vec<f32>,
     eca_taps: Option<Vec<f32>>,
-    project_weight: Vec<f32>,
-    project_bias: Vec<f32>,
+    /// `[pitch, output]`.
+    project: PackedWeights,
     residual: bool,
 }
 
@@ -173,245 +168,345 @@ impl FusedBottleneck {
         if project_in != hidden {
             candle_core::bail!("fused bottleneck: projection takes {project_in} channels, depthwise gives {hidden}");
         }
+        let pitch = hidden.next_multiple_of(LANES);
+        // Padded hidden channels: zero expansion weights and bias, so zero after ReLU6.
+        let expand = expand
+            .map(|(w, b)| {
+                let (mut w, mut b) = (to_vec(w)?, to_vec(b)?);
+                w.resize(pitch * input, 0.0);
+                b.resize(pitch, 0.0);
+                Ok::<_, candle_core::Error>(PackedWeights::from_output_major(&w, &b, pitch, input))
+            })
+            .transpose()?;
+        let (dw, dw_bias) = (to_vec(depthwise.0)?, to_vec(depthwise.1)?);
+        let mut depthwise_weight = vec![0f32; 9 * pitch];
+        for (c, taps) in dw.chunks_exact(9).enumerate() {
+            for (t, &v) in taps.iter().enumerate() {
+                depthwise_weight[t * pitch + c] = v;
+            }
+        }
+        let mut depthwise_bias = dw_bias;
+        depthwise_bias.resize(pitch, 0.0);
+        // Projection rows of padded channels are zero.
+        let mut project_weight = vec![0f32; output * pitch];
+        for (dst, src) in project_weight.chunks_exact_mut(pitch).zip(to_vec(project.0)?.chunks_exact(hidden)) {
+            dst[..hidden].copy_from_slice(src);
+        }
         Ok(FusedBottleneck {
             input,
             hidden,
+            pitch,
             output,
             stride,
-            expand: expand.map(|(w, b)| Ok::<_, candle_core::Error>((to_vec(w)?, to_vec(b)?))).transpose()?,
-            depthwise_weight: to_vec(depthwise.0)?,
-            depthwise_bias: to_vec(depthwise.1)?,
+            expand,
+            depthwise_weight,
+            depthwise_bias,
             eca_taps: eca.map(to_vec).transpose()?,
-            project_weight: to_vec(project.0)?,
-            project_bias: to_vec(project.1)?,
+            project: PackedWeights::from_output_major(&project_weight, &to_vec(project.1)?, output, pitch),
             residual: stride == 1 && input == output,
         })
     }
 
-    /// Hidden channels per task: the expanded planes fit [`EXPANDED_BUFFER_FLOATS`], and there are
-    /// at least two tasks per thread.
-    fn group_size(&self, plane: usize) -> usize {
-        let by_cache = (EXPANDED_BUFFER_FLOATS / plane.max(1)).max(8);
-        let by_threads = self.hidden.div_ceil(2 * rayon::current_num_threads().max(1));
-        by_cache.min(by_threads).max(1)
-    }
-
-    /// One image: `x` `[input, h, w]` -> `out` `[output, oh, ow]`.
-    fn forward_image(&self, x: &[f32], h: usize, w: usize, out: &mut [f32]) {
-        let (oh, pad_top, _) = same_padding(h, 3, self.stride);
-        let (ow, pad_left, _) = same_padding(w, 3, self.stride);
-        let (plane_in, plane_out) = (h * w, oh * ow);
-        let geometry = PlaneGeometry { height: h, width: w, kh: 3, kw: 3, stride: self.stride, ow, pad_top, pad_left };
-        let group = self.group_size(plane_in);
-
-        // Expansion + depthwise, a group of hidden channels per task.
-        let mut depthwise_out = vec![0f32; self.hidden * plane_out];
-        let mut sums = vec![0f64; self.hidden];
-        depthwise_out.par_chunks_mut(group * plane_out).zip(sums.par_chunks_mut(group)).enumerate().for_each(
-            |(g, (dst, sums))| {
-                let (first, count) = (g * group, sums.len());
-                let mut depthwise_group = |source: &[f32]| {
-                    for (i, (plane, sum)) in dst.chunks_exact_mut(plane_out).zip(sums.iter_mut()).enumerate() {
-                        let c = first + i;
-                        let weights = &self.depthwise_weight[c * 9..(c + 1) * 9];
-                        let src = &source[i * plane_in..(i + 1) * plane_in];
-                        convolve_plane(&geometry, src, weights, self.depthwise_bias[c], Activation::Relu6, plane);
-                        *sum = plane_sum(plane);
-                    }
+    /// Input row `y` of `x` (`[h, w, input]`) expanded (or copied, without expansion) into the
+    /// padded `row` (`w + 2` pixels of `pitch`; pixels `1..=w`), channels `channels` only.
+    fn fill_row(&self, x: &[f32], w: usize, y: usize, row: &mut [f32], channels: Range<usize>) {
+        let source = &x[y * w * self.input..(y + 1) * w * self.input];
+        let pixels = &mut row[self.pitch..(w + 1) * self.pitch];
+        match &self.expand {
+            Some(weights) => {
+                let p = Pointwise {
+                    rows: w,
+                    a: source.as_ptr(),
+                    lda: self.input,
+                    steps: None,
+                    weights,
+                    columns: channels,
+                    out: pixels.as_mut_ptr(),
+                    ldo: self.pitch,
+                    residual: std::ptr::null(),
+                    ldr: 0,
+                    relu6: true,
                 };
-                match &self.expand {
-                    None => depthwise_group(&x[first * plane_in..(first + count) * plane_in]),
-                    Some((weight, bias)) => EXPANDED.with_borrow_mut(|expanded| {
-                        expanded.resize(count * plane_in, 0.0);
-                        for (row, &b) in expanded.chunks_exact_mut(plane_in).zip(&bias[first..first + count]) {
-                            row.fill(b);
-                        }
-                        let weight = &weight[first * self.input..(first + count) * self.input];
-                        matmul(count, plane_in, self.input, expanded, true, weight, x);
-                        for v in expanded.iter_mut() {
-                            *v = v.clamp(0.0, 6.0);
-                        }
-                        depthwise_group(expanded);
-                    }),
-                }
-            },
-        );
-
-        let scaled;
-        let weight = match &self.eca_taps {
-            Some(taps) => {
-                let gate = eca_gate(&sums, plane_out, taps);
-                scaled = self
-                    .project_weight
-                    .chunks_exact(self.hidden)
-                    .flat_map(|row| row.iter().zip(&gate).map(|(w, g)| w * g))
-                    .collect::<Vec<f32>>();
-                &scaled
+                // SAFETY: `source` holds the row's `w` pixels of `input`, `pixels` `w` of `pitch`.
+                unsafe { pointwise(&p) }
             }
-            None => &self.project_weight,
-        };
-        for (o, row) in out.chunks_exact_mut(plane_out).enumerate() {
-            match self.residual {
-                true => {
-                    for (v, &r) in row.iter_mut().zip(&x[o * plane_in..(o + 1) * plane_in]) {
-                        *v = self.project_bias[o] + r;
-                    }
+            None => {
+                let channels = channels.start..channels.end.min(self.input);
+                for (dst, src) in pixels.chunks_exact_mut(self.pitch).zip(source.chunks_exact(self.input)) {
+                    dst[channels.clone()].copy_from_slice(&src[channels.clone()]);
                 }
-                false => row.fill(self.project_bias[o]),
             }
         }
-        // Projection (+ bias + residual preloaded), ECA folded into the weight columns.
-        matmul_parallel(self.output, plane_out, self.hidden, out, weight, &depthwise_out);
+    }
+
+    /// One image: `x` `[h, w, input]` -> `out` `[oh, ow, output]`.
+    fn forward_image(&self, x: &[f32], h: usize, w: usize, out: &mut [f32]) {
+        let (oh, ow) = (same_padding(h, 3, self.stride).0, same_padding(w, 3, self.stride).0);
+        let size = oh * ow * self.pitch;
+        DEPTHWISE_OUT.with(|buffer| match buffer.try_borrow_mut() {
+            Ok(mut reused) => {
+                // Every element is written before it is read: a reused buffer is not cleared.
+                reused.resize(size, 0.0);
+                self.forward_image_with(x, h, w, out, &mut reused[..size]);
+            }
+            // This thread is already inside a bottleneck (it stole another pass's work while
+            // waiting): a buffer of its own.
+            Err(_) => self.forward_image_with(x, h, w, out, &mut vec![0f32; size]),
+        });
+    }
+
+    /// [`Self::forward_image`] with `depthwise_out` (`[oh, ow, pitch]`) to work in.
+    fn forward_image_with(&self, x: &[f32], h: usize, w: usize, out: &mut [f32], depthwise_out: &mut [f32]) {
+        let s = self.stride;
+        let (oh, ow) = (same_padding(h, 3, s).0, same_padding(w, 3, s).0);
+        let pitch = self.pitch;
+        let threads = rayon::current_num_threads().max(1);
+        // Large maps split output rows (each task expands its rows, the one or two rows at a
+        // band's edge twice); small maps split whole expansion panels (a row band of a 7x7 map
+        // would expand nearly every row twice).
+        let tasks: Vec<(Range<usize>, Range<usize>)> = if oh >= 8 * threads || threads == 1 {
+            split(oh, threads).into_iter().map(|rows| (rows, 0..pitch)).collect()
+        } else {
+            let panel = self.expand.as_ref().map_or(LANES, |e| e.panel);
+            split(pitch.div_ceil(panel), threads)
+                .into_iter()
+                .map(|panels| (0..oh, panels.start * panel..(panels.end * panel).min(pitch)))
+                .collect()
+        };
+        let depthwise = SharedMut(depthwise_out.as_mut_ptr());
+        let task_sums: Vec<Vec<f64>> = tasks
+            .into_par_iter()
+            .map(|(rows, channels)| {
+                let mut sums = vec![0f64; pitch];
+                // SAFETY: the tasks' (rows, channels) parts of the depthwise output are disjoint.
+                unsafe { self.expand_and_depthwise(x, h, w, rows, channels, depthwise.get(), &mut sums) };
+                sums
+            })
+            .collect();
+        let sums: Vec<f64> = (0..self.hidden).map(|c| task_sums.iter().map(|s| s[c]).sum()).collect();
+
+        let scaled;
+        let weights = match &self.eca_taps {
+            Some(taps) => {
+                let gate = eca_gate(&sums, oh * ow, taps);
+                if oh * ow < self.project.n {
+                    // Fewer pixels than output channels: scale the depthwise output.
+                    for pixel in depthwise_out.chunks_exact_mut(pitch) {
+                        pixel.iter_mut().zip(&gate).for_each(|(v, g)| *v *= g);
+                    }
+                    &self.project
+                } else {
+                    let mut w = self.project.clone();
+                    w.scale_rows(&gate);
+                    scaled = w;
+                    &scaled
+                }
+            }
+            None => &self.project,
+        };
+        let p = Pointwise {
+            rows: oh * ow,
+            a: depthwise_out.as_ptr(),
+            lda: pitch,
+            steps: None,
+            weights,
+            columns: 0..self.output,
+            out: out.as_mut_ptr(),
+            ldo: self.output,
+            residual: if self.residual { x.as_ptr() } else { std::ptr::null() },
+            ldr: self.input,
+            relu6: false,
+        };
+        // SAFETY: `depthwise_out` holds oh*ow pixels of `pitch`, `out` and `x` (the residual,
+        // same shape) oh*ow pixels of `output` channels.
+        unsafe { pointwise_parallel(&p) };
+    }
+
+    /// Output rows `rows`, channels `channels` of the depthwise convolution of the expanded
+    /// input, into `depthwise` (`[oh, ow, pitch]`), adding each channel's outputs to `sums`.
+    /// Input rows are expanded into a ring of three padded rows just before they are read.
+    ///
+    /// # Safety
+    /// `depthwise` holds `oh * ow` pixels of `pitch` floats; no other thread writes this part.
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn expand_and_depthwise(&self, x: &[f32], h: usize, w: usize, rows: Range<usize>, channels: Range<usize>, depthwise: *mut f32, sums: &mut [f64]) {
+        let s = self.stride;
+        let (_, pad_top, _) = same_padding(h, 3, s);
+        let (ow, pad_left, _) = same_padding(w, 3, s);
+        let pitch = self.pitch;
+        let row_floats = (w + 2) * pitch;
+        // Three ring rows, then a zero row for the padding above and below.
+        let mut ring = vec![0f32; 4 * row_floats];
+        let mut next = (rows.start * s).saturating_sub(pad_top);
+        for oy in rows {
+            let top = (oy * s) as isize - pad_top as isize;
+            while (next as isize) <= (top + 2).min(h as isize - 1) {
+                let row = &mut ring[next % 3 * row_floats..(next % 3 + 1) * row_floats];
+                self.fill_row(x, w, next, row, channels.clone());
+                next += 1;
+            }
+            let input_rows = [0, 1, 2].map(|ky| {
+                let y = top + ky;
+                let slot = if (0..h as isize).contains(&y) { y as usize % 3 } else { 3 };
+                ring[slot * row_floats..].as_ptr()
+            });
+            let p = DepthwiseRow {
+                rows: input_rows,
+                pitch,
+                stride: s,
+                first_pixel: 1 - pad_left,
+                width: ow,
+                weights: &self.depthwise_weight,
+                bias: &self.depthwise_bias,
+                channels: channels.clone(),
+                out: depthwise.wrapping_add(oy * ow * pitch),
+            };
+            // SAFETY: the rows were filled above (or are the zero row) for these channels; the
+            // caller's contract for `depthwise`.
+            unsafe { depthwise_row(&p, &mut sums[channels.clone()]) };
+        }
     }
 }
 
 impl CustomOp1 for FusedBottleneck {
     fn name(&self) -> &'static str {
-        "fused-inverted-residual"
+        "fused-inverted-residual-nhwc"
     }
 
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (batch, channels, h, w) = layout.shape().dims4()?;
+        let (batch, h, w, channels) = layout.shape().dims4()?;
         if channels != self.input {
             candle_core::bail!("fused bottleneck: {channels} input channels, expected {}", self.input);
         }
         let x = input(storage, layout, "fused bottleneck")?;
         let (oh, ow) = (h.div_ceil(self.stride), w.div_ceil(self.stride));
-        let mut out = vec![0f32; batch * self.output * oh * ow];
+        let mut out = vec![0f32; batch * oh * ow * self.output];
         for (image, out) in x.chunks_exact(channels * h * w).zip(out.chunks_exact_mut(self.output * oh * ow)) {
             self.forward_image(image, h, w, out);
         }
-        Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, self.output, oh, ow])))
+        Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, oh, ow, self.output])))
     }
 }
 
-/// A dense convolution with "SAME" padding, fused bias and activation: im2col + one matrix
-/// multiply (a 1x1 convolution at stride 1 needs no im2col: the NCHW planes are the matrix).
+/// A folded convolution with "SAME" padding, fused bias and activation, on channels-last output:
+/// a full convolution (the stem) reads the NCHW image and multiplies each output row's columns
+/// by the weights; a 1x1 convolution (the head) is one product on the channels-last pixels.
 #[derive(Debug)]
 pub struct DenseConv {
-    out_channels: usize,
     in_channels: usize,
+    out_channels: usize,
     kernel: (usize, usize),
     stride: usize,
-    /// `[out, in * kh * kw]`, the OIHW weight flattened.
-    weight: Vec<f32>,
-    bias: Vec<f32>,
-    activation: Activation,
+    /// `[in * kh * kw, out]`.
+    weights: PackedWeights,
+    relu6: bool,
 }
 
 impl DenseConv {
     pub fn new(weight: &Tensor, bias: &Tensor, stride: usize, activation: Activation) -> Result<Self> {
         let (out_channels, in_channels, kh, kw) = weight.dims4()?;
         Ok(DenseConv {
-            out_channels,
             in_channels,
+            out_channels,
             kernel: (kh, kw),
             stride,
-            weight: to_vec(weight)?,
-            bias: to_vec(bias)?,
-            activation,
+            weights: PackedWeights::from_output_major(&to_vec(weight)?, &to_vec(bias)?, out_channels, in_channels * kh * kw),
+            relu6: activation == Activation::Relu6,
         })
     }
 
-    /// One image through a 3x3 kernel (the stem), without per-pixel im2col: each input channel is
-    /// padded once ([`PlaneGeometry::padded_3x3`]), after which every tap's column row is one
-    /// contiguous run of the padded plane at the padded pitch. The product is computed at that
-    /// pitch and the extra columns dropped when the rows are copied out (with the activation).
-    fn forward_3x3(&self, x: &[f32], h: usize, w: usize, out: &mut [f32]) {
-        let s = self.stride;
-        let (oh, pad_top, _) = same_padding(h, 3, s);
-        let (ow, pad_left, _) = same_padding(w, 3, s);
-        let geometry = PlaneGeometry { height: h, width: w, kh: 3, kw: 3, stride: s, ow, pad_top, pad_left };
-        let layout = geometry.padded_3x3(oh);
-        let flat = layout.flat_len;
-        let mut cols = vec![0f32; self.in_channels * 9 * flat];
-        cols.par_chunks_mut(9 * flat).zip(x.par_chunks(h * w)).for_each(|(rows, plane)| {
-            let mut padded = vec![0f32; layout.size];
-            geometry.fill_padded_3x3(&layout, plane, &mut padded);
-            for (row, offset) in rows.chunks_exact_mut(flat).zip(layout.offsets) {
-                row.copy_from_slice(&padded[offset..offset + flat]);
-            }
-        });
-        let mut at_pitch = vec![0f32; self.out_channels * flat];
-        for (row, &b) in at_pitch.chunks_exact_mut(flat).zip(&self.bias) {
-            row.fill(b);
-        }
-        matmul_parallel(self.out_channels, flat, self.in_channels * 9, &mut at_pitch, &self.weight, &cols);
-        let relu6 = self.activation == Activation::Relu6;
-        out.par_chunks_mut(oh * ow).zip(at_pitch.par_chunks(flat)).for_each(|(plane, source)| {
-            for (row, source_row) in plane.chunks_exact_mut(ow).zip(source.chunks(layout.pitch)) {
-                row.copy_from_slice(&source_row[..ow]);
-                if relu6 {
-                    row.iter_mut().for_each(|v| *v = v.clamp(0.0, 6.0));
-                }
-            }
-        });
+    /// Whether the op takes a channels-last map (1x1 at stride 1) rather than the NCHW image.
+    pub fn is_pointwise(&self) -> bool {
+        (self.kernel, self.stride) == ((1, 1), 1)
     }
 
-    /// The columns of one image `x` `[in, h, w]`: row `(c, ky, kx)` holds the input pixel each
-    /// output position sees through that tap (zero outside the image).
-    fn im2col(&self, x: &[f32], h: usize, w: usize) -> Vec<f32> {
+    /// The full convolution of one NCHW image `x` `[in, h, w]` into `out` `[oh, ow, out]`: the
+    /// image is padded once, then the output rows are split among the threads, each row one
+    /// product whose rows (output pixels) read their patches from the padded image through the
+    /// offsets of the taps ([`Pointwise::steps`]).
+    fn forward_full(&self, x: &[f32], h: usize, w: usize, out: &mut [f32]) {
         let ((kh, kw), s) = (self.kernel, self.stride);
         let (oh, top, _) = same_padding(h, kh, s);
         let (ow, left, _) = same_padding(w, kw, s);
-        let mut cols = vec![0f32; self.in_channels * kh * kw * oh * ow];
-        cols.par_chunks_mut(oh * ow).enumerate().for_each(|(r, col)| {
-            let (c, ky, kx) = (r / (kh * kw), r / kw % kh, r % kw);
-            let plane = &x[c * h * w..(c + 1) * h * w];
-            for (oy, out_row) in col.chunks_exact_mut(ow).enumerate() {
-                let iy = (oy * s + ky) as isize - top as isize;
-                if !(0..h as isize).contains(&iy) {
-                    continue;
-                }
-                let in_row = &plane[iy as usize * w..(iy as usize + 1) * w];
-                for (ox, v) in out_row.iter_mut().enumerate() {
-                    let ix = (ox * s + kx) as isize - left as isize;
-                    if (0..w as isize).contains(&ix) {
-                        *v = in_row[ix as usize];
-                    }
-                }
+        let (ph, pw) = ((oh - 1) * s + kh, (ow - 1) * s + kw);
+        let mut padded = vec![0f32; self.in_channels * ph * pw];
+        for (plane, source) in padded.chunks_exact_mut(ph * pw).zip(x.chunks_exact(h * w)) {
+            for (row, source_row) in plane.chunks_exact_mut(pw).skip(top).zip(source.chunks_exact(w)) {
+                let n = w.min(pw - left);
+                row[left..left + n].copy_from_slice(&source_row[..n]);
+            }
+        }
+        // Tap (c, ky, kx) of the output pixel whose patch starts at `p` is at `p + offset`.
+        let taps: Vec<usize> = (0..self.in_channels * kh * kw).map(|t| (t / (kh * kw)) * ph * pw + (t / kw % kh) * pw + t % kw).collect();
+        let row_out = ow * self.out_channels;
+        let rows_per_task = oh.div_ceil(rayon::current_num_threads().max(1));
+        out.par_chunks_mut(rows_per_task * row_out).enumerate().for_each(|(task, out)| {
+            for (i, out_row) in out.chunks_exact_mut(row_out).enumerate() {
+                let oy = task * rows_per_task + i;
+                let p = Pointwise {
+                    rows: ow,
+                    a: padded[oy * s * pw..].as_ptr(),
+                    lda: s,
+                    steps: Some(&taps),
+                    weights: &self.weights,
+                    columns: 0..self.out_channels,
+                    out: out_row.as_mut_ptr(),
+                    ldo: self.out_channels,
+                    residual: std::ptr::null(),
+                    ldr: 0,
+                    relu6: self.relu6,
+                };
+                // SAFETY: every patch of the row lies in `padded` (its size covers the last
+                // patch); `out_row` holds `ow` pixels.
+                unsafe { pointwise(&p) };
             }
         });
-        cols
     }
 }
 
 impl CustomOp1 for DenseConv {
     fn name(&self) -> &'static str {
-        "dense-conv2d-same"
+        "dense-conv2d-same-nhwc"
     }
 
+    /// 1x1: `[B, H, W, in]` -> `[B, H, W, out]`; otherwise `[B, in, H, W]` -> `[B, OH, OW, out]`.
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (batch, channels, h, w) = layout.shape().dims4()?;
+        let x = input(storage, layout, "dense conv")?;
+        let (batch, a, b, c) = layout.shape().dims4()?;
+        if self.is_pointwise() {
+            let (h, w, channels) = (a, b, c);
+            if channels != self.in_channels {
+                candle_core::bail!("1x1 conv: {channels} input channels, expected {}", self.in_channels);
+            }
+            let mut out = vec![0f32; batch * h * w * self.out_channels];
+            let p = Pointwise {
+                rows: batch * h * w,
+                a: x.as_ptr(),
+                lda: channels,
+                steps: None,
+                weights: &self.weights,
+                columns: 0..self.out_channels,
+                out: out.as_mut_ptr(),
+                ldo: self.out_channels,
+                residual: std::ptr::null(),
+                ldr: 0,
+                relu6: self.relu6,
+            };
+            // SAFETY: `x` and `out` hold all the pixels of the batch.
+            unsafe { pointwise_parallel(&p) };
+            return Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, h, w, self.out_channels])));
+        }
+        let (channels, h, w) = (a, b, c);
         if channels != self.in_channels {
             candle_core::bail!("dense conv: {channels} input channels, expected {}", self.in_channels);
         }
-        let x = input(storage, layout, "dense conv")?;
         let ((kh, kw), s) = (self.kernel, self.stride);
         let (oh, ow) = (same_padding(h, kh, s).0, same_padding(w, kw, s).0);
-        let (plane_out, taps) = (oh * ow, channels * kh * kw);
-        let mut out = vec![0f32; batch * self.out_channels * plane_out];
-        for (image, out) in x.chunks_exact(channels * h * w).zip(out.chunks_exact_mut(self.out_channels * plane_out)) {
-            if kh == 3 && kw == 3 && (s == 1 || s == 2) {
-                self.forward_3x3(image, h, w, out);
-                continue;
-            }
-            let cols;
-            let rhs = if (kh, kw, s) == (1, 1, 1) {
-                image
-            } else {
-                cols = self.im2col(image, h, w);
-                &cols
-            };
-            for (row, &b) in out.chunks_exact_mut(plane_out).zip(&self.bias) {
-                row.fill(b);
-            }
-            matmul_parallel(self.out_channels, plane_out, taps, out, &self.weight, rhs);
-            if self.activation == Activation::Relu6 {
-                out.par_chunks_mut(plane_out).for_each(|row| row.iter_mut().for_each(|v| *v = v.clamp(0.0, 6.0)));
-            }
+        let mut out = vec![0f32; batch * oh * ow * self.out_channels];
+        for (image, out) in x.chunks_exact(channels * h * w).zip(out.chunks_exact_mut(oh * ow * self.out_channels)) {
+            self.forward_full(image, h, w, out);
         }
-        Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, self.out_channels, oh, ow])))
+        Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, oh, ow, self.out_channels])))
     }
 }
 
@@ -435,9 +530,11 @@ mod tests {
 
     #[test]
     fn fused_bottleneck_equals_stock_ops() -> Result<()> {
-        // With and without expansion, ECA and residual; strides 1 and 2; odd and even sizes; batch 2;
-        // on three threads, the last two with enough pixels that the projection is split by columns
-        // and rows wide enough for the row-by-row depthwise pass.
+        // With and without expansion, ECA and residual; strides 1 and 2; odd and even sizes; hidden
+        // counts that are and are not multiples of 16; batch 2; on three threads: maps of fewer
+        // than 24 output rows split the hidden channels among the tasks, the last three split
+        // output rows (tasks expanding the rows at their edges twice), at stride 2 with odd and
+        // even sizes.
         let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
         let cases = [
             (BlockShape { input: 8, hidden: 48, output: 8, stride: 1, eca_kernel: Some(3) }, 9, 11),
@@ -447,6 +544,8 @@ mod tests {
             (BlockShape { input: 12, hidden: 72, output: 24, stride: 2, eca_kernel: Some(3) }, 7, 9),
             (BlockShape { input: 8, hidden: 24, output: 8, stride: 1, eca_kernel: Some(3) }, 23, 41),
             (BlockShape { input: 8, hidden: 24, output: 12, stride: 2, eca_kernel: None }, 61, 66),
+            (BlockShape { input: 16, hidden: 96, output: 16, stride: 1, eca_kernel: Some(3) }, 50, 30),
+            (BlockShape { input: 8, hidden: 48, output: 16, stride: 2, eca_kernel: Some(3) }, 53, 47),
         ];
         for (shape, h, w) in cases {
             let mut tensors = HashMap::new();
@@ -474,30 +573,33 @@ mod tests {
 
     #[test]
     fn dense_conv_equals_stock_ops() -> Result<()> {
-        // The stem (3x3, stride 2, odd and even sizes) and 1x1 units, batch 2; on three threads,
-        // the larger ones with enough pixels that the product is split by columns.
+        // The stem (3x3, stride 2, odd and even sizes, 32 outputs as in the networks) and 1x1 units,
+        // batch 2; on three threads: the products split by rows where there are many pixels, by
+        // weight panels for a head-like 1x1 with few pixels and 384 outputs.
         let cases = [
-            (3, 2, 16, 16, Activation::Relu6),
-            (3, 2, 9, 12, Activation::Relu6),
-            (3, 1, 7, 6, Activation::Identity),
-            (1, 1, 5, 4, Activation::Relu6),
-            (3, 2, 70, 57, Activation::Relu6),
-            (1, 1, 31, 40, Activation::Identity),
+            (3, 2, 16, 16, 6, Activation::Relu6),
+            (3, 2, 9, 12, 6, Activation::Relu6),
+            (3, 1, 7, 6, 6, Activation::Identity),
+            (1, 1, 5, 4, 6, Activation::Relu6),
+            (3, 2, 70, 57, 32, Activation::Relu6),
+            (1, 1, 31, 40, 6, Activation::Identity),
+            (1, 1, 3, 3, 384, Activation::Relu6),
         ];
         let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
-        for (kernel, stride, h, w, activation) in cases {
+        for (kernel, stride, h, w, out, activation) in cases {
             let kind = if kernel == 1 { ConvKind::Pointwise } else { ConvKind::Full { stride } };
             let tensors = HashMap::from([
-                ("weight".to_string(), random(&[6, 3, kernel, kernel], 1.0)),
-                ("bias".to_string(), random(&[6], 1.0)),
+                ("weight".to_string(), random(&[out, 3, kernel, kernel], 1.0)),
+                ("bias".to_string(), random(&[out], 1.0)),
             ]);
-            let unit = ConvUnit::load(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), (6, 3, kernel, kernel), kind, activation, false)?;
+            let unit = ConvUnit::load(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), (out, 3, kernel, kernel), kind, activation, false)?;
             let x = random(&[2, 3, h, w], 2.0);
             let (fast, reference) = (pool.install(|| unit.forward_t(&x, Mode::Inference))?, unit.forward_t(&x, Mode::Reference)?);
             assert_eq!(fast.dims(), reference.dims());
             let diff = max_diff(&fast, &reference);
-            assert!(diff < 1e-4, "{kernel}x{kernel} s{stride} {h}x{w}: max diff {diff}");
+            assert!(diff < 1e-4, "{kernel}x{kernel} s{stride} {h}x{w} -> {out}: max diff {diff}");
         }
         Ok(())
     }
 }
+

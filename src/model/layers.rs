@@ -128,7 +128,11 @@ impl ConvUnit {
             let bias = self.bias.as_ref().expect("a unit without BatchNorm has a bias");
             return match (self.kind, &self.dense) {
                 (ConvKind::Depthwise { stride }, _) => depthwise::depthwise_conv(x, &self.weight, bias, stride, self.activation),
-                (_, Some(dense)) => x.contiguous()?.apply_op1_no_bwd(dense.as_ref()),
+                (_, Some(dense)) => {
+                    // The op works channels-last; this per-unit entry keeps NCHW on both sides.
+                    let x = if dense.is_pointwise() { to_channels_last(x)? } else { x.contiguous()? };
+                    to_channels_first(&x.apply_op1_no_bwd(dense.as_ref())?)
+                }
                 (ConvKind::Pointwise, None) => {
                     let y = pointwise(x, &self.weight)?;
                     depthwise::bias_activation_(&y, bias, self.activation)?;
@@ -162,11 +166,33 @@ impl ConvUnit {
         }
     }
 
+    /// The inference fast path on channels-last maps, where the unit has a fused kernel: the stem
+    /// takes the NCHW image and gives `[B, H, W, C]`, a 1x1 unit takes and gives `[B, H, W, C]`.
+    pub fn forward_channels_last(&self, x: &Tensor) -> Result<Tensor> {
+        let dense = self.dense.as_ref().filter(|_| self.bn.is_none()).ok_or_else(|| candle_core::Error::Msg("this unit has no fused kernel".into()))?;
+        x.contiguous()?.apply_op1_no_bwd(dense.as_ref())
+    }
+
+    /// Whether [`Self::forward_channels_last`] runs (folded constant weights).
+    pub fn is_fused(&self) -> bool {
+        self.dense.is_some() && self.bn.is_none()
+    }
+
     fn convolve(&self, x: &Tensor, stride: usize, groups: usize) -> Result<Tensor> {
         let (_, _, h, w) = x.dims4()?;
         let (_, _, kh, kw) = self.weight.dims4()?;
         depthwise::pad_same(x, h, w, kh, kw, stride)?.conv2d(&self.weight, 0, stride, 1, groups)
     }
+}
+
+/// `[B, C, H, W]` -> contiguous `[B, H, W, C]`.
+pub fn to_channels_last(x: &Tensor) -> Result<Tensor> {
+    x.permute((0, 2, 3, 1))?.contiguous()
+}
+
+/// `[B, H, W, C]` -> contiguous `[B, C, H, W]`.
+pub fn to_channels_first(x: &Tensor) -> Result<Tensor> {
+    x.permute((0, 3, 1, 2))?.contiguous()
 }
 
 /// A 1x1 convolution as a plain matrix multiply: `[O, I] x [B, I, H*W]`, no im2col copy.
@@ -312,9 +338,21 @@ impl InvertedResidual {
         self.eca.as_ref()
     }
 
+    /// The inference fast path on a channels-last map `[B, H, W, C]`, where the block has its
+    /// fused kernel.
+    pub fn forward_channels_last(&self, x: &Tensor) -> Result<Tensor> {
+        let fused = self.fused.as_ref().ok_or_else(|| candle_core::Error::Msg("this block has no fused kernel".into()))?;
+        x.contiguous()?.apply_op1_no_bwd(fused.as_ref())
+    }
+
+    /// Whether [`Self::forward_channels_last`] runs (folded constant weights).
+    pub fn is_fused(&self) -> bool {
+        self.fused.is_some()
+    }
+
     pub fn forward_t(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
         if let (Mode::Inference, Some(fused)) = (mode, &self.fused) {
-            return x.contiguous()?.apply_op1_no_bwd(fused.as_ref());
+            return to_channels_first(&to_channels_last(x)?.apply_op1_no_bwd(fused.as_ref())?);
         }
         let mut y = match &self.expand {
             Some(expand) => expand.forward_t(x, mode)?,

@@ -11,6 +11,7 @@ pub mod depthwise;
 pub mod depthwise_grad;
 pub mod embedder;
 pub mod fused;
+pub mod simd;
 pub mod ecmobilenet;
 pub mod layers;
 pub mod mobilenetv2;
@@ -218,12 +219,25 @@ impl Network {
     /// The last feature map, `[B, head_channels, S/32, S/32]`, for input `x` `[B, 3, S, S]`.
     pub fn features(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
         crate::runtime::with_hot_workers(|| {
+            if self.runs_channels_last(mode) {
+                let mut y = self.stem.forward_channels_last(x)?;
+                for block in &self.blocks {
+                    y = block.forward_channels_last(&y)?;
+                }
+                return layers::to_channels_first(&self.head.forward_channels_last(&y)?);
+            }
             let mut y = self.stem.forward_t(x, mode)?;
             for block in &self.blocks {
                 y = block.forward_t(&y, mode)?;
             }
             self.head.forward_t(&y, mode)
         })
+    }
+
+    /// Whether a pass in `mode` runs the fused channels-last kernels from end to end: inference
+    /// with folded constant weights (not weights being trained).
+    fn runs_channels_last(&self, mode: Mode) -> bool {
+        mode == Mode::Inference && self.stem.is_fused() && self.head.is_fused() && self.blocks.iter().all(|b| b.is_fused())
     }
 
     /// Mean time of each stage (`stem`, `blocks.{i}`, `head`) over `runs` passes of `x` in `mode`,
@@ -244,6 +258,14 @@ impl Network {
                 }
                 Ok(y)
             };
+            if self.runs_channels_last(mode) {
+                let mut y = timed(0, &|| self.stem.forward_channels_last(x))?;
+                for (i, block) in self.blocks.iter().enumerate() {
+                    y = timed(i + 1, &|| block.forward_channels_last(&y))?;
+                }
+                timed(self.blocks.len() + 1, &|| layers::to_channels_first(&self.head.forward_channels_last(&y)?))?;
+                continue;
+            }
             let mut y = timed(0, &|| self.stem.forward_t(x, mode))?;
             for (i, block) in self.blocks.iter().enumerate() {
                 y = timed(i + 1, &|| block.forward_t(&y, mode))?;

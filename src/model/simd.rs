@@ -1,0 +1,627 @@
+//! Register-blocked micro-kernels of the channels-last (NHWC) inference path in [`super::fused`]:
+//!
+//! - [`pointwise`]: a block of rows of `out = bias + a · W (+ residual)`, optional ReLU6 — a 1x1
+//!   convolution on channels-last pixels (each pixel's channels are one row of `a`), the stem's
+//!   columns, or the head. An `MR x NR` tile of output (pixels x 16-channel vectors) is kept in
+//!   registers for the whole sum over `k`: each step loads `NR` weight vectors, broadcasts `MR`
+//!   inputs and issues `MR * NR` fused multiply-adds, as in ONNX Runtime's MLAS and XNNPACK.
+//! - [`depthwise_row`]: one output row of a 3x3 depthwise convolution + bias + ReLU6 on
+//!   channels-last rows, adding each channel's outputs to a running sum (ECA's pooling).
+//!
+//! Both are written once, generic over [`Lanes`] (sixteen `f32` lanes), and built twice: with
+//! AVX-512 intrinsics where the CPU has AVX-512F (chosen at run time), and as plain arrays that
+//! any CPU runs (the tests check the two against each other and against naive loops). Rayon
+//! closures do not inherit `#[target_feature]`, so the dispatch is per call of these kernels
+//! (a row or a block of rows), never inside them.
+
+use std::ops::Range;
+
+/// Lanes per vector.
+pub const LANES: usize = 16;
+
+/// Sixteen `f32` lanes and the operations the kernels use.
+pub(crate) trait Lanes: Copy {
+    /// # Safety
+    /// `p` points at 16 readable floats.
+    unsafe fn load(p: *const f32) -> Self;
+    /// The first `n` (1..=16) floats at `p`, the other lanes zero.
+    /// # Safety
+    /// `p` points at `n` readable floats.
+    unsafe fn load_first(p: *const f32, n: usize) -> Self;
+    /// # Safety
+    /// `p` points at 16 writable floats.
+    unsafe fn store(self, p: *mut f32);
+    /// Stores the first `n` (1..=16) lanes.
+    /// # Safety
+    /// `p` points at `n` writable floats.
+    unsafe fn store_first(self, p: *mut f32, n: usize);
+    fn splat(v: f32) -> Self;
+    /// `self * b + c`.
+    fn mul_add(self, b: Self, c: Self) -> Self;
+    fn add(self, b: Self) -> Self;
+    fn relu6(self) -> Self;
+    fn to_array(self) -> [f32; LANES];
+}
+
+/// The portable build: an array the compiler vectorises as it can.
+#[derive(Clone, Copy)]
+pub(crate) struct Portable([f32; LANES]);
+
+impl Lanes for Portable {
+    #[inline(always)]
+    unsafe fn load(p: *const f32) -> Self {
+        Portable(unsafe { std::ptr::read_unaligned(p as *const [f32; LANES]) })
+    }
+    #[inline(always)]
+    unsafe fn load_first(p: *const f32, n: usize) -> Self {
+        let mut v = [0f32; LANES];
+        v[..n].copy_from_slice(unsafe { std::slice::from_raw_parts(p, n) });
+        Portable(v)
+    }
+    #[inline(always)]
+    unsafe fn store(self, p: *mut f32) {
+        unsafe { std::ptr::write_unaligned(p as *mut [f32; LANES], self.0) }
+    }
+    #[inline(always)]
+    unsafe fn store_first(self, p: *mut f32, n: usize) {
+        unsafe { std::slice::from_raw_parts_mut(p, n) }.copy_from_slice(&self.0[..n]);
+    }
+    #[inline(always)]
+    fn splat(v: f32) -> Self {
+        Portable([v; LANES])
+    }
+    #[inline(always)]
+    fn mul_add(self, b: Self, c: Self) -> Self {
+        Portable(std::array::from_fn(|i| self.0[i].mul_add(b.0[i], c.0[i])))
+    }
+    #[inline(always)]
+    fn add(self, b: Self) -> Self {
+        Portable(std::array::from_fn(|i| self.0[i] + b.0[i]))
+    }
+    #[inline(always)]
+    fn relu6(self) -> Self {
+        Portable(self.0.map(|v| v.clamp(0.0, 6.0)))
+    }
+    fn to_array(self) -> [f32; LANES] {
+        self.0
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod avx512 {
+    use std::arch::x86_64::*;
+
+    use super::{Lanes, LANES};
+
+    /// One AVX-512 register. Only built into functions compiled with `avx512f`.
+    #[derive(Clone, Copy)]
+    pub(crate) struct Avx512(__m512);
+
+    #[inline(always)]
+    fn first(n: usize) -> __mmask16 {
+        ((1u32 << n) - 1) as __mmask16
+    }
+
+    impl Lanes for Avx512 {
+        #[inline(always)]
+        unsafe fn load(p: *const f32) -> Self {
+            Avx512(unsafe { _mm512_loadu_ps(p) })
+        }
+        #[inline(always)]
+        unsafe fn load_first(p: *const f32, n: usize) -> Self {
+            Avx512(unsafe { _mm512_maskz_loadu_ps(first(n), p) })
+        }
+        #[inline(always)]
+        unsafe fn store(self, p: *mut f32) {
+            unsafe { _mm512_storeu_ps(p, self.0) }
+        }
+        #[inline(always)]
+        unsafe fn store_first(self, p: *mut f32, n: usize) {
+            unsafe { _mm512_mask_storeu_ps(p, first(n), self.0) }
+        }
+        #[inline(always)]
+        fn splat(v: f32) -> Self {
+            Avx512(unsafe { _mm512_set1_ps(v) })
+        }
+        #[inline(always)]
+        fn mul_add(self, b: Self, c: Self) -> Self {
+            Avx512(unsafe { _mm512_fmadd_ps(self.0, b.0, c.0) })
+        }
+        #[inline(always)]
+        fn add(self, b: Self) -> Self {
+            Avx512(unsafe { _mm512_add_ps(self.0, b.0) })
+        }
+        #[inline(always)]
+        fn relu6(self) -> Self {
+            Avx512(unsafe { _mm512_min_ps(_mm512_max_ps(self.0, _mm512_setzero_ps()), _mm512_set1_ps(6.0)) })
+        }
+        fn to_array(self) -> [f32; LANES] {
+            let mut out = [0f32; LANES];
+            unsafe { _mm512_storeu_ps(out.as_mut_ptr(), self.0) };
+            out
+        }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn pointwise(p: &super::Pointwise) {
+        unsafe { super::pointwise_with::<Avx512>(p) }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn depthwise_row(p: &super::DepthwiseRow, sums: &mut [f64]) {
+        unsafe { super::depthwise_row_with::<Avx512>(p, sums) }
+    }
+}
+
+/// Whether the AVX-512 build runs (checked once; `ECM_LCD_PORTABLE_KERNELS=1` forces the portable one).
+pub fn uses_avx512() -> bool {
+    static AVX512: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *AVX512.get_or_init(|| {
+        #[cfg(target_arch = "x86_64")]
+        if std::env::var_os("ECM_LCD_PORTABLE_KERNELS").is_none_or(|v| v != "1") {
+            return std::arch::is_x86_feature_detected!("avx512f");
+        }
+        false
+    })
+}
+
+/// A `k x n` weight matrix packed in column panels of 16-64 columns (`[k, panel]` each, the
+/// last padded with zeros), and the bias padded alike: a tile reads its weights as one
+/// contiguous stream (row-major rows of up to 5 KB made every step of the sum touch new
+/// cache lines in another page, out of the prefetchers' reach), and every vector load is in
+/// bounds.
+#[derive(Clone, Debug)]
+pub struct PackedWeights {
+    pub k: usize,
+    pub n: usize,
+    /// Columns per panel: 16 times [`panel_vectors`].
+    pub panel: usize,
+    pub data: Vec<f32>,
+    pub bias: Vec<f32>,
+    /// `0..k`: where step `i` of the sum finds its input in a row, by default.
+    steps: Vec<usize>,
+}
+
+/// Vectors per panel for `vectors` output vectors in all: all of them up to four, else four or
+/// three, whichever gives an even number of whole panels (so that panels split evenly between
+/// two threads), else four. A tile is then up to 6 pixels by 4 vectors (or 8 by 3, 12 by 2, 24
+/// by 1): 24 accumulators and the weight vectors fit AVX-512's 32 registers, the inputs being
+/// broadcast from memory by the multiply-adds themselves.
+pub fn panel_vectors(vectors: usize) -> usize {
+    match vectors {
+        0 => 1,
+        v if v <= 4 => v,
+        v if v % 8 == 0 => 4,
+        v if v % 6 == 0 => 3,
+        _ => 4,
+    }
+}
+
+impl PackedWeights {
+    /// From the `[n, k]` (output-major, as a flattened OIHW weight) matrix `w` and bias `b`.
+    pub fn from_output_major(w: &[f32], b: &[f32], n: usize, k: usize) -> Self {
+        assert_eq!((w.len(), b.len()), (n * k, n), "packed weights: sizes");
+        let panel = panel_vectors(n.div_ceil(LANES)) * LANES;
+        let padded = n.next_multiple_of(panel);
+        let mut data = vec![0f32; k * padded];
+        for (c, row) in w.chunks_exact(k).enumerate() {
+            for (i, &v) in row.iter().enumerate() {
+                data[Self::offset(k, panel, i, c)] = v;
+            }
+        }
+        let mut bias = vec![0f32; padded];
+        bias[..n].copy_from_slice(b);
+        PackedWeights { k, n, panel, data, bias, steps: (0..k).collect() }
+    }
+
+    fn offset(k: usize, panel: usize, i: usize, c: usize) -> usize {
+        c / panel * k * panel + i * panel + c % panel
+    }
+
+    /// Panels in all.
+    pub fn panels(&self) -> usize {
+        self.n.div_ceil(self.panel)
+    }
+
+    /// Multiplies row `i` (input channel `i`) by `scale[i]`.
+    pub fn scale_rows(&mut self, scale: &[f32]) {
+        for (j, row) in self.data.chunks_exact_mut(self.panel).enumerate() {
+            let s = scale.get(j % self.k).copied().unwrap_or(1.0);
+            row.iter_mut().for_each(|v| *v *= s);
+        }
+    }
+}
+
+/// One call of [`pointwise`]: rows `0..rows` and output columns `columns` of
+/// `out[r, c] = bias[c] + sum_i a[r, i] weight[i, c] (+ residual[r, c])`, ReLU6 if `relu6`.
+pub(crate) struct Pointwise<'a> {
+    pub rows: usize,
+    /// Row `r` of the left operand starts at `a + r * lda`; step `i` of its sum reads the float
+    /// at `steps[i]` from there (`None`: at `i`, a plain row of `weights.k` floats). The stem
+    /// reads its 3x3 patches straight from the padded image this way, without im2col.
+    pub a: *const f32,
+    pub lda: usize,
+    pub steps: Option<&'a [usize]>,
+    pub weights: &'a PackedWeights,
+    /// Output columns; the start is a multiple of 16.
+    pub columns: Range<usize>,
+    pub out: *mut f32,
+    pub ldo: usize,
+    /// Null, or a matrix added before the activation, with row pitch `ldr`.
+    pub residual: *const f32,
+    pub ldr: usize,
+    pub relu6: bool,
+}
+
+// SAFETY: the pointers are read, or written in parts that no two threads share (the callers' contract).
+unsafe impl Send for Pointwise<'_> {}
+unsafe impl Sync for Pointwise<'_> {}
+
+/// Computes one [`Pointwise`] block.
+///
+/// # Safety
+/// The pointers address the rows and columns the call names (`a`: `rows` rows of `weights.k`
+/// floats, or reaching the largest of `steps`; `out` and `residual`: `rows` rows covering `columns`), and no other thread writes
+/// those `out` elements meanwhile.
+pub(crate) unsafe fn pointwise(p: &Pointwise) {
+    assert!(p.columns.start % LANES == 0 && p.columns.end <= p.weights.n, "pointwise: columns {:?}", p.columns);
+    #[cfg(target_arch = "x86_64")]
+    if uses_avx512() {
+        return unsafe { avx512::pointwise(p) };
+    }
+    unsafe { pointwise_with::<Portable>(p) }
+}
+
+/// Tile height for panels of `nr` vectors: 24 accumulators.
+fn tile_rows(nr: usize) -> usize {
+    24 / nr
+}
+
+/// Tile height of [`pointwise`] calls with `weights`.
+pub(crate) fn tile_rows_of(weights: &PackedWeights) -> usize {
+    tile_rows(weights.panel / LANES)
+}
+
+#[inline(always)]
+unsafe fn pointwise_with<L: Lanes>(p: &Pointwise) {
+    match tile_rows_of(p.weights) {
+        24 => unsafe { pointwise_rows::<L, 24>(p) },
+        12 => unsafe { pointwise_rows::<L, 12>(p) },
+        8 => unsafe { pointwise_rows::<L, 8>(p) },
+        _ => unsafe { pointwise_rows::<L, 6>(p) },
+    }
+}
+
+/// Rows in tiles of `MR`, each across the columns by tiles of one panel (or the part of it in
+/// `columns`): a tile's inputs stay in L1 while the weights stream from L2.
+#[inline(always)]
+unsafe fn pointwise_rows<L: Lanes, const MR: usize>(p: &Pointwise) {
+    let panel = p.weights.panel;
+    let mut r = 0;
+    while r < p.rows {
+        let rows = MR.min(p.rows - r);
+        let mut c = p.columns.start;
+        while c < p.columns.end {
+            let width = (p.columns.end - c).min(panel - c % panel);
+            let tile = Tile { p, row: r, rows, column: c, width };
+            match width.div_ceil(LANES) {
+                1 => unsafe { tile.run::<L, MR, 1>() },
+                2 => unsafe { tile.run::<L, MR, 2>() },
+                3 => unsafe { tile.run::<L, MR, 3>() },
+                _ => unsafe { tile.run::<L, MR, 4>() },
+            }
+            c += width;
+        }
+        r += rows;
+    }
+}
+
+/// `$body` once for each value, with `$name` a constant of that value: literal indices where a
+/// loop, even over constant bounds, might not be unrolled before registers are assigned.
+macro_rules! unrolled {
+    ($name:ident in [$($value:literal)*] $body:block) => {
+        $({
+            const $name: usize = $value;
+            $body
+        })*
+    };
+}
+
+/// One `MR x NR`-vector tile of a [`Pointwise`] call at (`row`, `column`): `rows` (<= MR) rows
+/// and `width` (<= 16 NR) columns are stored.
+struct Tile<'a, 'b> {
+    p: &'a Pointwise<'b>,
+    row: usize,
+    rows: usize,
+    column: usize,
+    width: usize,
+}
+
+impl Tile<'_, '_> {
+    #[inline(always)]
+    unsafe fn run<L: Lanes, const MR: usize, const NR: usize>(&self) {
+        let p = self.p;
+        let (k, pitch) = (p.weights.k, p.weights.panel);
+        let weights = unsafe { p.weights.data.as_ptr().add(PackedWeights::offset(k, pitch, 0, self.column)) };
+        let bias = unsafe { p.weights.bias.as_ptr().add(self.column) };
+        // Every accumulator is indexed by a literal constant ([`unrolled`]), so the compiler keeps
+        // them all in registers; loops over the tile, even with constant bounds, were not always
+        // unrolled in time, and the array then lived in memory with a store after every
+        // multiply-add (2.5x slower).
+        // Rows past the end repeat the last row: computed, never stored.
+        let mut a = [p.a; MR];
+        unrolled!(I in [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 20 21 22 23] {
+            if I < MR {
+                a[I] = unsafe { p.a.add((self.row + I.min(self.rows - 1)) * p.lda) };
+            }
+        });
+        let mut acc = [[L::splat(0.0); NR]; MR];
+        unrolled!(J in [0 1 2 3] {
+            if J < NR {
+                let b = unsafe { L::load(bias.add(J * LANES)) };
+                unrolled!(I in [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 20 21 22 23] {
+                    if I < MR {
+                        acc[I][J] = b;
+                    }
+                });
+            }
+        });
+        let steps = p.steps.unwrap_or(&p.weights.steps);
+        assert!(steps.len() >= k);
+        let mut w = [L::splat(0.0); NR];
+        for (step, &offset) in steps[..k].iter().enumerate() {
+            unrolled!(J in [0 1 2 3] {
+                if J < NR {
+                    w[J] = unsafe { L::load(weights.add(step * pitch + J * LANES)) };
+                }
+            });
+            unrolled!(I in [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 20 21 22 23] {
+                if I < MR {
+                    let x = L::splat(unsafe { *a[I].add(offset) });
+                    unrolled!(J in [0 1 2 3] {
+                        if J < NR {
+                            acc[I][J] = x.mul_add(w[J], acc[I][J]);
+                        }
+                    });
+                }
+            });
+        }
+        // The accumulators leave by literal indices too: a loop over them here, not unrolled
+        // for its size, kept the whole array in memory.
+        unrolled!(I in [0 1 2 3 4 5 6 7 8 9 10 11 12 13 14 15 16 17 18 19 20 21 22 23] {
+            if I < MR && I < self.rows {
+                unrolled!(J in [0 1 2 3] {
+                    if J < NR {
+                        unsafe { self.store(acc[I][J], I, J) };
+                    }
+                });
+            }
+        });
+    }
+}
+
+impl Tile<'_, '_> {
+    /// Stores vector `j` of tile row `i` (adding the residual, applying the activation).
+    #[inline(always)]
+    unsafe fn store<L: Lanes>(&self, v: L, i: usize, j: usize) {
+        let p = self.p;
+        let r = self.row + i;
+        let column = self.column + j * LANES;
+        let n = (self.width - j * LANES).min(LANES);
+        let mut v = v;
+        if !p.residual.is_null() {
+            v = v.add(unsafe { L::load_first(p.residual.add(r * p.ldr + column), n) });
+        }
+        if p.relu6 {
+            v = v.relu6();
+        }
+        let out = unsafe { p.out.add(r * p.ldo + column) };
+        if n == LANES {
+            unsafe { v.store(out) }
+        } else {
+            unsafe { v.store_first(out, n) }
+        }
+    }
+}
+
+/// One call of [`depthwise_row`]: output row `out[x, c]` for `x < width` and channels `channels`
+/// of a 3x3 depthwise convolution + bias + ReLU6.
+pub(crate) struct DepthwiseRow<'a> {
+    /// The three input rows the output row sees (a zero row for padding), each laid out as
+    /// `pixels x pitch` floats with a zero pixel on each side: input column `x` is pixel `x + 1`.
+    pub rows: [*const f32; 3],
+    /// Floats per pixel in `rows` and `out`.
+    pub pitch: usize,
+    pub stride: usize,
+    /// Padded-row pixel of output column 0's left tap: 1 - the "SAME" padding on the left.
+    pub first_pixel: usize,
+    pub width: usize,
+    /// Tap-major weights `[9, pitch]` and the bias `[pitch]`.
+    pub weights: &'a [f32],
+    pub bias: &'a [f32],
+    /// Channels to compute: multiples of 16.
+    pub channels: Range<usize>,
+    pub out: *mut f32,
+}
+
+/// Computes one [`DepthwiseRow`] and adds each channel's outputs to `sums[c - channels.start]`.
+///
+/// # Safety
+/// The rows hold `first_pixel + (width - 1) * stride + 3` pixels of `pitch` floats; `out` holds
+/// `width` pixels; no other thread writes those channels of `out` meanwhile.
+pub(crate) unsafe fn depthwise_row(p: &DepthwiseRow, sums: &mut [f64]) {
+    assert!(p.channels.start % LANES == 0 && p.channels.end % LANES == 0 && p.channels.end <= p.pitch);
+    assert!(p.weights.len() >= 9 * p.pitch && p.bias.len() >= p.pitch && sums.len() >= p.channels.len());
+    #[cfg(target_arch = "x86_64")]
+    if uses_avx512() {
+        return unsafe { avx512::depthwise_row(p, sums) };
+    }
+    unsafe { depthwise_row_with::<Portable>(p, sums) }
+}
+
+#[inline(always)]
+unsafe fn depthwise_row_with<L: Lanes>(p: &DepthwiseRow, sums: &mut [f64]) {
+    for c in p.channels.clone().step_by(LANES) {
+        let w: [L; 9] = std::array::from_fn(|t| unsafe { L::load(p.weights.as_ptr().add(t * p.pitch + c)) });
+        let bias = unsafe { L::load(p.bias.as_ptr().add(c)) };
+        let rows = p.rows.map(|r| unsafe { r.add(c) });
+        let mut sum = L::splat(0.0);
+        for x in 0..p.width {
+            let first = (p.first_pixel + x * p.stride) * p.pitch;
+            let mut acc = bias;
+            for (ky, row) in rows.iter().enumerate() {
+                for kx in 0..3 {
+                    acc = unsafe { L::load(row.add(first + kx * p.pitch)) }.mul_add(w[ky * 3 + kx], acc);
+                }
+            }
+            acc = acc.relu6();
+            sum = sum.add(acc);
+            unsafe { acc.store(p.out.add(x * p.pitch + c)) };
+        }
+        for (s, v) in sums[c - p.channels.start..].iter_mut().zip(sum.to_array()) {
+            *s += v as f64;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn random(n: usize, seed: u64) -> Vec<f32> {
+        let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        (0..n)
+            .map(|_| {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                (state >> 40) as f32 / (1u64 << 23) as f32 - 1.0
+            })
+            .collect()
+    }
+
+    /// Both builds of `pointwise` against a naive product, over tile shapes, row and column tails,
+    /// residual and activation.
+    #[test]
+    fn pointwise_equals_naive_product_in_every_build() {
+        for (rows, k, n, columns, residual, relu6) in [
+            (1, 3, 5, 0..5, false, false),
+            (13, 27, 32, 0..32, false, true),
+            (37, 16, 96, 48..96, false, true),
+            (25, 96, 24, 0..24, true, false),
+            (49, 320, 1280, 640..1280, false, true),
+            (7, 64, 144, 0..144, true, true),
+            (50, 40, 160, 16..112, true, false),
+        ] {
+            let (lda, ldo) = (k + 3, n + 5);
+            let a = random(rows * lda, 1);
+            let w = random(n * k, 2);
+            let b = random(n, 3);
+            let res = random(rows * ldo, 4);
+            let weights = PackedWeights::from_output_major(&w, &b, n, k);
+            let mut expected = vec![0f32; rows * ldo];
+            for r in 0..rows {
+                for c in columns.clone() {
+                    let mut v = b[c] + (0..k).map(|i| a[r * lda + i] * w[c * k + i]).sum::<f32>();
+                    if residual {
+                        v += res[r * ldo + c];
+                    }
+                    expected[r * ldo + c] = if relu6 { v.clamp(0.0, 6.0) } else { v };
+                }
+            }
+            let run = |avx512: bool| {
+                let mut out = vec![0f32; rows * ldo];
+                let p = Pointwise {
+                    rows,
+                    a: a.as_ptr(),
+                    lda,
+                    steps: None,
+                    weights: &weights,
+                    columns: columns.clone(),
+                    out: out.as_mut_ptr(),
+                    ldo,
+                    residual: if residual { res.as_ptr() } else { std::ptr::null() },
+                    ldr: ldo,
+                    relu6,
+                };
+                match avx512 {
+                    #[cfg(target_arch = "x86_64")]
+                    true => unsafe { avx512::pointwise(&p) },
+                    _ => unsafe { pointwise_with::<Portable>(&p) },
+                }
+                out
+            };
+            let mut builds = vec![("portable", run(false))];
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                builds.push(("avx512", run(true)));
+            }
+            for (name, out) in builds {
+                for (i, (&got, &want)) in out.iter().zip(&expected).enumerate() {
+                    assert!((got - want).abs() < 1e-4, "{name} {rows}x{k}x{n} {columns:?} at {i}: {got} vs {want}");
+                }
+            }
+        }
+    }
+
+    /// Both builds of `depthwise_row` against naive loops, strides 1 and 2, both paddings.
+    #[test]
+    fn depthwise_row_equals_naive_loops_in_every_build() {
+        for (stride, first_pixel, width, pitch, channels) in [(1, 0, 9, 32, 0..32), (2, 1, 5, 48, 16..48), (2, 0, 4, 16, 0..16), (1, 0, 1, 64, 32..64)] {
+            let pixels = first_pixel + (width - 1) * stride + 3;
+            let rows: Vec<Vec<f32>> = (0..3).map(|i| random(pixels * pitch, 10 + i)).collect();
+            let weights = random(9 * pitch, 20);
+            let bias = random(pitch, 21);
+            let mut expected = vec![0f32; width * pitch];
+            let mut expected_sums = vec![0f64; channels.len()];
+            for x in 0..width {
+                for c in channels.clone() {
+                    let mut v = bias[c];
+                    for (ky, row) in rows.iter().enumerate() {
+                        for kx in 0..3 {
+                            v += row[(first_pixel + x * stride + kx) * pitch + c] * weights[(ky * 3 + kx) * pitch + c];
+                        }
+                    }
+                    let v = v.clamp(0.0, 6.0);
+                    expected[x * pitch + c] = v;
+                    expected_sums[c - channels.start] += v as f64;
+                }
+            }
+            let run = |avx512: bool| {
+                let mut out = vec![0f32; width * pitch];
+                let mut sums = vec![0f64; channels.len()];
+                let p = DepthwiseRow {
+                    rows: [rows[0].as_ptr(), rows[1].as_ptr(), rows[2].as_ptr()],
+                    pitch,
+                    stride,
+                    first_pixel,
+                    width,
+                    weights: &weights,
+                    bias: &bias,
+                    channels: channels.clone(),
+                    out: out.as_mut_ptr(),
+                };
+                match avx512 {
+                    #[cfg(target_arch = "x86_64")]
+                    true => unsafe { avx512::depthwise_row(&p, &mut sums) },
+                    _ => unsafe { depthwise_row_with::<Portable>(&p, &mut sums) },
+                }
+                (out, sums)
+            };
+            let mut builds = vec![("portable", run(false))];
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                builds.push(("avx512", run(true)));
+            }
+            for (name, (out, sums)) in builds {
+                for (i, (&got, &want)) in out.iter().zip(&expected).enumerate() {
+                    assert!((got - want).abs() < 1e-5, "{name} stride {stride} at {i}: {got} vs {want}");
+                }
+                for (got, want) in sums.iter().zip(&expected_sums) {
+                    assert!((got - want).abs() < 1e-4, "{name} sums: {got} vs {want}");
+                }
+            }
+        }
+    }
+}
+
