@@ -488,16 +488,10 @@ unsafe fn depthwise_row_with<L: Lanes>(p: &DepthwiseRow, sums: &mut [f64]) {
 mod tests {
     use super::*;
 
+    /// `n` values in [-1, 1) from `seed`.
     fn random(n: usize, seed: u64) -> Vec<f32> {
-        let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-        (0..n)
-            .map(|_| {
-                state ^= state << 13;
-                state ^= state >> 7;
-                state ^= state << 17;
-                (state >> 40) as f32 / (1u64 << 23) as f32 - 1.0
-            })
-            .collect()
+        let mut rng = crate::synth::SplitMix64::new(seed);
+        (0..n).map(|_| (rng.next_f64() * 2.0 - 1.0) as f32).collect()
     }
 
     /// Both builds of `pointwise` against a naive product, over tile shapes, row and column tails,

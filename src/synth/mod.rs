@@ -16,6 +16,7 @@ mod world;
 
 pub use path::camera_rotation;
 pub use tum_out::write_tum_folder;
+pub use world::SplitMix64;
 
 use crate::types::Stamp;
 use anyhow::{bail, Result};
