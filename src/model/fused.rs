@@ -10,11 +10,13 @@
 //!
 //! Why channels-last: a pixel's channels are contiguous, so a 1x1 convolution is a matrix product
 //! whose rows are pixels, tiled in registers by [`super::simd::pointwise`], and the depthwise
-//! convolution runs sixteen channels per vector at any stride. The bottleneck splits its hidden
-//! channels among the threads; each thread walks the rows once, expanding input rows into a ring
-//! of three padded rows just before the depthwise convolution reads them, so the expanded
-//! activation (the largest tensor of MobileNetV2, 6x the block's input) never leaves the cache
-//! and no row is expanded twice. ECA's channel sums are taken as the depthwise output is written;
+//! convolution runs sixteen channels per vector at any stride. In the bottleneck each task walks
+//! its output rows in order, expanding input rows into a ring of three padded rows just before
+//! the depthwise convolution reads them, so the expanded activation (the largest tensor of
+//! MobileNetV2, 6x the block's input) never leaves the cache. Large maps split output rows among
+//! the tasks (the row at a band's edge is expanded by both neighbours: 1 in 28 rows or fewer);
+//! maps of fewer than 8 output rows per thread split whole weight panels of hidden channels
+//! instead, where a band's edge would be a large share. ECA's channel sums are taken as the depthwise output is written;
 //! its gate then scales the projection's weight rows (`W (g ⊙ x) = (W diag(g)) x`) or the
 //! depthwise output, whichever is smaller. The projection splits pixels (or, for 7x7 maps,
 //! output channels) among the threads.

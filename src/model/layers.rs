@@ -169,13 +169,14 @@ impl ConvUnit {
     /// The inference fast path on channels-last maps, where the unit has a fused kernel: the stem
     /// takes the NCHW image and gives `[B, H, W, C]`, a 1x1 unit takes and gives `[B, H, W, C]`.
     pub fn forward_channels_last(&self, x: &Tensor) -> Result<Tensor> {
-        let dense = self.dense.as_ref().filter(|_| self.bn.is_none()).ok_or_else(|| candle_core::Error::Msg("this unit has no fused kernel".into()))?;
+        let dense = self.dense.as_ref().ok_or_else(|| candle_core::Error::Msg("this unit has no fused kernel".into()))?;
         x.contiguous()?.apply_op1_no_bwd(dense.as_ref())
     }
 
-    /// Whether [`Self::forward_channels_last`] runs (folded constant weights).
+    /// Whether [`Self::forward_channels_last`] runs (folded constant weights: only those get a
+    /// fused kernel).
     pub fn is_fused(&self) -> bool {
-        self.dense.is_some() && self.bn.is_none()
+        self.dense.is_some()
     }
 
     fn convolve(&self, x: &Tensor, stride: usize, groups: usize) -> Result<Tensor> {

@@ -219,19 +219,33 @@ impl Network {
     /// The last feature map, `[B, head_channels, S/32, S/32]`, for input `x` `[B, 3, S, S]`.
     pub fn features(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
         crate::runtime::with_hot_workers(|| {
-            if self.runs_channels_last(mode) {
-                let mut y = self.stem.forward_channels_last(x)?;
-                for block in &self.blocks {
-                    y = block.forward_channels_last(&y)?;
-                }
-                return layers::to_channels_first(&self.head.forward_channels_last(&y)?);
+            let channels_last = self.runs_channels_last(mode);
+            let mut y = x.clone();
+            for stage in 0..self.stages() {
+                y = self.stage(stage, &y, mode, channels_last)?;
             }
-            let mut y = self.stem.forward_t(x, mode)?;
-            for block in &self.blocks {
-                y = block.forward_t(&y, mode)?;
-            }
-            self.head.forward_t(&y, mode)
+            Ok(y)
         })
+    }
+
+    /// Stages of a pass: the stem, each block, the head.
+    fn stages(&self) -> usize {
+        self.blocks.len() + 2
+    }
+
+    /// Stage `i` of a pass ([`Self::stages`]). With `channels_last` (the fused kernels) the
+    /// stages pass `[B, H, W, C]` maps: the stem takes the NCHW image, and the head's map is
+    /// turned back to NCHW.
+    fn stage(&self, i: usize, x: &Tensor, mode: Mode, channels_last: bool) -> Result<Tensor> {
+        let last = self.stages() - 1;
+        match (i, channels_last) {
+            (0, true) => self.stem.forward_channels_last(x),
+            (0, false) => self.stem.forward_t(x, mode),
+            (i, true) if i == last => layers::to_channels_first(&self.head.forward_channels_last(x)?),
+            (i, false) if i == last => self.head.forward_t(x, mode),
+            (i, true) => self.blocks[i - 1].forward_channels_last(x),
+            (i, false) => self.blocks[i - 1].forward_t(x, mode),
+        }
     }
 
     /// Whether a pass in `mode` runs the fused channels-last kernels from end to end: inference
@@ -244,38 +258,24 @@ impl Network {
     /// after one warm-up pass: the profile behind the benchmark's totals.
     pub fn profile(&self, x: &Tensor, mode: Mode, runs: usize) -> Result<Vec<(String, std::time::Duration)>> {
         // With the workers kept hot as in `features`, so that the stages add up to its time.
-        crate::runtime::with_hot_workers(|| self.profile_stages(x, mode, runs))
-    }
-
-    fn profile_stages(&self, x: &Tensor, mode: Mode, runs: usize) -> Result<Vec<(String, std::time::Duration)>> {
-        let mut totals = vec![std::time::Duration::ZERO; self.blocks.len() + 2];
-        for run in 0..=runs {
-            let mut timed = |i: usize, f: &dyn Fn() -> Result<Tensor>| -> Result<Tensor> {
-                let started = std::time::Instant::now();
-                let y = f()?;
-                if run > 0 {
-                    totals[i] += started.elapsed();
+        crate::runtime::with_hot_workers(|| {
+            let channels_last = self.runs_channels_last(mode);
+            let mut totals = vec![std::time::Duration::ZERO; self.stages()];
+            for run in 0..=runs {
+                let mut y = x.clone();
+                for (stage, total) in totals.iter_mut().enumerate() {
+                    let started = std::time::Instant::now();
+                    y = self.stage(stage, &y, mode, channels_last)?;
+                    if run > 0 {
+                        *total += started.elapsed();
+                    }
                 }
-                Ok(y)
-            };
-            if self.runs_channels_last(mode) {
-                let mut y = timed(0, &|| self.stem.forward_channels_last(x))?;
-                for (i, block) in self.blocks.iter().enumerate() {
-                    y = timed(i + 1, &|| block.forward_channels_last(&y))?;
-                }
-                timed(self.blocks.len() + 1, &|| layers::to_channels_first(&self.head.forward_channels_last(&y)?))?;
-                continue;
             }
-            let mut y = timed(0, &|| self.stem.forward_t(x, mode))?;
-            for (i, block) in self.blocks.iter().enumerate() {
-                y = timed(i + 1, &|| block.forward_t(&y, mode))?;
-            }
-            timed(self.blocks.len() + 1, &|| self.head.forward_t(&y, mode))?;
-        }
-        let names = std::iter::once("stem".to_string())
-            .chain((0..self.blocks.len()).map(|i| format!("blocks.{i}")))
-            .chain(std::iter::once("head".to_string()));
-        Ok(names.zip(totals).map(|(n, t)| (n, t / runs.max(1) as u32)).collect())
+            let names = std::iter::once("stem".to_string())
+                .chain((0..self.blocks.len()).map(|i| format!("blocks.{i}")))
+                .chain(std::iter::once("head".to_string()));
+            Ok(names.zip(totals).map(|(n, t)| (n, t / runs.max(1) as u32)).collect())
+        })
     }
 
     /// Calls `f(name, weight, bias)` for every parameter tensor group in inference form
