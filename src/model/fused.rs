@@ -37,7 +37,7 @@ thread_local! {
     static DEPTHWISE_OUT: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
-use super::simd::{depthwise_row, pointwise, tile_rows_of, DepthwiseRow, PackedWeights, Pointwise, LANES};
+use super::simd::{depthwise_row, pointwise, DepthwiseRow, PackedWeights, Pointwise, LANES, TILE_ROWS};
 
 fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
     t.flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()
@@ -95,7 +95,7 @@ fn split(units: usize, parts: usize) -> Vec<Range<usize>> {
 /// As [`pointwise`] for the whole call.
 unsafe fn pointwise_parallel(p: &Pointwise) {
     let threads = rayon::current_num_threads().max(1);
-    let tile = tile_rows_of(p.weights);
+    let tile = TILE_ROWS;
     let row_tiles = p.rows.div_ceil(tile);
     let panel = p.weights.panel;
     let panels = p.columns.end.div_ceil(panel) - p.columns.start / panel;
