@@ -37,7 +37,7 @@ thread_local! {
     static DEPTHWISE_OUT: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
-use super::simd::{depthwise_row, pointwise, DepthwiseRow, PackedWeights, Pointwise, LANES, TILE_ROWS};
+use super::simd::{depthwise_row, pointwise, DepthwiseRow, PackedWeights, Pointwise, LANES, SHORT_CALL_ROWS, TILE_ROWS};
 
 fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
     t.flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()
@@ -87,9 +87,8 @@ fn split(units: usize, parts: usize) -> Vec<Range<usize>> {
     (0..parts).map(|i| units * i / parts..units * (i + 1) / parts).collect()
 }
 
-/// `p` over all its rows and columns on rayon's threads: by blocks of rows where there are
-/// enough row tiles to keep every thread busy, else by whole weight panels (the 7x7 maps: 49
-/// rows are 9 tiles of 6).
+/// `p` over all its rows and columns on rayon's threads: by blocks of rows where there are many
+/// rows, else by columns (the 7x7 maps and the head).
 ///
 /// # Safety
 /// As [`pointwise`] for the whole call.
@@ -103,7 +102,9 @@ unsafe fn pointwise_parallel(p: &Pointwise) {
         // SAFETY: as the caller's.
         return unsafe { pointwise(p) };
     }
-    if row_tiles >= 4 * threads || panels < 2 * threads {
+    // Few rows: the weights are the larger operand, and split by panels each thread reads only
+    // its share of them.
+    if (p.rows > SHORT_CALL_ROWS && row_tiles >= 4 * threads) || panels < 2 * threads {
         split(row_tiles, threads).into_par_iter().for_each(|tiles| {
             let rows = tiles.start * tile..(tiles.end * tile).min(p.rows);
             let part = Pointwise {
@@ -118,9 +119,12 @@ unsafe fn pointwise_parallel(p: &Pointwise) {
             unsafe { pointwise(&part) }
         });
     } else {
-        let first = p.columns.start / panel;
-        split(panels, threads).into_par_iter().for_each(|part| {
-            let columns = ((first + part.start) * panel).max(p.columns.start)..((first + part.end) * panel).min(p.columns.end);
+        // By 16-column vectors, not whole panels: 320 columns are 5 panels of 64, which two
+        // threads would share 3:2; a part may end inside a panel (its last tiles are narrower).
+        let first = p.columns.start / LANES;
+        let vectors = p.columns.end.div_ceil(LANES) - first;
+        split(vectors, threads).into_par_iter().for_each(|part| {
+            let columns = (first + part.start) * LANES..((first + part.end) * LANES).min(p.columns.end);
             // SAFETY: each part writes its own columns.
             unsafe { pointwise(&Pointwise { columns, ..*p }) }
         });
@@ -604,4 +608,3 @@ mod tests {
         Ok(())
     }
 }
-

@@ -41,6 +41,12 @@ pub(crate) trait Lanes: Copy {
     fn add(self, b: Self) -> Self;
     fn relu6(self) -> Self;
     fn to_array(self) -> [f32; LANES];
+    /// Adds the lanes to `sums` (16 values) in double precision.
+    fn add_to_f64(self, sums: &mut [f64]) {
+        for (s, v) in sums.iter_mut().zip(self.to_array()) {
+            *s += v as f64;
+        }
+    }
 }
 
 /// The portable build: an array the compiler vectorises as it can.
@@ -139,6 +145,17 @@ mod avx512 {
             let mut out = [0f32; LANES];
             unsafe { _mm512_storeu_ps(out.as_mut_ptr(), self.0) };
             out
+        }
+        #[inline(always)]
+        fn add_to_f64(self, sums: &mut [f64]) {
+            assert!(sums.len() >= LANES);
+            unsafe {
+                let low = _mm512_cvtps_pd(_mm512_castps512_ps256(self.0));
+                let high = _mm512_cvtps_pd(_mm256_castpd_ps(_mm512_extractf64x4_pd(_mm512_castps_pd(self.0), 1)));
+                let p = sums.as_mut_ptr();
+                _mm512_storeu_pd(p, _mm512_add_pd(_mm512_loadu_pd(p), low));
+                _mm512_storeu_pd(p.add(8), _mm512_add_pd(_mm512_loadu_pd(p.add(8)), high));
+            }
         }
     }
 
@@ -255,7 +272,7 @@ unsafe impl Send for Pointwise<'_> {}
 unsafe impl Sync for Pointwise<'_> {}
 
 /// Rows up to which a call goes panel by panel ([`pointwise_rows`]).
-const SHORT_CALL_ROWS: usize = 64;
+pub(crate) const SHORT_CALL_ROWS: usize = 64;
 
 /// Computes one [`Pointwise`] block.
 ///
@@ -525,27 +542,67 @@ pub(crate) unsafe fn depthwise_row(p: &DepthwiseRow, sums: &mut [f64]) {
 
 #[inline(always)]
 unsafe fn depthwise_row_with<L: Lanes>(p: &DepthwiseRow, sums: &mut [f64]) {
+    match p.stride {
+        1 => unsafe { depthwise_row_strided::<L, 1>(p, sums) },
+        2 => unsafe { depthwise_row_strided::<L, 2>(p, sums) },
+        s => panic!("depthwise_row: stride {s}"),
+    }
+}
+
+/// [`depthwise_row`] at stride `S`, one 16-channel vector at a time with its nine weights in
+/// registers, by steps of four output pixels (then one step of the one to three left): each input
+/// pixel a step reads is loaded once and feeds every output it touches (6 loads per row for 4
+/// outputs at stride 1, 9 at stride 2, against 12), and the four sums run side by side instead
+/// of one chain of nine multiply-adds per pixel (1.2-1.7x on the network's shapes).
+#[inline(always)]
+unsafe fn depthwise_row_strided<L: Lanes, const S: usize>(p: &DepthwiseRow, sums: &mut [f64]) {
     for c in p.channels.clone().step_by(LANES) {
         let w: [L; 9] = std::array::from_fn(|t| unsafe { L::load(p.weights.as_ptr().add(t * p.pitch + c)) });
         let bias = unsafe { L::load(p.bias.as_ptr().add(c)) };
-        let rows = p.rows.map(|r| unsafe { r.add(c) });
         let mut sum = L::splat(0.0);
-        for x in 0..p.width {
-            let first = (p.first_pixel + x * p.stride) * p.pitch;
-            let mut acc = bias;
-            for (ky, row) in rows.iter().enumerate() {
-                for kx in 0..3 {
-                    acc = unsafe { L::load(row.add(first + kx * p.pitch)) }.mul_add(w[ky * 3 + kx], acc);
-                }
-            }
-            acc = acc.relu6();
-            sum = sum.add(acc);
-            unsafe { acc.store(p.out.add(x * p.pitch + c)) };
+        let mut x = 0;
+        while x + 4 <= p.width {
+            sum = sum.add(unsafe { depthwise_step::<L, S, 4>(p, c, x, &w, bias) });
+            x += 4;
         }
-        for (s, v) in sums[c - p.channels.start..].iter_mut().zip(sum.to_array()) {
-            *s += v as f64;
-        }
+        sum = sum.add(match p.width - x {
+            0 => L::splat(0.0),
+            1 => unsafe { depthwise_step::<L, S, 1>(p, c, x, &w, bias) },
+            2 => unsafe { depthwise_step::<L, S, 2>(p, c, x, &w, bias) },
+            _ => unsafe { depthwise_step::<L, S, 3>(p, c, x, &w, bias) },
+        });
+        sum.add_to_f64(&mut sums[c - p.channels.start..c - p.channels.start + LANES]);
     }
+}
+
+/// Output pixels `x..x + P` of channel vector `c` of [`depthwise_row`]; returns their sum.
+#[inline(always)]
+unsafe fn depthwise_step<L: Lanes, const S: usize, const P: usize>(p: &DepthwiseRow, c: usize, x: usize, w: &[L; 9], bias: L) -> L {
+    let pitch = p.pitch;
+    let mut acc = [bias; P];
+    unrolled!(KY in [0 1 2] {
+        let row = unsafe { p.rows[KY].add(c + (p.first_pixel + x * S) * pitch) };
+        // Input pixel `I` of the step feeds output `O` through tap `I - O * S`.
+        unrolled!(I in [0 1 2 3 4 5 6 7 8] {
+            if I < (P - 1) * S + 3 {
+                let v = unsafe { L::load(row.add(I * pitch)) };
+                unrolled!(O in [0 1 2 3] {
+                    if O < P && I >= O * S && I - O * S < 3 {
+                        acc[O] = v.mul_add(w[KY * 3 + I - O * S], acc[O]);
+                    }
+                });
+            }
+        });
+    });
+    let mut sum = L::splat(0.0);
+    unrolled!(O in [0 1 2 3] {
+        if O < P {
+            let v = acc[O].relu6();
+            sum = sum.add(v);
+            unsafe { v.store(p.out.add(c + (x + O) * pitch)) };
+        }
+    });
+    sum
 }
 
 #[cfg(test)]
@@ -627,7 +684,7 @@ mod tests {
     /// Both builds of `depthwise_row` against naive loops, strides 1 and 2, both paddings.
     #[test]
     fn depthwise_row_equals_naive_loops_in_every_build() {
-        for (stride, first_pixel, width, pitch, channels) in [(1, 0, 9, 32, 0..32), (2, 1, 5, 48, 16..48), (2, 0, 4, 16, 0..16), (1, 0, 1, 64, 32..64)] {
+        for (stride, first_pixel, width, pitch, channels) in [(1, 0, 9, 32, 0..32), (2, 1, 5, 48, 16..48), (2, 0, 4, 16, 0..16), (1, 0, 1, 64, 32..64), (1, 1, 14, 16, 0..16), (2, 1, 11, 32, 0..32)] {
             let pixels = first_pixel + (width - 1) * stride + 3;
             let rows: Vec<Vec<f32>> = (0..3).map(|i| random(pixels * pitch, 10 + i)).collect();
             let weights = random(9 * pitch, 20);
