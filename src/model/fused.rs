@@ -81,6 +81,19 @@ impl SharedMut {
     }
 }
 
+/// An output of `len` floats that `fill` writes through the pointer, every element: the ops'
+/// outputs are not zeroed first (3.5 MB of memset a frame, most of it the 112x112 maps).
+///
+/// # Safety
+/// `fill` writes all `len` floats at the pointer it is given.
+unsafe fn written_output(len: usize, fill: impl FnOnce(*mut f32)) -> Vec<f32> {
+    let mut out = Vec::with_capacity(len);
+    fill(out.as_mut_ptr());
+    // SAFETY: `fill` wrote every element (the caller's contract).
+    unsafe { out.set_len(len) };
+    out
+}
+
 /// `units` split into `parts` contiguous ranges whose sizes differ by at most one.
 fn split(units: usize, parts: usize) -> Vec<Range<usize>> {
     let parts = parts.clamp(1, units.max(1));
@@ -246,23 +259,29 @@ impl FusedBottleneck {
     }
 
     /// One image: `x` `[h, w, input]` -> `out` `[oh, ow, output]`.
-    fn forward_image(&self, x: &[f32], h: usize, w: usize, out: &mut [f32]) {
+    ///
+    /// # Safety
+    /// `out` points at `oh * ow * output` writable floats, all of which are written.
+    unsafe fn forward_image(&self, x: &[f32], h: usize, w: usize, out: *mut f32) {
         let (oh, ow) = (same_padding(h, 3, self.stride).0, same_padding(w, 3, self.stride).0);
         let size = oh * ow * self.pitch;
         DEPTHWISE_OUT.with(|buffer| match buffer.try_borrow_mut() {
             Ok(mut reused) => {
                 // Every element is written before it is read: a reused buffer is not cleared.
                 reused.resize(size, 0.0);
-                self.forward_image_with(x, h, w, out, &mut reused[..size]);
+                unsafe { self.forward_image_with(x, h, w, out, &mut reused[..size]) };
             }
             // This thread is already inside a bottleneck (it stole another pass's work while
             // waiting): a buffer of its own.
-            Err(_) => self.forward_image_with(x, h, w, out, &mut vec![0f32; size]),
+            Err(_) => unsafe { self.forward_image_with(x, h, w, out, &mut vec![0f32; size]) },
         });
     }
 
     /// [`Self::forward_image`] with `depthwise_out` (`[oh, ow, pitch]`) to work in.
-    fn forward_image_with(&self, x: &[f32], h: usize, w: usize, out: &mut [f32], depthwise_out: &mut [f32]) {
+    ///
+    /// # Safety
+    /// As [`Self::forward_image`].
+    unsafe fn forward_image_with(&self, x: &[f32], h: usize, w: usize, out: *mut f32, depthwise_out: &mut [f32]) {
         let s = self.stride;
         let (oh, ow) = (same_padding(h, 3, s).0, same_padding(w, 3, s).0);
         let pitch = self.pitch;
@@ -317,7 +336,7 @@ impl FusedBottleneck {
             steps: None,
             weights,
             columns: 0..self.output,
-            out: out.as_mut_ptr(),
+            out,
             ldo: self.output,
             residual: if self.residual { x.as_ptr() } else { std::ptr::null() },
             ldr: self.input,
@@ -386,10 +405,15 @@ impl CustomOp1 for FusedBottleneck {
         }
         let x = input(storage, layout, "fused bottleneck")?;
         let (oh, ow) = (h.div_ceil(self.stride), w.div_ceil(self.stride));
-        let mut out = vec![0f32; batch * oh * ow * self.output];
-        for (image, out) in x.chunks_exact(channels * h * w).zip(out.chunks_exact_mut(self.output * oh * ow)) {
-            self.forward_image(image, h, w, out);
-        }
+        let per_image = self.output * oh * ow;
+        // SAFETY: each image's pass writes all of its `per_image` floats.
+        let out = unsafe {
+            written_output(batch * per_image, |out| {
+                for (i, image) in x.chunks_exact(channels * h * w).enumerate() {
+                    self.forward_image(image, h, w, out.add(i * per_image));
+                }
+            })
+        };
         Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, oh, ow, self.output])))
     }
 }
@@ -430,25 +454,52 @@ impl DenseConv {
     /// image is padded once, then the output rows are split among the threads, each row one
     /// product whose rows (output pixels) read their patches from the padded image through the
     /// offsets of the taps ([`Pointwise::steps`]).
-    fn forward_full(&self, x: &[f32], h: usize, w: usize, out: &mut [f32]) {
+    ///
+    /// # Safety
+    /// `out` points at `oh * ow * out_channels` writable floats, all of which are written.
+    unsafe fn forward_full(&self, x: &[f32], h: usize, w: usize, out: *mut f32) {
         let ((kh, kw), s) = (self.kernel, self.stride);
         let (oh, top, _) = same_padding(h, kh, s);
         let (ow, left, _) = same_padding(w, kw, s);
         let (ph, pw) = ((oh - 1) * s + kh, (ow - 1) * s + kw);
-        let mut padded = vec![0f32; self.in_channels * ph * pw];
+        let shape = (self.in_channels, ph, pw, top, left, h, w);
+        let size = self.in_channels * ph * pw;
+        PADDED_IMAGE.with(|buffer| match buffer.try_borrow_mut() {
+            Ok(mut reused) => {
+                // The same shape as last time leaves the padding as it was: zero. Only the image
+                // is copied in.
+                if reused.0 != shape {
+                    *reused = (shape, vec![0f32; size]);
+                }
+                unsafe { self.convolve_padded(x, h, w, &mut reused.1, out) }
+            }
+            // This thread is already inside a stem (it stole another pass's work while waiting).
+            Err(_) => unsafe { self.convolve_padded(x, h, w, &mut vec![0f32; size], out) },
+        })
+    }
+
+    /// [`Self::forward_full`] with `padded` (zero, or zero where the padding goes) to pad into.
+    ///
+    /// # Safety
+    /// As [`Self::forward_full`].
+    unsafe fn convolve_padded(&self, x: &[f32], h: usize, w: usize, padded: &mut [f32], out: *mut f32) {
+        let ((kh, kw), s) = (self.kernel, self.stride);
+        let (oh, top, _) = same_padding(h, kh, s);
+        let (ow, left, _) = same_padding(w, kw, s);
+        let (ph, pw) = ((oh - 1) * s + kh, (ow - 1) * s + kw);
         for (plane, source) in padded.chunks_exact_mut(ph * pw).zip(x.chunks_exact(h * w)) {
             for (row, source_row) in plane.chunks_exact_mut(pw).skip(top).zip(source.chunks_exact(w)) {
                 let n = w.min(pw - left);
                 row[left..left + n].copy_from_slice(&source_row[..n]);
             }
         }
+        let padded = &*padded;
         // Tap (c, ky, kx) of the output pixel whose patch starts at `p` is at `p + offset`.
         let taps: Vec<usize> = (0..self.in_channels * kh * kw).map(|t| (t / (kh * kw)) * ph * pw + (t / kw % kh) * pw + t % kw).collect();
         let row_out = ow * self.out_channels;
-        let rows_per_task = oh.div_ceil(rayon::current_num_threads().max(1));
-        out.par_chunks_mut(rows_per_task * row_out).enumerate().for_each(|(task, out)| {
-            for (i, out_row) in out.chunks_exact_mut(row_out).enumerate() {
-                let oy = task * rows_per_task + i;
+        let out = SharedMut(out);
+        split(oh, rayon::current_num_threads()).into_par_iter().for_each(|rows| {
+            for oy in rows {
                 let p = Pointwise {
                     rows: ow,
                     a: padded[oy * s * pw..].as_ptr(),
@@ -456,18 +507,24 @@ impl DenseConv {
                     steps: Some(&taps),
                     weights: &self.weights,
                     columns: 0..self.out_channels,
-                    out: out_row.as_mut_ptr(),
+                    out: out.get().wrapping_add(oy * row_out),
                     ldo: self.out_channels,
                     residual: std::ptr::null(),
                     ldr: 0,
                     relu6: self.relu6,
                 };
                 // SAFETY: every patch of the row lies in `padded` (its size covers the last
-                // patch); `out_row` holds `ow` pixels.
+                // patch); output row `oy` (`ow` pixels) is this task's alone.
                 unsafe { pointwise(&p) };
             }
         });
     }
+}
+
+thread_local! {
+    /// The stem's zero-padded image, kept with the shape it was made for
+    /// (channels, padded height and width, top and left padding, height and width).
+    static PADDED_IMAGE: std::cell::RefCell<((usize, usize, usize, usize, usize, usize, usize), Vec<f32>)> = Default::default();
 }
 
 impl CustomOp1 for DenseConv {
@@ -484,22 +541,26 @@ impl CustomOp1 for DenseConv {
             if channels != self.in_channels {
                 candle_core::bail!("1x1 conv: {channels} input channels, expected {}", self.in_channels);
             }
-            let mut out = vec![0f32; batch * h * w * self.out_channels];
-            let p = Pointwise {
-                rows: batch * h * w,
-                a: x.as_ptr(),
-                lda: channels,
-                steps: None,
-                weights: &self.weights,
-                columns: 0..self.out_channels,
-                out: out.as_mut_ptr(),
-                ldo: self.out_channels,
-                residual: std::ptr::null(),
-                ldr: 0,
-                relu6: self.relu6,
+            // SAFETY: the product writes every column of every pixel of the batch.
+            let out = unsafe {
+                written_output(batch * h * w * self.out_channels, |out| {
+                    let p = Pointwise {
+                        rows: batch * h * w,
+                        a: x.as_ptr(),
+                        lda: channels,
+                        steps: None,
+                        weights: &self.weights,
+                        columns: 0..self.out_channels,
+                        out,
+                        ldo: self.out_channels,
+                        residual: std::ptr::null(),
+                        ldr: 0,
+                        relu6: self.relu6,
+                    };
+                    // SAFETY: `x` and `out` hold all the pixels of the batch.
+                    pointwise_parallel(&p)
+                })
             };
-            // SAFETY: `x` and `out` hold all the pixels of the batch.
-            unsafe { pointwise_parallel(&p) };
             return Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, h, w, self.out_channels])));
         }
         let (channels, h, w) = (a, b, c);
@@ -508,10 +569,15 @@ impl CustomOp1 for DenseConv {
         }
         let ((kh, kw), s) = (self.kernel, self.stride);
         let (oh, ow) = (same_padding(h, kh, s).0, same_padding(w, kw, s).0);
-        let mut out = vec![0f32; batch * oh * ow * self.out_channels];
-        for (image, out) in x.chunks_exact(channels * h * w).zip(out.chunks_exact_mut(oh * ow * self.out_channels)) {
-            self.forward_full(image, h, w, out);
-        }
+        let per_image = oh * ow * self.out_channels;
+        // SAFETY: each image's convolution writes all of its `per_image` floats.
+        let out = unsafe {
+            written_output(batch * per_image, |out| {
+                for (i, image) in x.chunks_exact(channels * h * w).enumerate() {
+                    self.forward_full(image, h, w, out.add(i * per_image));
+                }
+            })
+        };
         Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, oh, ow, self.out_channels])))
     }
 }
