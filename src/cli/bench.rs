@@ -294,8 +294,10 @@ fn profile(args: &BenchArgs, image: &RgbImage) -> Result<Vec<ProfileRow>> {
     let mut rows = Vec::new();
     for &threads in &args.threads {
         let stages = with_threads(threads, || Ok(embedder.network.profile(&x, Mode::Inference, args.runs)?))?;
-        for ((stage, time), cost) in stages.into_iter().zip(&costs) {
-            rows.push(ProfileRow { stage, threads, macs: cost.macs, ms: time.as_secs_f64() * 1e3 });
+        for (stage, time) in stages {
+            // A fused stage ("stem+blocks.0") costs what its parts do.
+            let macs = stage.split('+').map(|part| costs.iter().find(|c| c.name == part).map_or(0, |c| c.macs)).sum();
+            rows.push(ProfileRow { stage, threads, macs, ms: time.as_secs_f64() * 1e3 });
         }
     }
     Ok(rows)

@@ -4,7 +4,9 @@
 //!
 //! - [`FusedBottleneck`]: a whole inverted-residual bottleneck in one op, `[B, H, W, C]` ->
 //!   `[B, OH, OW, C']`: 1x1 expansion + ReLU6, 3x3 depthwise + ReLU6, optional ECA, the linear
-//!   1x1 projection and the residual.
+//!   1x1 projection and the residual. The first block (no expansion) also runs with the stem
+//!   fused in ([`FusedBottleneck::with_stem`]), taking the NCHW image: the stem's output rows
+//!   are computed where the block would copy them, and the network's largest map is never stored.
 //! - [`DenseConv`]: a full convolution (the stem) from the NCHW image to a channels-last map, or a
 //!   1x1 convolution (the head) from channels-last to channels-last.
 //!
@@ -27,6 +29,7 @@
 //! [`Mode::Reference`]: super::layers::Mode::Reference
 
 use std::ops::Range;
+use std::sync::Arc;
 
 use candle_core::{CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
@@ -145,7 +148,7 @@ unsafe fn pointwise_parallel(p: &Pointwise) {
 }
 
 /// The folded weights of one inverted-residual bottleneck with 3x3 depthwise convolution.
-#[derive(Debug)]
+#[derive(Clone, Debug)]
 pub struct FusedBottleneck {
     input: usize,
     hidden: usize,
@@ -162,6 +165,25 @@ pub struct FusedBottleneck {
     /// `[pitch, output]`.
     project: PackedWeights,
     residual: bool,
+    /// The stem whose output this block takes, computed here row by row ([`Self::with_stem`]).
+    stem: Option<Arc<DenseConv>>,
+}
+
+/// What a bottleneck pass reads: a channels-last map, or (a block fused with the stem) the
+/// zero-padded image and where the stem's taps are in it.
+#[derive(Clone, Copy)]
+enum Input<'a> {
+    Map(&'a [f32]),
+    Image(&'a PaddedImage<'a>),
+}
+
+/// An image zero-padded for the stem ([`DenseConv::with_padded`]).
+struct PaddedImage<'a> {
+    data: &'a [f32],
+    /// Padded width.
+    width: usize,
+    /// Offset of each tap (channel, ky, kx) from the top left of its patch.
+    taps: Vec<usize>,
 }
 
 impl FusedBottleneck {
@@ -223,14 +245,36 @@ impl FusedBottleneck {
             eca_taps: eca.map(to_vec).transpose()?,
             project: PackedWeights::from_output_major(&project_weight, &to_vec(project.1)?, output, pitch),
             residual: stride == 1 && input == output,
+            stem: None,
         })
     }
 
-    /// Input row `y` of `x` (`[h, w, input]`) expanded (or copied, without expansion) into the
-    /// padded `row` (`w + 2` pixels of `pitch`; pixels `1..=w`), channels `channels` only.
-    fn fill_row(&self, x: &[f32], w: usize, y: usize, row: &mut [f32], channels: Range<usize>) {
-        let source = &x[y * w * self.input..(y + 1) * w * self.input];
+    /// This block taking the NCHW image instead of its input map: each task computes the stem's
+    /// output rows just before the depthwise convolution reads them, where a block without
+    /// expansion would copy them from the stem's map. The stem's map (32 x 112 x 112, 1.6 MB at
+    /// 224², the largest of the network) is then never written nor read back.
+    pub fn with_stem(&self, stem: Arc<DenseConv>) -> Result<Self> {
+        if self.expand.is_some() || stem.is_pointwise() || stem.out_channels != self.input || self.residual {
+            candle_core::bail!("fused bottleneck: only a first block without expansion or residual takes the stem");
+        }
+        Ok(FusedBottleneck { stem: Some(stem), ..self.clone() })
+    }
+
+    /// Input row `y` of `x` (`[h, w, input]`) expanded (or copied, without expansion, or computed
+    /// by the stem) into the padded `row` (`w + 2` pixels of `pitch`; pixels `1..=w`), channels
+    /// `channels` only.
+    fn fill_row(&self, x: Input, w: usize, y: usize, row: &mut [f32], channels: Range<usize>) {
         let pixels = &mut row[self.pitch..(w + 1) * self.pitch];
+        let x = match (x, &self.stem) {
+            (Input::Map(x), None) => x,
+            (Input::Image(image), Some(stem)) => {
+                let channels = channels.start..channels.end.min(self.input);
+                // SAFETY: `pixels` holds the row's `w` pixels of `pitch` >= `input` floats.
+                return unsafe { stem.output_row(image, w, y, channels, pixels.as_mut_ptr(), self.pitch) };
+            }
+            _ => unreachable!("fused bottleneck: the input matches the block (checked by cpu_fwd)"),
+        };
+        let source = &x[y * w * self.input..(y + 1) * w * self.input];
         match &self.expand {
             Some(weights) => {
                 let p = Pointwise {
@@ -262,7 +306,7 @@ impl FusedBottleneck {
     ///
     /// # Safety
     /// `out` points at `oh * ow * output` writable floats, all of which are written.
-    unsafe fn forward_image(&self, x: &[f32], h: usize, w: usize, out: *mut f32) {
+    unsafe fn forward_image(&self, x: Input, h: usize, w: usize, out: *mut f32) {
         let (oh, ow) = (same_padding(h, 3, self.stride).0, same_padding(w, 3, self.stride).0);
         let size = oh * ow * self.pitch;
         DEPTHWISE_OUT.with(|buffer| match buffer.try_borrow_mut() {
@@ -281,7 +325,7 @@ impl FusedBottleneck {
     ///
     /// # Safety
     /// As [`Self::forward_image`].
-    unsafe fn forward_image_with(&self, x: &[f32], h: usize, w: usize, out: *mut f32, depthwise_out: &mut [f32]) {
+    unsafe fn forward_image_with(&self, x: Input, h: usize, w: usize, out: *mut f32, depthwise_out: &mut [f32]) {
         let s = self.stride;
         let (oh, ow) = (same_padding(h, 3, s).0, same_padding(w, 3, s).0);
         let pitch = self.pitch;
@@ -338,7 +382,10 @@ impl FusedBottleneck {
             columns: 0..self.output,
             out,
             ldo: self.output,
-            residual: if self.residual { x.as_ptr() } else { std::ptr::null() },
+            residual: match x {
+                Input::Map(x) if self.residual => x.as_ptr(),
+                _ => std::ptr::null(),
+            },
             ldr: self.input,
             relu6: false,
         };
@@ -354,7 +401,7 @@ impl FusedBottleneck {
     /// # Safety
     /// `depthwise` holds `oh * ow` pixels of `pitch` floats; no other thread writes this part.
     #[allow(clippy::too_many_arguments)]
-    unsafe fn expand_and_depthwise(&self, x: &[f32], h: usize, w: usize, rows: Range<usize>, channels: Range<usize>, depthwise: *mut f32, sums: &mut [f64]) {
+    unsafe fn expand_and_depthwise(&self, x: Input, h: usize, w: usize, rows: Range<usize>, channels: Range<usize>, depthwise: *mut f32, sums: &mut [f64]) {
         let s = self.stride;
         let (_, pad_top, _) = same_padding(h, 3, s);
         let (ow, pad_left, _) = same_padding(w, 3, s);
@@ -398,19 +445,30 @@ impl CustomOp1 for FusedBottleneck {
         "fused-inverted-residual-nhwc"
     }
 
+    /// `[B, H, W, input]` -> `[B, OH, OW, output]`; fused with the stem, `[B, 3, H, W]` (the NCHW
+    /// image) -> `[B, OH, OW, output]`.
     fn cpu_fwd(&self, storage: &CpuStorage, layout: &Layout) -> Result<(CpuStorage, Shape)> {
-        let (batch, h, w, channels) = layout.shape().dims4()?;
-        if channels != self.input {
-            candle_core::bail!("fused bottleneck: {channels} input channels, expected {}", self.input);
-        }
         let x = input(storage, layout, "fused bottleneck")?;
+        let (batch, a, b, c) = layout.shape().dims4()?;
+        let (channels, image_size, (h, w)) = match &self.stem {
+            Some(stem) => (a, (b, c), stem.output_size(b, c)),
+            None => (c, (a, b), (a, b)),
+        };
+        let expected = self.stem.as_ref().map_or(self.input, |stem| stem.in_channels);
+        if channels != expected {
+            candle_core::bail!("fused bottleneck: {channels} input channels, expected {expected}");
+        }
         let (oh, ow) = (h.div_ceil(self.stride), w.div_ceil(self.stride));
         let per_image = self.output * oh * ow;
         // SAFETY: each image's pass writes all of its `per_image` floats.
         let out = unsafe {
             written_output(batch * per_image, |out| {
-                for (i, image) in x.chunks_exact(channels * h * w).enumerate() {
-                    self.forward_image(image, h, w, out.add(i * per_image));
+                for (i, image) in x.chunks_exact(x.len() / batch.max(1)).enumerate() {
+                    let out = out.add(i * per_image);
+                    match &self.stem {
+                        Some(stem) => stem.with_padded(image, image_size.0, image_size.1, |padded| self.forward_image(Input::Image(padded), h, w, out)),
+                        None => self.forward_image(Input::Map(image), h, w, out),
+                    }
                 }
             })
         };
@@ -450,74 +508,86 @@ impl DenseConv {
         (self.kernel, self.stride) == ((1, 1), 1)
     }
 
-    /// The full convolution of one NCHW image `x` `[in, h, w]` into `out` `[oh, ow, out]`: the
-    /// image is padded once, then the output rows are split among the threads, each row one
-    /// product whose rows (output pixels) read their patches from the padded image through the
-    /// offsets of the taps ([`Pointwise::steps`]).
-    ///
-    /// # Safety
-    /// `out` points at `oh * ow * out_channels` writable floats, all of which are written.
-    unsafe fn forward_full(&self, x: &[f32], h: usize, w: usize, out: *mut f32) {
+    /// Output height and width for an `h x w` image (a full convolution).
+    fn output_size(&self, h: usize, w: usize) -> (usize, usize) {
+        (same_padding(h, self.kernel.0, self.stride).0, same_padding(w, self.kernel.1, self.stride).0)
+    }
+
+    /// `f` of the NCHW image `x` (`[in, h, w]`) zero-padded for this convolution, in a buffer
+    /// kept per thread: the same shape as last time leaves the padding as it was, zero, and only
+    /// the image is copied in.
+    fn with_padded<R>(&self, x: &[f32], h: usize, w: usize, f: impl FnOnce(&PaddedImage) -> R) -> R {
         let ((kh, kw), s) = (self.kernel, self.stride);
         let (oh, top, _) = same_padding(h, kh, s);
         let (ow, left, _) = same_padding(w, kw, s);
         let (ph, pw) = ((oh - 1) * s + kh, (ow - 1) * s + kw);
         let shape = (self.in_channels, ph, pw, top, left, h, w);
         let size = self.in_channels * ph * pw;
+        let run = |padded: &mut [f32]| {
+            for (plane, source) in padded.chunks_exact_mut(ph * pw).zip(x.chunks_exact(h * w)) {
+                for (row, source_row) in plane.chunks_exact_mut(pw).skip(top).zip(source.chunks_exact(w)) {
+                    let n = w.min(pw - left);
+                    row[left..left + n].copy_from_slice(&source_row[..n]);
+                }
+            }
+            let taps = (0..self.in_channels * kh * kw).map(|t| (t / (kh * kw)) * ph * pw + (t / kw % kh) * pw + t % kw).collect();
+            f(&PaddedImage { data: padded, width: pw, taps })
+        };
         PADDED_IMAGE.with(|buffer| match buffer.try_borrow_mut() {
             Ok(mut reused) => {
-                // The same shape as last time leaves the padding as it was: zero. Only the image
-                // is copied in.
                 if reused.0 != shape {
                     *reused = (shape, vec![0f32; size]);
                 }
-                unsafe { self.convolve_padded(x, h, w, &mut reused.1, out) }
+                run(&mut reused.1)
             }
             // This thread is already inside a stem (it stole another pass's work while waiting).
-            Err(_) => unsafe { self.convolve_padded(x, h, w, &mut vec![0f32; size], out) },
+            Err(_) => run(&mut vec![0f32; size]),
         })
     }
 
-    /// [`Self::forward_full`] with `padded` (zero, or zero where the padding goes) to pad into.
+    /// Output row `oy` (`ow` pixels), channels `columns`, of the full convolution of `image`, to
+    /// `out` with `ldo` floats per pixel: one product whose rows (output pixels) read their
+    /// patches from the padded image through the offsets of the taps ([`Pointwise::steps`]).
     ///
     /// # Safety
-    /// As [`Self::forward_full`].
-    unsafe fn convolve_padded(&self, x: &[f32], h: usize, w: usize, padded: &mut [f32], out: *mut f32) {
-        let ((kh, kw), s) = (self.kernel, self.stride);
-        let (oh, top, _) = same_padding(h, kh, s);
-        let (ow, left, _) = same_padding(w, kw, s);
-        let (ph, pw) = ((oh - 1) * s + kh, (ow - 1) * s + kw);
-        for (plane, source) in padded.chunks_exact_mut(ph * pw).zip(x.chunks_exact(h * w)) {
-            for (row, source_row) in plane.chunks_exact_mut(pw).skip(top).zip(source.chunks_exact(w)) {
-                let n = w.min(pw - left);
-                row[left..left + n].copy_from_slice(&source_row[..n]);
-            }
-        }
-        let padded = &*padded;
-        // Tap (c, ky, kx) of the output pixel whose patch starts at `p` is at `p + offset`.
-        let taps: Vec<usize> = (0..self.in_channels * kh * kw).map(|t| (t / (kh * kw)) * ph * pw + (t / kw % kh) * pw + t % kw).collect();
+    /// `out` points at `ow` pixels of `ldo` floats covering `columns`, which no other thread
+    /// writes meanwhile; `oy` and `ow` are within the convolution's output.
+    unsafe fn output_row(&self, image: &PaddedImage, ow: usize, oy: usize, columns: Range<usize>, out: *mut f32, ldo: usize) {
+        let p = Pointwise {
+            rows: ow,
+            a: image.data[oy * self.stride * image.width..].as_ptr(),
+            lda: self.stride,
+            steps: Some(&image.taps),
+            weights: &self.weights,
+            columns,
+            out,
+            ldo,
+            residual: std::ptr::null(),
+            ldr: 0,
+            relu6: self.relu6,
+        };
+        // SAFETY: every patch of the row lies in the padded image (its size covers the last
+        // patch); the caller's contract for `out`.
+        unsafe { pointwise(&p) }
+    }
+
+    /// The full convolution of one NCHW image `x` `[in, h, w]` into `out` `[oh, ow, out]`, the
+    /// output rows split among the threads.
+    ///
+    /// # Safety
+    /// `out` points at `oh * ow * out_channels` writable floats, all of which are written.
+    unsafe fn forward_full(&self, x: &[f32], h: usize, w: usize, out: *mut f32) {
+        let (oh, ow) = self.output_size(h, w);
         let row_out = ow * self.out_channels;
         let out = SharedMut(out);
-        split(oh, rayon::current_num_threads()).into_par_iter().for_each(|rows| {
-            for oy in rows {
-                let p = Pointwise {
-                    rows: ow,
-                    a: padded[oy * s * pw..].as_ptr(),
-                    lda: s,
-                    steps: Some(&taps),
-                    weights: &self.weights,
-                    columns: 0..self.out_channels,
-                    out: out.get().wrapping_add(oy * row_out),
-                    ldo: self.out_channels,
-                    residual: std::ptr::null(),
-                    ldr: 0,
-                    relu6: self.relu6,
-                };
-                // SAFETY: every patch of the row lies in `padded` (its size covers the last
-                // patch); output row `oy` (`ow` pixels) is this task's alone.
-                unsafe { pointwise(&p) };
-            }
-        });
+        self.with_padded(x, h, w, |image| {
+            split(oh, rayon::current_num_threads()).into_par_iter().for_each(|rows| {
+                for oy in rows {
+                    // SAFETY: output row `oy` is this task's alone.
+                    unsafe { self.output_row(image, ow, oy, 0..self.out_channels, out.get().wrapping_add(oy * row_out), self.out_channels) };
+                }
+            })
+        })
     }
 }
 
@@ -671,6 +741,44 @@ mod tests {
             let diff = max_diff(&fast, &reference);
             assert!(diff < 1e-4, "{kernel}x{kernel} s{stride} {h}x{w} -> {out}: max diff {diff}");
         }
+        Ok(())
+    }
+
+    /// The stem fused into a first block without expansion (with and without ECA, odd and even
+    /// sizes, batch 2, three threads: row bands whose edge rows the stem computes twice) equals the
+    /// stock stem followed by the stock block; a block with expansion does not take the stem.
+    #[test]
+    fn stem_fused_into_first_block_equals_stock_ops() -> Result<()> {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        let stem_tensors = HashMap::from([("weight".to_string(), random(&[32, 3, 3, 3], 0.5)), ("bias".to_string(), random(&[32], 1.0))]);
+        let stem = ConvUnit::load(VarBuilder::from_tensors(stem_tensors, DType::F32, &Device::Cpu), (32, 3, 3, 3), ConvKind::Full { stride: 2 }, Activation::Relu6, false)?;
+        let block_with = |shape: BlockShape| {
+            let mut tensors = HashMap::new();
+            if shape.has_expansion() {
+                tensors.insert("expand.weight".to_string(), random(&[shape.hidden, shape.input, 1, 1], 0.5));
+                tensors.insert("expand.bias".to_string(), random(&[shape.hidden], 1.0));
+            }
+            tensors.insert("depthwise.weight".to_string(), random(&[shape.hidden, 1, 3, 3], 0.5));
+            tensors.insert("depthwise.bias".to_string(), random(&[shape.hidden], 1.0));
+            if let Some(k) = shape.eca_kernel {
+                tensors.insert("eca.weight".to_string(), random(&[1, 1, k], 1.0));
+            }
+            tensors.insert("project.weight".to_string(), random(&[shape.output, shape.hidden, 1, 1], 0.3));
+            tensors.insert("project.bias".to_string(), random(&[shape.output], 1.0));
+            InvertedResidual::load(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), shape, false)
+        };
+        for (eca_kernel, h, w) in [(Some(3), 61, 50), (None, 40, 33)] {
+            let block = block_with(BlockShape { input: 32, hidden: 32, output: 16, stride: 1, eca_kernel })?;
+            let fused = block.fused_with_stem(&stem).expect("a first block without expansion takes the stem");
+            let x = random(&[2, 3, h, w], 2.0);
+            let fast = pool.install(|| crate::model::layers::to_channels_first(&x.apply_op1_no_bwd(fused.as_ref())?))?;
+            let reference = block.forward_t(&stem.forward_t(&x, Mode::Reference)?, Mode::Reference)?;
+            assert_eq!(fast.dims(), reference.dims());
+            let diff = max_diff(&fast, &reference);
+            assert!(diff < 1e-4, "{h}x{w} eca {eca_kernel:?}: max diff {diff}");
+        }
+        let expanding = block_with(BlockShape { input: 32, hidden: 96, output: 16, stride: 2, eca_kernel: Some(3) })?;
+        assert!(expanding.fused_with_stem(&stem).is_none());
         Ok(())
     }
 }

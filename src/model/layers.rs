@@ -351,6 +351,14 @@ impl InvertedResidual {
         self.fused.is_some()
     }
 
+    /// This block's fused kernel taking the NCHW image through `stem`
+    /// ([`FusedBottleneck::with_stem`]), where both have fused kernels and the block can take the
+    /// stem (no expansion, no residual: the first block of both networks).
+    pub fn fused_with_stem(&self, stem: &ConvUnit) -> Option<Arc<FusedBottleneck>> {
+        let (fused, dense) = (self.fused.as_ref()?, stem.dense.as_ref()?);
+        fused.with_stem(dense.clone()).ok().map(Arc::new)
+    }
+
     pub fn forward_t(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
         if let (Mode::Inference, Some(fused)) = (mode, &self.fused) {
             return to_channels_first(&to_channels_last(x)?.apply_op1_no_bwd(fused.as_ref())?);

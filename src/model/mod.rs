@@ -24,8 +24,10 @@ use candle_nn::VarBuilder;
 use serde::Serialize;
 use std::fmt;
 use std::str::FromStr;
+use std::sync::Arc;
 
 use depthwise::Activation;
+use fused::FusedBottleneck;
 use layers::{BlockShape, ConvKind, ConvUnit, InvertedResidual, Mode};
 
 /// Which network.
@@ -183,6 +185,19 @@ pub struct Network {
     pub blocks: Vec<InvertedResidual>,
     head: ConvUnit,
     classifier: Option<candle_nn::Linear>,
+    /// The stem and the first block as one fused op, where they have fused kernels and the block
+    /// can take the stem ([`InvertedResidual::fused_with_stem`]).
+    stem_and_first_block: Option<Arc<FusedBottleneck>>,
+}
+
+/// One stage of a pass: what [`Network::profile`] times.
+#[derive(Clone, Copy, Debug)]
+enum Stage {
+    Stem,
+    /// The stem and block 0 in one op (channels-last inference only).
+    StemAndFirstBlock,
+    Block(usize),
+    Head,
 }
 
 impl Network {
@@ -205,7 +220,8 @@ impl Network {
         let last = blocks.last().map(|b| b.shape.output).unwrap_or(spec.stem_channels);
         let head = ConvUnit::load(vb.pp("head"), (spec.head_channels, last, 1, 1), ConvKind::Pointwise, Activation::Relu6, batch_norm)?;
         let classifier = classes.map(|k| candle_nn::linear(spec.head_channels, k, vb.pp("classifier"))).transpose()?;
-        Ok(Network { spec: spec.clone(), stem, blocks, head, classifier })
+        let stem_and_first_block = blocks.first().and_then(|b| b.fused_with_stem(&stem));
+        Ok(Network { spec: spec.clone(), stem, blocks, head, classifier, stem_and_first_block })
     }
 
     pub fn arch(&self) -> Arch {
@@ -221,30 +237,48 @@ impl Network {
         crate::runtime::with_hot_workers(|| {
             let channels_last = self.runs_channels_last(mode);
             let mut y = x.clone();
-            for stage in 0..self.stages() {
+            for stage in self.stages(channels_last) {
                 y = self.stage(stage, &y, mode, channels_last)?;
             }
             Ok(y)
         })
     }
 
-    /// Stages of a pass: the stem, each block, the head.
-    fn stages(&self) -> usize {
-        self.blocks.len() + 2
+    /// Stages of a pass: the stem, each block, the head; channels-last, the stem and the first
+    /// block as one where they fuse.
+    fn stages(&self, channels_last: bool) -> Vec<Stage> {
+        let fused_first = channels_last && self.stem_and_first_block.is_some();
+        let mut stages = vec![if fused_first { Stage::StemAndFirstBlock } else { Stage::Stem }];
+        stages.extend((usize::from(fused_first)..self.blocks.len()).map(Stage::Block));
+        stages.push(Stage::Head);
+        stages
     }
 
-    /// Stage `i` of a pass ([`Self::stages`]). With `channels_last` (the fused kernels) the
-    /// stages pass `[B, H, W, C]` maps: the stem takes the NCHW image, and the head's map is
+    /// A stage's name: `stem`, `blocks.{i}`, `head`, or `stem+blocks.0` for the fused pair.
+    fn stage_name(stage: Stage) -> String {
+        match stage {
+            Stage::Stem => "stem".into(),
+            Stage::StemAndFirstBlock => "stem+blocks.0".into(),
+            Stage::Block(i) => format!("blocks.{i}"),
+            Stage::Head => "head".into(),
+        }
+    }
+
+    /// `stage` of a pass. With `channels_last` (the fused kernels) the stages pass `[B, H, W, C]`
+    /// maps: the stem (alone or with the first block) takes the NCHW image, and the head's map is
     /// turned back to NCHW.
-    fn stage(&self, i: usize, x: &Tensor, mode: Mode, channels_last: bool) -> Result<Tensor> {
-        let last = self.stages() - 1;
-        match (i, channels_last) {
-            (0, true) => self.stem.forward_channels_last(x),
-            (0, false) => self.stem.forward_t(x, mode),
-            (i, true) if i == last => layers::to_channels_first(&self.head.forward_channels_last(x)?),
-            (i, false) if i == last => self.head.forward_t(x, mode),
-            (i, true) => self.blocks[i - 1].forward_channels_last(x),
-            (i, false) => self.blocks[i - 1].forward_t(x, mode),
+    fn stage(&self, stage: Stage, x: &Tensor, mode: Mode, channels_last: bool) -> Result<Tensor> {
+        match (stage, channels_last) {
+            (Stage::StemAndFirstBlock, _) => {
+                let fused = self.stem_and_first_block.as_deref().expect("planned only where it exists");
+                x.contiguous()?.apply_op1_no_bwd(fused)
+            }
+            (Stage::Stem, true) => self.stem.forward_channels_last(x),
+            (Stage::Stem, false) => self.stem.forward_t(x, mode),
+            (Stage::Head, true) => layers::to_channels_first(&self.head.forward_channels_last(x)?),
+            (Stage::Head, false) => self.head.forward_t(x, mode),
+            (Stage::Block(i), true) => self.blocks[i].forward_channels_last(x),
+            (Stage::Block(i), false) => self.blocks[i].forward_t(x, mode),
         }
     }
 
@@ -254,16 +288,17 @@ impl Network {
         mode == Mode::Inference && self.stem.is_fused() && self.head.is_fused() && self.blocks.iter().all(|b| b.is_fused())
     }
 
-    /// Mean time of each stage (`stem`, `blocks.{i}`, `head`) over `runs` passes of `x` in `mode`,
+    /// Mean time of each stage ([`Self::stage_name`]) over `runs` passes of `x` in `mode`,
     /// after one warm-up pass: the profile behind the benchmark's totals.
     pub fn profile(&self, x: &Tensor, mode: Mode, runs: usize) -> Result<Vec<(String, std::time::Duration)>> {
         // With the workers kept hot as in `features`, so that the stages add up to its time.
         crate::runtime::with_hot_workers(|| {
             let channels_last = self.runs_channels_last(mode);
-            let mut totals = vec![std::time::Duration::ZERO; self.stages()];
+            let stages = self.stages(channels_last);
+            let mut totals = vec![std::time::Duration::ZERO; stages.len()];
             for run in 0..=runs {
                 let mut y = x.clone();
-                for (stage, total) in totals.iter_mut().enumerate() {
+                for (&stage, total) in stages.iter().zip(&mut totals) {
                     let started = std::time::Instant::now();
                     y = self.stage(stage, &y, mode, channels_last)?;
                     if run > 0 {
@@ -271,10 +306,7 @@ impl Network {
                     }
                 }
             }
-            let names = std::iter::once("stem".to_string())
-                .chain((0..self.blocks.len()).map(|i| format!("blocks.{i}")))
-                .chain(std::iter::once("head".to_string()));
-            Ok(names.zip(totals).map(|(n, t)| (n, t / runs.max(1) as u32)).collect())
+            Ok(stages.into_iter().zip(totals).map(|(stage, t)| (Self::stage_name(stage), t / runs.max(1) as u32)).collect())
         })
     }
 
