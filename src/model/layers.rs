@@ -131,7 +131,7 @@ impl ConvUnit {
                 (_, Some(dense)) => {
                     // The op works channels-last; this per-unit entry keeps NCHW on both sides.
                     let x = if dense.is_pointwise() { to_channels_last(x)? } else { x.contiguous()? };
-                    to_channels_first(&x.apply_op1_no_bwd(dense.as_ref())?)
+                    super::fused::channels_first(&x.apply_op1_no_bwd(dense.as_ref())?)
                 }
                 (ConvKind::Pointwise, None) => {
                     let y = pointwise(x, &self.weight)?;
@@ -189,11 +189,6 @@ impl ConvUnit {
 /// `[B, C, H, W]` -> contiguous `[B, H, W, C]`.
 pub fn to_channels_last(x: &Tensor) -> Result<Tensor> {
     x.permute((0, 2, 3, 1))?.contiguous()
-}
-
-/// `[B, H, W, C]` -> contiguous `[B, C, H, W]`.
-pub fn to_channels_first(x: &Tensor) -> Result<Tensor> {
-    x.permute((0, 3, 1, 2))?.contiguous()
 }
 
 /// A 1x1 convolution as a plain matrix multiply: `[O, I] x [B, I, H*W]`, no im2col copy.
@@ -361,7 +356,7 @@ impl InvertedResidual {
 
     pub fn forward_t(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
         if let (Mode::Inference, Some(fused)) = (mode, &self.fused) {
-            return to_channels_first(&to_channels_last(x)?.apply_op1_no_bwd(fused.as_ref())?);
+            return super::fused::channels_first(&to_channels_last(x)?.apply_op1_no_bwd(fused.as_ref())?);
         }
         let mut y = match &self.expand {
             Some(expand) => expand.forward_t(x, mode)?,

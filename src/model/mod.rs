@@ -275,7 +275,7 @@ impl Network {
             }
             (Stage::Stem, true) => self.stem.forward_channels_last(x),
             (Stage::Stem, false) => self.stem.forward_t(x, mode),
-            (Stage::Head, true) => layers::to_channels_first(&self.head.forward_channels_last(x)?),
+            (Stage::Head, true) => fused::channels_first(&self.head.forward_channels_last(x)?),
             (Stage::Head, false) => self.head.forward_t(x, mode),
             (Stage::Block(i), true) => self.blocks[i].forward_channels_last(x),
             (Stage::Block(i), false) => self.blocks[i].forward_t(x, mode),
