@@ -22,7 +22,7 @@
 //! whole, its channel sums taken as it is written; the gate then scales the projection's weight
 //! rows (`W (g ⊙ x) = (W diag(g)) x`) or the depthwise output, whichever is smaller, and the
 //! projection splits pixels (or, for 7x7 maps, output channels) among the threads. Without ECA,
-//! on maps at least [`DIRECT_PROJECTION_WIDTH`] wide, each depthwise row goes through the
+//! on maps at least `DIRECT_PROJECTION_WIDTH` (28) wide, each depthwise row goes through the
 //! projection as soon as it is made and the depthwise output is never stored.
 //!
 //! Hidden channels are padded to a multiple of 16 with zero weights, whose outputs are zero.
