@@ -38,6 +38,8 @@ use rayon::prelude::*;
 
 use super::depthwise::{same_padding, Activation};
 thread_local! {
+    /// ECA-gated projection weights of the bottleneck being run on this thread, reused.
+    static SCALED_PROJECTION: std::cell::RefCell<PackedWeights> = std::cell::RefCell::new(PackedWeights::default());
     /// The depthwise output of the bottleneck being run on this thread, reused across frames.
     static DEPTHWISE_OUT: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
@@ -392,20 +394,22 @@ impl FusedBottleneck {
         }
         let sums = run(Sink::Store(depthwise_out.as_mut_ptr()));
 
-        let scaled;
+        // The gated projection's weights, in a buffer kept per thread (taken, and put back below).
+        let mut scaled = SCALED_PROJECTION.with(|w| std::mem::take(&mut *w.borrow_mut()));
         let weights = match &self.eca_taps {
             Some(taps) => {
                 let gate = eca_gate(&sums, oh * ow, taps);
                 if oh * ow < self.project.n {
                     // Fewer pixels than output channels: scale the depthwise output.
-                    for pixel in depthwise_out.chunks_exact_mut(pitch) {
-                        pixel.iter_mut().zip(&gate).for_each(|(v, g)| *v *= g);
-                    }
+                    let pixels = &mut depthwise_out[..oh * ow * pitch];
+                    pixels.par_chunks_mut(pitch * (oh * ow).div_ceil(threads)).for_each(|part| {
+                        for pixel in part.chunks_exact_mut(pitch) {
+                            pixel.iter_mut().zip(&gate).for_each(|(v, g)| *v *= g);
+                        }
+                    });
                     &self.project
                 } else {
-                    let mut w = self.project.clone();
-                    w.scale_rows(&gate);
-                    scaled = w;
+                    self.project.scaled_rows_into(&gate, &mut scaled);
                     &scaled
                 }
             }
@@ -427,6 +431,12 @@ impl FusedBottleneck {
         // SAFETY: `depthwise_out` holds oh*ow pixels of `pitch`, `out` and `x` (the residual,
         // same shape) oh*ow pixels of `output` channels.
         unsafe { pointwise_parallel(&p) };
+        SCALED_PROJECTION.with(|w| {
+            let mut kept = w.borrow_mut();
+            if kept.data.capacity() < scaled.data.capacity() {
+                *kept = scaled;
+            }
+        });
     }
 
     /// Output rows `rows`, channels `channels` of the depthwise convolution of the expanded

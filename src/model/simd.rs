@@ -187,7 +187,7 @@ pub fn uses_avx512() -> bool {
 /// contiguous stream (row-major rows of up to 5 KB made every step of the sum touch new
 /// cache lines in another page, out of the prefetchers' reach), and every vector load is in
 /// bounds.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, Default)]
 pub struct PackedWeights {
     pub k: usize,
     pub n: usize,
@@ -237,12 +237,23 @@ impl PackedWeights {
         self.n.div_ceil(self.panel)
     }
 
-    /// Multiplies row `i` (input channel `i`) by `scale[i]`.
-    pub fn scale_rows(&mut self, scale: &[f32]) {
-        for (j, row) in self.data.chunks_exact_mut(self.panel).enumerate() {
-            let s = scale.get(j % self.k).copied().unwrap_or(1.0);
-            row.iter_mut().for_each(|v| *v *= s);
-        }
+    /// These weights with row `i` (input channel `i`) multiplied by `scale[i]` (rows past
+    /// `scale` as they are), written over `out` (whose buffers are reused), the panels shared out
+    /// among rayon's threads: ECA's gate, once a frame, on the way into the projection.
+    pub fn scaled_rows_into(&self, scale: &[f32], out: &mut PackedWeights) {
+        use rayon::prelude::*;
+        out.k = self.k;
+        out.n = self.n;
+        out.panel = self.panel;
+        out.bias.clone_from(&self.bias);
+        out.data.resize(self.data.len(), 0.0);
+        let panel_floats = (self.k * self.panel).max(1);
+        out.data.par_chunks_mut(panel_floats).zip(self.data.par_chunks(panel_floats)).for_each(|(dst, src)| {
+            for (i, (dst, src)) in dst.chunks_exact_mut(self.panel).zip(src.chunks_exact(self.panel)).enumerate() {
+                let g = scale.get(i).copied().unwrap_or(1.0);
+                dst.iter_mut().zip(src).for_each(|(d, s)| *d = s * g);
+            }
+        });
     }
 }
 
