@@ -774,6 +774,23 @@ mod tests {
         Tensor::randn(0f32, std, shape, &Device::Cpu).unwrap()
     }
 
+    /// A folded bottleneck of `shape` with random weights.
+    fn random_block(shape: BlockShape) -> Result<InvertedResidual> {
+        let mut tensors = HashMap::new();
+        if shape.has_expansion() {
+            tensors.insert("expand.weight".to_string(), random(&[shape.hidden, shape.input, 1, 1], 0.5));
+            tensors.insert("expand.bias".to_string(), random(&[shape.hidden], 1.0));
+        }
+        tensors.insert("depthwise.weight".to_string(), random(&[shape.hidden, 1, 3, 3], 0.5));
+        tensors.insert("depthwise.bias".to_string(), random(&[shape.hidden], 1.0));
+        if let Some(k) = shape.eca_kernel {
+            tensors.insert("eca.weight".to_string(), random(&[1, 1, k], 1.0));
+        }
+        tensors.insert("project.weight".to_string(), random(&[shape.output, shape.hidden, 1, 1], 0.3));
+        tensors.insert("project.bias".to_string(), random(&[shape.output], 1.0));
+        InvertedResidual::load(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), shape, false)
+    }
+
     #[test]
     fn fused_bottleneck_equals_stock_ops() -> Result<()> {
         // With and without expansion, ECA and residual; strides 1 and 2; odd and even sizes; hidden
@@ -799,19 +816,7 @@ mod tests {
             (BlockShape { input: 12, hidden: 12, output: 8, stride: 1, eca_kernel: Some(3) }, 30, 9),
         ];
         for (shape, h, w) in cases {
-            let mut tensors = HashMap::new();
-            if shape.has_expansion() {
-                tensors.insert("expand.weight".to_string(), random(&[shape.hidden, shape.input, 1, 1], 0.5));
-                tensors.insert("expand.bias".to_string(), random(&[shape.hidden], 1.0));
-            }
-            tensors.insert("depthwise.weight".to_string(), random(&[shape.hidden, 1, 3, 3], 0.5));
-            tensors.insert("depthwise.bias".to_string(), random(&[shape.hidden], 1.0));
-            if let Some(k) = shape.eca_kernel {
-                tensors.insert("eca.weight".to_string(), random(&[1, 1, k], 1.0));
-            }
-            tensors.insert("project.weight".to_string(), random(&[shape.output, shape.hidden, 1, 1], 0.3));
-            tensors.insert("project.bias".to_string(), random(&[shape.output], 1.0));
-            let block = InvertedResidual::load(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), shape, false)?;
+            let block = random_block(shape)?;
             let x = random(&[2, shape.input, h, w], 2.0);
             let fast = pool.install(|| block.forward_t(&x, Mode::Inference))?;
             let reference = block.forward_t(&x, Mode::Reference)?;
@@ -861,23 +866,8 @@ mod tests {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
         let stem_tensors = HashMap::from([("weight".to_string(), random(&[32, 3, 3, 3], 0.5)), ("bias".to_string(), random(&[32], 1.0))]);
         let stem = ConvUnit::load(VarBuilder::from_tensors(stem_tensors, DType::F32, &Device::Cpu), (32, 3, 3, 3), ConvKind::Full { stride: 2 }, Activation::Relu6, false)?;
-        let block_with = |shape: BlockShape| {
-            let mut tensors = HashMap::new();
-            if shape.has_expansion() {
-                tensors.insert("expand.weight".to_string(), random(&[shape.hidden, shape.input, 1, 1], 0.5));
-                tensors.insert("expand.bias".to_string(), random(&[shape.hidden], 1.0));
-            }
-            tensors.insert("depthwise.weight".to_string(), random(&[shape.hidden, 1, 3, 3], 0.5));
-            tensors.insert("depthwise.bias".to_string(), random(&[shape.hidden], 1.0));
-            if let Some(k) = shape.eca_kernel {
-                tensors.insert("eca.weight".to_string(), random(&[1, 1, k], 1.0));
-            }
-            tensors.insert("project.weight".to_string(), random(&[shape.output, shape.hidden, 1, 1], 0.3));
-            tensors.insert("project.bias".to_string(), random(&[shape.output], 1.0));
-            InvertedResidual::load(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), shape, false)
-        };
         for (eca_kernel, h, w) in [(Some(3), 61, 50), (None, 40, 33)] {
-            let block = block_with(BlockShape { input: 32, hidden: 32, output: 16, stride: 1, eca_kernel })?;
+            let block = random_block(BlockShape { input: 32, hidden: 32, output: 16, stride: 1, eca_kernel })?;
             let fused = block.fused_with_stem(&stem).expect("a first block without expansion takes the stem");
             let x = random(&[2, 3, h, w], 2.0);
             let fast = pool.install(|| channels_first(&x.apply_op1_no_bwd(fused.as_ref())?))?;
@@ -886,7 +876,7 @@ mod tests {
             let diff = max_diff(&fast, &reference);
             assert!(diff < 1e-4, "{h}x{w} eca {eca_kernel:?}: max diff {diff}");
         }
-        let expanding = block_with(BlockShape { input: 32, hidden: 96, output: 16, stride: 2, eca_kernel: Some(3) })?;
+        let expanding = random_block(BlockShape { input: 32, hidden: 96, output: 16, stride: 2, eca_kernel: Some(3) })?;
         assert!(expanding.fused_with_stem(&stem).is_none());
         Ok(())
     }
