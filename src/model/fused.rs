@@ -533,7 +533,8 @@ impl CustomOp1 for FusedBottleneck {
         // SAFETY: each image's pass writes all of its `per_image` floats.
         let out = unsafe {
             written_output(batch * per_image, |out| {
-                for (i, image) in x.chunks_exact(x.len() / batch.max(1)).enumerate() {
+                // `[3, H, W]` images or `[h, w, input]` maps: `a * b * c` floats each.
+                for (i, image) in x.chunks_exact((a * b * c).max(1)).take(batch).enumerate() {
                     let out = out.add(i * per_image);
                     match &self.stem {
                         Some(stem) => stem.with_padded(image, image_size.0, image_size.1, |padded| self.forward_image(Input::Image(padded), h, w, out)),
@@ -661,10 +662,12 @@ impl DenseConv {
     }
 }
 
+/// Channels, padded height and width, top and left padding, height and width of a padded image.
+type PaddedShape = (usize, usize, usize, usize, usize, usize, usize);
+
 thread_local! {
-    /// The stem's zero-padded image, kept with the shape it was made for
-    /// (channels, padded height and width, top and left padding, height and width).
-    static PADDED_IMAGE: std::cell::RefCell<((usize, usize, usize, usize, usize, usize, usize), Vec<f32>)> = Default::default();
+    /// The stem's zero-padded image, kept with the shape it was made for.
+    static PADDED_IMAGE: std::cell::RefCell<(PaddedShape, Vec<f32>)> = Default::default();
 }
 
 impl CustomOp1 for DenseConv {

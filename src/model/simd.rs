@@ -198,8 +198,9 @@ pub struct PackedWeights {
 }
 
 /// Vectors per panel for `vectors` output vectors in all: all of them up to four, else four or
-/// three, whichever gives an even number of whole panels (so that panels split evenly between
-/// two threads), else four. A tile is then up to 6 pixels by 4 vectors ([`TILE_ROWS`]): 24
+/// three, whichever gives an even number of whole panels, else four. (The even count was for
+/// two threads sharing whole panels; they now share 16-column vectors, and the choice stays as
+/// it was measured.) A tile is then up to 6 pixels by 4 vectors ([`TILE_ROWS`]): 24
 /// accumulators, the weight vectors and the broadcast inputs fit AVX-512's 32 registers.
 pub fn panel_vectors(vectors: usize) -> usize {
     match vectors {
@@ -230,11 +231,6 @@ impl PackedWeights {
 
     fn offset(k: usize, panel: usize, i: usize, c: usize) -> usize {
         c / panel * k * panel + i * panel + c % panel
-    }
-
-    /// Panels in all.
-    pub fn panels(&self) -> usize {
-        self.n.div_ceil(self.panel)
     }
 
     /// These weights with row `i` (input channel `i`) multiplied by `scale[i]` (rows past
@@ -292,7 +288,7 @@ pub(crate) const SHORT_CALL_ROWS: usize = 64;
 /// floats, or reaching the largest of `steps`; `out` and `residual`: `rows` rows covering `columns`), and no other thread writes
 /// those `out` elements meanwhile.
 pub(crate) unsafe fn pointwise(p: &Pointwise) {
-    assert!(p.columns.start % LANES == 0 && p.columns.end <= p.weights.n, "pointwise: columns {:?}", p.columns);
+    assert!(p.columns.start.is_multiple_of(LANES) && p.columns.end <= p.weights.n, "pointwise: columns {:?}", p.columns);
     #[cfg(target_arch = "x86_64")]
     if uses_avx512() {
         return unsafe { avx512::pointwise(p) };
@@ -421,7 +417,7 @@ impl Tile<'_, '_> {
         let mut a = [p.a; MR];
         unrolled!(I in [0 1 2 3 4 5] {
             if I < MR {
-                a[I] = unsafe { p.a.add((self.row + I.min(self.rows - 1)) * p.lda) };
+                a[I] = unsafe { p.a.add((self.row + last_row_from(I, self.rows)) * p.lda) };
             }
         });
         let mut acc = [[[L::splat(0.0); NR]; MR]; 2];
@@ -542,7 +538,7 @@ pub(crate) struct DepthwiseRow<'a> {
 /// The rows hold `first_pixel + (width - 1) * stride + 3` pixels of `pitch` floats; `out` holds
 /// `width` pixels; no other thread writes those channels of `out` meanwhile.
 pub(crate) unsafe fn depthwise_row(p: &DepthwiseRow, sums: &mut [f64]) {
-    assert!(p.channels.start % LANES == 0 && p.channels.end % LANES == 0 && p.channels.end <= p.pitch);
+    assert!(p.channels.start.is_multiple_of(LANES) && p.channels.end.is_multiple_of(LANES) && p.channels.end <= p.pitch);
     assert!(p.weights.len() >= 9 * p.pitch && p.bias.len() >= p.pitch && sums.len() >= p.channels.len());
     #[cfg(target_arch = "x86_64")]
     if uses_avx512() {
@@ -586,6 +582,19 @@ unsafe fn depthwise_row_strided<L: Lanes, const S: usize>(p: &DepthwiseRow, sums
     }
 }
 
+/// Whether input pixel `i` of a step is one of the three taps of the output whose first tap is
+/// pixel `first` (a function, so that the literal indices do not read as constant comparisons).
+#[inline(always)]
+const fn feeds(i: usize, first: usize) -> bool {
+    i >= first && i - first < 3
+}
+
+/// Tile row `i`, or the last of `rows` rows past the end (those repeat the last row).
+#[inline(always)]
+const fn last_row_from(i: usize, rows: usize) -> usize {
+    if i < rows { i } else { rows - 1 }
+}
+
 /// Output pixels `x..x + P` of channel vector `c` of [`depthwise_row`]; returns their sum.
 #[inline(always)]
 unsafe fn depthwise_step<L: Lanes, const S: usize, const P: usize>(p: &DepthwiseRow, c: usize, x: usize, w: &[L; 9], bias: L) -> L {
@@ -598,7 +607,7 @@ unsafe fn depthwise_step<L: Lanes, const S: usize, const P: usize>(p: &Depthwise
             if I < (P - 1) * S + 3 {
                 let v = unsafe { L::load(row.add(I * pitch)) };
                 unrolled!(O in [0 1 2 3] {
-                    if O < P && I >= O * S && I - O * S < 3 {
+                    if O < P && feeds(I, O * S) {
                         acc[O] = v.mul_add(w[KY * 3 + I - O * S], acc[O]);
                     }
                 });
