@@ -18,12 +18,14 @@
 //! MobileNetV2, 6x the block's input) never leaves the cache. Large maps split output rows among
 //! the tasks (the row at a band's edge is expanded by both neighbours: 1 in 28 rows or fewer);
 //! maps of fewer than 8 output rows per thread split whole weight panels of hidden channels
-//! instead, where a band's edge would be a large share. With ECA the depthwise output is stored
-//! whole, its channel sums taken as it is written; the gate then scales the projection's weight
-//! rows (`W (g ⊙ x) = (W diag(g)) x`) or the depthwise output, whichever is smaller, and the
-//! projection splits pixels (or, for 7x7 maps, output channels) among the threads. Without ECA,
-//! on maps at least `DIRECT_PROJECTION_WIDTH` (28) wide, each depthwise row goes through the
-//! projection as soon as it is made and the depthwise output is never stored.
+//! instead, where a band's edge would be a large share. With ECA the depthwise output is stored,
+//! its channel sums taken as it is written; the gate then scales the projection's weight rows
+//! (`W (g ⊙ x) = (W diag(g)) x`) or the depthwise output, whichever is smaller. A band of rows
+//! is stored in a buffer of the thread that made it and projected by that thread's next task;
+//! the channel parts of a small map share one buffer, whose projection splits pixels (or, for
+//! 7x7 maps, output channels) among the threads. Without ECA, on maps at least
+//! `DIRECT_PROJECTION_WIDTH` (28) wide, each depthwise row goes through the projection as soon as
+//! it is made and the depthwise output is never stored.
 //!
 //! Hidden channels are padded to a multiple of 16 with zero weights, whose outputs are zero.
 //!
@@ -40,7 +42,9 @@ use super::depthwise::{same_padding, Activation};
 thread_local! {
     /// ECA-gated projection weights of the bottleneck being run on this thread, reused.
     static SCALED_PROJECTION: std::cell::RefCell<PackedWeights> = std::cell::RefCell::new(PackedWeights::default());
-    /// The depthwise output of the bottleneck being run on this thread, reused across frames.
+    /// The depthwise output of the band of a large map that this thread made last, reused.
+    static BAND_OUT: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+    /// The depthwise output of the small map being run on this thread, reused across frames.
     static DEPTHWISE_OUT: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
 }
 
@@ -329,114 +333,183 @@ impl FusedBottleneck {
     /// # Safety
     /// `out` points at `oh * ow * output` writable floats, all of which are written.
     unsafe fn forward_image(&self, x: Input, h: usize, w: usize, out: *mut f32) {
-        let (oh, ow) = (same_padding(h, 3, self.stride).0, same_padding(w, 3, self.stride).0);
-        let size = oh * ow * self.pitch;
-        DEPTHWISE_OUT.with(|buffer| match buffer.try_borrow_mut() {
-            Ok(mut reused) => {
-                // Every element is written before it is read: a reused buffer is not cleared.
-                reused.resize(size, 0.0);
-                unsafe { self.forward_image_with(x, h, w, out, &mut reused[..size]) };
-            }
-            // This thread is already inside a bottleneck (it stole another pass's work while
-            // waiting): a buffer of its own.
-            Err(_) => unsafe { self.forward_image_with(x, h, w, out, &mut vec![0f32; size]) },
-        });
-    }
-
-    /// [`Self::forward_image`] with `depthwise_out` (`[oh, ow, pitch]`) to work in.
-    ///
-    /// # Safety
-    /// As [`Self::forward_image`].
-    unsafe fn forward_image_with(&self, x: Input, h: usize, w: usize, out: *mut f32, depthwise_out: &mut [f32]) {
         let s = self.stride;
         let (oh, ow) = (same_padding(h, 3, s).0, same_padding(w, 3, s).0);
         let pitch = self.pitch;
         let threads = rayon::current_num_threads().max(1);
-        // Large maps split output rows (each task expands its rows, the one or two rows at a
-        // band's edge twice); small maps split whole expansion panels (a row band of a 7x7 map
-        // would expand nearly every row twice).
-        let tasks: Vec<(Range<usize>, Range<usize>)> = if oh >= 8 * threads || threads == 1 {
-            split(oh, threads).into_iter().map(|rows| (rows, 0..pitch)).collect()
-        } else {
-            let panel = self.expand.as_ref().map_or(LANES, |e| e.panel);
-            split(pitch.div_ceil(panel), threads)
-                .into_iter()
-                .map(|panels| (0..oh, panels.start * panel..(panels.end * panel).min(pitch)))
-                .collect()
-        };
-        // Each channel's sum of depthwise outputs over the map, the tasks writing to `sink`.
-        let run = |sink: Sink| -> Vec<f64> {
-            let task_sums: Vec<Vec<f64>> = tasks
-                .par_iter()
-                .map(|(rows, channels)| {
-                    let mut sums = vec![0f64; pitch];
-                    // SAFETY: the tasks' (rows, channels) parts of the outputs are disjoint.
-                    unsafe { self.expand_and_depthwise(x, h, w, rows.clone(), channels.clone(), sink, &mut sums) };
-                    sums
-                })
-                .collect();
-            (0..self.hidden).map(|c| task_sums.iter().map(|s| s[c]).sum()).collect()
-        };
         let residual = match x {
             Input::Map(x) if self.residual => x.as_ptr(),
             _ => std::ptr::null(),
         };
-        // Without ECA (MobileNetV2), on wide maps, tasks of whole rows project each depthwise row
+        // Large maps split output rows (each task expands its rows, the one or two rows at a
+        // band's edge twice); small maps split whole expansion panels (a row band of a 7x7 map
+        // would expand nearly every row twice).
+        if !(oh >= 8 * threads || threads == 1) {
+            let panel = self.expand.as_ref().map_or(LANES, |e| e.panel);
+            let channels = split(pitch.div_ceil(panel), threads)
+                .into_iter()
+                .map(|panels| panels.start * panel..(panels.end * panel).min(pitch))
+                .collect();
+            // SAFETY: as the caller's.
+            return unsafe { self.forward_channel_parts(x, h, w, channels, residual, out) };
+        }
+        let bands = split(oh, threads);
+        // Without ECA (MobileNetV2), on wide maps, each depthwise row goes through the projection
         // as soon as it is made, so the depthwise output is never stored (MobileNetV2 at 2
         // threads: 3.8-4.0 -> 3.5-3.6 ms). ECA's gate needs every row first. Making the rows
         // twice for it, a pass for the sums and one to project, where they are cheap (the first
-        // block's, from the stem) cost ECMobileNet 0.3 ms more than it saved. Narrow maps keep one
-        // projection of the whole map, which reads the weights once rather than once a row.
-        let whole_rows = tasks.iter().all(|(_, channels)| channels.len() == pitch);
-        if whole_rows && ow >= DIRECT_PROJECTION_WIDTH && self.eca_taps.is_none() {
-            run(Sink::Project { weights: &self.project, out, residual });
+        // block's, from the stem) cost ECMobileNet 0.3 ms more than it saved. Narrow maps keep
+        // one projection of a band, which reads the weights once rather than once a row.
+        if ow >= DIRECT_PROJECTION_WIDTH && self.eca_taps.is_none() {
+            let sink = Sink::Project { weights: &self.project, out, residual };
+            bands.par_iter().for_each(|rows| {
+                let mut sums = vec![0f64; pitch];
+                // SAFETY: the bands' rows of the outputs are disjoint.
+                unsafe { self.expand_and_depthwise(x, h, w, rows.clone(), 0..pitch, sink, &mut sums) };
+            });
             return;
         }
-        let sums = run(Sink::Store(depthwise_out.as_mut_ptr()));
-
-        // The gated projection's weights, in a buffer kept per thread (taken, and put back below).
-        let mut scaled = SCALED_PROJECTION.with(|w| std::mem::take(&mut *w.borrow_mut()));
-        let weights = match &self.eca_taps {
-            Some(taps) => {
-                let gate = eca_gate(&sums, oh * ow, taps);
-                if oh * ow < self.project.n {
-                    // Fewer pixels than output channels: scale the depthwise output.
-                    let pixels = &mut depthwise_out[..oh * ow * pitch];
-                    pixels.par_chunks_mut(pitch * (oh * ow).div_ceil(threads)).for_each(|part| {
-                        for pixel in part.chunks_exact_mut(pitch) {
-                            pixel.iter_mut().zip(&gate).for_each(|(v, g)| *v *= g);
-                        }
-                    });
-                    &self.project
-                } else {
-                    self.project.scaled_rows_into(&gate, &mut scaled);
-                    &scaled
+        // Each band's depthwise output goes to a buffer of the thread that makes it, and (after
+        // the gate, which needs every band's sums) that thread's task, as rayon hands them out,
+        // projects it: the stored rows stay in the core's own L2. One buffer for the whole map,
+        // each task writing its band, had the cores taking lines from each other's caches
+        // whenever a block's band boundary fell elsewhere than the last block's: ECMobileNet at 2
+        // threads 3.40 -> 3.05 ms.
+        let stored: Vec<(Vec<f64>, Vec<f32>)> = bands
+            .par_iter()
+            .map(|rows| {
+                let mut buffer = BAND_OUT.with(|b| b.try_borrow_mut().map(|mut b| std::mem::take(&mut *b)).unwrap_or_default());
+                // Every element is written before it is read: a reused buffer is not cleared.
+                let len = rows.len() * ow * pitch;
+                if buffer.len() < len {
+                    buffer.resize(len, 0.0);
                 }
-            }
-            None => &self.project,
-        };
-        let p = Pointwise {
-            rows: oh * ow,
-            a: depthwise_out.as_ptr(),
-            lda: pitch,
-            steps: None,
-            weights,
-            columns: 0..self.output,
-            out,
-            ldo: self.output,
-            residual,
-            ldr: self.input,
-            relu6: false,
-        };
-        // SAFETY: `depthwise_out` holds oh*ow pixels of `pitch`, `out` and `x` (the residual,
-        // same shape) oh*ow pixels of `output` channels.
-        unsafe { pointwise_parallel(&p) };
+                let mut sums = vec![0f64; pitch];
+                // The sink addresses the whole map; the buffer holds this band's rows.
+                let sink = Sink::Store(buffer.as_mut_ptr().wrapping_sub(rows.start * ow * pitch));
+                // SAFETY: this task writes rows `rows` of the sink, which its buffer holds.
+                unsafe { self.expand_and_depthwise(x, h, w, rows.clone(), 0..pitch, sink, &mut sums) };
+                (sums, buffer)
+            })
+            .collect();
+        let sums: Vec<f64> = (0..self.hidden).map(|c| stored.iter().map(|(s, _)| s[c]).sum()).collect();
+        self.with_gated_projection(&sums, oh * ow, |weights| {
+            let (out, residual) = (SharedMut(out), SharedMut(residual.cast_mut()));
+            stored.into_par_iter().zip(&bands).for_each(|((_, buffer), rows)| {
+                let first = rows.start * ow;
+                let residual = residual.get().cast_const();
+                let p = Pointwise {
+                    rows: rows.len() * ow,
+                    a: buffer.as_ptr(),
+                    lda: pitch,
+                    steps: None,
+                    weights,
+                    columns: 0..self.output,
+                    out: out.get().wrapping_add(first * self.output),
+                    ldo: self.output,
+                    residual: if residual.is_null() { residual } else { residual.wrapping_add(first * self.input) },
+                    ldr: self.input,
+                    relu6: false,
+                };
+                // SAFETY: the buffer holds the band's pixels of `pitch`; `out` and the residual
+                // (same shape) hold the whole map, whose band rows are this task's alone.
+                unsafe { pointwise(&p) };
+                BAND_OUT.with(|kept| {
+                    if let Ok(mut kept) = kept.try_borrow_mut() {
+                        if kept.capacity() < buffer.capacity() {
+                            *kept = buffer;
+                        }
+                    }
+                });
+            });
+        });
+    }
+
+    /// `f` of the projection's weights, gated by ECA from the depthwise output's channel `sums`
+    /// over `pixels` pixels (the weights as they are without ECA): each weight row scaled by its
+    /// channel's gate (`W (g ⊙ x) = (W diag(g)) x`), into a buffer kept per thread.
+    fn with_gated_projection<R>(&self, sums: &[f64], pixels: usize, f: impl FnOnce(&PackedWeights) -> R) -> R {
+        let Some(taps) = &self.eca_taps else { return f(&self.project) };
+        let gate = eca_gate(sums, pixels, taps);
+        // Taken, and put back below (a nested pass on this thread finds it empty and allocates).
+        let mut scaled = SCALED_PROJECTION.with(|w| std::mem::take(&mut *w.borrow_mut()));
+        self.project.scaled_rows_into(&gate, &mut scaled);
+        let result = f(&scaled);
         SCALED_PROJECTION.with(|w| {
             let mut kept = w.borrow_mut();
             if kept.data.capacity() < scaled.data.capacity() {
                 *kept = scaled;
             }
         });
+        result
+    }
+
+    /// [`Self::forward_image`] of a small map, each task expanding and convolving every row for
+    /// its `channels`, into one depthwise output shared by the tasks; the projection then splits
+    /// pixels (or, for 7x7 maps, output channels) among the threads.
+    ///
+    /// # Safety
+    /// As [`Self::forward_image`]; `residual` is null or the input map.
+    unsafe fn forward_channel_parts(&self, x: Input, h: usize, w: usize, channels: Vec<Range<usize>>, residual: *const f32, out: *mut f32) {
+        let (oh, ow) = (same_padding(h, 3, self.stride).0, same_padding(w, 3, self.stride).0);
+        let pitch = self.pitch;
+        let size = oh * ow * pitch;
+        let mut fallback = Vec::new();
+        let mut reused = DEPTHWISE_OUT.with(|b| b.try_borrow_mut().map(|mut b| std::mem::take(&mut *b)));
+        // This thread may already be inside a bottleneck (it stole another pass's work while
+        // waiting), whose buffer is out: one of its own then.
+        let buffer = reused.as_mut().unwrap_or(&mut fallback);
+        // Every element is written before it is read: a reused buffer is not cleared.
+        if buffer.len() < size {
+            buffer.resize(size, 0.0);
+        }
+        let depthwise_out = &mut buffer[..size];
+        let sink = Sink::Store(depthwise_out.as_mut_ptr());
+        let task_sums: Vec<Vec<f64>> = channels
+            .par_iter()
+            .map(|channels| {
+                let mut sums = vec![0f64; pitch];
+                // SAFETY: the tasks' channels of the depthwise output are disjoint.
+                unsafe { self.expand_and_depthwise(x, h, w, 0..oh, channels.clone(), sink, &mut sums) };
+                sums
+            })
+            .collect();
+        let sums: Vec<f64> = (0..self.hidden).map(|c| task_sums.iter().map(|s| s[c]).sum()).collect();
+        let project = |depthwise_out: &[f32], weights: &PackedWeights| {
+            let p = Pointwise {
+                rows: oh * ow,
+                a: depthwise_out.as_ptr(),
+                lda: pitch,
+                steps: None,
+                weights,
+                columns: 0..self.output,
+                out,
+                ldo: self.output,
+                residual,
+                ldr: self.input,
+                relu6: false,
+            };
+            // SAFETY: `depthwise_out` holds oh*ow pixels of `pitch`, `out` and the residual
+            // (same shape) oh*ow pixels of `output` channels.
+            unsafe { pointwise_parallel(&p) }
+        };
+        match &self.eca_taps {
+            // Fewer pixels than output channels: scaling the depthwise output is the smaller job.
+            Some(taps) if oh * ow < self.project.n => {
+                let gate = eca_gate(&sums, oh * ow, taps);
+                let threads = rayon::current_num_threads().max(1);
+                depthwise_out.par_chunks_mut(pitch * (oh * ow).div_ceil(threads)).for_each(|part| {
+                    for pixel in part.chunks_exact_mut(pitch) {
+                        pixel.iter_mut().zip(&gate).for_each(|(v, g)| *v *= g);
+                    }
+                });
+                project(depthwise_out, &self.project)
+            }
+            _ => self.with_gated_projection(&sums, oh * ow, |weights| project(depthwise_out, weights)),
+        }
+        if let Ok(buffer) = reused {
+            DEPTHWISE_OUT.with(|b| *b.borrow_mut() = buffer);
+        }
     }
 
     /// Output rows `rows`, channels `channels` of the depthwise convolution of the expanded
