@@ -16,14 +16,14 @@
 //! its output rows in order, expanding input rows into a ring of three padded rows just before
 //! the depthwise convolution reads them, so the expanded activation (the largest tensor of
 //! MobileNetV2, 6x the block's input) never leaves the cache. Large maps split output rows among
-//! the tasks (the row at a band's edge is expanded by both neighbours: 1 in 28 rows or fewer);
-//! maps of fewer than 8 output rows per thread split whole weight panels of hidden channels
+//! the tasks (the row at a band's edge is expanded by both neighbours); maps of fewer than
+//! `MIN_BAND_ROWS` (4) output rows per thread split whole weight panels of hidden channels
 //! instead, where a band's edge would be a large share. With ECA the depthwise output is stored,
-//! its channel sums taken as it is written; the gate then scales the projection's weight rows
-//! (`W (g ⊙ x) = (W diag(g)) x`) or the depthwise output, whichever is smaller. A band of rows
-//! is stored in a buffer of the thread that made it and projected by that thread's next task;
-//! the channel parts of a small map share one buffer, whose projection splits pixels (or, for
-//! 7x7 maps, output channels) among the threads. Without ECA, on maps at least
+//! its channel sums taken as it is written. A band of rows is stored in a buffer of the thread
+//! that made it and projected by that thread's next task, which scales the projection's weight
+//! rows by the gate for itself (`W (g ⊙ x) = (W diag(g)) x`); the channel parts of a small map
+//! share one buffer, which the gate scales, and whose projection splits pixels (or, for 7x7
+//! maps, output channels) among the threads. Without ECA, on maps at least
 //! `DIRECT_PROJECTION_WIDTH` (28) wide, each depthwise row goes through the projection as soon as
 //! it is made and the depthwise output is never stored.
 //!
@@ -176,6 +176,12 @@ pub struct FusedBottleneck {
     /// The stem whose output this block takes, computed here row by row ([`Self::with_stem`]).
     stem: Option<Arc<DenseConv>>,
 }
+
+/// Output rows per thread from which a bottleneck's tasks split rows, not hidden channels: a band
+/// of 4 rows at stride 1 expands 5 or 6 input rows, yet its stored rows stay in the core that
+/// made them (14x14 maps at 2 threads: ECMobileNet 2.82-2.94 -> 2.74-2.85 ms in 4 interleaved
+/// pairs, where 8 rows kept them to channel parts; splitting 7x7 maps' 4 and 3 rows cost 0.3 ms).
+const MIN_BAND_ROWS: usize = 4;
 
 /// Output width from which a bottleneck projects its depthwise rows one by one
 /// ([`FusedBottleneck::forward_image`]).
@@ -342,9 +348,8 @@ impl FusedBottleneck {
             _ => std::ptr::null(),
         };
         // Large maps split output rows (each task expands its rows, the one or two rows at a
-        // band's edge twice); small maps split whole expansion panels (a row band of a 7x7 map
-        // would expand nearly every row twice).
-        if !(oh >= 8 * threads || threads == 1) {
+        // band's edge twice); small maps split whole expansion panels.
+        if !(oh >= MIN_BAND_ROWS * threads || threads == 1) {
             let panel = self.expand.as_ref().map_or(LANES, |e| e.panel);
             let channels = split(pitch.div_ceil(panel), threads)
                 .into_iter()
@@ -393,11 +398,12 @@ impl FusedBottleneck {
             })
             .collect();
         let sums: Vec<f64> = (0..self.hidden).map(|c| stored.iter().map(|(s, _)| s[c]).sum()).collect();
-        self.with_gated_projection(&sums, oh * ow, |weights| {
-            let (out, residual) = (SharedMut(out), SharedMut(residual.cast_mut()));
-            stored.into_par_iter().zip(&bands).for_each(|((_, buffer), rows)| {
-                let first = rows.start * ow;
-                let residual = residual.get().cast_const();
+        let gate = self.eca_taps.as_ref().map(|taps| eca_gate(&sums, oh * ow, taps));
+        let (out, residual) = (SharedMut(out), SharedMut(residual.cast_mut()));
+        stored.into_par_iter().zip(&bands).for_each(|((_, buffer), rows)| {
+            let first = rows.start * ow;
+            let residual = residual.get().cast_const();
+            self.with_gated_projection(gate.as_deref(), |weights| {
                 let p = Pointwise {
                     rows: rows.len() * ow,
                     a: buffer.as_ptr(),
@@ -413,32 +419,34 @@ impl FusedBottleneck {
                 };
                 // SAFETY: the buffer holds the band's pixels of `pitch`; `out` and the residual
                 // (same shape) hold the whole map, whose band rows are this task's alone.
-                unsafe { pointwise(&p) };
-                BAND_OUT.with(|kept| {
-                    if let Ok(mut kept) = kept.try_borrow_mut() {
-                        if kept.capacity() < buffer.capacity() {
-                            *kept = buffer;
-                        }
+                unsafe { pointwise(&p) }
+            });
+            BAND_OUT.with(|kept| {
+                if let Ok(mut kept) = kept.try_borrow_mut() {
+                    if kept.capacity() < buffer.capacity() {
+                        *kept = buffer;
                     }
-                });
+                }
             });
         });
     }
 
-    /// `f` of the projection's weights, gated by ECA from the depthwise output's channel `sums`
-    /// over `pixels` pixels (the weights as they are without ECA): each weight row scaled by its
-    /// channel's gate (`W (g ⊙ x) = (W diag(g)) x`), into a buffer kept per thread.
-    fn with_gated_projection<R>(&self, sums: &[f64], pixels: usize, f: impl FnOnce(&PackedWeights) -> R) -> R {
-        let Some(taps) = &self.eca_taps else { return f(&self.project) };
-        let gate = eca_gate(sums, pixels, taps);
+    /// `f` of the projection's weights, each row scaled by its channel's ECA `gate`
+    /// (`W (g ⊙ x) = (W diag(g)) x`) into a buffer of this thread's (the weights as they are
+    /// without a gate). Each task scales the weights it uses itself: scaled once and read by
+    /// both cores, they crossed between the cores' caches every frame, and a 14x14 block
+    /// spent more time on that than on scaling them twice.
+    fn with_gated_projection<R>(&self, gate: Option<&[f32]>, f: impl FnOnce(&PackedWeights) -> R) -> R {
+        let Some(gate) = gate else { return f(&self.project) };
         // Taken, and put back below (a nested pass on this thread finds it empty and allocates).
-        let mut scaled = SCALED_PROJECTION.with(|w| std::mem::take(&mut *w.borrow_mut()));
-        self.project.scaled_rows_into(&gate, &mut scaled);
+        let mut scaled = SCALED_PROJECTION.with(|w| w.try_borrow_mut().map(|mut w| std::mem::take(&mut *w)).unwrap_or_default());
+        self.project.scaled_rows_into(gate, &mut scaled);
         let result = f(&scaled);
-        SCALED_PROJECTION.with(|w| {
-            let mut kept = w.borrow_mut();
-            if kept.data.capacity() < scaled.data.capacity() {
-                *kept = scaled;
+        SCALED_PROJECTION.with(|kept| {
+            if let Ok(mut kept) = kept.try_borrow_mut() {
+                if kept.data.capacity() < scaled.data.capacity() {
+                    *kept = scaled;
+                }
             }
         });
         result
@@ -493,20 +501,17 @@ impl FusedBottleneck {
             // (same shape) oh*ow pixels of `output` channels.
             unsafe { pointwise_parallel(&p) }
         };
-        match &self.eca_taps {
-            // Fewer pixels than output channels: scaling the depthwise output is the smaller job.
-            Some(taps) if oh * ow < self.project.n => {
-                let gate = eca_gate(&sums, oh * ow, taps);
-                let threads = rayon::current_num_threads().max(1);
-                depthwise_out.par_chunks_mut(pitch * (oh * ow).div_ceil(threads)).for_each(|part| {
-                    for pixel in part.chunks_exact_mut(pitch) {
-                        pixel.iter_mut().zip(&gate).for_each(|(v, g)| *v *= g);
-                    }
-                });
-                project(depthwise_out, &self.project)
-            }
-            _ => self.with_gated_projection(&sums, oh * ow, |weights| project(depthwise_out, weights)),
+        // Small maps have few pixels: the gate scales the depthwise output, not the weights.
+        if let Some(taps) = &self.eca_taps {
+            let gate = eca_gate(&sums, oh * ow, taps);
+            let threads = rayon::current_num_threads().max(1);
+            depthwise_out.par_chunks_mut(pitch * (oh * ow).div_ceil(threads)).for_each(|part| {
+                for pixel in part.chunks_exact_mut(pitch) {
+                    pixel.iter_mut().zip(&gate).for_each(|(v, g)| *v *= g);
+                }
+            });
         }
+        project(depthwise_out, &self.project);
         if let Ok(buffer) = reused {
             DEPTHWISE_OUT.with(|b| *b.borrow_mut() = buffer);
         }
@@ -871,7 +876,7 @@ mod tests {
     fn fused_bottleneck_equals_stock_ops() -> Result<()> {
         // With and without expansion, ECA and residual; strides 1 and 2; odd and even sizes; hidden
         // counts that are and are not multiples of 16; batch 2; on three threads: maps of fewer
-        // than 24 output rows split the hidden channels among the tasks, the last three split
+        // than 12 output rows split the hidden channels among the tasks, the others split
         // output rows (tasks expanding the rows at their edges twice), at stride 2 with odd and
         // even sizes.
         let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();

@@ -234,22 +234,21 @@ impl PackedWeights {
     }
 
     /// These weights with row `i` (input channel `i`) multiplied by `scale[i]` (rows past
-    /// `scale` as they are), written over `out` (whose buffers are reused), the panels shared out
-    /// among rayon's threads: ECA's gate, once a frame, on the way into the projection.
+    /// `scale` as they are), written over `out` (whose buffers are reused): ECA's gate, once a
+    /// frame, on the way into the projection.
     pub fn scaled_rows_into(&self, scale: &[f32], out: &mut PackedWeights) {
-        use rayon::prelude::*;
         out.k = self.k;
         out.n = self.n;
         out.panel = self.panel;
         out.bias.clone_from(&self.bias);
         out.data.resize(self.data.len(), 0.0);
         let panel_floats = (self.k * self.panel).max(1);
-        out.data.par_chunks_mut(panel_floats).zip(self.data.par_chunks(panel_floats)).for_each(|(dst, src)| {
+        for (dst, src) in out.data.chunks_mut(panel_floats).zip(self.data.chunks(panel_floats)) {
             for (i, (dst, src)) in dst.chunks_exact_mut(self.panel).zip(src.chunks_exact(self.panel)).enumerate() {
                 let g = scale.get(i).copied().unwrap_or(1.0);
                 dst.iter_mut().zip(src).for_each(|(d, s)| *d = s * g);
             }
-        });
+        }
     }
 }
 
