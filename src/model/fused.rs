@@ -32,6 +32,7 @@
 //! [`Mode::Inference`]: super::layers::Mode::Inference
 //! [`Mode::Reference`]: super::layers::Mode::Reference
 
+use std::cell::Cell;
 use std::ops::Range;
 use std::sync::Arc;
 
@@ -39,13 +40,16 @@ use candle_core::{CpuStorage, CustomOp1, Layout, Result, Shape, Tensor};
 use rayon::prelude::*;
 
 use super::depthwise::{same_padding, Activation};
+// Buffers kept per thread across frames: taken out while in use and put back after, so that a
+// pass this thread runs while waiting inside another (rayon's work stealing) finds the cell
+// empty and allocates rather than sharing.
 thread_local! {
-    /// ECA-gated projection weights of the bottleneck being run on this thread, reused.
-    static SCALED_PROJECTION: std::cell::RefCell<PackedWeights> = std::cell::RefCell::new(PackedWeights::default());
-    /// The depthwise output of the band of a large map that this thread made last, reused.
-    static BAND_OUT: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
-    /// The depthwise output of the small map being run on this thread, reused across frames.
-    static DEPTHWISE_OUT: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+    /// ECA-gated projection weights of the bottleneck being run on this thread.
+    static SCALED_PROJECTION: Cell<PackedWeights> = Cell::new(PackedWeights::default());
+    /// The depthwise output of the band of a large map that this thread made last.
+    static BAND_OUT: Cell<Vec<f32>> = const { Cell::new(Vec::new()) };
+    /// The depthwise output of the small map being run on this thread.
+    static DEPTHWISE_OUT: Cell<Vec<f32>> = const { Cell::new(Vec::new()) };
 }
 
 use super::simd::{depthwise_row, pointwise, DepthwiseRow, PackedWeights, Pointwise, LANES, SHORT_CALL_ROWS, TILE_ROWS};
@@ -379,11 +383,11 @@ impl FusedBottleneck {
         // projects it: the stored rows stay in the core's own L2. One buffer for the whole map,
         // each task writing its band, had the cores taking lines from each other's caches
         // whenever a block's band boundary fell elsewhere than the last block's: ECMobileNet at 2
-        // threads 3.40 -> 3.05 ms.
+        // threads 3.00-3.38 -> 2.78-2.80 ms in 4 interleaved pairs.
         let stored: Vec<(Vec<f64>, Vec<f32>)> = bands
             .par_iter()
             .map(|rows| {
-                let mut buffer = BAND_OUT.with(|b| b.try_borrow_mut().map(|mut b| std::mem::take(&mut *b)).unwrap_or_default());
+                let mut buffer = BAND_OUT.take();
                 // Every element is written before it is read: a reused buffer is not cleared.
                 let len = rows.len() * ow * pitch;
                 if buffer.len() < len {
@@ -421,13 +425,7 @@ impl FusedBottleneck {
                 // (same shape) hold the whole map, whose band rows are this task's alone.
                 unsafe { pointwise(&p) }
             });
-            BAND_OUT.with(|kept| {
-                if let Ok(mut kept) = kept.try_borrow_mut() {
-                    if kept.capacity() < buffer.capacity() {
-                        *kept = buffer;
-                    }
-                }
-            });
+            BAND_OUT.set(buffer);
         });
     }
 
@@ -438,17 +436,10 @@ impl FusedBottleneck {
     /// spent more time on that than on scaling them twice.
     fn with_gated_projection<R>(&self, gate: Option<&[f32]>, f: impl FnOnce(&PackedWeights) -> R) -> R {
         let Some(gate) = gate else { return f(&self.project) };
-        // Taken, and put back below (a nested pass on this thread finds it empty and allocates).
-        let mut scaled = SCALED_PROJECTION.with(|w| w.try_borrow_mut().map(|mut w| std::mem::take(&mut *w)).unwrap_or_default());
+        let mut scaled = SCALED_PROJECTION.take();
         self.project.scaled_rows_into(gate, &mut scaled);
         let result = f(&scaled);
-        SCALED_PROJECTION.with(|kept| {
-            if let Ok(mut kept) = kept.try_borrow_mut() {
-                if kept.data.capacity() < scaled.data.capacity() {
-                    *kept = scaled;
-                }
-            }
-        });
+        SCALED_PROJECTION.set(scaled);
         result
     }
 
@@ -462,11 +453,7 @@ impl FusedBottleneck {
         let (oh, ow) = (same_padding(h, 3, self.stride).0, same_padding(w, 3, self.stride).0);
         let pitch = self.pitch;
         let size = oh * ow * pitch;
-        let mut fallback = Vec::new();
-        let mut reused = DEPTHWISE_OUT.with(|b| b.try_borrow_mut().map(|mut b| std::mem::take(&mut *b)));
-        // This thread may already be inside a bottleneck (it stole another pass's work while
-        // waiting), whose buffer is out: one of its own then.
-        let buffer = reused.as_mut().unwrap_or(&mut fallback);
+        let mut buffer = DEPTHWISE_OUT.take();
         // Every element is written before it is read: a reused buffer is not cleared.
         if buffer.len() < size {
             buffer.resize(size, 0.0);
@@ -512,9 +499,7 @@ impl FusedBottleneck {
             });
         }
         project(depthwise_out, &self.project);
-        if let Ok(buffer) = reused {
-            DEPTHWISE_OUT.with(|b| *b.borrow_mut() = buffer);
-        }
+        DEPTHWISE_OUT.set(buffer);
     }
 
     /// Output rows `rows`, channels `channels` of the depthwise convolution of the expanded
