@@ -8,11 +8,12 @@
 //! - [`depthwise_row`]: one output row of a 3x3 depthwise convolution + bias + ReLU6 on
 //!   channels-last rows, adding each channel's outputs to a running sum (ECA's pooling).
 //!
-//! Both are written once, generic over [`Lanes`] (sixteen `f32` lanes), and built twice: with
-//! AVX-512 intrinsics where the CPU has AVX-512F (chosen at run time), and as plain arrays that
-//! any CPU runs (the tests check the two against each other and against naive loops). Rayon
-//! closures do not inherit `#[target_feature]`, so the dispatch is per call of these kernels
-//! (a row or a block of rows), never inside them.
+//! Both are written once, generic over [`Lanes`] (sixteen `f32` lanes), and built three times:
+//! with AVX-512 intrinsics where the CPU has AVX-512F, with AVX2 and FMA intrinsics (two 8-lane
+//! registers per vector) where it has those, and as plain arrays that any CPU runs; [`Build`]
+//! picks the fastest at run time (`ECM_LCD_KERNELS` names one). The tests check every build
+//! the CPU runs against naive loops. Rayon closures do not inherit `#[target_feature]`, so the
+//! dispatch is per call of these kernels (a row or a block of rows), never inside them.
 
 use std::ops::Range;
 
@@ -21,6 +22,12 @@ pub const LANES: usize = 16;
 
 /// Sixteen `f32` lanes and the operations the kernels use.
 pub(crate) trait Lanes: Copy {
+    /// The widest [`pointwise`] tile, in vectors, whose accumulators still fit the register file
+    /// beside its weight vectors and broadcast input (at [`TILE_ROWS`] pixels).
+    const TILE_VECTORS: usize;
+    /// Whether one-vector tiles sum even and odd steps apart (twice the accumulators, for the
+    /// multiply-adds' latency), which needs the registers for it.
+    const SPLIT_SUM: bool;
     /// # Safety
     /// `p` points at 16 readable floats.
     unsafe fn load(p: *const f32) -> Self;
@@ -49,11 +56,14 @@ pub(crate) trait Lanes: Copy {
     }
 }
 
-/// The portable build: an array the compiler vectorises as it can.
+/// The portable build: an array the compiler vectorises as it can. One-vector tiles: a vector
+/// is four registers of NEON or SSE.
 #[derive(Clone, Copy)]
 pub(crate) struct Portable([f32; LANES]);
 
 impl Lanes for Portable {
+    const TILE_VECTORS: usize = 1;
+    const SPLIT_SUM: bool = false;
     #[inline(always)]
     unsafe fn load(p: *const f32) -> Self {
         Portable(unsafe { std::ptr::read_unaligned(p as *const [f32; LANES]) })
@@ -76,9 +86,15 @@ impl Lanes for Portable {
     fn splat(v: f32) -> Self {
         Portable([v; LANES])
     }
+    /// Fused only where the target has a fused multiply-add instruction: elsewhere `f32::mul_add`
+    /// is a library call that emulates it (200x slower: 550 ms a forward pass).
     #[inline(always)]
     fn mul_add(self, b: Self, c: Self) -> Self {
-        Portable(std::array::from_fn(|i| self.0[i].mul_add(b.0[i], c.0[i])))
+        if cfg!(any(target_arch = "aarch64", target_feature = "fma")) {
+            Portable(std::array::from_fn(|i| self.0[i].mul_add(b.0[i], c.0[i])))
+        } else {
+            Portable(std::array::from_fn(|i| self.0[i] * b.0[i] + c.0[i]))
+        }
     }
     #[inline(always)]
     fn add(self, b: Self) -> Self {
@@ -99,7 +115,8 @@ mod avx512 {
 
     use super::{Lanes, LANES};
 
-    /// One AVX-512 register. Only built into functions compiled with `avx512f`.
+    /// One AVX-512 register. Only built into functions compiled with `avx512f`. 32 registers:
+    /// tiles of 6 x 4 vectors (24 accumulators).
     #[derive(Clone, Copy)]
     pub(crate) struct Avx512(__m512);
 
@@ -109,6 +126,8 @@ mod avx512 {
     }
 
     impl Lanes for Avx512 {
+        const TILE_VECTORS: usize = 4;
+        const SPLIT_SUM: bool = true;
         #[inline(always)]
         unsafe fn load(p: *const f32) -> Self {
             Avx512(unsafe { _mm512_loadu_ps(p) })
@@ -170,16 +189,152 @@ mod avx512 {
     }
 }
 
-/// Whether the AVX-512 build runs (checked once; `ECM_LCD_PORTABLE_KERNELS=1` forces the portable one).
-pub fn uses_avx512() -> bool {
-    static AVX512: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *AVX512.get_or_init(|| {
-        #[cfg(target_arch = "x86_64")]
-        if std::env::var_os("ECM_LCD_PORTABLE_KERNELS").is_none_or(|v| v != "1") {
-            return std::arch::is_x86_feature_detected!("avx512f");
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::{Lanes, LANES};
+
+    /// Two AVX2 registers. Only built into functions compiled with `avx2,fma`. 16 registers:
+    /// tiles of 6 x 1 vectors (12 accumulators, 2 weight registers, 1 broadcast), as in MLAS's
+    /// AVX2 kernel.
+    #[derive(Clone, Copy)]
+    pub(crate) struct Avx2([__m256; 2]);
+
+    /// The lanes of a half below `n` (which may be negative or above 8), as a load/store mask.
+    #[inline(always)]
+    fn below(n: i32) -> __m256i {
+        unsafe { _mm256_cmpgt_epi32(_mm256_set1_epi32(n), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7)) }
+    }
+
+    impl Lanes for Avx2 {
+        const TILE_VECTORS: usize = 1;
+        const SPLIT_SUM: bool = false;
+        #[inline(always)]
+        unsafe fn load(p: *const f32) -> Self {
+            Avx2(unsafe { [_mm256_loadu_ps(p), _mm256_loadu_ps(p.add(8))] })
         }
-        false
-    })
+        #[inline(always)]
+        unsafe fn load_first(p: *const f32, n: usize) -> Self {
+            let n = n as i32;
+            Avx2(unsafe { [_mm256_maskload_ps(p, below(n)), _mm256_maskload_ps(p.add(8), below(n - 8))] })
+        }
+        #[inline(always)]
+        unsafe fn store(self, p: *mut f32) {
+            unsafe {
+                _mm256_storeu_ps(p, self.0[0]);
+                _mm256_storeu_ps(p.add(8), self.0[1]);
+            }
+        }
+        #[inline(always)]
+        unsafe fn store_first(self, p: *mut f32, n: usize) {
+            let n = n as i32;
+            unsafe {
+                _mm256_maskstore_ps(p, below(n), self.0[0]);
+                _mm256_maskstore_ps(p.add(8), below(n - 8), self.0[1]);
+            }
+        }
+        #[inline(always)]
+        fn splat(v: f32) -> Self {
+            let v = unsafe { _mm256_set1_ps(v) };
+            Avx2([v, v])
+        }
+        #[inline(always)]
+        fn mul_add(self, b: Self, c: Self) -> Self {
+            Avx2(unsafe { [_mm256_fmadd_ps(self.0[0], b.0[0], c.0[0]), _mm256_fmadd_ps(self.0[1], b.0[1], c.0[1])] })
+        }
+        #[inline(always)]
+        fn add(self, b: Self) -> Self {
+            Avx2(unsafe { [_mm256_add_ps(self.0[0], b.0[0]), _mm256_add_ps(self.0[1], b.0[1])] })
+        }
+        #[inline(always)]
+        fn relu6(self) -> Self {
+            let clamp = |v| unsafe { _mm256_min_ps(_mm256_max_ps(v, _mm256_setzero_ps()), _mm256_set1_ps(6.0)) };
+            Avx2([clamp(self.0[0]), clamp(self.0[1])])
+        }
+        fn to_array(self) -> [f32; LANES] {
+            let mut out = [0f32; LANES];
+            unsafe { self.store(out.as_mut_ptr()) };
+            out
+        }
+        #[inline(always)]
+        fn add_to_f64(self, sums: &mut [f64]) {
+            assert!(sums.len() >= LANES);
+            unsafe {
+                let p = sums.as_mut_ptr();
+                for (h, half) in self.0.into_iter().enumerate() {
+                    let low = _mm256_cvtps_pd(_mm256_castps256_ps128(half));
+                    let high = _mm256_cvtps_pd(_mm256_extractf128_ps(half, 1));
+                    let q = p.add(8 * h);
+                    _mm256_storeu_pd(q, _mm256_add_pd(_mm256_loadu_pd(q), low));
+                    _mm256_storeu_pd(q.add(4), _mm256_add_pd(_mm256_loadu_pd(q.add(4)), high));
+                }
+            }
+        }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn pointwise(p: &super::Pointwise) {
+        unsafe { super::pointwise_with::<Avx2>(p) }
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub(super) unsafe fn depthwise_row(p: &super::DepthwiseRow, sums: &mut [f64]) {
+        unsafe { super::depthwise_row_with::<Avx2>(p, sums) }
+    }
+}
+
+/// A build of the kernels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Build {
+    Avx512,
+    Avx2,
+    Portable,
+}
+
+impl Build {
+    /// The builds this CPU runs, fastest first.
+    pub fn available() -> Vec<Build> {
+        let mut builds = Vec::new();
+        #[cfg(target_arch = "x86_64")]
+        {
+            if std::arch::is_x86_feature_detected!("avx512f") {
+                builds.push(Build::Avx512);
+            }
+            if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+                builds.push(Build::Avx2);
+            }
+        }
+        builds.push(Build::Portable);
+        builds
+    }
+
+    /// The build that runs: the fastest available, or the one `ECM_LCD_KERNELS` names
+    /// (`avx512`, `avx2`, `portable`) where it is available (checked once).
+    pub fn chosen() -> Build {
+        static CHOSEN: std::sync::OnceLock<Build> = std::sync::OnceLock::new();
+        *CHOSEN.get_or_init(|| {
+            let available = Build::available();
+            let wanted = std::env::var("ECM_LCD_KERNELS").ok();
+            match wanted.as_deref().and_then(|name| available.iter().find(|b| b.name() == name)) {
+                Some(&build) => build,
+                None => {
+                    if let Some(name) = wanted {
+                        log::warn!("ECM_LCD_KERNELS={name}: not a build this CPU runs ({available:?}); using {:?}", available[0]);
+                    }
+                    available[0]
+                }
+            }
+        })
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Build::Avx512 => "avx512",
+            Build::Avx2 => "avx2",
+            Build::Portable => "portable",
+        }
+    }
 }
 
 /// A `k x n` weight matrix packed in column panels of 16-64 columns (`[k, panel]` each, the
@@ -287,12 +442,22 @@ pub(crate) const SHORT_CALL_ROWS: usize = 64;
 /// floats, or reaching the largest of `steps`; `out` and `residual`: `rows` rows covering `columns`), and no other thread writes
 /// those `out` elements meanwhile.
 pub(crate) unsafe fn pointwise(p: &Pointwise) {
+    unsafe { pointwise_in(Build::chosen(), p) }
+}
+
+/// [`pointwise`] in `build`, which must be one of [`Build::available`].
+///
+/// # Safety
+/// As [`pointwise`].
+unsafe fn pointwise_in(build: Build, p: &Pointwise) {
     assert!(p.columns.start.is_multiple_of(LANES) && p.columns.end <= p.weights.n, "pointwise: columns {:?}", p.columns);
-    #[cfg(target_arch = "x86_64")]
-    if uses_avx512() {
-        return unsafe { avx512::pointwise(p) };
+    match build {
+        #[cfg(target_arch = "x86_64")]
+        Build::Avx512 => unsafe { avx512::pointwise(p) },
+        #[cfg(target_arch = "x86_64")]
+        Build::Avx2 => unsafe { avx2::pointwise(p) },
+        _ => unsafe { pointwise_with::<Portable>(p) },
     }
-    unsafe { pointwise_with::<Portable>(p) }
 }
 
 /// Pixels per tile. Every row of a tile has its own pointer, and six of them stay in general
@@ -351,7 +516,7 @@ unsafe fn pointwise_rows<L: Lanes, const GATHER: bool>(p: &Pointwise, steps: &[u
 unsafe fn pointwise_tile<L: Lanes, const GATHER: bool>(p: &Pointwise, steps: &[usize], r: usize, c: usize) -> usize {
     let panel = p.weights.panel;
     let rows = TILE_ROWS.min(p.rows - r);
-    let width = (p.columns.end - c).min(panel - c % panel);
+    let width = (p.columns.end - c).min(panel - c % panel).min(L::TILE_VECTORS * LANES);
     let tile = Tile { p, steps, row: r, rows, column: c, width };
     macro_rules! by_width {
         ($mr:literal) => {
@@ -405,7 +570,7 @@ impl Tile<'_, '_> {
     unsafe fn run<L: Lanes, const MR: usize, const NR: usize, const GATHER: bool>(&self) {
         let p = self.p;
         let (k, pitch) = (p.weights.k, p.weights.panel);
-        let halves = if NR == 1 { 2 } else { 1 };
+        let halves = if NR == 1 && L::SPLIT_SUM { 2 } else { 1 };
         let weights = unsafe { p.weights.data.as_ptr().add(PackedWeights::offset(k, pitch, 0, self.column)) };
         let bias = unsafe { p.weights.bias.as_ptr().add(self.column) };
         // Every accumulator is indexed by a literal constant ([`unrolled`]), so the compiler keeps
@@ -537,13 +702,23 @@ pub(crate) struct DepthwiseRow<'a> {
 /// The rows hold `first_pixel + (width - 1) * stride + 3` pixels of `pitch` floats; `out` holds
 /// `width` pixels; no other thread writes those channels of `out` meanwhile.
 pub(crate) unsafe fn depthwise_row(p: &DepthwiseRow, sums: &mut [f64]) {
+    unsafe { depthwise_row_in(Build::chosen(), p, sums) }
+}
+
+/// [`depthwise_row`] in `build`, which must be one of [`Build::available`].
+///
+/// # Safety
+/// As [`depthwise_row`].
+unsafe fn depthwise_row_in(build: Build, p: &DepthwiseRow, sums: &mut [f64]) {
     assert!(p.channels.start.is_multiple_of(LANES) && p.channels.end.is_multiple_of(LANES) && p.channels.end <= p.pitch);
     assert!(p.weights.len() >= 9 * p.pitch && p.bias.len() >= p.pitch && sums.len() >= p.channels.len());
-    #[cfg(target_arch = "x86_64")]
-    if uses_avx512() {
-        return unsafe { avx512::depthwise_row(p, sums) };
+    match build {
+        #[cfg(target_arch = "x86_64")]
+        Build::Avx512 => unsafe { avx512::depthwise_row(p, sums) },
+        #[cfg(target_arch = "x86_64")]
+        Build::Avx2 => unsafe { avx2::depthwise_row(p, sums) },
+        _ => unsafe { depthwise_row_with::<Portable>(p, sums) },
     }
-    unsafe { depthwise_row_with::<Portable>(p, sums) }
 }
 
 #[inline(always)]
@@ -634,7 +809,7 @@ mod tests {
         (0..n).map(|_| (rng.next_f64() * 2.0 - 1.0) as f32).collect()
     }
 
-    /// Both builds of `pointwise` against a naive product, over tile shapes, row and column tails,
+    /// Every build of `pointwise` against a naive product, over tile shapes, row and column tails,
     /// residual and activation.
     #[test]
     fn pointwise_equals_naive_product_in_every_build() {
@@ -665,7 +840,7 @@ mod tests {
                     expected[r * ldo + c] = if relu6 { v.clamp(0.0, 6.0) } else { v };
                 }
             }
-            let run = |avx512: bool| {
+            let run = |build: Build| {
                 let mut out = vec![0f32; rows * ldo];
                 let p = Pointwise {
                     rows,
@@ -680,19 +855,11 @@ mod tests {
                     ldr: ldo,
                     relu6,
                 };
-                match avx512 {
-                    #[cfg(target_arch = "x86_64")]
-                    true => unsafe { avx512::pointwise(&p) },
-                    _ => unsafe { pointwise_with::<Portable>(&p) },
-                }
+                unsafe { pointwise_in(build, &p) };
                 out
             };
-            let mut builds = vec![("portable", run(false))];
-            #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                builds.push(("avx512", run(true)));
-            }
-            for (name, out) in builds {
+            for build in Build::available() {
+                let (name, out) = (build.name(), run(build));
                 for (i, (&got, &want)) in out.iter().zip(&expected).enumerate() {
                     assert!((got - want).abs() < 1e-4, "{name} {rows}x{k}x{n} {columns:?} at {i}: {got} vs {want}");
                 }
@@ -700,7 +867,7 @@ mod tests {
         }
     }
 
-    /// Both builds of `depthwise_row` against naive loops, strides 1 and 2, both paddings.
+    /// Every build of `depthwise_row` against naive loops, strides 1 and 2, both paddings.
     #[test]
     fn depthwise_row_equals_naive_loops_in_every_build() {
         for (stride, first_pixel, width, pitch, channels) in [(1, 0, 9, 32, 0..32), (2, 1, 5, 48, 16..48), (2, 0, 4, 16, 0..16), (1, 0, 1, 64, 32..64), (1, 1, 14, 16, 0..16), (2, 1, 11, 32, 0..32)] {
@@ -723,7 +890,7 @@ mod tests {
                     expected_sums[c - channels.start] += v as f64;
                 }
             }
-            let run = |avx512: bool| {
+            let run = |build: Build| {
                 let mut out = vec![0f32; width * pitch];
                 let mut sums = vec![0f64; channels.len()];
                 let p = DepthwiseRow {
@@ -737,19 +904,11 @@ mod tests {
                     channels: channels.clone(),
                     out: out.as_mut_ptr(),
                 };
-                match avx512 {
-                    #[cfg(target_arch = "x86_64")]
-                    true => unsafe { avx512::depthwise_row(&p, &mut sums) },
-                    _ => unsafe { depthwise_row_with::<Portable>(&p, &mut sums) },
-                }
+                unsafe { depthwise_row_in(build, &p, &mut sums) };
                 (out, sums)
             };
-            let mut builds = vec![("portable", run(false))];
-            #[cfg(target_arch = "x86_64")]
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                builds.push(("avx512", run(true)));
-            }
-            for (name, (out, sums)) in builds {
+            for build in Build::available() {
+                let (name, (out, sums)) = (build.name(), run(build));
                 for (i, (&got, &want)) in out.iter().zip(&expected).enumerate() {
                     assert!((got - want).abs() < 1e-5, "{name} stride {stride} at {i}: {got} vs {want}");
                 }
