@@ -8,11 +8,11 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use ecm_lcd::config::Params;
-use ecm_lcd::eval::{evaluate, loop_truth_from_poses, revisit::write_two_pass, Metrics, PoseLoopCriteria};
+use ecm_lcd::eval::{evaluate, loop_truth_from_poses, revisit::write_two_pass, LoopTruth, Metrics, PoseLoopCriteria};
 use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::model::weights::resolve::Resolved;
 use ecm_lcd::pipeline::Pipeline;
-use ecm_lcd::replay::run_source;
+use ecm_lcd::replay::{run_source, ReplayRun};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 
 /// One evaluation sequence with its loop criteria and detector overrides.
@@ -44,7 +44,21 @@ pub fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
 
 /// Replays `set` with `weights` as `arch` and the descriptor `mode` (`None`: the default);
 /// returns the metrics and the descriptor's dimension.
+#[allow(dead_code)] // each example builds this module for itself, and not every one calls this
 pub fn evaluate_on(set: &EvalSet, arch: &str, mode: Option<&str>, weights: &Resolved) -> Result<(Metrics, usize)> {
+    let replayed = replay_on(set, arch, mode, weights, None)?;
+    Ok((evaluate(&replayed.run.query_results(), &replayed.truth)?, replayed.pipeline.descriptor().dim()))
+}
+
+/// One replay of a set: the pipeline after it, what it found, and the set's loop truth.
+pub struct Replayed {
+    pub pipeline: Pipeline,
+    pub run: ReplayRun,
+    pub truth: LoopTruth,
+}
+
+/// Replays `set` as [`evaluate_on`] does; with `db`, every keyframe is also stored there.
+pub fn replay_on(set: &EvalSet, arch: &str, mode: Option<&str>, weights: &Resolved, db: Option<&Path>) -> Result<Replayed> {
     let groundtruth = read_groundtruth(&set.path.join("groundtruth.txt"))?;
     let mut params = Params::default();
     params.set_from_str("arch", arch).map_err(anyhow::Error::msg)?;
@@ -55,9 +69,12 @@ pub fn evaluate_on(set: &EvalSet, arch: &str, mode: Option<&str>, weights: &Reso
         params.set_from_str(k, v).map_err(anyhow::Error::msg)?;
     }
     let mut pipeline = Pipeline::with_weights(params, weights.clone())?;
+    if let Some(db) = db {
+        pipeline.open_store(db)?;
+    }
     let run = run_source(&mut pipeline, &set.path, None, false)?;
     let truth = loop_truth_from_poses(&run.frame_stamps, &groundtruth, &set.criteria);
-    Ok((evaluate(&run.query_results(), &truth)?, pipeline.descriptor().dim()))
+    Ok(Replayed { pipeline, run, truth })
 }
 
 /// A figure with three decimals, `-` when undefined.
