@@ -9,10 +9,7 @@ use anyhow::Result;
 use ecm_lcd::model::weights::resolve;
 
 fn main() -> Result<()> {
-    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
-    ecm_lcd::runtime::init_threads(None);
-    let dir = tempfile::tempdir()?;
-    let sets = common::eval_sets(dir.path())?;
+    let (_dir, sets) = common::start()?;
     let weights = resolve::resolve(None)?;
     println!("| data | network | descriptor | dim | queries (with loop) | recall@1 | recall@100%P | AP |");
     println!("|---|---|---|---|---|---|---|---|");

@@ -48,10 +48,7 @@ fn int8_round_trip(v: &[f32]) -> Vec<f32> {
 }
 
 fn main() -> Result<()> {
-    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
-    ecm_lcd::runtime::init_threads(None);
-    let dir = tempfile::tempdir()?;
-    let sets = common::eval_sets(dir.path())?;
+    let (dir, sets) = common::start()?;
     let weights = resolve::resolve(None)?;
     println!("| data | descriptor | stored as | bytes | recall@1 | recall@100%P | AP | same best match as f32 | largest score change |");
     println!("|---|---|---|---|---|---|---|---|---|");

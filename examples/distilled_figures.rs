@@ -14,11 +14,8 @@ use anyhow::{Context, Result};
 use ecm_lcd::model::weights::resolve;
 
 fn main() -> Result<()> {
-    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
-    ecm_lcd::runtime::init_threads(None);
     let student_path = PathBuf::from(std::env::args().nth(1).context("usage: distilled_figures STUDENT.safetensors")?);
-    let dir = tempfile::tempdir()?;
-    let sets = common::eval_sets(dir.path())?;
+    let (_dir, sets) = common::start()?;
     let mnv2 = resolve::resolve(None)?;
     let student = resolve::load_file(&student_path)?;
     let networks = [

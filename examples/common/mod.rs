@@ -23,8 +23,18 @@ pub struct EvalSet {
     pub overrides: &'static [(&'static str, &'static str)],
 }
 
+/// What every measuring example starts with: logging (warnings), the thread pool, and both sets
+/// written to a temporary folder, which lives as long as the returned guard.
+pub fn start() -> Result<(tempfile::TempDir, Vec<EvalSet>)> {
+    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
+    ecm_lcd::runtime::init_threads(None);
+    let dir = tempfile::tempdir()?;
+    let sets = eval_sets(dir.path())?;
+    Ok((dir, sets))
+}
+
 /// Writes both sets under `dir`.
-pub fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
+fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
     let shared = ecm_lcd::runtime::shared_dirs().into_iter().next().context("the shared data folder (../shared) is needed")?;
     let real = dir.join("fr3_two_pass");
     write_two_pass(&shared.join("data/tum/fr3_long_office_household"), &real, 1.0, 0.05)?;
