@@ -217,6 +217,8 @@ pub struct SearchRow {
     pub stored: usize,
     /// Seconds to insert everything (index training included).
     pub build_s: f64,
+    /// The slowest single insert, in ms: an index (re)training, which holds up that keyframe.
+    pub slowest_insert_ms: f64,
     pub exact: Stats,
     /// The automatic choice: `exact` below the index threshold, `ivf` above.
     pub auto_method: &'static str,
@@ -577,9 +579,12 @@ fn search_one(args: &BenchArgs, dim: usize, stored: usize) -> Result<SearchRow> 
     }
     let mut v = vec![0f32; dim];
     let started = Instant::now();
+    let mut slowest_insert_ms = 0f64;
     for i in 0..stored {
         generator.next_into(&mut v);
+        let insert_started = Instant::now();
         db.insert(i as u64, Stamp::from_nanos(i as i64), &v)?;
+        slowest_insert_ms = slowest_insert_ms.max(insert_started.elapsed().as_secs_f64() * 1e3);
     }
     let build_s = started.elapsed().as_secs_f64();
     let queries = queries_gen.take(args.queries.max(1));
@@ -606,6 +611,7 @@ fn search_one(args: &BenchArgs, dim: usize, stored: usize) -> Result<SearchRow> 
         dim,
         stored,
         build_s,
+        slowest_insert_ms,
         exact: Stats::of(&mut exact_samples),
         auto_method: if index.is_some() { "ivf" } else { "exact" },
         auto: Stats::of(&mut auto_samples),
@@ -838,14 +844,14 @@ fn print_report(args: &BenchArgs, report: &Report) {
     if let Some(rows) = &report.search {
         println!("\nsearch: top-{} of clustered unit vectors, newest {BENCH_EXCLUDE_RECENT} excluded, {} queries, 1 thread per query", args.k, args.queries);
         println!(
-            "{:>5} {:>8} {:>8} {:>10} {:>9} {:>6} {:>10} {:>9} {:>22} {:>8}",
-            "dim", "stored", "build s", "exact med", "exact p90", "auto", "auto med", "auto p90", "lists/probed, largest", "recall"
+            "{:>5} {:>8} {:>8} {:>11} {:>10} {:>9} {:>6} {:>10} {:>9} {:>22} {:>8}",
+            "dim", "stored", "build s", "slowest ins", "exact med", "exact p90", "auto", "auto med", "auto p90", "lists/probed, largest", "recall"
         );
         for r in rows {
             let lists = r.index.map(|i| format!("{}/{} max {}", i.nlist, i.nprobe, i.largest_list)).unwrap_or_else(|| "-".into());
             println!(
-                "{:>5} {:>8} {:>8.1} {:>10.3} {:>9.3} {:>6} {:>10.3} {:>9.3} {:>22} {:>8.4}",
-                r.dim, r.stored, r.build_s, r.exact.median_ms, r.exact.p90_ms, r.auto_method, r.auto.median_ms, r.auto.p90_ms, lists, r.recall
+                "{:>5} {:>8} {:>8.1} {:>8.0} ms {:>10.3} {:>9.3} {:>6} {:>10.3} {:>9.3} {:>22} {:>8.4}",
+                r.dim, r.stored, r.build_s, r.slowest_insert_ms, r.exact.median_ms, r.exact.p90_ms, r.auto_method, r.auto.median_ms, r.auto.p90_ms, lists, r.recall
             );
         }
     }

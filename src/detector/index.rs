@@ -15,6 +15,8 @@
 //!   `max(min_len, scan_values / dim)` keyframes (brute force then scans about 10 MB per query) and
 //!   retrained from scratch each time the database has grown `retrain_growth` times since the last
 //!   training (the lists would otherwise grow unevenly). Below the threshold the search is the exact scan.
+//!   The first training is done at once; a retraining goes on a slice per insert ([`IvfTraining`]) while
+//!   the previous index keeps serving, so no keyframe waits for it.
 //! - Newly inserted keyframes are assigned to lists in batches ([`ASSIGN_BATCH`], one matrix product); the
 //!   not-yet-assigned tail is scanned exactly on every query, so no keyframe is ever invisible.
 //! - Filters (recent-keyframe exclusion) are applied while scanning; when the probed lists yield fewer
@@ -29,6 +31,7 @@ use crate::descriptor::squared_distance;
 /// Keyframes assigned to the index's lists at once (the rest of the tail is scanned exactly).
 pub const ASSIGN_BATCH: usize = 1024;
 
+
 /// When the database builds and rebuilds its approximate index.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct IndexPolicy {
@@ -40,6 +43,8 @@ pub struct IndexPolicy {
     pub retrain_growth: usize,
     /// Fraction of the lists a query scans (at least 8): the speed/recall trade-off.
     pub probe_fraction: f64,
+    /// Multiply-adds of a retraining done per insert ([`IvfTraining`]).
+    pub retrain_slice_macs: usize,
 }
 
 impl Default for IndexPolicy {
@@ -48,13 +53,16 @@ impl Default for IndexPolicy {
         // where an exact scan costs about a millisecond and a half (128-d) to a few (1280-d).
         // A 64th of the lists (at least 8) kept recall@10 >= 0.99 on clustered data from 10k to 1M
         // keyframes at 128-d and 1280-d (0.996 at 1M: `ecm-lcd bench --only search` measures it).
-        IndexPolicy { min_len: 5000, scan_values: 2_621_440, retrain_growth: 4, probe_fraction: 1.0 / 64.0 }
+        // A retraining slice of 2^27 multiply-adds takes 2-3 ms of matrix products on two cores (a whole
+        // retraining at 80k 1280-d keyframes, in one go: 3.5 s).
+        IndexPolicy { min_len: 5000, scan_values: 2_621_440, retrain_growth: 4, probe_fraction: 1.0 / 64.0, retrain_slice_macs: 1 << 27 }
     }
 }
 
 impl IndexPolicy {
     /// Always exact.
-    pub const EXACT: IndexPolicy = IndexPolicy { min_len: usize::MAX, scan_values: usize::MAX, retrain_growth: 8, probe_fraction: 1.0 };
+    pub const EXACT: IndexPolicy =
+        IndexPolicy { min_len: usize::MAX, scan_values: usize::MAX, retrain_growth: 8, probe_fraction: 1.0, retrain_slice_macs: usize::MAX };
 
     /// The database length from which descriptors of length `dim` are indexed.
     pub fn threshold(&self, dim: usize) -> usize {
@@ -177,7 +185,7 @@ fn nearest_centroids(centroids: &[f32], dim: usize, rows: &[f32]) -> anyhow::Res
 }
 
 /// A small deterministic generator (xorshift64*) for sampling; no statistical quality needed.
-#[derive(Clone)]
+#[derive(Clone, Debug)]
 struct Sampler(u64);
 
 impl Sampler {
@@ -257,18 +265,50 @@ pub(crate) struct IvfIndex {
 const KMEANS_ITERATIONS: usize = 6;
 /// Lists probed at least.
 const MIN_PROBE: usize = 8;
-/// Bound on `nlist * dim`, the cost of assigning one keyframe to its list.
-const MAX_ASSIGN_VALUES: usize = 262_144;
+/// Bound on `nlist * dim`: the centroids every query ranks and every keyframe is assigned by (5 MB:
+/// 1024 lists up to 1280-d). Until 2026-11-23 it was 262144 (204 lists at 1280-d): at 100k 1280-d
+/// keyframes a query then scanned 4% of them, not 1.6% (1.4-1.9 ms now against 4.4 ms, same recall);
+/// retraining in slices ([`IvfTraining`]) made the larger training affordable.
+const MAX_ASSIGN_VALUES: usize = 1024 * 1280;
 /// Training sample per list.
 const SAMPLE_PER_LIST: usize = 32;
 
-impl IvfIndex {
-    /// Trains on the live rows `rows[first_live..]` (`dim` values each) and assigns every row.
-    pub fn train(rows: &[f32], dim: usize, first_live: usize, probe_fraction: f64) -> anyhow::Result<Self> {
+/// An index being trained a slice at a time, so that a retraining never holds up one keyframe for
+/// seconds (k-means and assigning every keyframe cost `n * nlist * dim` multiply-adds: 3.5 s at 80k
+/// 1280-d keyframes in one go). [`IvfTraining::step`] does at most a given number of multiply-adds,
+/// in order: [`KMEANS_ITERATIONS`] Lloyd passes over a fixed sample, then the assignment of every row,
+/// catching up with rows inserted meanwhile. The database keeps searching with its previous index
+/// until the new one is complete. The work is counted, not timed, so the result is deterministic and
+/// the same as a training done in one go ([`IvfIndex::train`]).
+#[derive(Clone, Debug)]
+pub(crate) struct IvfTraining {
+    dim: usize,
+    nlist: usize,
+    /// `sample.len() / dim` rows copied at the start: later inserts and drops do not change them.
+    sample: Vec<f32>,
+    centroids: Vec<f32>,
+    sampler: Sampler,
+    iteration: usize,
+    /// Next sample row of the current Lloyd pass, and that pass's sums so far.
+    cursor: usize,
+    sums: Vec<f64>,
+    counts: Vec<usize>,
+    norm_sums: Vec<f64>,
+    /// Where assignment starts (the first live slot at the start), until the index exists.
+    first_slot: usize,
+    trained_len: usize,
+    probe_fraction: f64,
+    /// Set once the Lloyd passes are done: the index whose lists are being filled.
+    index: Option<IvfIndex>,
+}
+
+impl IvfTraining {
+    /// Starts a training on the live rows `rows[first_live..]` (`dim` values each): only the sample is
+    /// taken now.
+    pub fn start(rows: &[f32], dim: usize, first_live: usize, probe_fraction: f64) -> Self {
         let total = rows.len() / dim;
         let live = total - first_live;
-        // 2 sqrt(n) lists, up to 1024, and at most MAX_ASSIGN_VALUES / dim so assigning one keyframe
-        // stays cheap (200 lists at 1280-d, 1024 at 128-d).
+        // 2 sqrt(n) lists, up to 1024, and at most MAX_ASSIGN_VALUES / dim.
         let nlist = ((2.0 * (live as f64).sqrt()).round() as usize).clamp(1, (MAX_ASSIGN_VALUES / dim.max(1)).clamp(1, 1024));
         // A fixed sample: evenly spread over the history, then jittered, so training is reproducible.
         let mut sampler = Sampler(0x9E37_79B9_7F4A_7C15 ^ live as u64);
@@ -280,39 +320,109 @@ impl IvfIndex {
                 rows[slot * dim..(slot + 1) * dim].iter().copied()
             })
             .collect();
-        let row = |i: usize| &sample[i * dim..(i + 1) * dim];
         // Initial centroids: sample rows spread over the sample.
-        let mut centroids: Vec<f32> = (0..nlist).flat_map(|c| row(c * sample_len / nlist).iter().copied()).collect();
-        for _ in 0..KMEANS_ITERATIONS {
-            let assignment = nearest_centroids(&centroids, dim, &sample)?;
-            let mut sums = vec![0f64; nlist * dim];
-            let mut counts = vec![0usize; nlist];
-            let mut norm_sums = vec![0f64; nlist];
-            for (i, &c) in assignment.iter().enumerate() {
-                counts[c] += 1;
-                norm_sums[c] += row(i).iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>().sqrt();
-                sums[c * dim..(c + 1) * dim].iter_mut().zip(row(i)).for_each(|(s, &x)| *s += x as f64);
-            }
-            for c in 0..nlist {
-                let centroid = &mut centroids[c * dim..(c + 1) * dim];
-                if counts[c] == 0 {
-                    // An empty list takes a random sample row, so no centroid is wasted.
-                    centroid.copy_from_slice(row(sampler.next(sample_len)));
-                } else {
-                    // The members' mean direction at their mean length: for unit descriptors this is
-                    // spherical k-means. A plain mean is shorter than its members, and short centroids
-                    // attract ever more points, giving a few huge lists that every query probes.
-                    let sum = &sums[c * dim..(c + 1) * dim];
-                    let sum_norm = sum.iter().map(|s| s * s).sum::<f64>().sqrt().max(f64::MIN_POSITIVE);
-                    let scale = norm_sums[c] / counts[c] as f64 / sum_norm;
-                    centroid.iter_mut().zip(sum).for_each(|(x, &s)| *x = (s * scale) as f32);
-                }
+        let centroids: Vec<f32> = (0..nlist).flat_map(|c| sample[c * sample_len / nlist * dim..][..dim].iter().copied()).collect();
+        IvfTraining {
+            dim,
+            nlist,
+            sample,
+            centroids,
+            sampler,
+            iteration: 0,
+            cursor: 0,
+            sums: vec![0f64; nlist * dim],
+            counts: vec![0usize; nlist],
+            norm_sums: vec![0f64; nlist],
+            first_slot: first_live,
+            trained_len: live,
+            probe_fraction,
+            index: None,
+        }
+    }
+
+    /// Does at most about `max_macs` multiply-adds of the training (at least one row's worth); the
+    /// index once it is complete, with every row of `rows` assigned.
+    pub fn step(&mut self, rows: &[f32], max_macs: usize) -> anyhow::Result<Option<IvfIndex>> {
+        let (dim, nlist) = (self.dim, self.nlist);
+        let step_rows = (max_macs / (nlist * dim).max(1)).max(1);
+        if let Some(index) = &mut self.index {
+            let end = index.assigned.saturating_add(step_rows).min(rows.len() / dim);
+            index.assign_pending(&rows[..end * dim])?;
+            return Ok((end == rows.len() / dim).then(|| self.index.take().expect("the index being filled")));
+        }
+        let sample_len = self.sample.len() / dim;
+        let end = self.cursor.saturating_add(step_rows).min(sample_len);
+        let chunk = &self.sample[self.cursor * dim..end * dim];
+        for (offset, c) in nearest_centroids(&self.centroids, dim, chunk)?.into_iter().enumerate() {
+            let row = &chunk[offset * dim..(offset + 1) * dim];
+            self.counts[c] += 1;
+            self.norm_sums[c] += row.iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>().sqrt();
+            self.sums[c * dim..(c + 1) * dim].iter_mut().zip(row).for_each(|(s, &x)| *s += x as f64);
+        }
+        self.cursor = end;
+        if end == sample_len {
+            self.finish_pass();
+        }
+        Ok(None)
+    }
+
+    /// Ends a Lloyd pass: moves each centroid to its members; after the last pass, the index to fill.
+    fn finish_pass(&mut self) {
+        let (dim, sample_len) = (self.dim, self.sample.len() / self.dim);
+        for c in 0..self.nlist {
+            let centroid = &mut self.centroids[c * dim..(c + 1) * dim];
+            if self.counts[c] == 0 {
+                // An empty list takes a random sample row, so no centroid is wasted.
+                let row = self.sampler.next(sample_len);
+                centroid.copy_from_slice(&self.sample[row * dim..(row + 1) * dim]);
+            } else {
+                // The members' mean direction at their mean length: for unit descriptors this is
+                // spherical k-means. A plain mean is shorter than its members, and short centroids
+                // attract ever more points, giving a few huge lists that every query probes.
+                let sum = &self.sums[c * dim..(c + 1) * dim];
+                let sum_norm = sum.iter().map(|s| s * s).sum::<f64>().sqrt().max(f64::MIN_POSITIVE);
+                let scale = self.norm_sums[c] / self.counts[c] as f64 / sum_norm;
+                centroid.iter_mut().zip(sum).for_each(|(x, &s)| *x = (s * scale) as f32);
             }
         }
-        let nprobe = ((nlist as f64 * probe_fraction).round() as usize).max(MIN_PROBE).min(nlist);
-        let mut index = IvfIndex { dim, centroids, lists: vec![Vec::new(); nlist], assigned: first_live, trained_len: live, nprobe };
-        index.assign_pending(rows)?;
-        Ok(index)
+        self.sums.iter_mut().for_each(|s| *s = 0.0);
+        self.counts.iter_mut().for_each(|n| *n = 0);
+        self.norm_sums.iter_mut().for_each(|s| *s = 0.0);
+        self.cursor = 0;
+        self.iteration += 1;
+        if self.iteration == KMEANS_ITERATIONS {
+            let nprobe = ((self.nlist as f64 * self.probe_fraction).round() as usize).max(MIN_PROBE).min(self.nlist);
+            self.index = Some(IvfIndex {
+                dim,
+                centroids: std::mem::take(&mut self.centroids),
+                lists: vec![Vec::new(); self.nlist],
+                assigned: self.first_slot,
+                trained_len: self.trained_len,
+                nprobe,
+            });
+            // The sample is no longer needed; free it while the assignment goes on.
+            self.sample = Vec::new();
+        }
+    }
+
+    /// The first `count` slots were removed from the buffer (see [`IvfIndex::drain`]).
+    pub fn drain(&mut self, count: usize) {
+        self.first_slot = self.first_slot.saturating_sub(count);
+        if let Some(index) = &mut self.index {
+            index.drain(count);
+        }
+    }
+}
+
+impl IvfIndex {
+    /// Trains on the live rows `rows[first_live..]` (`dim` values each) and assigns every row, in one go.
+    pub fn train(rows: &[f32], dim: usize, first_live: usize, probe_fraction: f64) -> anyhow::Result<Self> {
+        let mut training = IvfTraining::start(rows, dim, first_live, probe_fraction);
+        loop {
+            if let Some(index) = training.step(rows, usize::MAX)? {
+                return Ok(index);
+            }
+        }
     }
 
     pub fn nlist(&self) -> usize {
@@ -336,7 +446,7 @@ impl IvfIndex {
         rows.len() / self.dim - self.assigned
     }
 
-    /// Puts every not-yet-assigned row into its list.
+    /// Puts every row of `rows` not yet assigned into its list (`rows`: the buffer, or a prefix of it).
     pub fn assign_pending(&mut self, rows: &[f32]) -> anyhow::Result<()> {
         let start = self.assigned;
         let lists = nearest_centroids(&self.centroids, self.dim, &rows[start * self.dim..])?;
@@ -461,6 +571,81 @@ mod tests {
         }
         let recall = hits as f64 / (100 * k) as f64;
         assert!(recall >= 0.99, "recall@{k} {recall}");
+        Ok(())
+    }
+
+    #[test]
+    fn a_training_in_slices_equals_one_in_one_go() -> anyhow::Result<()> {
+        let dim = 24;
+        let rows = clustered(4000, dim, 40, 11);
+        let whole = IvfIndex::train(&rows, dim, 100, 1.0 / 64.0)?;
+        let mut training = IvfTraining::start(&rows, dim, 100, 1.0 / 64.0);
+        let mut steps = 1;
+        // A slice of 300 rows' worth of work.
+        let sliced = loop {
+            if let Some(index) = training.step(&rows, 300 * whole.nlist() * dim)? {
+                break index;
+            }
+            steps += 1;
+        };
+        // 6 Lloyd passes over a 3900-row sample (13 slices each) and 3900 rows to assign (13).
+        assert_eq!(whole.nlist(), 125);
+        assert_eq!(steps, KMEANS_ITERATIONS * 13 + 13);
+        assert_eq!(sliced.centroids, whole.centroids);
+        assert_eq!(sliced.lists, whole.lists);
+        assert_eq!((sliced.assigned, sliced.trained_len, sliced.nprobe), (whole.assigned, whole.trained_len, whole.nprobe));
+        Ok(())
+    }
+
+    #[test]
+    fn a_retraining_goes_on_over_inserts_while_the_old_index_serves() -> anyhow::Result<()> {
+        let dim = 32;
+        let data = clustered(9000, dim, 80, 13);
+        // Retrained at 4000 (growth 2 from 2000), a slice of about 100 rows' worth of work per insert.
+        let slice = 100 * 126 * dim;
+        let policy = IndexPolicy { min_len: 2000, scan_values: 0, retrain_growth: 2, retrain_slice_macs: slice, ..IndexPolicy::default() };
+        let mut db = KeyframeDb::new(dim);
+        db.set_index_policy(policy)?;
+        let mut exact = KeyframeDb::new(dim);
+        exact.set_index_policy(IndexPolicy::EXACT)?;
+        let mut swapped_at = None;
+        for (i, v) in data.chunks_exact(dim).enumerate() {
+            db.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
+            exact.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
+            let trained_len = db.index_info().map(|info| info.trained_len);
+            match i + 1 {
+                n if n < 2000 => assert_eq!(trained_len, None),
+                n if n < 4000 => assert_eq!(trained_len, Some(2000), "after {n}"),
+                n => {
+                    if trained_len == Some(4000) && swapped_at.is_none() {
+                        swapped_at = Some(n);
+                    }
+                    assert_eq!(trained_len, Some(if swapped_at.is_some() { 4000 } else { 2000 }), "after {n}");
+                }
+            }
+            // Dropping the oldest keyframes during the retraining renumbers both indexes' slots.
+            if i + 1 == 4100 {
+                db.drop_oldest(1000);
+                exact.drop_oldest(1000);
+            }
+            // While the old index serves, during the retraining and after it, every keyframe is found.
+            if (i + 1) % 250 == 0 {
+                let q = &data[(i - 3) * dim..(i - 2) * dim];
+                let got = db.nearest(q, 5, |_| true)?;
+                assert_eq!(db.id(got[0].position), i as u64 - 3, "after {}", i + 1);
+                assert_eq!(got[0], exact.nearest(q, 5, |_| true)?[0]);
+            }
+        }
+        // 126 lists, a 4000-row sample (6 passes of 40 slices), 3000 live rows to assign: about 270
+        // inserts (each insert adds a row to assign).
+        let swapped_at = swapped_at.expect("the retraining ended");
+        assert!((4200..4400).contains(&swapped_at), "{swapped_at}");
+        assert_eq!(db.index_info().unwrap().nlist, 126);
+        // Every live keyframe is in the new index's lists or its unassigned tail: each finds itself.
+        for p in (0..db.len()).step_by(37) {
+            let q = &data[(p + 1000) * dim..(p + 1001) * dim];
+            assert_eq!(db.nearest(q, 1, |_| true)?[0].position, p);
+        }
         Ok(())
     }
 

@@ -31,7 +31,7 @@ pub mod selection;
 pub mod store;
 
 use crate::descriptor::Descriptor;
-use index::{IndexPolicy, IvfIndex, TopK};
+use index::{IndexPolicy, IvfIndex, IvfTraining, TopK};
 use rows::DescriptorRows;
 use crate::types::{LoopCandidate, Stamp};
 use anyhow::{ensure, Context};
@@ -105,6 +105,8 @@ pub struct KeyframeDb {
     dropped: usize,
     index_policy: IndexPolicy,
     index: Option<IvfIndex>,
+    /// A retraining under way, advanced a slice per insert; `index` serves until it is done.
+    training: Option<IvfTraining>,
     /// While set, inserts leave the index alone (bulk loading: one training at the end, not one per growth step).
     index_deferred: bool,
 }
@@ -124,6 +126,7 @@ impl KeyframeDb {
             dropped: 0,
             index_policy: IndexPolicy::default(),
             index: None,
+            training: None,
             index_deferred: false,
         }
     }
@@ -146,6 +149,8 @@ impl KeyframeDb {
     /// Changes when the approximate index is used; builds or drops it at once to match.
     pub fn set_index_policy(&mut self, policy: IndexPolicy) -> anyhow::Result<()> {
         self.index_policy = policy;
+        // A retraining under way restarts under the new policy if it is still due.
+        self.training = None;
         if self.len() < policy.threshold(self.dim) {
             self.index = None;
         }
@@ -180,16 +185,27 @@ impl KeyframeDb {
         if self.index_deferred {
             return Ok(());
         }
+        if let Some(training) = &mut self.training {
+            if let Some(index) = training.step(&self.descriptors, self.index_policy.retrain_slice_macs).context("retraining the search index")? {
+                self.index = Some(index);
+                self.training = None;
+            }
+        }
         let len = self.len();
-        let retrain = match &self.index {
-            None => len >= self.index_policy.threshold(self.dim),
-            Some(index) => len >= index.trained_len().saturating_mul(self.index_policy.retrain_growth.max(2)),
-        };
-        if retrain {
-            self.index = Some(IvfIndex::train(&self.descriptors, self.dim, self.dropped, self.index_policy.probe_fraction).context("training the search index")?);
-        } else if let Some(index) = &mut self.index {
-            if index.pending(&self.descriptors) >= index::ASSIGN_BATCH {
-                index.assign_pending(&self.descriptors).context("extending the search index")?;
+        let (policy, dim, first_live) = (self.index_policy, self.dim, self.dropped);
+        match &mut self.index {
+            // The first index is built at once: until it exists every query is an exact scan.
+            None if len >= policy.threshold(dim) => {
+                self.index = Some(IvfIndex::train(&self.descriptors, dim, first_live, policy.probe_fraction).context("training the search index")?)
+            }
+            None => {}
+            Some(index) => {
+                if self.training.is_none() && len >= index.trained_len().saturating_mul(policy.retrain_growth.max(2)) {
+                    self.training = Some(IvfTraining::start(&self.descriptors, dim, first_live, policy.probe_fraction));
+                }
+                if index.pending(&self.descriptors) >= index::ASSIGN_BATCH {
+                    index.assign_pending(&self.descriptors).context("extending the search index")?;
+                }
             }
         }
         Ok(())
@@ -206,6 +222,9 @@ impl KeyframeDb {
             self.descriptors.drain_front(self.dropped * self.dim);
             if let Some(index) = &mut self.index {
                 index.drain(self.dropped);
+            }
+            if let Some(training) = &mut self.training {
+                training.drain(self.dropped);
             }
             self.dropped = 0;
         }
