@@ -130,7 +130,7 @@ impl Pipeline {
             self.next_id = self.next_id.max(max_id + 1);
         }
         log::info!(
-            "keyframe database {}: {} keyframes stored, {} loaded in {:.3} s, ids continue at {}",
+            "keyframe database {}: {} keyframes stored, {} loaded (and indexed, if large) in {:.3} s, ids continue at {}",
             store.path().display(),
             store.len(),
             self.detector.db().len(),

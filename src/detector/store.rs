@@ -367,7 +367,8 @@ impl KeyframeStore {
             }
         }
         let mut db = KeyframeDb::from_history(dim, ids, stamps, descriptors)?;
-        // The index is built by the first keyframe inserted after the load, not here.
+        // The index is built by whoever takes the history (`Detector::replace_history`, at start-up),
+        // else by the first keyframe inserted after the load; not here, so that a load stays fast.
         db.index_at_next_insert();
         Ok(db)
     }

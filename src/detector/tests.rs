@@ -327,6 +327,22 @@ fn memory_budget_keeps_the_newest_keyframes_and_search_forgets_the_rest() {
 }
 
 #[test]
+fn a_loaded_history_is_indexed_before_the_first_keyframe() {
+    // As a store load leaves it: the index deferred to the next insert.
+    let dim = 8;
+    let values = crate::detector::index::ClusteredVectors::new(dim, 10, 1).take(600);
+    let stamps = (0..600).map(|i| secs(i as f64)).collect();
+    let mut history = KeyframeDb::from_history(dim, (0..600).collect(), stamps, values.into()).unwrap();
+    history.defer_index(true).unwrap();
+    history.set_index_policy(IndexPolicy { min_len: 500, scan_values: 0, ..IndexPolicy::default() }).unwrap();
+    history.index_at_next_insert();
+    assert!(history.index_info().is_none());
+    let mut det = Detector::new(Descriptor::new(DescriptorMode::L2, dim), params_all_off());
+    det.replace_history(history).unwrap();
+    assert_eq!(det.db().index_info().map(|i| i.trained_len), Some(600));
+}
+
+#[test]
 fn memory_budget_keeps_consistency_positions_in_step() {
     // Consistency over 2 queries with a window of 0: two revisits of place 3 agree only if the first
     // one's match position is renumbered when the oldest keyframe is dropped between them.
