@@ -158,30 +158,45 @@ fn prefetch(row: &[f32]) {
 /// Rows assigned per matrix product (bounds the `rows x nlist` product to a few MB per thousand lists).
 const ASSIGN_CHUNK: usize = 2048;
 
-/// The nearest centroid of each row of `rows` (`dim` values each). Computed as the largest
-/// `x.c - |c|^2 / 2` with one matrix product per chunk (candle's gemm: SIMD and multi-threaded), which is
-/// an order of magnitude faster than a distance scan per row and ranks centroids the same way up to
-/// rounding (only the list a keyframe lands in depends on it, never a reported distance).
-fn nearest_centroids(centroids: &[f32], dim: usize, rows: &[f32]) -> anyhow::Result<Vec<usize>> {
-    use candle_core::{Device, Tensor};
-    let nlist = centroids.len() / dim;
-    let half_norms: Vec<f32> = centroids.chunks_exact(dim).map(|c| 0.5 * c.iter().map(|x| x * x).sum::<f32>()).collect();
-    let centroids_t = Tensor::from_slice(centroids, (nlist, dim), &Device::Cpu)?.t()?.contiguous()?;
-    let mut out = Vec::with_capacity(rows.len() / dim);
-    for chunk in rows.chunks(ASSIGN_CHUNK * dim) {
-        let x = Tensor::from_slice(chunk, (chunk.len() / dim, dim), &Device::Cpu)?;
-        let dots = x.matmul(&centroids_t)?.flatten_all()?.to_vec1::<f32>()?;
-        out.extend(dots.chunks_exact(nlist).map(|row| {
-            let mut best = (f32::NEG_INFINITY, 0);
-            for (c, (&d, &h)) in row.iter().zip(&half_norms).enumerate() {
-                if d - h > best.0 {
-                    best = (d - h, c);
-                }
-            }
-            best.1
-        }));
+/// Centroids prepared for assigning rows to them: transposed for the matrix product, with their
+/// half squared norms. Made once per set of centroids (an index's, or a Lloyd pass's), not per call:
+/// at 1024 x 1280 the transposed copy is 5 MB.
+#[derive(Clone, Debug)]
+struct CentroidMatrix {
+    transposed: candle_core::Tensor,
+    half_norms: Vec<f32>,
+}
+
+impl CentroidMatrix {
+    fn new(centroids: &[f32], dim: usize) -> anyhow::Result<Self> {
+        use candle_core::{Device, Tensor};
+        let half_norms: Vec<f32> = centroids.chunks_exact(dim).map(|c| 0.5 * c.iter().map(|x| x * x).sum::<f32>()).collect();
+        let transposed = Tensor::from_slice(centroids, (half_norms.len(), dim), &Device::Cpu)?.t()?.contiguous()?;
+        Ok(CentroidMatrix { transposed, half_norms })
     }
-    Ok(out)
+
+    /// The nearest centroid of each row of `rows` (`dim` values each). Computed as the largest
+    /// `x.c - |c|^2 / 2` with one matrix product per chunk (candle's gemm: SIMD and multi-threaded), which
+    /// is an order of magnitude faster than a distance scan per row and ranks centroids the same way up
+    /// to rounding (only the list a keyframe lands in depends on it, never a reported distance).
+    fn nearest(&self, dim: usize, rows: &[f32]) -> anyhow::Result<Vec<usize>> {
+        let nlist = self.half_norms.len();
+        let mut out = Vec::with_capacity(rows.len() / dim);
+        for chunk in rows.chunks(ASSIGN_CHUNK * dim) {
+            let x = candle_core::Tensor::from_slice(chunk, (chunk.len() / dim, dim), &candle_core::Device::Cpu)?;
+            let dots = x.matmul(&self.transposed)?.flatten_all()?.to_vec1::<f32>()?;
+            out.extend(dots.chunks_exact(nlist).map(|row| {
+                let mut best = (f32::NEG_INFINITY, 0);
+                for (c, (&d, &h)) in row.iter().zip(&self.half_norms).enumerate() {
+                    if d - h > best.0 {
+                        best = (d - h, c);
+                    }
+                }
+                best.1
+            }));
+        }
+        Ok(out)
+    }
 }
 
 /// A small deterministic generator (xorshift64*) for sampling; no statistical quality needed.
@@ -253,6 +268,7 @@ impl ClusteredVectors {
 pub(crate) struct IvfIndex {
     dim: usize,
     centroids: Vec<f32>,
+    matrix: CentroidMatrix,
     lists: Vec<Vec<u32>>,
     /// Slots `[0, assigned)` are in the lists; later ones are scanned exactly.
     assigned: usize,
@@ -267,7 +283,7 @@ const KMEANS_ITERATIONS: usize = 6;
 const MIN_PROBE: usize = 8;
 /// Bound on `nlist * dim`: the centroids every query ranks and every keyframe is assigned by (5 MB:
 /// 1024 lists up to 1280-d). Until 2026-11-23 it was 262144 (204 lists at 1280-d): at 100k 1280-d
-/// keyframes a query then scanned 4% of them, not 1.6% (1.4-1.9 ms now against 4.4 ms, same recall);
+/// keyframes a query then scanned 4% of them, not 1.6% (1.4-1.9 ms now against 3.3-4.4 ms, same recall);
 /// retraining in slices ([`IvfTraining`]) made the larger training affordable.
 const MAX_ASSIGN_VALUES: usize = 1024 * 1280;
 /// Training sample per list.
@@ -288,6 +304,8 @@ pub(crate) struct IvfTraining {
     sample: Vec<f32>,
     centroids: Vec<f32>,
     sampler: Sampler,
+    /// `centroids` prepared for this Lloyd pass (made by its first step).
+    matrix: Option<CentroidMatrix>,
     iteration: usize,
     /// Next sample row of the current Lloyd pass, and that pass's sums so far.
     cursor: usize,
@@ -328,6 +346,7 @@ impl IvfTraining {
             sample,
             centroids,
             sampler,
+            matrix: None,
             iteration: 0,
             cursor: 0,
             sums: vec![0f64; nlist * dim],
@@ -353,7 +372,11 @@ impl IvfTraining {
         let sample_len = self.sample.len() / dim;
         let end = self.cursor.saturating_add(step_rows).min(sample_len);
         let chunk = &self.sample[self.cursor * dim..end * dim];
-        for (offset, c) in nearest_centroids(&self.centroids, dim, chunk)?.into_iter().enumerate() {
+        let matrix = match &mut self.matrix {
+            Some(matrix) => matrix,
+            none => none.insert(CentroidMatrix::new(&self.centroids, dim)?),
+        };
+        for (offset, c) in matrix.nearest(dim, chunk)?.into_iter().enumerate() {
             let row = &chunk[offset * dim..(offset + 1) * dim];
             self.counts[c] += 1;
             self.norm_sums[c] += row.iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>().sqrt();
@@ -361,13 +384,13 @@ impl IvfTraining {
         }
         self.cursor = end;
         if end == sample_len {
-            self.finish_pass();
+            self.finish_pass()?;
         }
         Ok(None)
     }
 
     /// Ends a Lloyd pass: moves each centroid to its members; after the last pass, the index to fill.
-    fn finish_pass(&mut self) {
+    fn finish_pass(&mut self) -> anyhow::Result<()> {
         let (dim, sample_len) = (self.dim, self.sample.len() / self.dim);
         for c in 0..self.nlist {
             let centroid = &mut self.centroids[c * dim..(c + 1) * dim];
@@ -389,11 +412,13 @@ impl IvfTraining {
         self.counts.iter_mut().for_each(|n| *n = 0);
         self.norm_sums.iter_mut().for_each(|s| *s = 0.0);
         self.cursor = 0;
+        self.matrix = None;
         self.iteration += 1;
         if self.iteration == KMEANS_ITERATIONS {
             let nprobe = ((self.nlist as f64 * self.probe_fraction).round() as usize).max(MIN_PROBE).min(self.nlist);
             self.index = Some(IvfIndex {
                 dim,
+                matrix: CentroidMatrix::new(&self.centroids, dim)?,
                 centroids: std::mem::take(&mut self.centroids),
                 lists: vec![Vec::new(); self.nlist],
                 assigned: self.first_slot,
@@ -403,6 +428,7 @@ impl IvfTraining {
             // The sample is no longer needed; free it while the assignment goes on.
             self.sample = Vec::new();
         }
+        Ok(())
     }
 
     /// The first `count` slots were removed from the buffer (see [`IvfIndex::drain`]).
@@ -449,7 +475,7 @@ impl IvfIndex {
     /// Puts every row of `rows` not yet assigned into its list (`rows`: the buffer, or a prefix of it).
     pub fn assign_pending(&mut self, rows: &[f32]) -> anyhow::Result<()> {
         let start = self.assigned;
-        let lists = nearest_centroids(&self.centroids, self.dim, &rows[start * self.dim..])?;
+        let lists = self.matrix.nearest(self.dim, &rows[start * self.dim..])?;
         for (offset, c) in lists.into_iter().enumerate() {
             self.lists[c].push((start + offset) as u32);
         }
