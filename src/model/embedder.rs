@@ -41,6 +41,20 @@ impl Embedder {
         })
     }
 
+    /// The maps at `taps` of `image` (see [`super::Network::tapped_features`]), computed on a rayon worker.
+    pub fn tapped_maps(&mut self, image: &RgbImage, taps: &[super::Tap]) -> Result<Vec<FeatureMap>> {
+        crate::runtime::on_worker(|| {
+            let x = self.preprocessor.tensor(image)?;
+            let maps = self.network.tapped_features(&x, self.mode, taps)?;
+            maps.iter()
+                .map(|y| {
+                    let (_, channels, height, width) = y.dims4()?;
+                    Ok(FeatureMap { channels, height, width, data: y.flatten_all()?.to_vec1::<f32>()? })
+                })
+                .collect()
+        })
+    }
+
     /// Class probabilities (softmax of the classifier's logits), computed on a rayon worker.
     pub fn probabilities(&mut self, image: &RgbImage) -> Result<Vec<f32>> {
         crate::runtime::on_worker(|| {

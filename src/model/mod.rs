@@ -190,6 +190,45 @@ pub struct Network {
     stem_and_first_block: Option<Arc<FusedBottleneck>>,
 }
 
+/// Where a descriptor reads the network: the output of bottleneck `i` (0-based, as in the weights'
+/// `blocks.{i}`; a linear bottleneck, so values may be negative) or the head (the 1280-channel
+/// ReLU6 map before global pooling).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Tap {
+    Block(usize),
+    Head,
+}
+
+impl Tap {
+    /// Position in the pass: block `i` is `i`, the head comes after `blocks` blocks.
+    fn depth(self, blocks: usize) -> usize {
+        match self {
+            Tap::Block(i) => i,
+            Tap::Head => blocks,
+        }
+    }
+}
+
+impl fmt::Display for Tap {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Tap::Block(i) => write!(f, "blocks.{i}"),
+            Tap::Head => f.write_str("head"),
+        }
+    }
+}
+
+impl FromStr for Tap {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> anyhow::Result<Self> {
+        if s == "head" {
+            return Ok(Tap::Head);
+        }
+        let index = s.strip_prefix("blocks.").and_then(|i| i.parse().ok());
+        index.map(Tap::Block).with_context(|| format!("unknown tap '{s}' (expected head or blocks.N)"))
+    }
+}
+
 /// One stage of a pass: what [`Network::profile`] times.
 #[derive(Clone, Copy, Debug)]
 enum Stage {
@@ -234,13 +273,47 @@ impl Network {
 
     /// The last feature map, `[B, head_channels, S/32, S/32]`, for input `x` `[B, 3, S, S]`.
     pub fn features(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
+        let mut maps = self.tapped_features(x, mode, &[Tap::Head])?;
+        Ok(maps.pop().expect("one map per tap"))
+    }
+
+    /// The maps at `taps`, each `[B, C, H, W]` (NCHW), in the order of `taps`. The pass stops after
+    /// the deepest tap, so a descriptor on mid-level features does not pay for the later blocks.
+    pub fn tapped_features(&self, x: &Tensor, mode: Mode, taps: &[Tap]) -> Result<Vec<Tensor>> {
+        for tap in taps {
+            if let Tap::Block(i) = tap {
+                if *i >= self.blocks.len() {
+                    candle_core::bail!("tap {tap} is past the last of {} blocks", self.blocks.len());
+                }
+            }
+        }
+        let Some(deepest) = taps.iter().map(|t| t.depth(self.blocks.len())).max() else {
+            return Ok(Vec::new());
+        };
         crate::runtime::with_hot_workers(|| {
             let channels_last = self.runs_channels_last(mode);
             let mut y = x.clone();
+            let mut maps: Vec<Option<Tensor>> = vec![None; taps.len()];
             for stage in self.stages(channels_last) {
                 y = self.stage(stage, &y, mode, channels_last)?;
+                let depth = match stage {
+                    Stage::Stem => continue,
+                    Stage::StemAndFirstBlock => 0,
+                    Stage::Block(i) => i,
+                    Stage::Head => self.blocks.len(),
+                };
+                for (slot, tap) in maps.iter_mut().zip(taps) {
+                    if tap.depth(self.blocks.len()) == depth {
+                        // The head's map is already channels-first (see `stage`).
+                        let nchw = channels_last && !matches!(stage, Stage::Head);
+                        *slot = Some(if nchw { fused::channels_first(&y)? } else { y.clone() });
+                    }
+                }
+                if depth == deepest {
+                    break;
+                }
             }
-            Ok(y)
+            Ok(maps.into_iter().map(|m| m.expect("every tap is at or before the deepest")).collect())
         })
     }
 

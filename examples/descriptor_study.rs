@@ -1,0 +1,328 @@
+//! Which network tap and aggregation carry place best: every combination on the real development
+//! sets, in memory (maps computed once per image). A program that measures and prints.
+//!
+//!     cargo run --release --example descriptor_study [-- ARCH SIZE]
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::{Context, Result};
+use ecm_lcd::eval::{evaluate, loop_truth_from_poses, read_loops, revisit::write_two_pass, LoopTruth, PoseLoopCriteria, QueryResult};
+use ecm_lcd::io::open_source;
+use ecm_lcd::io::tum::read_groundtruth;
+use ecm_lcd::model::embedder::Embedder;
+use ecm_lcd::model::weights::resolve;
+use ecm_lcd::model::{Arch, Tap};
+use ecm_lcd::preprocess::read_image;
+use ecm_lcd::types::{FeatureMap, Stamp};
+use image::RgbImage;
+
+/// Database images, query images, and for each query the database indexes it may match.
+struct Set {
+    name: String,
+    database: Vec<RgbImage>,
+    queries: Vec<RgbImage>,
+    /// `None`: every database image; `Some(k)`: database images `0..k` (a sequence's history).
+    eligible: Vec<Option<usize>>,
+    truth: LoopTruth,
+}
+
+fn degrade(image: &RgbImage) -> RgbImage {
+    let small = image::imageops::resize(image, 64, 48, image::imageops::FilterType::Triangle);
+    let gray = image::imageops::grayscale(&small);
+    let gray = image::DynamicImage::ImageLuma8(gray).to_rgb8();
+    image::imageops::resize(&gray, image.width(), image.height(), image::imageops::FilterType::Triangle)
+}
+
+fn sets(shared: &Path, tmp: &Path) -> Result<Vec<Set>> {
+    let mut out = Vec::new();
+    let gp = shared.join("data/real/gardens_point_day_night");
+    let read_dir = |dir: &Path| -> Result<Vec<RgbImage>> {
+        ecm_lcd::eval::images_in_name_order(dir)?.iter().map(|p| read_image(p)).collect()
+    };
+    let (database, queries) = (read_dir(&gp.join("ref"))?, read_dir(&gp.join("query"))?);
+    let truth = read_loops(&gp.join("loops.csv"))?;
+    out.push(Set { name: "gardens point".into(), eligible: vec![None; queries.len()], database: database.clone(), queries: queries.clone(), truth: truth.clone() });
+    out.push(Set {
+        name: "gardens point low-res gray".into(),
+        eligible: vec![None; queries.len()],
+        database: database.iter().map(degrade).collect(),
+        queries: queries.iter().map(degrade).collect(),
+        truth,
+    });
+
+    // Sequences: every frame is a query against the frames at least `gap` before it.
+    let orbit = shared.join("data/real/tum_fr3_desk_orbit");
+    let frames = read_dir(&orbit.join("rgb"))?;
+    let truth = read_loops(&orbit.join("loops.csv"))?;
+    let eligible = (0..frames.len()).map(|i| Some(i.saturating_sub(3))).collect::<Vec<_>>();
+    out.push(Set { name: "tum desk orbit".into(), database: frames.clone(), queries: frames, eligible, truth });
+
+    let two_pass = tmp.join("fr3_two_pass");
+    write_two_pass(&shared.join("data/tum/fr3_long_office_household"), &two_pass, 1.0, 0.05)?;
+    let frames: Vec<_> = open_source(&two_pass, None)?.collect::<Result<_>>()?;
+    let stamps: Vec<Stamp> = frames.iter().map(|f| f.stamp).collect();
+    let criteria = PoseLoopCriteria { min_gap_s: 2.0, ..PoseLoopCriteria::default() };
+    let truth = loop_truth_from_poses(&stamps, &read_groundtruth(&two_pass.join("groundtruth.txt"))?, &criteria);
+    let images: Vec<RgbImage> = frames.into_iter().map(|f| f.image).collect();
+    let eligible = (0..images.len()).map(|i| Some(i.saturating_sub(2))).collect::<Vec<_>>();
+    out.push(Set { name: "tum fr3 two-pass".into(), database: images.clone(), queries: images, eligible, truth });
+    Ok(out)
+}
+
+fn l2(v: &mut [f32]) {
+    let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    if n > 0.0 {
+        v.iter_mut().for_each(|x| *x /= n);
+    }
+}
+
+fn power(v: &mut [f32]) {
+    v.iter_mut().for_each(|x| *x = x.signum() * x.abs().sqrt());
+}
+
+/// Per-channel aggregate of the map over the rows `r` and columns `c`.
+fn pool(fm: &FeatureMap, rows: std::ops::Range<usize>, cols: std::ops::Range<usize>, how: &str) -> Vec<f32> {
+    let plane = fm.height * fm.width;
+    let n = (rows.len() * cols.len()) as f32;
+    fm.data
+        .chunks_exact(plane)
+        .map(|ch| {
+            let values = rows.clone().flat_map(|r| ch[r * fm.width + cols.start..r * fm.width + cols.end].iter().copied());
+            match how {
+                "gap" => values.sum::<f32>() / n,
+                "gem" => (values.map(|x| x.max(0.0).powi(3)).sum::<f32>() / n).cbrt(),
+                "mac" => values.fold(f32::NEG_INFINITY, f32::max),
+                "abs" => values.map(f32::abs).sum::<f32>() / n,
+                _ => unreachable!(),
+            }
+        })
+        .collect()
+}
+
+/// R-MAC-style regions: the whole map and square regions at two more scales, each L2-normalised, summed.
+fn rmac(fm: &FeatureMap, how: &str) -> Vec<f32> {
+    let mut total = vec![0.0f32; fm.channels];
+    let (h, w) = (fm.height, fm.width);
+    for level in 1..=3usize {
+        let side = (2 * h.min(w)) / (level + 1);
+        let side = side.max(1);
+        let steps_y = if h > side { level } else { 1 };
+        let steps_x = if w > side { level + 1 } else { 1 };
+        for sy in 0..steps_y {
+            for sx in 0..steps_x {
+                let y0 = if steps_y > 1 { sy * (h - side) / (steps_y - 1) } else { 0 };
+                let x0 = if steps_x > 1 { sx * (w - side) / (steps_x - 1) } else { 0 };
+                let (rows, cols) = if level == 1 { (0..h, 0..w) } else { (y0..y0 + side.min(h), x0..x0 + side.min(w)) };
+                let mut v = pool(fm, rows, cols, how);
+                l2(&mut v);
+                total.iter_mut().zip(&v).for_each(|(t, x)| *t += x);
+            }
+        }
+    }
+    total
+}
+
+fn grid(fm: &FeatureMap, how: &str, cells: usize) -> Vec<f32> {
+    let mut out = Vec::new();
+    for gy in 0..cells {
+        for gx in 0..cells {
+            let rows = (gy * fm.height / cells)..((gy + 1) * fm.height).div_ceil(cells);
+            let cols = (gx * fm.width / cells)..((gx + 1) * fm.width).div_ceil(cells);
+            let mut v = pool(fm, rows, cols, how);
+            power(&mut v);
+            l2(&mut v);
+            out.extend(v);
+        }
+    }
+    out
+}
+
+fn aggregate(fm: &FeatureMap, agg: &str) -> Vec<f32> {
+    let (kind, how) = agg.split_once('-').unwrap_or((agg, "gap"));
+    match kind {
+        "global" => pool(fm, 0..fm.height, 0..fm.width, how),
+        "rmac" => rmac(fm, how),
+        "grid2" => grid(fm, how, 2),
+        "grid3" => grid(fm, how, 3),
+        _ => unreachable!(),
+    }
+}
+
+fn cosine_scores(query: &[f32], database: &[Vec<f32>]) -> Vec<f32> {
+    database.iter().map(|d| d.iter().zip(query).map(|(a, b)| a * b).sum()).collect()
+}
+
+/// Post-processing: `pl2` power + L2; `c` subtracts the database mean first (centring learned from
+/// the history, no labels).
+fn finish(mut raw: Vec<Vec<f32>>, post: &str, mean: Option<&[f32]>) -> Vec<Vec<f32>> {
+    for v in &mut raw {
+        if post.contains('p') {
+            power(v);
+        }
+        l2(v);
+        if let Some(m) = mean {
+            v.iter_mut().zip(m).for_each(|(x, m)| *x -= m);
+            l2(v);
+        }
+    }
+    raw
+}
+
+fn mean_of(vs: &[Vec<f32>]) -> Vec<f32> {
+    let mut m = vec![0.0; vs[0].len()];
+    for v in vs {
+        m.iter_mut().zip(v).for_each(|(a, b)| *a += b / vs.len() as f32);
+    }
+    m
+}
+
+/// Images of our own making to learn centring and whitening from: synthetic frames of several worlds.
+fn learning_images() -> Result<Vec<RgbImage>> {
+    let mut images = Vec::new();
+    for seed in 11..15u64 {
+        let scene = ecm_lcd::synth::Scene::new(ecm_lcd::synth::SynthConfig { frames: 120, laps: 1, seed, ..Default::default() })?;
+        images.extend((0..scene.len()).map(|i| scene.render(i)));
+    }
+    Ok(images)
+}
+
+/// Mean and PCA whitening (to `dim` values) learned from `vs`.
+struct Whitening {
+    mean: Vec<f32>,
+    /// `dim` rows of the input length, each a principal axis divided by sqrt(eigenvalue + eps).
+    rows: Vec<Vec<f32>>,
+}
+
+fn learn_whitening(vs: &[Vec<f32>], dim: usize) -> Whitening {
+    let mean = mean_of(vs);
+    let n = mean.len();
+    let centred: Vec<Vec<f64>> = vs.iter().map(|v| v.iter().zip(&mean).map(|(a, m)| (a - m) as f64).collect()).collect();
+    // Gram matrix trick: eigenvectors of X X^T (samples x samples), as n may exceed the sample count.
+    let s = centred.len();
+    let gram = nalgebra::DMatrix::from_fn(s, s, |i, j| centred[i].iter().zip(&centred[j]).map(|(a, b)| a * b).sum::<f64>());
+    let eig = nalgebra::SymmetricEigen::new(gram);
+    let mut order: Vec<usize> = (0..s).collect();
+    order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
+    let total: f64 = eig.eigenvalues.iter().map(|e| e.max(0.0)).sum();
+    let eps = total / s as f64 * 0.1; // regularise small axes
+    let rows = order
+        .iter()
+        .take(dim.min(s - 1))
+        .map(|&k| {
+            let lambda = eig.eigenvalues[k].max(0.0);
+            // axis = X^T u / sqrt(lambda); whitened coordinate = axis . x / sqrt(lambda/(s) + eps')
+            let mut axis = vec![0.0f64; n];
+            for (i, row) in centred.iter().enumerate() {
+                let u = eig.eigenvectors[(i, k)];
+                axis.iter_mut().zip(row).for_each(|(a, x)| *a += u * x);
+            }
+            let norm = axis.iter().map(|a| a * a).sum::<f64>().sqrt().max(1e-12);
+            let variance = lambda / s as f64;
+            let scale = 1.0 / (norm * (variance + eps / s as f64).sqrt());
+            axis.iter().map(|a| (a * scale) as f32).collect()
+        })
+        .collect();
+    Whitening { mean, rows }
+}
+
+fn whiten(w: &Whitening, v: &[f32]) -> Vec<f32> {
+    let c: Vec<f32> = v.iter().zip(&w.mean).map(|(a, m)| a - m).collect();
+    let mut out: Vec<f32> = w.rows.iter().map(|r| r.iter().zip(&c).map(|(a, b)| a * b).sum()).collect();
+    l2(&mut out);
+    out
+}
+
+fn main() -> Result<()> {
+    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("warn")).init();
+    ecm_lcd::runtime::init_threads(None);
+    let args: Vec<String> = std::env::args().collect();
+    let arch: Arch = args.get(1).map(String::as_str).unwrap_or("ecmobilenet").parse()?;
+    let size: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(224);
+    let shared = ecm_lcd::runtime::shared_dirs().into_iter().next().context("../shared is needed")?;
+    let tmp = tempfile::tempdir()?;
+    let sets = sets(&shared, tmp.path())?;
+    let weights = resolve::resolve(None)?;
+    let mut embedder = Embedder::new(weights.weights.for_arch(arch)?.network(false)?, size)?;
+    let blocks = arch.spec().blocks().len();
+    let mut taps: Vec<Tap> = [blocks - 4, blocks - 2, blocks - 1].into_iter().map(Tap::Block).collect();
+    taps.push(Tap::Head);
+    let aggs = ["global-gap", "global-mac", "rmac-mac", "grid2-gap", "grid2-mac"];
+    let posts = ["l2", "pl2", "l2c", "pl2c", "pl2s", "pl2w64", "pl2w128", "pl2w256", "pl2v128"];
+    let learning = learning_images()?;
+    let learning_maps: Vec<Vec<FeatureMap>> = learning.iter().map(|i| embedder.tapped_maps(i, &taps)).collect::<Result<_>>()?;
+    let mut whitenings: BTreeMap<(usize, &str), (Vec<f32>, Whitening, Whitening, Whitening)> = BTreeMap::new();
+    for t in 0..taps.len() {
+        for agg in aggs {
+            let raw: Vec<Vec<f32>> = learning_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
+            let finished = finish(raw, "pl2", None);
+            let mean = mean_of(&finished);
+            let full = learn_whitening(&finished, 256);
+            let cut = |d: usize| Whitening { mean: full.mean.clone(), rows: full.rows.iter().take(d).cloned().collect() };
+            whitenings.insert((t, agg), (mean, cut(64), cut(128), full));
+        }
+    }
+    // (tap, agg, post) -> per set (r@1, r@100P)
+    let mut table: BTreeMap<(String, String, String), Vec<(f64, f64)>> = BTreeMap::new();
+    for set in &sets {
+        let maps = |embedder: &mut Embedder, images: &[RgbImage]| -> Result<Vec<Vec<FeatureMap>>> {
+            images.iter().map(|i| embedder.tapped_maps(i, &taps)).collect()
+        };
+        let db_maps = maps(&mut embedder, &set.database)?;
+        let q_maps = maps(&mut embedder, &set.queries)?;
+        for (t, tap) in taps.iter().enumerate() {
+            for agg in aggs {
+                let db_raw: Vec<Vec<f32>> = db_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
+                let q_raw: Vec<Vec<f32>> = q_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
+                let learned = &whitenings[&(t, agg)];
+                for post in posts {
+                    let (db, q) = if let Some(dim) = post.strip_prefix("pl2w") {
+                        let w = match dim { "64" => &learned.1, "128" => &learned.2, _ => &learned.3 };
+                        let db: Vec<_> = finish(db_raw.clone(), "pl2", None).iter().map(|v| whiten(w, v)).collect();
+                        let q: Vec<_> = finish(q_raw.clone(), "pl2", None).iter().map(|v| whiten(w, v)).collect();
+                        (db, q)
+                    } else if post == "pl2v128" {
+                        // Whitening learned from the database itself (the history).
+                        let dbf = finish(db_raw.clone(), "pl2", None);
+                        let w = learn_whitening(&dbf, 128);
+                        (dbf.iter().map(|v| whiten(&w, v)).collect(), finish(q_raw.clone(), "pl2", None).iter().map(|v| whiten(&w, v)).collect())
+                    } else if post == "pl2s" {
+                        (finish(db_raw.clone(), "pl2", Some(&learned.0)), finish(q_raw.clone(), "pl2", Some(&learned.0)))
+                    } else {
+                        let plain = post.trim_end_matches('c');
+                        let mean = post.ends_with('c').then(|| mean_of(&finish(db_raw.clone(), plain, None)));
+                        (finish(db_raw.clone(), plain, mean.as_deref()), finish(q_raw.clone(), plain, mean.as_deref()))
+                    };
+                    let mut results = Vec::new();
+                    for (qi, qv) in q.iter().enumerate() {
+                        let limit = set.eligible[qi].unwrap_or(db.len());
+                        if limit == 0 {
+                            results.push(QueryResult { query: qi, best: None });
+                            continue;
+                        }
+                        let scores = cosine_scores(qv, &db[..limit]);
+                        let (best, score) = scores.iter().copied().enumerate().fold((0, f32::NEG_INFINITY), |b, (i, s)| if s > b.1 { (i, s) } else { b });
+                        results.push(QueryResult { query: qi, best: Some((best, score)) });
+                    }
+                    let m = evaluate(&results, &set.truth)?;
+                    table
+                        .entry((tap.to_string(), agg.to_string(), post.to_string()))
+                        .or_default()
+                        .push((m.recall_at_1.unwrap_or(0.0), m.recall_at_100_precision.unwrap_or(0.0)));
+                }
+            }
+        }
+    }
+    let names: Vec<&str> = sets.iter().map(|s| s.name.as_str()).collect();
+    println!("arch {arch}, input {size}; per set: recall@1 / recall@100%P ({})", names.join(" | "));
+    let mut rows: Vec<_> = table.into_iter().collect();
+    rows.sort_by(|a, b| {
+        let key = |v: &Vec<(f64, f64)>| v.iter().map(|(r1, rp)| r1 + rp).sum::<f64>();
+        key(&b.1).total_cmp(&key(&a.1))
+    });
+    for ((tap, agg, post), figures) in rows {
+        let cells: Vec<String> = figures.iter().map(|(a, b)| format!("{a:.2}/{b:.2}")).collect();
+        println!("{tap:10} {agg:11} {post:5} {}", cells.join("  "));
+    }
+    Ok(())
+}
