@@ -170,11 +170,11 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "descriptor.mode",
             DescriptorMode::default().name(),
             &DescriptorMode::NAMES,
-            "Global descriptor: paper (the paper's 128-d), l2 (normalised 1280-d pool), spatial (global + 2x2 regions).",
+            "Global descriptor: paper (the paper's 128-d), l2 (normalised 1280-d pool), spatial (global + 2x2 regions), power (power-normalised 1280-d pool).",
         ),
         double(
             "detector.min_score",
-            0.96,
+            0.8,
             0.0,
             1.0,
             "A loop is accepted when the match score (in [0, 1], 1 = identical) is at least this.",
@@ -221,6 +221,21 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             0,
             MAX_COUNT,
             "Matches agree when they are at most this many keyframes apart in the database.",
+        ),
+        ParamSpec {
+            name: "detector.centre_on_history",
+            kind: ParamKind::Bool,
+            default: ParamValue::Bool(true),
+            range: ParamRange::Any,
+            description: "Compare descriptors after removing the mean of the keyframe history (not for the paper descriptor).",
+            read_only: false,
+        },
+        integer(
+            "detector.sequence.length",
+            1,
+            1,
+            100,
+            "Scores are averaged along the diagonal of the last this-many keyframes against the history (sequence matching; 1 = off).",
         ),
         integer(
             "detector.max_keyframes",
@@ -373,6 +388,11 @@ impl Params {
         }
     }
 
+    /// Every value by name, as JSON (what an evaluation ran with).
+    pub fn to_json(&self) -> serde_json::Value {
+        serde_json::to_value(&self.values).expect("parameter values serialise to JSON")
+    }
+
     /// `arch`: one of [`ARCHES`].
     pub fn arch(&self) -> &str {
         self.string("arch")
@@ -409,6 +429,8 @@ impl Params {
             consistency_queries: self.count("detector.consistency.queries"),
             consistency_window: self.count("detector.consistency.window"),
             max_keyframes: self.count("detector.max_keyframes"),
+            sequence_length: self.count("detector.sequence.length"),
+            centre_on_history: matches!(self.values.get("detector.centre_on_history"), Some(ParamValue::Bool(true))),
         }
     }
 

@@ -6,7 +6,7 @@
 //! most the largest stored id were processed by an earlier run and are skipped (counted in
 //! [`ReplayRun::skipped`]); keyframe selection starts afresh at the first frame after them.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{Context, Result};
@@ -14,7 +14,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::detector::Match;
 use crate::eval::QueryResult;
+use crate::config::ParamValue;
 use crate::io::open_source;
+use crate::preprocess::read_image;
 use crate::pipeline::{Pipeline, Timings};
 use crate::types::{LoopCandidate, Stamp};
 
@@ -61,6 +63,29 @@ impl ReplayRun {
     pub fn query_results(&self) -> Vec<QueryResult> {
         self.keyframes.iter().map(|k| QueryResult { query: k.index, best: k.best.map(|m| (m.id as usize, m.score)) }).collect()
     }
+}
+
+/// Database/query mode: every database image is stored, then each query is matched against
+/// them all (no recency rules: the two sets are different visits). Both folders are sequences in
+/// name order, which the sequence policy (`detector.sequence.length`) follows.
+pub fn run_database_queries(pipeline: &mut Pipeline, database: &[PathBuf], queries: &[PathBuf]) -> Result<(Vec<QueryResult>, Vec<(&'static str, f64)>)> {
+    for rule in ["detector.min_history", "detector.exclude_recent.count"] {
+        pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
+    }
+    pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
+    let started = Instant::now();
+    for (index, path) in database.iter().enumerate() {
+        let descriptor = pipeline.describe(&read_image(path)?)?;
+        pipeline.detector_mut().insert(index as u64, Stamp::from_nanos(index as i64), &descriptor)?;
+    }
+    let mut results = Vec::with_capacity(queries.len());
+    for (index, path) in queries.iter().enumerate() {
+        let descriptor = pipeline.describe(&read_image(path)?)?;
+        let best = pipeline.detector_mut().query(Stamp::from_nanos(i64::MAX), &descriptor)?;
+        results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
+    }
+    let per_image = started.elapsed().as_secs_f64() * 1e3 / (database.len() + queries.len()).max(1) as f64;
+    Ok((results, vec![("per_image_ms", per_image)]))
 }
 
 /// Replays `source` through `pipeline`: keyframe selection applies, keyframe ids are frame

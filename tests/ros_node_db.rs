@@ -28,6 +28,9 @@ const PARAMS: &[(&str, &str)] = &[
     ("detector.min_history", "5"),
     ("detector.exclude_recent.count", "8"),
     ("detector.exclude_recent.seconds", "0.0"),
+    // The threshold is for this descriptor, uncentred.
+    ("descriptor.mode", "l2"),
+    ("detector.centre_on_history", "false"),
     ("detector.min_score", "0.975"),
 ];
 

@@ -30,8 +30,14 @@ const EXE: &str = env!("CARGO_BIN_EXE_ecm-lcd");
 const FRAMES: usize = 80;
 /// Parameters for the short sequence: loops are searched early and only a few keyframes back are
 /// excluded (a lap is 40 keyframes, 4 s).
-const SHORT_SEQUENCE_PARAMS: &[(&str, &str)] =
-    &[("detector.min_history", "5"), ("detector.exclude_recent.count", "8"), ("detector.exclude_recent.seconds", "0.0")];
+/// The thresholds below are for the `l2` descriptor, uncentred.
+const SHORT_SEQUENCE_PARAMS: &[(&str, &str)] = &[
+    ("detector.min_history", "5"),
+    ("detector.exclude_recent.count", "8"),
+    ("detector.exclude_recent.seconds", "0.0"),
+    ("descriptor.mode", "l2"),
+    ("detector.centre_on_history", "false"),
+];
 const LOOSE: &str = "0.975";
 const STRICT: &str = "0.999";
 

@@ -9,14 +9,11 @@ use crate::eval::{
     summary_json, write_curve_csv, LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
 };
 use super::replay::SourceArgs;
-use crate::replay::run_source;
-use crate::config::ParamValue;
-use crate::pipeline::Pipeline;
-use crate::preprocess::read_image;
+use crate::replay::{run_database_queries, run_source};
+use crate::config::Params;
 use crate::types::Stamp;
 use anyhow::{bail, Result};
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -111,15 +108,33 @@ pub fn load_truth(args: &Args, query_stamps: &[Stamp]) -> Result<LoopTruth> {
 }
 
 /// Scores the results, writes the requested outputs and logs the summary; `timings_ms` are
-/// per-stage timings to include in the JSON.
-pub fn run_with_results(args: &Args, truth: &LoopTruth, results: &[QueryResult], timings_ms: &[(&str, f64)]) -> Result<Metrics> {
+/// per-stage timings to include in the JSON, `params` what the run used (the JSON names the
+/// matching policy and every parameter).
+pub fn run_with_results(
+    args: &Args,
+    truth: &LoopTruth,
+    results: &[QueryResult],
+    timings_ms: &[(&str, f64)],
+    params: &Params,
+) -> Result<Metrics> {
     let metrics = evaluate(results, truth)?;
-    write_outputs(args, &metrics, timings_ms)?;
+    write_outputs(args, &metrics, timings_ms, params)?;
     Ok(metrics)
 }
 
-fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)]) -> Result<()> {
-    let summary = summary_json(metrics, timings_ms);
+/// `sequence` or `single-image`: how a query is matched under `params`.
+pub fn policy_name(params: &Params) -> &'static str {
+    if params.detector().sequence_length > 1 {
+        "sequence"
+    } else {
+        "single-image"
+    }
+}
+
+fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)], params: &Params) -> Result<()> {
+    let mut summary = summary_json(metrics, timings_ms);
+    summary["policy"] = serde_json::json!(policy_name(params));
+    summary["parameters"] = params.to_json();
     if let Some(path) = &args.output {
         write_curve_csv(metrics, path)?;
     }
@@ -127,6 +142,14 @@ fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)]) -> 
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {
         print_summary(metrics, timings_ms);
+        let detector = params.detector();
+        println!(
+            "policy                  {} (descriptor {}, sequence length {}, threshold {:?})",
+            policy_name(params),
+            params.descriptor_mode(),
+            detector.sequence_length,
+            detector.threshold
+        );
     }
     if let Some(path) = &args.plot {
         let title = args.source.as_deref().or(args.queries.as_deref()).map(display_name).unwrap_or_default();
@@ -151,8 +174,8 @@ pub fn run(args: Args) -> Result<()> {
     let mut pipeline = args.source_args.pipeline()?;
     if let Some((database, queries)) = args.database_and_queries()? {
         let truth = load_truth(&args, &[])?;
-        let (results, timings) = database_queries(&mut pipeline, &database, &queries)?;
-        run_with_results(&args, &truth, &results, &timings)?;
+        let (results, timings) = run_database_queries(&mut pipeline, &database, &queries)?;
+        run_with_results(&args, &truth, &results, &timings, pipeline.params())?;
         return Ok(());
     }
     let Some(source) = &args.source else { bail!("give a SOURCE to replay, or --database and --queries") };
@@ -164,30 +187,8 @@ pub fn run(args: Args) -> Result<()> {
     let results = run.query_results();
     let mut timings = run.mean_timings();
     timings.push(("wall_s", run.wall_secs));
-    run_with_results(&args, &truth, &results, &timings)?;
+    run_with_results(&args, &truth, &results, &timings, pipeline.params())?;
     Ok(())
-}
-
-/// Database/query mode: every database image is stored, then each query is matched against
-/// them all (no recency rules: the two sets are different visits).
-fn database_queries(pipeline: &mut Pipeline, database: &[PathBuf], queries: &[PathBuf]) -> Result<(Vec<QueryResult>, Vec<(&'static str, f64)>)> {
-    for rule in ["detector.min_history", "detector.exclude_recent.count"] {
-        pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
-    }
-    pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
-    let started = Instant::now();
-    for (index, path) in database.iter().enumerate() {
-        let descriptor = pipeline.describe(&read_image(path)?)?;
-        pipeline.detector_mut().insert(index as u64, Stamp::from_nanos(index as i64), &descriptor)?;
-    }
-    let mut results = Vec::with_capacity(queries.len());
-    for (index, path) in queries.iter().enumerate() {
-        let descriptor = pipeline.describe(&read_image(path)?)?;
-        let best = pipeline.detector().best_match(Stamp::from_nanos(i64::MAX), &descriptor)?;
-        results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
-    }
-    let per_image = started.elapsed().as_secs_f64() * 1e3 / (database.len() + queries.len()).max(1) as f64;
-    Ok((results, vec![("per_image_ms", per_image)]))
 }
 
 fn display_name(path: &Path) -> String {
@@ -267,7 +268,7 @@ mod tests {
             QueryResult { query: 2, best: Some((0, 0.8)) },
             QueryResult { query: 3, best: Some((0, 0.6)) },
         ];
-        let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)]).unwrap();
+        let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)], &Params::default()).unwrap();
         assert_eq!(metrics.recall_at_1, Some(0.5));
         assert!(std::fs::read_to_string(&csv).unwrap().starts_with("threshold,precision,recall\n0.8,1,0.5\n"));
         let summary = summary_json(&metrics, &[("total", 5.0)]);

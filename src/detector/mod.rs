@@ -18,7 +18,23 @@
 //!    match that passed the threshold at a position within `consistency_window` keyframes of `p`.
 //!    Positions (insertion order) rather than ids are compared so that any id scheme works.
 //!
-//! Reported candidates are ranked 0, 1, ... in increasing distance among those reported.
+//! Reported candidates are ranked 0, 1, ... in increasing distance among those reported; with the
+//! sequence policy on, in decreasing sequence score.
+//!
+//! Centring on the history: with `centre_on_history` (unit-vector descriptor modes; the paper's
+//! descriptor is left as it is), a query and a keyframe are compared by the cosine of their
+//! differences from the history's mean, `m = sum / (n + 1)` over the `n` keyframes searched (shrunk
+//! towards zero while the history is short, so one keyframe does not cancel itself). Every image of
+//! an environment shares a large common component (the same walls, light and camera); removing it
+//! leaves what tells places apart. The score is `(1 + cos) / 2` of the centred vectors and the
+//! distance `sqrt(2 - 2 cos)`, the `l2` mapping. The index finds the nearest
+//! [`sequence::CANDIDATES`] by plain distance, which are re-ranked; the mean is a running sum, so
+//! the stored descriptors never change.
+//!
+//! Sequence policy ([`sequence`]): with `sequence_length = L > 1`, a match's score is the mean
+//! score along the diagonal of the last `L` queries against the history (a revisit is a run of
+//! matches, not one), and the threshold applies to that score. It looks back only: a query's
+//! answer comes with the query, no delay.
 //!
 //! Memory budget: with `max_keyframes = n > 0`, once the database holds more than `n` keyframes the
 //! oldest are dropped from memory (and so from the search) until `n` remain; positions are renumbered
@@ -28,6 +44,7 @@
 pub mod index;
 pub mod rows;
 pub mod selection;
+pub mod sequence;
 pub mod store;
 
 use crate::descriptor::Descriptor;
@@ -64,6 +81,10 @@ pub struct DetectorParams {
     pub consistency_window: usize,
     /// At most this many keyframes are kept in memory and searched, the newest (0 = unlimited; module doc).
     pub max_keyframes: usize,
+    /// Queries whose scores are accumulated along a diagonal (1 = single-image matching; module doc).
+    pub sequence_length: usize,
+    /// Compare descriptors after removing the history's mean (module doc).
+    pub centre_on_history: bool,
 }
 
 impl Default for DetectorParams {
@@ -346,12 +367,18 @@ pub struct Detector {
     db: KeyframeDb,
     /// Positions of the threshold-passing matches of the last `consistency_queries - 1` queries, oldest first.
     recent_matches: VecDeque<Vec<usize>>,
+    /// Descriptors of the last `sequence_length - 1` queries, oldest first (the sequence policy).
+    recent_queries: sequence::RecentQueries,
+    /// Sum of the searched keyframes' descriptors (centring on the history).
+    history_sum: Vec<f64>,
 }
 
 impl Detector {
     /// An empty detector for descriptors of `descriptor`'s mode (whose score defines the threshold).
     pub fn new(descriptor: Descriptor, params: DetectorParams) -> Self {
-        Detector { db: KeyframeDb::new(descriptor.dim()), descriptor, params, recent_matches: VecDeque::new() }
+        let recent_queries = sequence::RecentQueries::new(params.sequence_length);
+        let history_sum = vec![0.0; descriptor.dim()];
+        Detector { db: KeyframeDb::new(descriptor.dim()), descriptor, params, recent_matches: VecDeque::new(), recent_queries, history_sum }
     }
 
     pub fn params(&self) -> &DetectorParams {
@@ -366,6 +393,7 @@ impl Detector {
         while self.recent_matches.len() > keep {
             self.recent_matches.pop_front();
         }
+        self.recent_queries.set_length(self.params.sequence_length);
         self.enforce_budget();
     }
 
@@ -376,6 +404,11 @@ impl Detector {
         ensure!(db.dim() == self.db.dim(), "the history has {}-value descriptors, the detector's descriptor {}", db.dim(), self.db.dim());
         self.db = db;
         self.recent_matches.clear();
+        self.recent_queries.clear();
+        self.history_sum.iter_mut().for_each(|s| *s = 0.0);
+        for position in 0..self.db.len() {
+            add_into(&mut self.history_sum, self.db.descriptor(position), 1.0);
+        }
         self.enforce_budget();
         self.db.defer_index(false).context("indexing the loaded history")
     }
@@ -387,6 +420,9 @@ impl Detector {
             return;
         }
         let excess = self.db.len() - max;
+        for position in 0..excess {
+            add_into(&mut self.history_sum, self.db.descriptor(position), -1.0);
+        }
         self.db.drop_oldest(excess);
         for positions in &mut self.recent_matches {
             positions.retain(|&p| p >= excess);
@@ -425,12 +461,72 @@ impl Detector {
             KeyframeDb::check_descriptor(self.db.dim, descriptor, "query")?;
             return Ok(Vec::new());
         }
+        self.db.nearest(descriptor, k, |p| self.is_eligible(stamp, p))
+    }
+
+    /// Whether the keyframe at `position` may match a query at `stamp` (the recency rules).
+    fn is_eligible(&self, stamp: Stamp, position: usize) -> bool {
         let last_eligible = self.db.len().saturating_sub(self.params.exclude_recent_count);
         let min_age_nanos = (self.params.exclude_recent_secs * 1e9).round() as i64;
         let time_rule = self.params.exclude_recent_secs > 0.0;
-        let stamps = self.db.stamps();
-        self.db.nearest(descriptor, k, |p| {
-            p < last_eligible && (!time_rule || stamp.nanos.saturating_sub(stamps[p].nanos) >= min_age_nanos)
+        position < last_eligible && (!time_rule || stamp.nanos.saturating_sub(self.db.stamps()[position].nanos) >= min_age_nanos)
+    }
+
+    /// The eligible matches of a query, best first: the `top_k` nearest, or with the sequence policy the
+    /// nearest [`sequence::CANDIDATES`] re-ranked by sequence score. Each is (position, distance, score).
+    fn ranked_matches(&self, stamp: Stamp, descriptor: &[f32], top_k: usize) -> anyhow::Result<Vec<(usize, f32, f32)>> {
+        let centring = self.centring();
+        if self.params.sequence_length <= 1 && centring.is_none() {
+            let neighbours = self.eligible_nearest(stamp, descriptor, top_k)?;
+            return Ok(neighbours
+                .iter()
+                .map(|n| {
+                    let distance = n.squared_distance.sqrt();
+                    (n.position, distance, self.descriptor.score(distance))
+                })
+                .collect());
+        }
+        let neighbours = self.eligible_nearest(stamp, descriptor, top_k.max(sequence::CANDIDATES))?;
+        // (distance, score) of a query descriptor against keyframe `p`, centred or not.
+        let compare = |query: &[f32], p: usize| -> (f32, f32) {
+            match &centring {
+                Some(mean) => centred_comparison(query, self.db.descriptor(p), mean),
+                None => {
+                    let distance = crate::descriptor::distance(query, self.db.descriptor(p));
+                    (distance, self.descriptor.score(distance))
+                }
+            }
+        };
+        let mut ranked: Vec<(usize, f32, f32)> = neighbours
+            .iter()
+            .map(|n| {
+                let (distance, single) = compare(descriptor, n.position);
+                let score = if self.params.sequence_length > 1 {
+                    self.recent_queries.sequence_score(
+                        descriptor,
+                        n.position,
+                        self.db.len(),
+                        |q, p| compare(q, p).1,
+                        |p| self.is_eligible(stamp, p),
+                    )
+                } else {
+                    single
+                };
+                (n.position, distance, score)
+            })
+            .collect();
+        // Stable: equal sequence scores keep the nearer first.
+        ranked.sort_by(|a, b| b.2.total_cmp(&a.2));
+        ranked.truncate(top_k);
+        Ok(ranked)
+    }
+
+    /// The mean the history's descriptors are centred on, when centring applies (module doc).
+    fn centring(&self) -> Option<Vec<f32>> {
+        let unit_vectors = self.descriptor.mode != crate::descriptor::DescriptorMode::Paper;
+        (self.params.centre_on_history && unit_vectors && !self.db.is_empty()).then(|| {
+            let shrunk = (self.db.len() + 1) as f64;
+            self.history_sum.iter().map(|s| (s / shrunk) as f32).collect()
         })
     }
 
@@ -443,16 +539,10 @@ impl Detector {
     /// [`Detector::process`] that also returns the nearest eligible keyframe whether or not it passes
     /// (what [`Detector::best_match`] gives), from the same search: one search per keyframe, not two.
     pub fn process_with_best(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<(Option<Match>, Vec<LoopCandidate>)> {
-        let neighbours = self.eligible_nearest(stamp, descriptor, self.params.top_k)?;
-        let best = neighbours.first().map(|n| self.to_match(n));
-        let passing: Vec<(usize, f32, f32)> = neighbours
-            .iter()
-            .map(|n| {
-                let distance = n.squared_distance.sqrt();
-                (n.position, distance, self.descriptor.score(distance))
-            })
-            .filter(|&(_, distance, score)| self.passes(distance, score))
-            .collect();
+        let ranked = self.ranked_matches(stamp, descriptor, self.params.top_k)?;
+        let best = ranked.first().map(|&m| self.to_match(m));
+        let passing: Vec<(usize, f32, f32)> =
+            ranked.into_iter().filter(|&(_, distance, score)| self.passes(distance, score)).collect();
         let needed = self.params.consistency_queries.saturating_sub(1);
         let window = self.params.consistency_window;
         let consistent = |position: usize| {
@@ -479,6 +569,8 @@ impl Detector {
             })
             .collect();
         self.db.insert(id, stamp, descriptor)?;
+        add_into(&mut self.history_sum, descriptor, 1.0);
+        self.recent_queries.push(descriptor);
         if needed > 0 {
             self.recent_matches.push_back(passing.iter().map(|&(position, _, _)| position).collect());
             while self.recent_matches.len() > needed {
@@ -492,21 +584,50 @@ impl Detector {
     /// The nearest keyframe the history and recency rules allow, ignoring the threshold, `top_k` and
     /// consistency (for precision-recall sweeps); `None` before the minimum history or when no keyframe is
     /// eligible. Does not insert: call [`Detector::insert`] afterwards.
+    /// With the sequence policy the score is the sequence score over this query and the earlier ones
+    /// that went through [`Detector::process`] or [`Detector::query`].
     pub fn best_match(&self, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Option<Match>> {
-        Ok(self.eligible_nearest(stamp, descriptor, 1)?.first().map(|n| self.to_match(n)))
+        Ok(self.ranked_matches(stamp, descriptor, 1)?.first().map(|&m| self.to_match(m)))
     }
 
-    fn to_match(&self, n: &Neighbour) -> Match {
-        let distance = n.squared_distance.sqrt();
-        Match { id: self.db.id(n.position), stamp: self.db.stamp(n.position), distance, score: self.descriptor.score(distance) }
+    /// [`Detector::best_match`] for a query that is not inserted (database/query evaluation), which
+    /// joins the sequence of recent queries.
+    pub fn query(&mut self, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Option<Match>> {
+        let best = self.best_match(stamp, descriptor)?;
+        self.recent_queries.push(descriptor);
+        Ok(best)
+    }
+
+    fn to_match(&self, (position, distance, score): (usize, f32, f32)) -> Match {
+        Match { id: self.db.id(position), stamp: self.db.stamp(position), distance, score }
     }
 
     /// Inserts a keyframe without querying (pairs with [`Detector::best_match`]).
     pub fn insert(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<()> {
         self.db.insert(id, stamp, descriptor)?;
+        add_into(&mut self.history_sum, descriptor, 1.0);
         self.enforce_budget();
         Ok(())
     }
+}
+
+/// `sum += sign * values`.
+fn add_into(sum: &mut [f64], values: &[f32], sign: f64) {
+    sum.iter_mut().zip(values).for_each(|(s, &v)| *s += sign * v as f64);
+}
+
+/// (distance, score) of `a` against `b` after subtracting `mean` from both: the cosine of the
+/// differences, as `l2` maps it (module doc). A difference of zero length compares as orthogonal.
+fn centred_comparison(a: &[f32], b: &[f32], mean: &[f32]) -> (f32, f32) {
+    let (mut dot, mut aa, mut bb) = (0.0f32, 0.0f32, 0.0f32);
+    for ((&x, &y), &m) in a.iter().zip(b).zip(mean) {
+        let (x, y) = (x - m, y - m);
+        dot += x * y;
+        aa += x * x;
+        bb += y * y;
+    }
+    let cos = if aa > 0.0 && bb > 0.0 { (dot / (aa.sqrt() * bb.sqrt())).clamp(-1.0, 1.0) } else { 0.0 };
+    ((2.0 - 2.0 * cos).max(0.0).sqrt(), (1.0 + cos) / 2.0)
 }
 
 #[cfg(test)]

@@ -97,6 +97,8 @@ fn params_all_off() -> DetectorParams {
         consistency_queries: 1,
         consistency_window: 0,
         max_keyframes: 0,
+        sequence_length: 1,
+        centre_on_history: false,
     }
 }
 
@@ -352,4 +354,88 @@ fn memory_budget_keeps_consistency_positions_in_step() {
     assert_eq!((det.db().len(), det.db().id(0)), (10, 1));
     // Place 3 moved from position 3 to 2; the ties with keyframe 100 go to the earlier position.
     assert_eq!(match_ids(&det.process(101, secs(101.0), &unit(30.0)).unwrap()), vec![3]);
+}
+
+/// A place's descriptor: a random unit vector per place index (8-d), so places are unrelated.
+fn place(index: usize) -> Vec<f32> {
+    let mut v: Vec<f32> = pseudo_random(7000 + index as u64, 8).iter().map(|x| x - 0.5).collect();
+    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    v.iter_mut().for_each(|x| *x /= norm);
+    v
+}
+
+/// `a` moved a fraction `t` of the way towards `b`, renormalised.
+fn blend(a: &[f32], b: &[f32], t: f32) -> Vec<f32> {
+    let mut v: Vec<f32> = a.iter().zip(b).map(|(x, y)| (1.0 - t) * x + t * y).collect();
+    let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+    v.iter_mut().for_each(|x| *x /= norm);
+    v
+}
+
+#[test]
+fn sequence_matching_finds_a_loop_that_single_images_miss() {
+    // Lap 1: places 0..20. Lap 2 revisits places 5..15 in order, each seen with a change of look
+    // (blended halfway towards an unrelated "lighting" vector); query 10 of the lap (place 10) is
+    // made to look more like place 3 than like place 10, an alias a single image cannot resolve.
+    let run = |sequence_length: usize| -> Vec<Option<u64>> {
+        let params = DetectorParams { sequence_length, exclude_recent_count: 3, ..params_all_off() };
+        let mut det = Detector::new(Descriptor::new(DescriptorMode::L2, 8), params);
+        for p in 0..20 {
+            det.process(p as u64, secs(p as f64), &place(p)).unwrap();
+        }
+        let lighting = place(99);
+        (5..15)
+            .map(|p| {
+                let seen = blend(&place(p), &lighting, 0.4);
+                let seen = if p == 10 { blend(&seen, &place(3), 0.7) } else { seen };
+                let (best, _) = det.process_with_best(100 + p as u64, secs(100.0 + p as f64), &seen).unwrap();
+                best.map(|m| m.id)
+            })
+            .collect()
+    };
+    let single = run(1);
+    assert_eq!(single[5], Some(3), "the alias fools a single image");
+    let sequence = run(4);
+    // From the fourth query of the revisit on, the whole diagonal lies in it; the first three are
+    // scored partly with queries from before the revisit (module doc of `sequence`).
+    let expected: Vec<Option<u64>> = (8..15).map(|p| Some(p as u64)).collect();
+    assert_eq!(sequence[3..], expected[..], "the run of matches puts query 10 at place 10");
+}
+
+/// The centred comparison, written out plainly: subtract the mean, then the cosine.
+fn centred_reference(a: &[f32], b: &[f32], mean: &[f64]) -> f64 {
+    let a: Vec<f64> = a.iter().zip(mean).map(|(x, m)| *x as f64 - m).collect();
+    let b: Vec<f64> = b.iter().zip(mean).map(|(x, m)| *x as f64 - m).collect();
+    let dot: f64 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+    dot / (a.iter().map(|x| x * x).sum::<f64>().sqrt() * b.iter().map(|x| x * x).sum::<f64>().sqrt())
+}
+
+#[test]
+fn centring_compares_against_the_mean_of_the_searched_history() {
+    let params = DetectorParams { centre_on_history: true, top_k: 3, max_keyframes: 6, ..params_all_off() };
+    let mut det = Detector::new(Descriptor::new(DescriptorMode::L2, 8), params);
+    let stored: Vec<Vec<f32>> = (0..9).map(|i| blend(&place(i), &place(50), 0.6)).collect();
+    for (i, d) in stored.iter().enumerate() {
+        det.insert(i as u64, secs(i as f64), d).unwrap();
+    }
+    // The budget keeps keyframes 3..9; the mean is over those six, shrunk by 6 / 7.
+    let kept = &stored[3..];
+    let mean: Vec<f64> = (0..8).map(|c| kept.iter().map(|d| d[c] as f64).sum::<f64>() / 7.0).collect();
+    let query = blend(&place(4), &place(50), 0.5);
+    let m = det.best_match(secs(100.0), &query).unwrap().unwrap();
+    let cosines: Vec<f64> = kept.iter().map(|d| centred_reference(&query, d, &mean)).collect();
+    let best = (0..kept.len()).max_by(|&a, &b| cosines[a].total_cmp(&cosines[b])).unwrap();
+    assert_eq!(m.id, 3 + best as u64);
+    assert!((m.score as f64 - (1.0 + cosines[best]) / 2.0).abs() < 1e-5, "{} vs {}", m.score, cosines[best]);
+    assert!((m.distance as f64 - (2.0 - 2.0 * cosines[best]).sqrt()).abs() < 1e-4);
+    // A loaded history gives the same mean as one built keyframe by keyframe.
+    let mut loaded = Detector::new(Descriptor::new(DescriptorMode::L2, 8), det.params().clone());
+    loaded.replace_history(det.db().clone()).unwrap();
+    assert_eq!(loaded.best_match(secs(100.0), &query).unwrap().unwrap(), m);
+    // The paper's descriptor is never centred.
+    let mut paper = Detector::new(Descriptor::new(DescriptorMode::Paper, 80), det.params().clone());
+    for (i, d) in stored.iter().enumerate() {
+        paper.insert(i as u64, secs(i as f64), &d.iter().map(|x| x.abs()).cycle().take(8).collect::<Vec<_>>()).unwrap();
+    }
+    assert!(paper.centring().is_none());
 }

@@ -1,0 +1,137 @@
+//! Sequence matching: a revisit is a run of matches, not one (after SeqSLAM, Milford and Wyeth 2012).
+//!
+//! Interpretation, written down once:
+//! - **Online, looking back.** The score of query `t` against keyframe `p` is the mean of the
+//!   single-image scores of queries `t, t-1, ..., t-L+1` against keyframes `p, p∓1, ..., p∓(L-1)`: the
+//!   diagonal that ends at the current query. No later query is waited for, so the answer has no
+//!   delay; what it needs is the last `L - 1` query descriptors, kept here.
+//! - **Both directions.** A second visit may go the other way along a corridor, so the diagonal is
+//!   followed forwards (`p - k`) and backwards (`p + k`) and the better one counts.
+//! - **Speed.** Keyframes of the two visits are not taken at the same places: each step of the
+//!   diagonal takes the best of the keyframes one before, at, and one after its position.
+//! - **Edges.** Diagonal steps that fall outside the history, on keyframes the recency rules exclude,
+//!   or before the first query are left out and the mean is over the steps taken; at the start of a
+//!   run the score is the single-image score.
+//! - **Start of a revisit.** The first `L - 1` queries of a revisit are scored partly with queries
+//!   from before it, which match nothing there; sequence matching pays off from the `L`-th on.
+//! - **Candidates.** Only the nearest [`CANDIDATES`] keyframes of the current query are scored, so the
+//!   index still bounds the work: `CANDIDATES * L * 3` distances per query.
+
+use std::collections::VecDeque;
+
+
+/// Keyframes nearest to the current query that the sequence score re-ranks.
+pub const CANDIDATES: usize = 10;
+
+/// The descriptors of the last `length - 1` queries, oldest first.
+#[derive(Clone, Debug, Default)]
+pub struct RecentQueries {
+    length: usize,
+    queries: VecDeque<Vec<f32>>,
+}
+
+impl RecentQueries {
+    /// Room for a sequence of `length` queries (the current one and `length - 1` kept).
+    pub fn new(length: usize) -> Self {
+        RecentQueries { length, queries: VecDeque::new() }
+    }
+
+    pub fn set_length(&mut self, length: usize) {
+        self.length = length;
+        self.trim();
+    }
+
+    pub fn clear(&mut self) {
+        self.queries.clear();
+    }
+
+    /// Remembers a query that has been matched (kept only while the sequence policy is on).
+    pub fn push(&mut self, descriptor: &[f32]) {
+        if self.length > 1 {
+            self.queries.push_back(descriptor.to_vec());
+            self.trim();
+        }
+    }
+
+    fn trim(&mut self) {
+        while self.queries.len() > self.length.saturating_sub(1) {
+            self.queries.pop_front();
+        }
+    }
+
+    /// The sequence score of `query` (the current one) against keyframe `position` of a history of
+    /// `len` keyframes (module doc). `pair_score(q, p)` is the single-image score of a query
+    /// descriptor against keyframe `p`, and `eligible(p)` whether the recency rules let it match.
+    pub fn sequence_score(
+        &self,
+        query: &[f32],
+        position: usize,
+        len: usize,
+        pair_score: impl Fn(&[f32], usize) -> f32,
+        eligible: impl Fn(usize) -> bool,
+    ) -> f32 {
+        let first = pair_score(query, position);
+        let step_score = |earlier: &[f32], centre: isize| -> Option<f32> {
+            (centre - 1..=centre + 1)
+                .filter(|&p| p >= 0 && (p as usize) < len && eligible(p as usize))
+                .map(|p| pair_score(earlier, p as usize))
+                .reduce(f32::max)
+        };
+        [-1isize, 1]
+            .into_iter()
+            .map(|direction| {
+                let (mut sum, mut steps) = (first, 1usize);
+                for (k, earlier) in self.queries.iter().rev().enumerate() {
+                    let centre = position as isize + direction * (k as isize + 1);
+                    if let Some(score) = step_score(earlier, centre) {
+                        sum += score;
+                        steps += 1;
+                    }
+                }
+                sum / steps as f32
+            })
+            .fold(f32::NEG_INFINITY, f32::max)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::descriptor::{distance, Descriptor, DescriptorMode};
+
+    fn unit(angle: f32) -> Vec<f32> {
+        vec![angle.cos(), angle.sin()]
+    }
+
+    #[test]
+    fn the_diagonal_is_averaged_both_ways_and_only_recent_queries_are_kept() {
+        let d = Descriptor::new(DescriptorMode::L2, 2);
+        // History: keyframes at angles 0, 0.1, ..., 0.9.
+        let history: Vec<Vec<f32>> = (0..10).map(|i| unit(i as f32 * 0.1)).collect();
+        let pair = |q: &[f32], p: usize| d.score(distance(q, &history[p]));
+        let mut recent = RecentQueries::new(3);
+        for angle in [0.5, 0.3, 0.4] {
+            recent.push(&unit(angle));
+        }
+        assert_eq!(recent.queries.len(), 2, "length 3 keeps the two before the current");
+        // The current query equals keyframe 5; the earlier ones were 0.3 (k=2) and 0.4 (k=1): forwards
+        // (p-1 = 4, p-2 = 3) they match exactly, so the sequence score is 1.
+        let score = recent.sequence_score(&unit(0.5), 5, history.len(), pair, |_| true);
+        assert!((score - 1.0).abs() < 1e-6, "{score}");
+        // Against keyframe 8, forwards the steps take the best of 6..=8 for 0.4 and of 5..=7 for 0.3;
+        // backwards of 8..=9 and of 9 alone (10 and 11 are past the history).
+        let single = |a: f32, b: f32| d.score(distance(&unit(a), &unit(b)));
+        let expected_forwards = (single(0.5, 0.8) + single(0.4, 0.6) + single(0.3, 0.5)) / 3.0;
+        let expected_backwards = (single(0.5, 0.8) + single(0.4, 0.8) + single(0.3, 0.9)) / 3.0;
+        let score = recent.sequence_score(&unit(0.5), 8, history.len(), pair, |_| true);
+        assert!((score - expected_forwards.max(expected_backwards)).abs() < 1e-6, "{score}");
+        // Excluded keyframes are not steps: with only keyframe 5 eligible, the step of 0.4 (centre 4 or
+        // 6) still reaches 5, the step of 0.3 (centre 3 or 7) reaches nothing and is left out.
+        let score = recent.sequence_score(&unit(0.5), 5, history.len(), pair, |p| p == 5);
+        assert!((score - (1.0 + single(0.4, 0.5)) / 2.0).abs() < 1e-6, "{score}");
+        // Length 1 keeps nothing.
+        let mut off = RecentQueries::new(1);
+        off.push(&unit(0.0));
+        assert!(off.queries.is_empty());
+    }
+}
