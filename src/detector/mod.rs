@@ -461,15 +461,17 @@ impl Detector {
             KeyframeDb::check_descriptor(self.db.dim, descriptor, "query")?;
             return Ok(Vec::new());
         }
-        self.db.nearest(descriptor, k, |p| self.is_eligible(stamp, p))
+        self.db.nearest(descriptor, k, self.eligibility(stamp))
     }
 
-    /// Whether the keyframe at `position` may match a query at `stamp` (the recency rules).
-    fn is_eligible(&self, stamp: Stamp, position: usize) -> bool {
+    /// Whether the keyframe at a position may match a query at `stamp` (the recency rules); the
+    /// rule's values are worked out once, as the scan calls it for every keyframe.
+    fn eligibility(&self, stamp: Stamp) -> impl Fn(usize) -> bool + '_ {
         let last_eligible = self.db.len().saturating_sub(self.params.exclude_recent_count);
         let min_age_nanos = (self.params.exclude_recent_secs * 1e9).round() as i64;
         let time_rule = self.params.exclude_recent_secs > 0.0;
-        position < last_eligible && (!time_rule || stamp.nanos.saturating_sub(self.db.stamps()[position].nanos) >= min_age_nanos)
+        let stamps = self.db.stamps();
+        move |p| p < last_eligible && (!time_rule || stamp.nanos.saturating_sub(stamps[p].nanos) >= min_age_nanos)
     }
 
     /// The eligible matches of a query, best first: the `top_k` nearest, or with the sequence policy the
@@ -487,6 +489,7 @@ impl Detector {
                 .collect());
         }
         let neighbours = self.eligible_nearest(stamp, descriptor, top_k.max(sequence::CANDIDATES))?;
+        let eligible = self.eligibility(stamp);
         // (distance, score) of a query descriptor against keyframe `p`, centred or not.
         let compare = |query: &[f32], p: usize| -> (f32, f32) {
             match &centring {
@@ -507,7 +510,7 @@ impl Detector {
                         n.position,
                         self.db.len(),
                         |q, p| compare(q, p).1,
-                        |p| self.is_eligible(stamp, p),
+                        &eligible,
                     )
                 } else {
                     single
@@ -515,7 +518,7 @@ impl Detector {
                 (n.position, distance, score)
             })
             .collect();
-        // Stable: equal sequence scores keep the nearer first.
+        // Stable: equal scores keep the nearer (by plain distance) first.
         ranked.sort_by(|a, b| b.2.total_cmp(&a.2));
         ranked.truncate(top_k);
         Ok(ranked)
