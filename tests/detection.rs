@@ -236,4 +236,11 @@ fn bad_sources_give_clear_errors_and_truncated_bags_report_what_was_read() {
 
     // A bad parameter.
     assert_clean_failure(&ecm_lcd(&["replay", bag.to_str().unwrap(), "--param", "detector.min_score=2", "--quiet"]), &["detector.min_score"]);
+
+    // `embed` with a malformed image names it and leaves an existing output file as it was.
+    let (bad_png, csv) = (dir.path().join("bad.png"), dir.path().join("descriptors.csv"));
+    std::fs::write(&bad_png, b"not a png").unwrap();
+    std::fs::write(&csv, b"earlier output\n").unwrap();
+    assert_clean_failure(&ecm_lcd(&["embed", bad_png.to_str().unwrap(), "-o", csv.to_str().unwrap()]), &["bad.png"]);
+    assert_eq!(std::fs::read(&csv).unwrap(), b"earlier output\n");
 }

@@ -185,14 +185,19 @@ pub struct EmbedArgs {
 
 pub fn embed(args: EmbedArgs) -> Result<()> {
     let (mut embedder, _) = args.network.embedder(Arch::EcMobileNet, false)?;
-    let mut writer = csv::Writer::from_path(&args.output).with_context(|| format!("cannot write {}", args.output.display()))?;
+    // Every image is read before the output is opened, so a bad image leaves an existing file as it was.
+    let mut records = Vec::with_capacity(args.images.len());
     for path in &args.images {
         let pooled = embedder.feature_map(&read_image(path)?)?.global_average();
         let mut record = vec![path.display().to_string()];
         record.extend(pooled.iter().map(|v| v.to_string()));
-        writer.write_record(&record)?;
+        records.push(record);
     }
-    writer.flush()?;
+    let mut writer = csv::Writer::from_path(&args.output).with_context(|| format!("cannot write {}", args.output.display()))?;
+    for record in &records {
+        writer.write_record(record)?;
+    }
+    writer.flush().with_context(|| format!("cannot write {}", args.output.display()))?;
     println!("wrote {} descriptors of 1280 values to {}", args.images.len(), args.output.display());
     Ok(())
 }
