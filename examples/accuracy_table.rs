@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use ecm_lcd::config::Params;
-use ecm_lcd::eval::{evaluate, images_in_name_order, read_loops, LoopTruth, Metrics, QueryResult};
+use ecm_lcd::eval::{evaluate, images_in_name_order, read_loops, Metrics};
 use ecm_lcd::model::weights::resolve::{self, Resolved};
 use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::preprocess::read_image;
@@ -81,32 +81,9 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
 /// What one configuration measured on one set.
 struct Row {
     metrics: Metrics,
-    /// Precision and recall of the candidates that pass the default threshold.
-    at_threshold: (Option<f64>, Option<f64>),
     ms_per_keyframe: f64,
-    /// The highest score of a wrong top-1 match: a threshold above it keeps precision at 100%.
-    highest_false: Option<f32>,
-}
-
-fn highest_false(results: &[QueryResult], truth: &LoopTruth) -> Option<f32> {
-    results
-        .iter()
-        .filter(|r| !truth.unknown_queries().contains(&r.query))
-        .filter_map(|r| r.best.filter(|(m, _)| !truth.matches(r.query).is_some_and(|t| t.contains(m))).map(|b| b.1))
-        .reduce(f32::max)
-}
-
-fn at_threshold(results: &[QueryResult], truth: &LoopTruth, threshold: f32) -> (Option<f64>, Option<f64>) {
-    let (mut reported, mut correct) = (0usize, 0usize);
-    for r in results.iter().filter(|r| !truth.unknown_queries().contains(&r.query)) {
-        if let Some((matched, _)) = r.best.filter(|b| b.1 >= threshold) {
-            reported += 1;
-            correct += usize::from(truth.matches(r.query).is_some_and(|m| m.contains(&matched)));
-        }
-    }
-    let positives = truth.positive_queries().count();
-    let ratio = |a: usize, b: usize| (b > 0).then(|| a as f64 / b as f64);
-    (ratio(correct, reported), ratio(correct, positives))
+    /// The detector's default score threshold.
+    min_score: f32,
 }
 
 fn measure(set: &DevSet, overrides: &[(&str, &str)], weights: &Resolved) -> Result<(Row, usize)> {
@@ -142,13 +119,7 @@ fn measure(set: &DevSet, overrides: &[(&str, &str)], weights: &Resolved) -> Resu
         ecm_lcd::detector::Threshold::MinScore(s) => s,
         ecm_lcd::detector::Threshold::MaxDistance(_) => anyhow::bail!("the table assumes a score threshold"),
     };
-    let metrics = evaluate(&results, &truth)?;
-    let row = Row {
-        at_threshold: at_threshold(&results, &truth, min_score),
-        highest_false: highest_false(&results, &truth),
-        metrics,
-        ms_per_keyframe: ms,
-    };
+    let row = Row { metrics: evaluate(&results, &truth)?, ms_per_keyframe: ms, min_score };
     Ok((row, pipeline.descriptor().dim() * std::mem::size_of::<f32>()))
 }
 
@@ -182,6 +153,9 @@ fn main() -> Result<()> {
                     let (row, bytes) = measure(set, &overrides, &weights)?;
                     let f = common::figure;
                     let m = &row.metrics;
+                    // Nothing above the threshold: precision undefined, recall 0.
+                    let (precision, recall) =
+                        m.at_threshold(row.min_score).map_or((None, Some(0.0)), |p| (Some(p.precision), Some(p.recall)));
                     println!(
                         "| {} | {mode} | {} | {policy} | {} ({}) | {} | {} | {} | {} / {} | {} | {bytes} | {:.1} |",
                         set.name,
@@ -191,9 +165,9 @@ fn main() -> Result<()> {
                         f(m.recall_at_1),
                         f(m.recall_at_100_precision),
                         f(m.average_precision),
-                        f(row.at_threshold.0),
-                        f(row.at_threshold.1),
-                        row.highest_false.map(|s| format!("{s:.4}")).unwrap_or_else(|| "-".into()),
+                        f(precision),
+                        f(recall.filter(|_| m.positives > 0)),
+                        m.highest_false_score().map(|s| format!("{s:.4}")).unwrap_or_else(|| "-".into()),
                         row.ms_per_keyframe
                     );
                 }

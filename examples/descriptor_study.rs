@@ -7,6 +7,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{Context, Result};
+use ecm_lcd::descriptor::{grid_cell, l2_normalise, power_normalise};
 use ecm_lcd::eval::{evaluate, loop_truth_from_poses, read_loops, revisit::write_two_pass, LoopTruth, PoseLoopCriteria, QueryResult};
 use ecm_lcd::io::open_source;
 use ecm_lcd::io::tum::read_groundtruth;
@@ -70,17 +71,6 @@ fn sets(shared: &Path, tmp: &Path) -> Result<Vec<Set>> {
     Ok(out)
 }
 
-fn l2(v: &mut [f32]) {
-    let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
-    if n > 0.0 {
-        v.iter_mut().for_each(|x| *x /= n);
-    }
-}
-
-fn power(v: &mut [f32]) {
-    v.iter_mut().for_each(|x| *x = x.signum() * x.abs().sqrt());
-}
-
 /// Per-channel aggregate of the map over the rows `r` and columns `c`.
 fn pool(fm: &FeatureMap, rows: std::ops::Range<usize>, cols: std::ops::Range<usize>, how: &str) -> Vec<f32> {
     let plane = fm.height * fm.width;
@@ -115,7 +105,7 @@ fn rmac(fm: &FeatureMap, how: &str) -> Vec<f32> {
                 let x0 = if steps_x > 1 { sx * (w - side) / (steps_x - 1) } else { 0 };
                 let (rows, cols) = if level == 1 { (0..h, 0..w) } else { (y0..y0 + side.min(h), x0..x0 + side.min(w)) };
                 let mut v = pool(fm, rows, cols, how);
-                l2(&mut v);
+                l2_normalise(&mut v);
                 total.iter_mut().zip(&v).for_each(|(t, x)| *t += x);
             }
         }
@@ -127,11 +117,9 @@ fn grid(fm: &FeatureMap, how: &str, cells: usize) -> Vec<f32> {
     let mut out = Vec::new();
     for gy in 0..cells {
         for gx in 0..cells {
-            let rows = (gy * fm.height / cells)..((gy + 1) * fm.height).div_ceil(cells);
-            let cols = (gx * fm.width / cells)..((gx + 1) * fm.width).div_ceil(cells);
-            let mut v = pool(fm, rows, cols, how);
-            power(&mut v);
-            l2(&mut v);
+            let mut v = pool(fm, grid_cell(fm.height, cells, gy), grid_cell(fm.width, cells, gx), how);
+            power_normalise(&mut v);
+            l2_normalise(&mut v);
             out.extend(v);
         }
     }
@@ -158,12 +146,12 @@ fn cosine_scores(query: &[f32], database: &[Vec<f32>]) -> Vec<f32> {
 fn finish(mut raw: Vec<Vec<f32>>, post: &str, mean: Option<&[f32]>) -> Vec<Vec<f32>> {
     for v in &mut raw {
         if post.contains('p') {
-            power(v);
+            power_normalise(v);
         }
-        l2(v);
+        l2_normalise(v);
         if let Some(m) = mean {
             v.iter_mut().zip(m).for_each(|(x, m)| *x -= m);
-            l2(v);
+            l2_normalise(v);
         }
     }
     raw
@@ -229,7 +217,7 @@ fn learn_whitening(vs: &[Vec<f32>], dim: usize) -> Whitening {
 fn whiten(w: &Whitening, v: &[f32]) -> Vec<f32> {
     let c: Vec<f32> = v.iter().zip(&w.mean).map(|(a, m)| a - m).collect();
     let mut out: Vec<f32> = w.rows.iter().map(|r| r.iter().zip(&c).map(|(a, b)| a * b).sum()).collect();
-    l2(&mut out);
+    l2_normalise(&mut out);
     out
 }
 

@@ -230,7 +230,7 @@ fn paper_descriptor(pooled: &[f32]) -> Vec<f32> {
 }
 
 /// Scales `v` to unit length; a zero vector stays zero.
-fn l2_normalise(v: &mut [f32]) {
+pub fn l2_normalise(v: &mut [f32]) {
     let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
     if norm > 0.0 {
         v.iter_mut().for_each(|x| *x /= norm);
@@ -238,12 +238,12 @@ fn l2_normalise(v: &mut [f32]) {
 }
 
 /// Signed square root of every value (power normalisation with exponent 1/2).
-fn power_normalise(v: &mut [f32]) {
+pub fn power_normalise(v: &mut [f32]) {
     v.iter_mut().for_each(|x| *x = x.signum() * x.abs().sqrt());
 }
 
 /// Half-open cell `index` of `cells` cells covering `0..size`; cells overlap when `size` is not a multiple.
-fn grid_cell(size: usize, cells: usize, index: usize) -> std::ops::Range<usize> {
+pub fn grid_cell(size: usize, cells: usize, index: usize) -> std::ops::Range<usize> {
     (index * size / cells)..((index + 1) * size).div_ceil(cells)
 }
 

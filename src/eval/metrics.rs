@@ -54,6 +54,20 @@ pub struct Metrics {
     pub curve: Vec<PrPoint>,
 }
 
+impl Metrics {
+    /// Precision and recall of the reports at or above `threshold` (a detector's setting): the curve's
+    /// point of the lowest threshold not below it, `None` when nothing scores that high.
+    pub fn at_threshold(&self, threshold: f32) -> Option<&PrPoint> {
+        self.curve.iter().take_while(|p| p.threshold >= threshold).last()
+    }
+
+    /// The score of the best-scored wrong report: a threshold above it keeps precision at 100%.
+    /// `None` when every report is right.
+    pub fn highest_false_score(&self) -> Option<f32> {
+        self.curve.iter().find(|p| p.precision < 1.0).map(|p| p.threshold)
+    }
+}
+
 /// Computes the metrics; fails if a query appears twice or a score is NaN.
 pub fn evaluate(results: &[QueryResult], truth: &LoopTruth) -> Result<Metrics> {
     let mut seen = BTreeSet::new();
@@ -160,6 +174,13 @@ mod tests {
         assert_eq!(m.recall_at_100_precision, Some(0.5));
         // Top-1 true for 10, 11, 13 of 4 positives.
         assert_eq!(m.recall_at_1, Some(0.75));
+        // At a threshold of 0.75 the reports of 0.9 and 0.8 pass; 0.95 passes none.
+        assert_eq!(m.at_threshold(0.75).map(|p| (p.precision, p.recall)), Some((1.0, 0.5)));
+        assert_eq!(m.at_threshold(0.5).map(|p| p.threshold), Some(0.5));
+        assert!(m.at_threshold(0.95).is_none());
+        assert_eq!(m.highest_false_score(), Some(0.7));
+        let all_right = evaluate(&results[..2], &truth()).unwrap();
+        assert_eq!(all_right.highest_false_score(), None);
     }
 
     #[test]
