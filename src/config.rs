@@ -25,6 +25,7 @@
 use crate::descriptor::{Descriptor, DescriptorMode, DEFAULT_CHANNELS};
 use crate::detector::selection::SelectionParams;
 use crate::detector::{DetectorParams, Threshold};
+use crate::verification::{Intrinsics, VerificationParams};
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -244,6 +245,37 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             MAX_COUNT,
             "At most this many newest keyframes are kept in memory and searched; older ones are dropped (a --db keeps them on disk). 0 = unlimited.",
         ),
+        one_of(
+            "verification.mode",
+            "auto",
+            &["auto", "on", "off"],
+            "Geometric verification of loop candidates (ORB features and RANSAC): auto = on when the camera intrinsics are known (camera.*).",
+        ),
+        integer(
+            "verification.min_inliers",
+            15,
+            8,
+            MAX_COUNT,
+            "A candidate is verified when at least this many feature matches fit one rigid geometry (RANSAC inliers).",
+        ),
+        integer("verification.features", 500, 50, 10_000, "ORB features extracted per keyframe for verification."),
+        integer(
+            "verification.keyframes",
+            5000,
+            0,
+            MAX_COUNT,
+            "Local features are kept in memory for the newest this-many keyframes (about 20 KiB each); older matches cannot be verified. 0 = all.",
+        ),
+        one_of(
+            "camera.preset",
+            "none",
+            &["none", "tum_fr1", "tum_fr2", "tum_fr3"],
+            "Camera intrinsics from a published calibration (the TUM RGB-D cameras); camera.fx etc. override it.",
+        ),
+        ParamSpec { read_only: true, ..double("camera.fx", 0.0, 0.0, 1.0e5, "Focal length in x, pixels (0 = unknown).") },
+        ParamSpec { read_only: true, ..double("camera.fy", 0.0, 0.0, 1.0e5, "Focal length in y, pixels (0 = unknown).") },
+        ParamSpec { read_only: true, ..double("camera.cx", 0.0, 0.0, 1.0e5, "Principal point x, pixels.") },
+        ParamSpec { read_only: true, ..double("camera.cy", 0.0, 0.0, 1.0e5, "Principal point y, pixels.") },
         integer(
             "selection.every_nth",
             1,
@@ -432,6 +464,33 @@ impl Params {
             sequence_length: self.count("detector.sequence.length"),
             centre_on_history: matches!(self.values.get("detector.centre_on_history"), Some(ParamValue::Bool(true))),
         }
+    }
+
+    /// Camera intrinsics: `camera.fx`..`camera.cy` when both focal lengths are set, else `camera.preset`.
+    pub fn intrinsics(&self) -> Option<Intrinsics> {
+        let (fx, fy) = (self.double("camera.fx"), self.double("camera.fy"));
+        if fx > 0.0 && fy > 0.0 {
+            return Some(Intrinsics { fx, fy, cx: self.double("camera.cx"), cy: self.double("camera.cy") });
+        }
+        Intrinsics::preset(self.string("camera.preset"))
+    }
+
+    /// The verification policy, or `None` when verification is off (`verification.mode` off, or auto
+    /// without intrinsics).
+    pub fn verification(&self) -> Option<VerificationParams> {
+        let intrinsics = self.intrinsics();
+        let on = match self.string("verification.mode") {
+            "on" => true,
+            "off" => false,
+            _ => intrinsics.is_some(),
+        };
+        on.then(|| VerificationParams {
+            min_inliers: self.count("verification.min_inliers"),
+            max_features: self.count("verification.features"),
+            keyframes: self.count("verification.keyframes"),
+            intrinsics,
+            ..VerificationParams::default()
+        })
     }
 
     /// Selection rules; the novelty score is turned into a distance with the descriptor mode's mapping.

@@ -2,7 +2,8 @@
 //!
 //! Data flows one way, and the modules follow it:
 //! image ([`io`], [`preprocess`]) -> tensor -> network ([`model`]) -> descriptor ([`descriptor`])
-//! -> keyframe database and detector ([`detector`]) -> loop candidate -> publisher ([`ros`], CSV).
+//! -> keyframe database and detector ([`detector`]) -> geometric verification ([`verification`]) -> loop
+//! candidate -> publisher ([`ros`], CSV).
 //! [`pipeline`] wires those stages together for the offline commands and the node alike;
 //! [`eval`] measures the result against ground truth and [`synth`] makes test sequences.
 //! Nothing below [`ros`] needs DDS.
@@ -21,5 +22,6 @@ pub mod runtime;
 pub mod synth;
 pub mod train;
 pub mod types;
+pub mod verification;
 
 pub mod cli;

@@ -6,6 +6,10 @@
 //! before the detector sees it, so its candidates are never returned before the keyframe is durable.
 //! A crash between the commit and the caller emitting the candidates loses those candidates, never
 //! the keyframe.
+//!
+//! With verification on ([`Params::verification`]), each keyframe's local features are extracted and
+//! kept, and a candidate is reported only when [`crate::verification`] finds one rigid geometry for
+//! the pair; the best match (for evaluation) is checked the same way ([`Outcome::best_verified`]).
 
 use std::path::Path;
 use std::time::Instant;
@@ -22,6 +26,7 @@ use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::Arch;
 use crate::types::{LoopCandidate, Stamp};
+use crate::verification::{LocalFeatures, Verification, Verifier};
 
 /// Milliseconds spent per stage on one frame.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
@@ -31,6 +36,8 @@ pub struct Timings {
     pub descriptor_ms: f64,
     /// Database query and insertion.
     pub detector_ms: f64,
+    /// Local features and geometric verification (0 when verification is off).
+    pub verification_ms: f64,
 }
 
 /// What became of one frame.
@@ -42,6 +49,10 @@ pub struct Outcome {
     pub candidates: Vec<LoopCandidate>,
     /// The nearest eligible keyframe regardless of threshold and consistency (for evaluation).
     pub best: Option<Match>,
+    /// Whether the best match passed geometric verification (`None`: verification off or no match).
+    pub best_verified: Option<bool>,
+    /// Candidates that passed the threshold but failed verification.
+    pub rejected: usize,
     pub timings: Timings,
 }
 
@@ -55,6 +66,7 @@ pub struct Pipeline {
     next_id: u64,
     weights: Resolved,
     store: Option<KeyframeStore>,
+    verifier: Option<Verifier>,
 }
 
 impl Pipeline {
@@ -69,6 +81,10 @@ impl Pipeline {
         log::info!("weights: {} -> {arch}, input {}², descriptor {}", weights.describe(), params.input_size(), params.descriptor_mode());
         let embedder = Embedder::new(network, params.input_size()).context("network input size")?;
         let descriptor = params.descriptor();
+        let verifier = params.verification().map(Verifier::new).transpose()?;
+        if let Some(verifier) = &verifier {
+            log::info!("geometric verification on: {:?}", verifier.params());
+        }
         Ok(Pipeline {
             embedder,
             selector: KeyframeSelector::new(params.selection()),
@@ -78,6 +94,7 @@ impl Pipeline {
             next_id: 0,
             weights,
             store: None,
+            verifier,
         })
     }
 
@@ -200,8 +217,75 @@ impl Pipeline {
         }
         (outcome.best, outcome.candidates) = self.detector.process_with_best(id, stamp, &descriptor)?;
         outcome.keyframe = Some(id);
-        outcome.timings.detector_ms = after_descriptor.elapsed().as_secs_f64() * 1e3;
+        let after_detector = Instant::now();
+        outcome.timings.detector_ms = (after_detector - after_descriptor).as_secs_f64() * 1e3;
+        if self.verifier.is_some() {
+            let features = self.local_features(image)?;
+            self.verify_outcome(&features, &mut outcome);
+            self.remember_features(id, features);
+            outcome.timings.verification_ms = after_detector.elapsed().as_secs_f64() * 1e3;
+        }
         Ok(outcome)
+    }
+
+    /// Whether geometric verification is on.
+    pub fn verifies(&self) -> bool {
+        self.verifier.is_some()
+    }
+
+    /// The local features of `image` for verification (empty when verification is off).
+    pub fn local_features(&self, image: &RgbImage) -> Result<LocalFeatures> {
+        match &self.verifier {
+            Some(verifier) => verifier.extract(image),
+            None => Ok(LocalFeatures::default()),
+        }
+    }
+
+    /// Keeps `features` as keyframe `id`'s for later verification (nothing when verification is off).
+    pub fn remember_features(&mut self, id: u64, features: LocalFeatures) {
+        if let Some(verifier) = &mut self.verifier {
+            verifier.remember(id, features);
+        }
+    }
+
+    /// Checks `features` against keyframe `id`; `None` when verification is off. A keyframe whose
+    /// features are not kept fails (it cannot be checked).
+    pub fn verify(&self, features: &LocalFeatures, id: u64) -> Option<Verification> {
+        let verifier = self.verifier.as_ref()?;
+        Some(verifier.verify(features, id).unwrap_or(Verification { matches: 0, inliers: 0, model: None, accepted: false, pose: None }))
+    }
+
+    /// Drops the candidates that fail verification (counted in [`Outcome::rejected`]) and records
+    /// whether the best match passes.
+    fn verify_outcome(&self, features: &LocalFeatures, outcome: &mut Outcome) {
+        let mut checked: Vec<(u64, Verification)> = Vec::new();
+        let mut check = |id: u64| -> Verification {
+            if let Some(&(_, v)) = checked.iter().find(|(seen, _)| *seen == id) {
+                return v;
+            }
+            let v = self.verify(features, id).expect("called with verification on");
+            checked.push((id, v));
+            v
+        };
+        outcome.best_verified = outcome.best.map(|best| check(best.id).accepted);
+        let before = outcome.candidates.len();
+        outcome.candidates.retain(|c| {
+            let v = check(c.match_id);
+            if !v.accepted {
+                log::debug!(
+                    "candidate {} -> {} rejected by verification: {} inliers of {} matches",
+                    c.query_id,
+                    c.match_id,
+                    v.inliers,
+                    v.matches
+                );
+            }
+            v.accepted
+        });
+        outcome.rejected = before - outcome.candidates.len();
+        for (rank, candidate) in outcome.candidates.iter_mut().enumerate() {
+            candidate.rank = rank as u32;
+        }
     }
 
     /// Changes one parameter at run time, validated by [`Params::set_at_runtime`]: a bad value
@@ -211,6 +295,9 @@ impl Pipeline {
         self.params.set_at_runtime(name, value)?;
         self.detector.set_params(self.params.detector());
         self.selector.set_params(self.params.selection());
+        if let (Some(verifier), Some(params)) = (&mut self.verifier, self.params.verification()) {
+            verifier.set_params(params);
+        }
         Ok(())
     }
 }

@@ -28,6 +28,8 @@ pub struct ReplayedKeyframe {
     pub stamp: Stamp,
     /// Nearest eligible earlier keyframe, threshold aside.
     pub best: Option<Match>,
+    /// Whether `best` passed geometric verification (`None`: verification off or no match).
+    pub best_verified: Option<bool>,
 }
 
 /// Everything a replay produced.
@@ -41,6 +43,8 @@ pub struct ReplayRun {
     pub frame_stamps: Vec<Stamp>,
     pub keyframes: Vec<ReplayedKeyframe>,
     pub candidates: Vec<LoopCandidate>,
+    /// Candidates that passed the threshold but failed geometric verification.
+    pub rejected: usize,
     /// Summed per-stage time over the keyframes.
     pub total: Timings,
     pub wall_secs: f64,
@@ -50,18 +54,38 @@ pub struct ReplayRun {
 
 impl ReplayRun {
     /// Mean per-stage milliseconds per keyframe.
-    pub fn mean_timings(&self) -> Vec<(&'static str, f64)> {
+    pub fn mean(&self) -> Timings {
         let n = self.keyframes.len().max(1) as f64;
+        let t = &self.total;
+        Timings {
+            network_ms: t.network_ms / n,
+            descriptor_ms: t.descriptor_ms / n,
+            detector_ms: t.detector_ms / n,
+            verification_ms: t.verification_ms / n,
+        }
+    }
+
+    /// [`ReplayRun::mean`] by name (for summaries and JSON).
+    pub fn mean_timings(&self) -> Vec<(&'static str, f64)> {
+        let t = self.mean();
         vec![
-            ("network_ms", self.total.network_ms / n),
-            ("descriptor_ms", self.total.descriptor_ms / n),
-            ("detector_ms", self.total.detector_ms / n),
+            ("network_ms", t.network_ms),
+            ("descriptor_ms", t.descriptor_ms),
+            ("detector_ms", t.detector_ms),
+            ("verification_ms", t.verification_ms),
         ]
     }
 
     /// One evaluation result per keyframe: its frame index, and its best match's frame index and score.
+    /// A best match that failed geometric verification counts as no match.
     pub fn query_results(&self) -> Vec<QueryResult> {
-        self.keyframes.iter().map(|k| QueryResult { query: k.index, best: k.best.map(|m| (m.id as usize, m.score)) }).collect()
+        self.keyframes
+            .iter()
+            .map(|k| QueryResult {
+                query: k.index,
+                best: k.best.filter(|_| k.best_verified != Some(false)).map(|m| (m.id as usize, m.score)),
+            })
+            .collect()
     }
 }
 
@@ -75,13 +99,20 @@ pub fn run_database_queries(pipeline: &mut Pipeline, database: &[PathBuf], queri
     pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
     let started = Instant::now();
     for (index, path) in database.iter().enumerate() {
-        let descriptor = pipeline.describe(&read_image(path)?)?;
+        let image = read_image(path)?;
+        let descriptor = pipeline.describe(&image)?;
         pipeline.detector_mut().insert(index as u64, Stamp::from_nanos(index as i64), &descriptor)?;
+        let features = pipeline.local_features(&image)?;
+        pipeline.remember_features(index as u64, features);
     }
     let mut results = Vec::with_capacity(queries.len());
     for (index, path) in queries.iter().enumerate() {
-        let descriptor = pipeline.describe(&read_image(path)?)?;
+        let image = read_image(path)?;
+        let descriptor = pipeline.describe(&image)?;
         let best = pipeline.detector_mut().query(Stamp::from_nanos(i64::MAX), &descriptor)?;
+        // A best match that fails geometric verification counts as no match.
+        let features = pipeline.local_features(&image)?;
+        let best = best.filter(|m| pipeline.verify(&features, m.id).is_none_or(|v| v.accepted));
         results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
     }
     let per_image = started.elapsed().as_secs_f64() * 1e3 / (database.len() + queries.len()).max(1) as f64;
@@ -147,7 +178,10 @@ fn replay_frames(
             run.total.network_ms += t.network_ms;
             run.total.descriptor_ms += t.descriptor_ms;
             run.total.detector_ms += t.detector_ms;
-            let keyframe = ReplayedKeyframe { index: frame.index, stamp: frame.stamp, best: outcome.best };
+            run.total.verification_ms += t.verification_ms;
+            run.rejected += outcome.rejected;
+            let keyframe =
+                ReplayedKeyframe { index: frame.index, stamp: frame.stamp, best: outcome.best, best_verified: outcome.best_verified };
             on_keyframe(&keyframe, &outcome.candidates)?;
             run.keyframes.push(keyframe);
             run.candidates.extend(outcome.candidates);

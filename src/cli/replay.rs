@@ -152,17 +152,22 @@ pub fn run(args: Args) -> Result<()> {
     let run = run_source_with(&mut pipeline, &args.source, args.source_args.topic.as_deref(), !args.source_args.quiet, |_, candidates| {
         csv.write(candidates)
     })?;
-    let t = run.mean_timings();
+    let t = run.mean();
+    let verification = if pipeline.verifies() {
+        format!(", verification {:.2} ms; {} candidates failed verification", t.verification_ms, run.rejected)
+    } else {
+        String::new()
+    };
     eprintln!(
-        "{} frames{}, {} keyframes, {} loop candidates in {:.1} s (per keyframe: network {:.1} ms, descriptor {:.2} ms, detector {:.2} ms){}",
+        "{} frames{}, {} keyframes, {} loop candidates in {:.1} s (per keyframe: network {:.1} ms, descriptor {:.2} ms, detector {:.2} ms{verification}){}",
         run.frames,
         if run.skipped > 0 { format!(" ({} already stored, skipped)", run.skipped) } else { String::new() },
         run.keyframes.len(),
         run.candidates.len(),
         run.wall_secs,
-        t[0].1,
-        t[1].1,
-        t[2].1,
+        t.network_ms,
+        t.descriptor_ms,
+        t.detector_ms,
         args.output.as_ref().map(|p| format!("; wrote {}", p.display())).unwrap_or_default()
     );
     if let Some(error) = run.error {

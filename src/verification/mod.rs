@@ -1,0 +1,395 @@
+//! Geometric verification of loop candidates: do the two keyframes see one rigid scene?
+//!
+//! An appearance match alone can name a place that only looks alike (a repeated door, the same
+//! furniture). Following ORB-SLAM and RTAB-Map, a candidate is checked on local features before it is
+//! reported:
+//! 1. ORB features on each keyframe's grayscale image (kornia-imgproc, ORB-SLAM3's extractor), kept
+//!    per keyframe within a budget ([`VerificationParams::keyframes`]);
+//! 2. mutual nearest neighbours by Hamming distance with a ratio test;
+//! 3. RANSAC (kornia-3d) on the matched pixel positions: the 8-point fundamental matrix and a
+//!    homography (a planar scene or a pure rotation, where the epipolar model is degenerate). The
+//!    model with more inliers counts.
+//! 4. With camera intrinsics, the relative pose: the essential matrix `E = Kᵀ F K` of the winning
+//!    fundamental matrix (the 8-point-then-lift route kornia's own two-view estimator takes; the
+//!    5-point solver is several times slower when the pair does not match, which is most pairs),
+//!    or the homography's decomposition, whichever won; of the candidate motions, the one that puts
+//!    the most inliers in front of both cameras. Two views fix the translation's direction, not its
+//!    length.
+//!
+//! A candidate is verified when the inliers reach [`VerificationParams::min_inliers`]. An 8-point
+//! fit to a dozen random matches always finds about eight "inliers", so the minimum must sit well
+//! above that. A candidate whose match keyframe has no features kept (older than the budget, or
+//! stored before the process started) cannot be checked and is rejected.
+
+use std::collections::{HashMap, VecDeque};
+
+use anyhow::{ensure, Result};
+use image::RgbImage;
+use kornia_3d::pose::{
+    decompose_essential, decompose_homography, enforce_essential_constraints, essential_from_fundamental, ransac_fundamental,
+    ransac_homography, triangulate_midpoint_known_pose, RansacParams,
+};
+use kornia_algebra::{Mat3F64, Vec2F64, Vec3F64};
+use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+use kornia_image::{Image, ImageSize};
+use kornia_imgproc::features::{match_descriptors, OrbDetector};
+
+/// Pinhole camera intrinsics in pixels, for the image size the keyframes arrive in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+impl Intrinsics {
+    /// The published calibrations of the TUM RGB-D cameras (640x480): `tum_fr1`, `tum_fr2`, `tum_fr3`.
+    pub fn preset(name: &str) -> Option<Intrinsics> {
+        let (fx, fy, cx, cy) = match name {
+            "tum_fr1" => (517.3, 516.5, 318.6, 255.3),
+            "tum_fr2" => (520.9, 521.0, 325.1, 249.7),
+            "tum_fr3" => (535.4, 539.2, 320.1, 247.6),
+            _ => return None,
+        };
+        Some(Intrinsics { fx, fy, cx, cy })
+    }
+
+    fn matrix(&self) -> Mat3F64 {
+        // Column-major.
+        Mat3F64::from_cols_array(&[self.fx, 0.0, 0.0, 0.0, self.fy, 0.0, self.cx, self.cy, 1.0])
+    }
+}
+
+/// The verification policy.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VerificationParams {
+    /// ORB features extracted per keyframe (at most).
+    pub max_features: usize,
+    /// A match's Hamming distance must be below this fraction of the second best's.
+    pub ratio: f32,
+    /// RANSAC inlier threshold in pixels.
+    pub pixel_threshold: f64,
+    /// A candidate is verified with at least this many RANSAC inliers.
+    pub min_inliers: usize,
+    /// Local features are kept for the newest this-many keyframes (0 = all).
+    pub keyframes: usize,
+    pub intrinsics: Option<Intrinsics>,
+}
+
+impl Default for VerificationParams {
+    fn default() -> Self {
+        VerificationParams { max_features: 500, ratio: 0.8, pixel_threshold: 2.0, min_inliers: 15, keyframes: 5000, intrinsics: None }
+    }
+}
+
+/// Which geometric model explained the most matches.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum GeometricModel {
+    /// Fundamental matrix: a rigid motion of the camera (lifted to the essential matrix with intrinsics).
+    Fundamental,
+    /// Homography: a planar scene or a pure rotation.
+    Homography,
+}
+
+/// ORB keypoints and descriptors of one keyframe.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct LocalFeatures {
+    /// Pixel positions (x, y).
+    pub keypoints: Vec<[f32; 2]>,
+    /// 256-bit rBRIEF descriptors.
+    pub descriptors: Vec<[u8; 32]>,
+}
+
+impl LocalFeatures {
+    pub fn len(&self) -> usize {
+        self.keypoints.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.keypoints.is_empty()
+    }
+
+    /// Memory the features take.
+    pub fn bytes(&self) -> usize {
+        self.len() * (std::mem::size_of::<[f32; 2]>() + std::mem::size_of::<[u8; 32]>())
+    }
+}
+
+/// The outcome of checking one pair.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Verification {
+    /// Descriptor matches that passed the mutual and ratio tests.
+    pub matches: usize,
+    /// RANSAC inliers of the winning model (0 when no model could be fitted).
+    pub inliers: usize,
+    pub model: Option<GeometricModel>,
+    /// Whether the inliers reach the minimum.
+    pub accepted: bool,
+    /// The query camera's pose in the match camera's frame, translation a unit direction; only with
+    /// intrinsics, for an accepted pair.
+    pub pose: Option<RelativePose>,
+}
+
+/// A relative camera pose from two views: `p_match = rotation * p_query + translation` for a point's
+/// coordinates in each camera's frame (x right, y down, z forward). Two views fix the translation
+/// only up to scale: it is a unit vector (zero when the motion is a pure rotation).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RelativePose {
+    pub rotation: UnitQuaternion<f64>,
+    pub translation: Vector3<f64>,
+}
+
+/// ORB features of `image` (converted to grayscale), at most `max_features`.
+pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
+    let gray = image::imageops::grayscale(image);
+    let size = ImageSize { width: gray.width() as usize, height: gray.height() as usize };
+    let orb = OrbDetector { n_keypoints: max_features, ..OrbDetector::default() };
+    // The extractor needs room for its pyramid and patch; a tiny image simply has no features.
+    if size.width < 64 || size.height < 64 {
+        return Ok(LocalFeatures::default());
+    }
+    let image = Image::<u8, 1>::new(size, gray.into_raw()).map_err(|e| anyhow::anyhow!("grayscale image for ORB: {e}"))?;
+    let features = orb.detect_and_extract_u8(&image).map_err(|e| anyhow::anyhow!("ORB extraction: {e}"))?;
+    Ok(LocalFeatures { keypoints: features.keypoints_xy, descriptors: features.descriptors })
+}
+
+/// Checks whether `query` and `matched` see one rigid scene (module doc).
+pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &VerificationParams) -> Verification {
+    let pairs = match_descriptors(&query.descriptors, &matched.descriptors, None, true, Some(params.ratio));
+    let point = |p: [f32; 2]| Vec2F64::new(p[0] as f64, p[1] as f64);
+    let x1: Vec<Vec2F64> = pairs.iter().map(|&(i, _)| point(query.keypoints[i])).collect();
+    let x2: Vec<Vec2F64> = pairs.iter().map(|&(_, j)| point(matched.keypoints[j])).collect();
+    fit_geometry(&x1, &x2, params)
+}
+
+/// Steps 3 and 4 of the module doc on matched pixel positions (`x1[i]` in the query, `x2[i]` in the
+/// match).
+pub fn fit_geometry(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams) -> Verification {
+    // A fixed seed: the same pair is always judged the same way.
+    let ransac = RansacParams {
+        max_iterations: 500,
+        threshold: params.pixel_threshold,
+        min_inliers: 0,
+        random_seed: Some(0),
+        refit: false,
+    };
+    let fits = [
+        (GeometricModel::Fundamental, ransac_fundamental(x1, x2, &ransac).ok()),
+        (GeometricModel::Homography, ransac_homography(x1, x2, &ransac).ok()),
+    ];
+    // Ties go to the fundamental matrix, the general model.
+    let best = fits
+        .iter()
+        .filter_map(|(model, fit)| fit.as_ref().map(|fit| (*model, fit)))
+        .max_by_key(|(model, fit)| (fit.inlier_count, *model == GeometricModel::Fundamental));
+    let inliers = best.map_or(0, |(_, fit)| fit.inlier_count);
+    let accepted = inliers >= params.min_inliers;
+    let pose = match (best, &params.intrinsics) {
+        (Some((model, fit)), Some(intrinsics)) if accepted => relative_pose(model, &fit.model, &intrinsics.matrix(), x1, x2, &fit.inliers),
+        _ => None,
+    };
+    Verification { matches: x1.len(), inliers, model: best.map(|(model, _)| model), accepted, pose }
+}
+
+/// Step 4 of the module doc: the motion, among those `model` allows, that puts the most inliers in
+/// front of both cameras.
+fn relative_pose(model: GeometricModel, fit: &Mat3F64, k: &Mat3F64, x1: &[Vec2F64], x2: &[Vec2F64], inliers: &[bool]) -> Option<RelativePose> {
+    let motions: Vec<(Mat3F64, Vec3F64)> = match model {
+        GeometricModel::Fundamental => {
+            let e = enforce_essential_constraints(&essential_from_fundamental(fit, k, k))?;
+            decompose_essential(&e)?.to_vec()
+        }
+        GeometricModel::Homography => decompose_homography(fit, k, k),
+    };
+    let k_inv = k.inverse();
+    let ray = |p: &Vec2F64| k_inv * Vec3F64::new(p.x, p.y, 1.0);
+    let in_front = |(r, t): &(Mat3F64, Vec3F64)| {
+        (0..x1.len()).filter(|&i| inliers[i] && triangulate_midpoint_known_pose(&ray(&x1[i]), &ray(&x2[i]), r, t).is_some()).count()
+    };
+    let (r, t) = motions.iter().max_by_key(|motion| in_front(motion))?;
+    let columns: [f64; 9] = (*r).into();
+    let rotation = Matrix3::from_column_slice(&columns);
+    let translation = Vector3::new(t.x, t.y, t.z);
+    let norm = translation.norm();
+    Some(RelativePose {
+        rotation: UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation)),
+        translation: if norm > 1e-12 { translation / norm } else { Vector3::zeros() },
+    })
+}
+
+/// The verification stage of a pipeline: the local features of recent keyframes and the policy.
+#[derive(Debug)]
+pub struct Verifier {
+    params: VerificationParams,
+    features: HashMap<u64, LocalFeatures>,
+    /// Keyframe ids in the order their features were kept (the budget drops the oldest).
+    order: VecDeque<u64>,
+}
+
+impl Verifier {
+    pub fn new(params: VerificationParams) -> Result<Self> {
+        ensure!(params.max_features > 0, "verification needs at least one feature per keyframe");
+        ensure!(params.ratio > 0.0 && params.ratio <= 1.0, "the ratio test's ratio must be in (0, 1], got {}", params.ratio);
+        Ok(Verifier { params, features: HashMap::new(), order: VecDeque::new() })
+    }
+
+    pub fn params(&self) -> &VerificationParams {
+        &self.params
+    }
+
+    /// Changes the policy at run time (kept features stay; the budget applies at the next keyframe).
+    pub fn set_params(&mut self, params: VerificationParams) {
+        self.params = params;
+    }
+
+    /// Features of an image under this verifier's settings.
+    pub fn extract(&self, image: &RgbImage) -> Result<LocalFeatures> {
+        extract(image, self.params.max_features)
+    }
+
+    /// Keeps `features` as keyframe `id`'s, dropping the oldest beyond the budget.
+    pub fn remember(&mut self, id: u64, features: LocalFeatures) {
+        if self.features.insert(id, features).is_none() {
+            self.order.push_back(id);
+        }
+        let budget = self.params.keyframes;
+        while budget > 0 && self.order.len() > budget {
+            if let Some(oldest) = self.order.pop_front() {
+                self.features.remove(&oldest);
+            }
+        }
+    }
+
+    /// Number of keyframes whose features are kept.
+    pub fn kept(&self) -> usize {
+        self.order.len()
+    }
+
+    /// Checks `query` against keyframe `id`; `None` when that keyframe's features are not kept.
+    pub fn verify(&self, query: &LocalFeatures, id: u64) -> Option<Verification> {
+        self.features.get(&id).map(|matched| verify(query, matched, &self.params))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use image::Rgb;
+
+    /// A textured test image: random blocks (many corners), the same for the same seed.
+    fn blocks(seed: u64, width: u32, height: u32) -> RgbImage {
+        let mut state = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let mut next = move || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 33) as u32
+        };
+        let cells: Vec<u8> = (0..(width / 8) * (height / 8)).map(|_| (next() % 256) as u8).collect();
+        RgbImage::from_fn(width, height, |x, y| {
+            let v = cells[((y / 8) * (width / 8) + x / 8) as usize];
+            Rgb([v, v, v])
+        })
+    }
+
+    /// `image` shifted right by `dx` pixels (a camera panning: a homography), edges filled by clamping.
+    fn shifted(image: &RgbImage, dx: u32) -> RgbImage {
+        RgbImage::from_fn(image.width(), image.height(), |x, y| *image.get_pixel(x.saturating_sub(dx), y))
+    }
+
+    #[test]
+    fn the_same_scene_is_verified_and_another_is_not() {
+        let params = VerificationParams::default();
+        let scene = blocks(1, 320, 240);
+        let a = extract(&scene, params.max_features).unwrap();
+        assert!(a.len() > 100, "{} features", a.len());
+        let same = verify(&a, &extract(&shifted(&scene, 12), params.max_features).unwrap(), &params);
+        assert!(same.accepted, "{same:?}");
+        assert!(same.inliers >= 50, "{same:?}");
+        let other = verify(&a, &extract(&blocks(2, 320, 240), params.max_features).unwrap(), &params);
+        assert!(!other.accepted, "{other:?}");
+        assert!(other.inliers < params.min_inliers, "{other:?}");
+    }
+
+    #[test]
+    fn with_intrinsics_a_shifted_view_is_verified() {
+        let params = VerificationParams { intrinsics: Intrinsics::preset("tum_fr3"), ..VerificationParams::default() };
+        let scene = blocks(3, 320, 240);
+        let a = extract(&scene, 500).unwrap();
+        let result = verify(&a, &extract(&shifted(&scene, 8), 500).unwrap(), &params);
+        assert!(result.accepted, "{result:?}");
+        assert!(Intrinsics::preset("tum_fr4").is_none());
+    }
+
+    /// Projections of random points seen by two cameras `p2 = r p1 + t` (non-planar), plus outliers.
+    fn two_views(r: &Rotation3<f64>, t: &Vector3<f64>, k: &Intrinsics, points: usize, outliers: usize) -> (Vec<Vec2F64>, Vec<Vec2F64>) {
+        let mut state = 7u64;
+        let mut uniform = move |lo: f64, hi: f64| {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            lo + (hi - lo) * ((state >> 11) as f64 / (1u64 << 53) as f64)
+        };
+        let project = |p: Vector3<f64>| Vec2F64::new(k.fx * p.x / p.z + k.cx, k.fy * p.y / p.z + k.cy);
+        let (mut x1, mut x2) = (Vec::new(), Vec::new());
+        for _ in 0..points {
+            let p1 = Vector3::new(uniform(-2.0, 2.0), uniform(-1.5, 1.5), uniform(3.0, 8.0));
+            x1.push(project(p1));
+            x2.push(project(r * p1 + t));
+        }
+        for _ in 0..outliers {
+            x1.push(Vec2F64::new(uniform(0.0, 640.0), uniform(0.0, 480.0)));
+            x2.push(Vec2F64::new(uniform(0.0, 640.0), uniform(0.0, 480.0)));
+        }
+        (x1, x2)
+    }
+
+    #[test]
+    fn the_relative_pose_of_a_rigid_motion_is_recovered() {
+        let k = Intrinsics::preset("tum_fr3").unwrap();
+        let params = VerificationParams { intrinsics: Some(k), ..VerificationParams::default() };
+        let r = Rotation3::from_euler_angles(0.05, -0.2, 0.03);
+        let t = Vector3::new(0.4, -0.05, 0.15);
+        let (x1, x2) = two_views(&r, &t, &k, 120, 40);
+        let result = fit_geometry(&x1, &x2, &params);
+        assert!(result.accepted, "{result:?}");
+        assert_eq!(result.model, Some(GeometricModel::Fundamental));
+        assert!(result.inliers >= 110, "{result:?}");
+        let pose = result.pose.expect("a pose with intrinsics");
+        let rotation_error = pose.rotation.angle_to(&UnitQuaternion::from_rotation_matrix(&r)).to_degrees();
+        let direction_error = pose.translation.angle(&t).to_degrees();
+        assert!(rotation_error < 0.5, "rotation off by {rotation_error} degrees");
+        assert!(direction_error < 2.0, "translation direction off by {direction_error} degrees");
+        assert!((pose.translation.norm() - 1.0).abs() < 1e-9);
+        // Without intrinsics the pair still verifies, with no pose.
+        let uncalibrated = fit_geometry(&x1, &x2, &VerificationParams::default());
+        assert!(uncalibrated.accepted && uncalibrated.pose.is_none());
+        // Outliers alone do not.
+        let (_, noise) = two_views(&r, &t, &k, 0, 160);
+        let shuffled: Vec<Vec2F64> = noise.iter().rev().copied().collect();
+        assert!(!fit_geometry(&noise, &shuffled, &params).accepted);
+    }
+
+    #[test]
+    fn the_budget_drops_the_oldest_features_and_unknown_keyframes_are_not_verified() {
+        let mut verifier = Verifier::new(VerificationParams { keyframes: 2, ..VerificationParams::default() }).unwrap();
+        let scene = blocks(4, 160, 120);
+        let features = verifier.extract(&scene).unwrap();
+        for id in 0..3 {
+            verifier.remember(id, features.clone());
+        }
+        assert_eq!(verifier.kept(), 2);
+        assert!(verifier.verify(&features, 0).is_none(), "keyframe 0 was dropped");
+        assert!(verifier.verify(&features, 2).is_some_and(|v| v.accepted));
+        assert!(verifier.verify(&features, 9).is_none());
+        assert!(Verifier::new(VerificationParams { max_features: 0, ..VerificationParams::default() }).is_err());
+    }
+
+    #[test]
+    fn a_tiny_or_flat_image_has_no_features_and_verifies_nothing() {
+        let params = VerificationParams::default();
+        let tiny = extract(&blocks(5, 32, 32), 500).unwrap();
+        assert!(tiny.is_empty());
+        let flat = extract(&RgbImage::from_pixel(200, 150, Rgb([90, 90, 90])), 500).unwrap();
+        assert!(flat.is_empty());
+        let result = verify(&tiny, &flat, &params);
+        assert_eq!((result.matches, result.inliers, result.accepted), (0, 0, false));
+    }
+}
