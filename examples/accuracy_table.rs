@@ -1,7 +1,9 @@
 //! The accuracy table over every development set: each descriptor mode, single-image and sequence
 //! matching, with recall@1, recall at 100% precision, AP, precision and recall at the default
-//! threshold, bytes and milliseconds per keyframe. A program that measures and prints (the README's
-//! table), not a test.
+//! threshold, bytes and milliseconds per keyframe; then geometric verification on each set (the
+//! true loops retrieval finds at a permissive threshold, how many verification keeps, the false
+//! ones it lets through, its time) and, where real poses exist, the relative pose's error. A
+//! program that measures and prints (the README's table), not a test.
 //!
 //!     cargo run --release --example accuracy_table
 //!
@@ -82,8 +84,13 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
 struct Row {
     metrics: Metrics,
     ms_per_keyframe: f64,
+    /// Mean geometric verification time per keyframe (0 when off).
+    verification_ms: f64,
     /// The detector's default score threshold.
     min_score: f32,
+    /// Candidates of a replayed sequence with its ground-truth poses (none for database/query sets).
+    candidates: Vec<ecm_lcd::types::LoopCandidate>,
+    groundtruth: Vec<(ecm_lcd::types::Stamp, nalgebra::Isometry3<f64>)>,
 }
 
 fn measure(set: &DevSet, overrides: &[(&str, &str)], weights: &Resolved) -> Result<(Row, usize)> {
@@ -97,29 +104,35 @@ fn measure(set: &DevSet, overrides: &[(&str, &str)], weights: &Resolved) -> Resu
     }
     let threshold = params.detector().threshold;
     let mut pipeline = Pipeline::with_weights(params, weights.clone())?;
-    let (results, truth, ms) = match &set.data {
+    let mut row = Row { metrics: Metrics::default(), ms_per_keyframe: 0.0, verification_ms: 0.0, min_score: 0.0, candidates: Vec::new(), groundtruth: Vec::new() };
+    let (results, truth) = match &set.data {
         Data::DatabaseQueries { database, queries, loops } => {
             let (results, timings) = run_database_queries(&mut pipeline, &images_in_name_order(database)?, &images_in_name_order(queries)?)?;
-            (results, read_loops(loops)?, timings[0].1)
+            row.ms_per_keyframe = timings[0].1;
+            (results, read_loops(loops)?)
         }
         Data::Sequence(s, loops) => {
             let run = run_source(&mut pipeline, &s.path, None, false)?;
             let truth = match loops {
                 Some(loops) => read_loops(loops)?,
                 None => {
-                    let groundtruth = ecm_lcd::io::tum::read_groundtruth(&s.path.join("groundtruth.txt"))?;
-                    ecm_lcd::eval::loop_truth_from_poses(&run.frame_stamps, &groundtruth, &s.criteria)
+                    row.groundtruth = ecm_lcd::io::tum::read_groundtruth(&s.path.join("groundtruth.txt"))?;
+                    ecm_lcd::eval::loop_truth_from_poses(&run.frame_stamps, &row.groundtruth, &s.criteria)
                 }
             };
-            let ms = run.mean_timings().iter().map(|(_, ms)| ms).sum();
-            (run.query_results(), truth, ms)
+            let t = run.mean();
+            row.ms_per_keyframe = t.network_ms + t.descriptor_ms + t.detector_ms + t.verification_ms;
+            row.verification_ms = t.verification_ms;
+            row.candidates = run.candidates.clone();
+            (run.query_results(), truth)
         }
     };
     let min_score = match threshold {
         ecm_lcd::detector::Threshold::MinScore(s) => s,
         ecm_lcd::detector::Threshold::MaxDistance(_) => anyhow::bail!("the table assumes a score threshold"),
     };
-    let row = Row { metrics: evaluate(&results, &truth)?, ms_per_keyframe: ms, min_score };
+    row.metrics = evaluate(&results, &truth)?;
+    row.min_score = min_score;
     Ok((row, pipeline.descriptor().dim() * std::mem::size_of::<f32>()))
 }
 
@@ -174,5 +187,88 @@ fn main() -> Result<()> {
             }
         }
     }
+    verification_table(&sets, &weights)
+}
+
+/// Geometric verification on each set: retrieval at a permissive threshold (every top-1 match is a
+/// candidate), then the same with verification on. TUM sets use the published fr3 intrinsics and the
+/// synthetic set its renderer's camera (so the relative pose is estimated too); Gardens Point runs
+/// without intrinsics.
+fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
+    println!();
+    println!("Geometric verification (`verification.mode`), every top-1 match a candidate (`detector.min_score` 0):");
+    println!();
+    println!("| data | intrinsics | true loops found by retrieval | kept by verification | false top-1 matches | passed verification | precision after | verification ms/keyframe | relative pose: median rotation error (deg) / translation direction error (deg), pairs |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    // The synthetic camera: focal length from the scene, principal point at the image centre (pixel
+    // index coordinates).
+    let synthetic = ecm_lcd::synth::SynthConfig::default();
+    let focal = ecm_lcd::synth::Scene::new(synthetic.clone())?.focal_length().to_string();
+    let (cx, cy) = ((synthetic.width as f64 / 2.0 - 0.5).to_string(), (synthetic.height as f64 / 2.0 - 0.5).to_string());
+    for set in sets {
+        let tum = set.name.starts_with("TUM");
+        let synthetic_camera = [("camera.fx", focal.as_str()), ("camera.fy", &focal), ("camera.cx", &cx), ("camera.cy", &cy), ("verification.mode", "on")];
+        let verification: &[(&str, &str)] = if tum {
+            &[("camera.preset", "tum_fr3"), ("verification.mode", "on")]
+        } else if set.name.starts_with("synthetic") {
+            &synthetic_camera
+        } else {
+            &[("verification.mode", "on")]
+        };
+        let permissive = [("detector.min_score", "0")];
+        let (before, _) = measure(set, &[permissive[0], ("verification.mode", "off")], weights)?;
+        let overrides: Vec<(&str, &str)> = permissive.iter().chain(verification).copied().collect();
+        let (after, _) = measure(set, &overrides, weights)?;
+        let (found_before, false_before) = (before.metrics.true_reports, before.metrics.false_reports);
+        let (found_after, false_after) = (after.metrics.true_reports, after.metrics.false_reports);
+        let precision = if found_after + false_after > 0 { format!("{:.3}", found_after as f64 / (found_after + false_after) as f64) } else { "-".into() };
+        println!(
+            "| {} | {} | {found_before} | {found_after} | {false_before} | {false_after} | {precision} | {:.1} | {} |",
+            set.name,
+            if tum { "TUM fr3" } else if set.name.starts_with("synthetic") { "synthetic camera" } else { "none" },
+            after.verification_ms,
+            pose_errors(&after)
+        );
+    }
     Ok(())
+}
+
+/// Median rotation and translation-direction errors of the estimated relative poses against the
+/// ground truth's, over the verified candidates of a sequence with poses.
+fn pose_errors(row: &Row) -> String {
+    let pose_at = |stamp: ecm_lcd::types::Stamp| row.groundtruth.iter().find(|(s, _)| (s.nanos - stamp.nanos).abs() < 50_000_000).map(|(_, p)| *p);
+    let mut rotation = Vec::new();
+    let mut direction = Vec::new();
+    let mut baseline = Vec::new();
+    let mut true_rotation = Vec::new();
+    for c in &row.candidates {
+        let (Some(pose), Some(query), Some(matched)) = (c.verified.and_then(|v| v.pose), pose_at(c.query_stamp), pose_at(c.match_stamp)) else {
+            continue;
+        };
+        // World poses of the cameras: the query camera in the match camera's frame.
+        let truth = matched.inverse() * query;
+        rotation.push(pose.rotation.angle_to(&truth.rotation).to_degrees());
+        baseline.push(truth.translation.vector.norm());
+        true_rotation.push(truth.rotation.angle().to_degrees());
+        if truth.translation.vector.norm() > 0.05 {
+            direction.push(pose.translation.angle(&truth.translation.vector).to_degrees());
+        }
+    }
+    if rotation.is_empty() {
+        return "-".into();
+    }
+    let direction = if direction.is_empty() { "-".into() } else { format!("{:.1}", median(&mut direction)) };
+    format!(
+        "{:.2} / {direction} ({} pairs, {} with over 5 cm baseline; median true rotation {:.1} deg, baseline {:.2} m)",
+        median(&mut rotation),
+        rotation.len(),
+        baseline.iter().filter(|&&b| b > 0.05).count(),
+        median(&mut true_rotation),
+        median(&mut baseline)
+    )
+}
+
+fn median(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
 }

@@ -25,7 +25,7 @@ use crate::detector::{Detector, Match};
 use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::Arch;
-use crate::types::{LoopCandidate, Stamp};
+use crate::types::{LoopCandidate, Stamp, Verified};
 use crate::verification::{LocalFeatures, Verification, Verifier};
 
 /// Milliseconds spent per stage on one frame.
@@ -269,7 +269,7 @@ impl Pipeline {
         };
         outcome.best_verified = outcome.best.map(|best| check(best.id).accepted);
         let before = outcome.candidates.len();
-        outcome.candidates.retain(|c| {
+        outcome.candidates.retain_mut(|c| {
             let v = check(c.match_id);
             if !v.accepted {
                 log::debug!(
@@ -279,6 +279,9 @@ impl Pipeline {
                     v.inliers,
                     v.matches
                 );
+            }
+            if v.accepted {
+                c.verified = Some(Verified { inliers: v.inliers as u32, pose: v.pose });
             }
             v.accepted
         });

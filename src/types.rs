@@ -92,6 +92,26 @@ pub struct LoopCandidate {
     pub score: f32,
     /// 0 for the best match of this query, 1 for the next, ...
     pub rank: u32,
+    /// What geometric verification found; `None`: appearance only, not verified.
+    pub verified: Option<Verified>,
+}
+
+/// A candidate's geometric verification ([`crate::verification`]).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Verified {
+    /// Feature matches that fit the pair's geometry (RANSAC inliers).
+    pub inliers: u32,
+    /// The query camera's pose in the match camera's frame, when the intrinsics are known.
+    pub pose: Option<RelativePose>,
+}
+
+/// A relative camera pose from two views: `p_match = rotation * p_query + translation` for a point's
+/// coordinates in each camera's frame (x right, y down, z forward). Two views fix the translation
+/// only up to scale: it is a unit vector (zero for a pure rotation).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RelativePose {
+    pub rotation: nalgebra::UnitQuaternion<f64>,
+    pub translation: nalgebra::Vector3<f64>,
 }
 
 #[cfg(test)]

@@ -62,6 +62,7 @@ impl KeyframeProcessor for MeanColourProcessor {
                 distance,
                 score,
                 rank: 0,
+                verified: None,
             })
             .collect();
         found.sort_by(|a, b| b.score.total_cmp(&a.score));

@@ -71,10 +71,13 @@ impl SourceArgs {
     }
 }
 
-const CSV_HEADER: [&str; 6] = ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score"];
+const CSV_HEADER: [&str; 14] =
+    ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score", "inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz"];
 
-/// Candidates as CSV (`query_id,query_stamp,match_id,match_stamp,distance,score`), written in pieces,
-/// each flushed.
+/// Candidates as CSV (`query_id,query_stamp,match_id,match_stamp,distance,score`, then geometric
+/// verification's `inliers` and the relative pose `qx,qy,qz,qw,tx,ty,tz` of the query camera in the
+/// match camera's frame, translation a unit direction; empty where not verified or without
+/// intrinsics), written in pieces, each flushed.
 pub struct CandidateCsv {
     out: csv::Writer<Box<dyn Write + Send>>,
     name: String,
@@ -113,14 +116,21 @@ impl CandidateCsv {
     /// Writes `candidates` and flushes.
     pub fn write(&mut self, candidates: &[LoopCandidate]) -> Result<()> {
         for c in candidates {
-            self.out.write_record([
+            let mut record = vec![
                 c.query_id.to_string(),
                 c.query_stamp.to_string(),
                 c.match_id.to_string(),
                 c.match_stamp.to_string(),
                 format!("{:.6}", c.distance),
                 format!("{:.6}", c.score),
-            ])?;
+                c.verified.map(|v| v.inliers.to_string()).unwrap_or_default(),
+            ];
+            let pose = c.verified.and_then(|v| v.pose).map(|p| {
+                let (q, t) = (p.rotation, p.translation);
+                [q.i, q.j, q.k, q.w, t.x, t.y, t.z]
+            });
+            record.extend((0..7).map(|i| pose.map(|values| format!("{:.6}", values[i])).unwrap_or_default()));
+            self.out.write_record(&record)?;
         }
         self.flush()
     }

@@ -569,6 +569,7 @@ impl Detector {
                 distance,
                 score,
                 rank: rank as u32,
+                verified: None,
             })
             .collect();
         self.db.insert(id, stamp, descriptor)?;

@@ -38,12 +38,15 @@ pub struct PrPoint {
 }
 
 /// The metrics; recall-based values are `None` when there are no positive queries.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct Metrics {
     /// Queries evaluated (truth known).
     pub queries: usize,
     /// Queries with at least one true match.
     pub positives: usize,
+    /// Queries that reported a match, whatever its score: right ones and wrong ones.
+    pub true_reports: usize,
+    pub false_reports: usize,
     /// Queries left out because their truth is unknown.
     pub unknown: usize,
     pub recall_at_1: Option<f64>,
@@ -127,7 +130,9 @@ pub fn evaluate(results: &[QueryResult], truth: &LoopTruth) -> Result<Metrics> {
         }
         (Some(top1_hits as f64 / positives as f64), Some(at_full_precision), Some(ap))
     };
-    Ok(Metrics { queries, positives, unknown, recall_at_1, recall_at_100_precision, average_precision, curve })
+    let true_reports = reported.iter().filter(|(_, correct)| *correct).count();
+    let false_reports = reported.len() - true_reports;
+    Ok(Metrics { queries, positives, true_reports, false_reports, unknown, recall_at_1, recall_at_100_precision, average_precision, curve })
 }
 
 #[cfg(test)]

@@ -66,11 +66,70 @@ pub struct LoopCandidate {
     #[serde(rename = "type")]
     pub loop_type: u8,
     pub descriptor_mode: String,
+    pub inliers: u32,
+    pub relative_pose: Pose,
+    pub covariance: Covariance,
+}
+
+/// `float64[36]`: a 6x6 row-major covariance (CDR: 36 values, no length).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Covariance(pub [f64; 36]);
+
+impl Covariance {
+    /// The ROS convention for "no estimate": element 0 is -1.
+    pub const UNKNOWN: Covariance = {
+        let mut values = [0.0; 36];
+        values[0] = -1.0;
+        Covariance(values)
+    };
+}
+
+impl Default for Covariance {
+    fn default() -> Self {
+        Covariance([0.0; 36])
+    }
+}
+
+impl Serialize for Covariance {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        use serde::ser::SerializeTuple;
+        let mut tuple = serializer.serialize_tuple(36)?;
+        for value in &self.0 {
+            tuple.serialize_element(value)?;
+        }
+        tuple.end()
+    }
+}
+
+impl<'de> Deserialize<'de> for Covariance {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        struct Values;
+        impl<'de> serde::de::Visitor<'de> for Values {
+            type Value = Covariance;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("36 float64 values")
+            }
+            fn visit_seq<A: serde::de::SeqAccess<'de>>(self, mut seq: A) -> Result<Covariance, A::Error> {
+                let mut values = [0.0; 36];
+                for (i, value) in values.iter_mut().enumerate() {
+                    *value = seq.next_element()?.ok_or_else(|| serde::de::Error::invalid_length(i, &self))?;
+                }
+                Ok(Covariance(values))
+            }
+        }
+        deserializer.deserialize_tuple(36, Values)
+    }
 }
 
 impl LoopCandidate {
     /// `TYPE_APPEARANCE`: appearance-only, not geometrically verified.
     pub const TYPE_APPEARANCE: u8 = 0;
+    /// `TYPE_VERIFIED`: verified on local features, no relative pose (intrinsics unknown).
+    pub const TYPE_VERIFIED: u8 = 1;
+    /// `TYPE_VERIFIED_UP_TO_SCALE`: verified, with a relative pose whose translation is a unit direction.
+    pub const TYPE_VERIFIED_UP_TO_SCALE: u8 = 2;
+    /// `TYPE_VERIFIED_METRIC`: verified, with a metric relative pose (from depth).
+    pub const TYPE_VERIFIED_METRIC: u8 = 3;
 
     /// The message for `candidate`, one of `num_candidates` found for its query.
     pub fn from_candidate(
@@ -90,8 +149,15 @@ impl LoopCandidate {
             score: candidate.score,
             rank: candidate.rank,
             num_candidates,
-            loop_type: Self::TYPE_APPEARANCE,
+            loop_type: match candidate.verified {
+                None => Self::TYPE_APPEARANCE,
+                Some(types::Verified { pose: None, .. }) => Self::TYPE_VERIFIED,
+                Some(types::Verified { pose: Some(_), .. }) => Self::TYPE_VERIFIED_UP_TO_SCALE,
+            },
             descriptor_mode: descriptor_mode.to_string(),
+            inliers: candidate.verified.map_or(0, |v| v.inliers),
+            relative_pose: candidate.verified.and_then(|v| v.pose).map_or(Pose::IDENTITY, |pose| pose.into()),
+            covariance: Covariance::UNKNOWN,
         }
     }
 
@@ -105,6 +171,32 @@ impl LoopCandidate {
             distance: self.distance,
             score: self.score,
             rank: self.rank,
+            verified: (self.loop_type != Self::TYPE_APPEARANCE).then(|| types::Verified {
+                inliers: self.inliers,
+                pose: (self.loop_type != Self::TYPE_VERIFIED).then(|| self.relative_pose.into()),
+            }),
+        }
+    }
+}
+
+impl Pose {
+    /// No motion (what `relative_pose` holds when there is none).
+    pub const IDENTITY: Pose = Pose { position: Point { x: 0.0, y: 0.0, z: 0.0 }, orientation: Quaternion { x: 0.0, y: 0.0, z: 0.0, w: 1.0 } };
+}
+
+impl From<types::RelativePose> for Pose {
+    fn from(pose: types::RelativePose) -> Self {
+        let (t, q) = (pose.translation, pose.rotation);
+        Pose { position: Point { x: t.x, y: t.y, z: t.z }, orientation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w } }
+    }
+}
+
+impl From<Pose> for types::RelativePose {
+    fn from(pose: Pose) -> Self {
+        let (p, q) = (pose.position, pose.orientation);
+        types::RelativePose {
+            rotation: nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q.w, q.x, q.y, q.z)),
+            translation: nalgebra::Vector3::new(p.x, p.y, p.z),
         }
     }
 }
@@ -170,7 +262,8 @@ mod tests {
     fn flatten_msg(package: &str, text: &str, prefix: &str, out: &mut Vec<(String, String)>) {
         for (ty, name) in msg_fields(text) {
             let path = format!("{prefix}{name}");
-            let base = ty.trim_end_matches("[]");
+            // `T[]` (a sequence) and `T[N]` (a fixed array) are fields of primitive T.
+            let base = ty.split('[').next().unwrap();
             let primitive = matches!(
                 base,
                 "bool" | "int8" | "uint8" | "int16" | "uint16" | "int32" | "uint32" | "int64" | "uint64"
@@ -220,6 +313,7 @@ mod tests {
             match value {
                 Format::TypeName(sub) => flatten_rust(registry, sub, &format!("{path}."), out),
                 Format::Seq(inner) => out.push((path, format!("{}[]", ros_type_of(inner)))),
+                Format::TupleArray { content, size } => out.push((path, format!("{}[{size}]", ros_type_of(content)))),
                 other => out.push((path, ros_type_of(other))),
             }
         }
@@ -250,7 +344,7 @@ mod tests {
     #[test]
     fn loop_candidate_struct_agrees_with_msg_file() {
         let expected = msg_side(LOOP_CANDIDATE_MSG);
-        assert_eq!(expected.len(), 14, "{expected:?}");
+        assert_eq!(expected.len(), 23, "{expected:?}");
         assert_eq!(rust_fields::<LoopCandidate>("LoopCandidate"), expected);
     }
 
@@ -275,6 +369,44 @@ mod tests {
     }
 
     #[test]
+    fn a_verified_candidate_round_trips_with_its_pose() {
+        let pose = types::RelativePose {
+            rotation: nalgebra::UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
+            translation: nalgebra::Vector3::new(0.6, 0.0, 0.8),
+        };
+        for verified in [types::Verified { inliers: 40, pose: Some(pose) }, types::Verified { inliers: 17, pose: None }] {
+            let candidate = types::LoopCandidate {
+                query_id: 9,
+                query_stamp: Stamp::from_nanos(9_000_000_000),
+                match_id: 0,
+                match_stamp: Stamp::from_nanos(0),
+                distance: 0.5,
+                score: 0.8,
+                rank: 0,
+                verified: Some(verified),
+            };
+            let msg = LoopCandidate::from_candidate(&candidate, "cam", "cam", 1, "power");
+            let expected_type =
+                if verified.pose.is_some() { LoopCandidate::TYPE_VERIFIED_UP_TO_SCALE } else { LoopCandidate::TYPE_VERIFIED };
+            assert_eq!(msg.loop_type, expected_type);
+            assert_eq!(msg.covariance, Covariance::UNKNOWN);
+            let bytes = cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&msg).unwrap();
+            let back: LoopCandidate = cdr_encoding::from_bytes::<_, byteorder::LittleEndian>(&bytes).unwrap().0;
+            assert_eq!(back, msg);
+            let again = back.to_candidate();
+            assert_eq!(again.verified.map(|v| v.inliers), Some(verified.inliers));
+            match (again.verified.and_then(|v| v.pose), verified.pose) {
+                (Some(a), Some(b)) => {
+                    assert!(a.rotation.angle_to(&b.rotation) < 1e-12);
+                    assert!((a.translation - b.translation).norm() < 1e-12);
+                }
+                (None, None) => {}
+                other => panic!("pose lost or invented: {other:?}"),
+            }
+        }
+    }
+
+    #[test]
     fn candidate_round_trips_through_cdr() {
         let candidate = types::LoopCandidate {
             query_id: 42,
@@ -284,6 +416,7 @@ mod tests {
             distance: 0.25,
             score: 0.9,
             rank: 1,
+            verified: None,
         };
         let msg = LoopCandidate::from_candidate(&candidate, "cam", "cam_old", 3, "paper");
         let bytes = cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&msg).unwrap();

@@ -27,10 +27,12 @@ use anyhow::{ensure, Result};
 use image::RgbImage;
 use kornia_3d::pose::{
     decompose_essential, decompose_homography, enforce_essential_constraints, essential_from_fundamental, ransac_fundamental,
-    ransac_homography, triangulate_midpoint_known_pose, RansacParams,
+    ransac_homography, refine_pose_lm, triangulate_midpoint_known_pose, LmPoseConfig, RansacParams,
 };
 use kornia_algebra::{Mat3F64, Vec2F64, Vec3F64};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
+
+pub use crate::types::RelativePose;
 use kornia_image::{Image, ImageSize};
 use kornia_imgproc::features::{match_descriptors, OrbDetector};
 
@@ -131,15 +133,6 @@ pub struct Verification {
     pub pose: Option<RelativePose>,
 }
 
-/// A relative camera pose from two views: `p_match = rotation * p_query + translation` for a point's
-/// coordinates in each camera's frame (x right, y down, z forward). Two views fix the translation
-/// only up to scale: it is a unit vector (zero when the motion is a pure rotation).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct RelativePose {
-    pub rotation: UnitQuaternion<f64>,
-    pub translation: Vector3<f64>,
-}
-
 /// ORB features of `image` (converted to grayscale), at most `max_features`.
 pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
     let gray = image::imageops::grayscale(image);
@@ -207,8 +200,14 @@ fn relative_pose(model: GeometricModel, fit: &Mat3F64, k: &Mat3F64, x1: &[Vec2F6
     let in_front = |(r, t): &(Mat3F64, Vec3F64)| {
         (0..x1.len()).filter(|&i| inliers[i] && triangulate_midpoint_known_pose(&ray(&x1[i]), &ray(&x2[i]), r, t).is_some()).count()
     };
-    let (r, t) = motions.iter().max_by_key(|motion| in_front(motion))?;
-    let columns: [f64; 9] = (*r).into();
+    let (mut r, mut t) = *motions.iter().max_by_key(|motion| in_front(motion))?;
+    if model == GeometricModel::Fundamental {
+        // The lift from F loses accuracy; a Levenberg-Marquardt pass on the inliers' Sampson errors
+        // (kornia's two-view refinement) recovers it.
+        let (y1, y2): (Vec<Vec2F64>, Vec<Vec2F64>) = (0..x1.len()).filter(|&i| inliers[i]).map(|i| (x1[i], x2[i])).unzip();
+        (r, t) = refine_pose_lm(r, t, &y1, &y2, k, k, &LmPoseConfig::default());
+    }
+    let columns: [f64; 9] = r.into();
     let rotation = Matrix3::from_column_slice(&columns);
     let translation = Vector3::new(t.x, t.y, t.z);
     let norm = translation.norm();

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from cyclonedds.core import Policy, Qos
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import float32, int32, sequence, uint8, uint32, uint64
+from cyclonedds.idl.types import array, float32, float64, int32, sequence, uint8, uint32, uint64
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
@@ -48,6 +48,27 @@ class Image(IdlStruct, typename="sensor_msgs::msg::dds_::Image_"):
 
 
 @dataclass
+class Point(IdlStruct, typename="geometry_msgs::msg::dds_::Point_"):
+    x: float64
+    y: float64
+    z: float64
+
+
+@dataclass
+class Quaternion(IdlStruct, typename="geometry_msgs::msg::dds_::Quaternion_"):
+    x: float64
+    y: float64
+    z: float64
+    w: float64
+
+
+@dataclass
+class Pose(IdlStruct, typename="geometry_msgs::msg::dds_::Pose_"):
+    position: Point
+    orientation: Quaternion
+
+
+@dataclass
 class LoopCandidate(IdlStruct, typename="ecm_lcd_msgs::msg::dds_::LoopCandidate_"):
     header: Header
     query_id: uint64
@@ -60,6 +81,9 @@ class LoopCandidate(IdlStruct, typename="ecm_lcd_msgs::msg::dds_::LoopCandidate_
     num_candidates: uint32
     type: uint8
     descriptor_mode: str
+    inliers: uint32
+    relative_pose: Pose
+    covariance: array[float64, 36]
 
 
 def frames_from_list(path):
