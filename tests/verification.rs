@@ -1,0 +1,91 @@
+//! Geometric verification on real frames from ../shared: the TUM desk orbit's one revisit passes and
+//! every wrong top-1 match is rejected; on the TUM fr3 two-pass, with the published fr3 intrinsics,
+//! the verified relative poses agree with the ground-truth poses.
+
+use std::path::{Path, PathBuf};
+
+use ecm_lcd::config::Params;
+use ecm_lcd::eval::revisit::write_two_pass;
+use ecm_lcd::io::tum::read_groundtruth;
+use ecm_lcd::model::weights::resolve;
+use ecm_lcd::pipeline::Pipeline;
+use ecm_lcd::replay::run_source;
+use ecm_lcd::types::Stamp;
+
+fn shared() -> PathBuf {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
+    assert!(dir.join("data/real").is_dir(), "shared data missing at {}: tests need ../shared (see README)", dir.display());
+    dir
+}
+
+fn pipeline(overrides: &[(&str, &str)]) -> Pipeline {
+    let mut params = Params::default();
+    for (name, value) in overrides {
+        params.set_from_str(name, value).unwrap();
+    }
+    let weights = resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
+    Pipeline::with_weights(params, weights).unwrap()
+}
+
+/// Every eligible top-1 match becomes a candidate (`min_score` 0), so verification alone decides.
+const PERMISSIVE: (&str, &str) = ("detector.min_score", "0");
+
+#[test]
+fn the_orbit_revisit_is_verified_and_the_wrong_matches_are_not() {
+    let orbit = shared().join("data/real/tum_fr3_desk_orbit");
+    let recency = [("detector.min_history", "2"), ("detector.exclude_recent.count", "3"), ("detector.exclude_recent.seconds", "0")];
+    let mut unverified = pipeline(&[recency[0], recency[1], recency[2], PERMISSIVE, ("verification.mode", "off")]);
+    let appearance = run_source(&mut unverified, &orbit.join("rgb"), None, false).unwrap();
+    assert!(appearance.candidates.len() >= 4, "{:?}", appearance.candidates);
+    assert!(appearance.candidates.iter().all(|c| c.verified.is_none()));
+    assert!(appearance.candidates.iter().any(|c| (c.query_id, c.match_id) == (9, 0)));
+
+    // auto: on, because the preset gives the intrinsics.
+    let mut verifying = pipeline(&[recency[0], recency[1], recency[2], PERMISSIVE, ("camera.preset", "tum_fr3")]);
+    assert!(verifying.verifies());
+    let verified = run_source(&mut verifying, &orbit.join("rgb"), None, false).unwrap();
+    let pairs: Vec<(u64, u64)> = verified.candidates.iter().map(|c| (c.query_id, c.match_id)).collect();
+    assert_eq!(pairs, [(9, 0)], "only the true revisit survives");
+    assert_eq!(verified.rejected, appearance.candidates.len() - 1);
+    let found = verified.candidates[0].verified.expect("a verified candidate says so");
+    assert!(found.inliers >= 30, "{found:?}");
+    let pose = found.pose.expect("intrinsics known: a relative pose");
+    assert!((pose.translation.norm() - 1.0).abs() < 1e-9, "translation is a direction");
+    // Frame 9 is "nearly the same pose" as frame 0.
+    assert!(pose.rotation.angle().to_degrees() < 10.0, "{pose:?}");
+}
+
+#[test]
+fn verified_relative_poses_agree_with_the_ground_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("two_pass");
+    write_two_pass(&shared().join("data/tum/fr3_long_office_household"), &seq, 1.0, 0.05).unwrap();
+    let overrides = [
+        ("detector.min_history", "2"),
+        ("detector.exclude_recent.count", "1"),
+        ("detector.exclude_recent.seconds", "2"),
+        PERMISSIVE,
+        ("camera.preset", "tum_fr3"),
+    ];
+    let mut pipeline = pipeline(&overrides);
+    let run = run_source(&mut pipeline, &seq, None, false).unwrap();
+    let groundtruth = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
+    let pose_at = |stamp: Stamp| groundtruth.iter().find(|(s, _)| s.nanos == stamp.nanos).map(|(_, pose)| *pose);
+    let (mut rotation, mut direction) = (Vec::new(), Vec::new());
+    for c in &run.candidates {
+        let pose = c.verified.and_then(|v| v.pose).expect("with intrinsics every verified candidate has a pose");
+        let (Some(query), Some(matched)) = (pose_at(c.query_stamp), pose_at(c.match_stamp)) else { continue };
+        let truth = matched.inverse() * query;
+        rotation.push(pose.rotation.angle_to(&truth.rotation).to_degrees());
+        direction.push(pose.translation.angle(&truth.translation.vector).to_degrees());
+    }
+    assert!(rotation.len() >= 6, "{} verified pairs with poses", rotation.len());
+    let median = |values: &mut Vec<f64>| {
+        values.sort_by(f64::total_cmp);
+        values[values.len() / 2]
+    };
+    let (rotation_error, direction_error) = (median(&mut rotation), median(&mut direction));
+    println!("{} pairs: median rotation error {rotation_error:.2} deg, translation direction {direction_error:.2} deg", rotation.len());
+    assert!(rotation_error <= 1.0, "median rotation error {rotation_error} deg");
+    assert!(direction_error <= 5.0, "median translation direction error {direction_error} deg");
+}
