@@ -65,19 +65,21 @@ fn search_and_memory_sections_report_exact_and_indexed_search() {
 }
 
 #[test]
-fn end_to_end_section_times_a_raw_and_a_jpeg_keyframe() {
+fn end_to_end_section_times_a_raw_a_jpeg_and_a_verified_keyframe() {
     let cache = tempfile::tempdir().unwrap();
     let weights = tflite();
     let report = bench_json(cache.path(), &["--only", "e2e", "--weights", weights.to_str().unwrap(), "--e2e-stored", "3000", "--runs", "20"]);
     let rows = report["end_to_end"].as_array().expect("an end_to_end section");
     let inputs: Vec<&str> = rows.iter().map(|r| r["input"].as_str().unwrap()).collect();
-    assert_eq!(inputs, ["rgb8", "jpeg"], "{report}");
+    assert_eq!(inputs, ["rgb8", "jpeg", "rgb8, verified"], "{report}");
     for row in rows {
         assert_eq!(row["stored"], 3000);
         // The bench times at least 100 keyframes of each input.
         assert!(row["total"]["runs"].as_u64().unwrap() >= 100, "{row}");
         let (total, network, detector) = (row["total"]["median_ms"].as_f64().unwrap(), row["network"]["median_ms"].as_f64().unwrap(), row["detector"]["median_ms"].as_f64().unwrap());
         assert!(network > 0.0 && detector > 0.0 && total >= network + detector, "{row}");
+        let verified = row["input"] == "rgb8, verified";
+        assert_eq!(row["verification"]["median_ms"].as_f64().is_some_and(|ms| ms > 0.0), verified, "{row}");
     }
     let goals: Vec<&str> = report["goals"].as_array().unwrap().iter().map(|g| g["goal"].as_str().unwrap()).collect();
     assert!(goals.iter().any(|g| g.starts_with("keyframe (rgb8)")) && goals.iter().any(|g| g.starts_with("keyframe (jpeg)")), "{goals:?}");
