@@ -200,13 +200,13 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
     println!();
     println!("| data | intrinsics | true loops found by retrieval | kept by verification | false top-1 matches | passed verification | precision after | verification ms/keyframe | relative pose: median rotation error (deg) / translation direction error (deg), pairs |");
     println!("|---|---|---|---|---|---|---|---|---|");
-    // The synthetic camera: focal length from the scene, principal point at the image centre (pixel
-    // index coordinates).
-    let synthetic = ecm_lcd::synth::SynthConfig::default();
-    let focal = ecm_lcd::synth::Scene::new(synthetic.clone())?.focal_length().to_string();
-    let (cx, cy) = ((synthetic.width as f64 / 2.0 - 0.5).to_string(), (synthetic.height as f64 / 2.0 - 0.5).to_string());
     for set in sets {
         let tum = set.name.starts_with("TUM");
+        // The synthetic camera: focal length from the scene, principal point at the image centre
+        // (pixel index coordinates).
+        let synthetic = if set.name.contains("hard") { ecm_lcd::synth::SynthConfig::hard() } else { ecm_lcd::synth::SynthConfig::default() };
+        let focal = ecm_lcd::synth::Scene::new(synthetic.clone())?.focal_length().to_string();
+        let (cx, cy) = ((synthetic.width as f64 / 2.0 - 0.5).to_string(), (synthetic.height as f64 / 2.0 - 0.5).to_string());
         let synthetic_camera = [("camera.fx", focal.as_str()), ("camera.fy", &focal), ("camera.cx", &cx), ("camera.cy", &cy), ("verification.mode", "on")];
         let verification: &[(&str, &str)] = if tum {
             &[("camera.preset", "tum_fr3"), ("verification.mode", "on")]

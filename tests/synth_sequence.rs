@@ -69,3 +69,36 @@ fn ground_truth_loops_join_the_laps() {
         }
     }
 }
+
+/// The `hard` preset is hard for the default detector, and what makes it hard is the preset: the
+/// same path, frames and seed without it are easy. Both written by the `synth` command, evaluated by
+/// `eval --json` with the default configuration.
+#[test]
+fn the_hard_preset_is_hard_for_the_default_detector() {
+    let dir = tempfile::tempdir().unwrap();
+    let shared = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/mobilenet_v2_1.0_224_quant.tflite");
+    assert!(shared.is_file(), "shared weights missing at {}: tests need ../shared (see README)", shared.display());
+    let recall_at_1 = |preset: &str| {
+        let out = dir.path().join(preset);
+        let ecm_lcd = |args: &[&str]| {
+            let output = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+                .args(args)
+                .env("ECM_LCD_CACHE", dir.path().join("cache"))
+                .env("RUST_LOG", "warn")
+                .output()
+                .unwrap();
+            assert!(output.status.success(), "{args:?}: {}", String::from_utf8_lossy(&output.stderr));
+            String::from_utf8(output.stdout).unwrap()
+        };
+        let out_arg = out.to_str().unwrap();
+        ecm_lcd(&["synth", "-o", out_arg, "--preset", preset, "--frames", "450", "--laps", "3", "--rate", "5", "--width", "160", "--height", "120"]);
+        let json = ecm_lcd(&["eval", out_arg, "--json", "--quiet", "--weights", shared.to_str().unwrap()]);
+        let summary: serde_json::Value = serde_json::from_str(&json).unwrap();
+        assert!(summary["positives"].as_u64().unwrap() >= 90, "laps 2 and 3 revisit lap 1: {summary}");
+        summary["recall_at_1"].as_f64().unwrap()
+    };
+    let (easy, hard) = (recall_at_1("easy"), recall_at_1("hard"));
+    println!("default detector recall@1: easy {easy:.3}, hard {hard:.3}");
+    assert!(easy >= 0.95, "the easy sequence should be easy: recall@1 {easy}");
+    assert!(hard <= 0.8, "the hard preset should be hard: recall@1 {hard}");
+}

@@ -2,7 +2,9 @@
 //!
 //! Real: the 17 shared TUM fr3 frames as a two-pass revisit sequence (odd frames forward, even
 //! frames backward; loops verified by the real poses: within 1 m and 30°, at least 2 s apart).
-//! Synthetic: `ecm-lcd synth` defaults (seed 1) but 600 frames at 5 Hz, 3 laps (default pose criteria).
+//! Synthetic: `ecm-lcd synth` defaults (seed 1) but 600 frames at 5 Hz, 3 laps (default pose criteria),
+//! and the same with the `hard` preset (identical rooms, night laps, offset laps, 160x120 grayscale,
+//! noise and blur).
 
 use std::path::{Path, PathBuf};
 
@@ -41,6 +43,8 @@ fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
     let synthetic = dir.join("synthetic");
     let scene = Scene::new(SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..SynthConfig::default() })?;
     write_tum_folder(&scene, &synthetic)?;
+    let hard = dir.join("synthetic_hard");
+    write_tum_folder(&Scene::new(SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..SynthConfig::hard() })?, &hard)?;
     Ok(vec![
         EvalSet {
             name: "TUM fr3 two-pass (real)",
@@ -49,6 +53,7 @@ fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
             overrides: &[("detector.min_history", "2"), ("detector.exclude_recent.count", "1"), ("detector.exclude_recent.seconds", "2")],
         },
         EvalSet { name: "synthetic 600 frames, 3 laps", path: synthetic, criteria: PoseLoopCriteria::default(), overrides: &[] },
+        EvalSet { name: "synthetic hard preset, 600 frames, 3 laps", path: hard, criteria: PoseLoopCriteria::default(), overrides: &[] },
     ])
 }
 

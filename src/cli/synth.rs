@@ -22,10 +22,37 @@ pub struct Args {
     /// Seed of textures, furniture, posters, per-lap perturbation and lighting.
     #[arg(long, default_value_t = SynthConfig::default().seed)]
     pub seed: u64,
-    #[arg(long, default_value_t = SynthConfig::default().width)]
-    pub width: u32,
-    #[arg(long, default_value_t = SynthConfig::default().height)]
-    pub height: u32,
+    /// Image width (default 320, or 160 with `--preset hard`).
+    #[arg(long)]
+    pub width: Option<u32>,
+    /// Image height (default 240, or 120 with `--preset hard`).
+    #[arg(long)]
+    pub height: Option<u32>,
+    /// `easy` (no difficulty) or `hard`: identical rooms, a night lap every second lap, laps 0.35 m
+    /// and 12 degrees apart, grayscale, noise and blur, at 160x120. The options below override it.
+    #[arg(long, value_enum, default_value_t = Preset::Easy)]
+    pub preset: Preset,
+    /// Decorate every room alike (perceptual aliasing).
+    #[arg(long)]
+    pub aliasing: Option<bool>,
+    /// Sideways offset in metres of every lap after the first, alternating in sign.
+    #[arg(long)]
+    pub lap_offset: Option<f64>,
+    /// Extra heading in degrees of every lap after the first, alternating in sign.
+    #[arg(long)]
+    pub lap_yaw: Option<f64>,
+    /// Exposure factor of every second lap (1 = unchanged, 0.3 = night).
+    #[arg(long)]
+    pub night_exposure: Option<f64>,
+    /// Grayscale images.
+    #[arg(long)]
+    pub grayscale: Option<bool>,
+    /// Gaussian sensor noise, standard deviation in grey levels.
+    #[arg(long)]
+    pub noise: Option<f64>,
+    /// Gaussian blur, standard deviation in pixels.
+    #[arg(long)]
+    pub blur: Option<f64>,
     /// Frame rate of the stamps (frames per second).
     #[arg(long, default_value_t = SynthConfig::default().rate_hz)]
     pub rate: f64,
@@ -44,6 +71,12 @@ pub struct Args {
     /// JPEG quality for `--bag-images jpeg`.
     #[arg(long, default_value_t = 85, value_parser = clap::value_parser!(u8).range(1..=100))]
     pub jpeg_quality: u8,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Preset {
+    Easy,
+    Hard,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -66,14 +99,27 @@ pub fn run(args: Args) -> Result<()> {
     if args.output.join("rgb.txt").exists() {
         bail!("{} already holds a sequence (rgb.txt); choose an empty folder", args.output.display());
     }
+    let base = match args.preset {
+        Preset::Easy => SynthConfig::default(),
+        Preset::Hard => SynthConfig::hard(),
+    };
+    let mut difficulty = base.difficulty.clone();
+    difficulty.aliasing = args.aliasing.unwrap_or(difficulty.aliasing);
+    difficulty.lap_offset_m = args.lap_offset.unwrap_or(difficulty.lap_offset_m);
+    difficulty.lap_yaw_deg = args.lap_yaw.unwrap_or(difficulty.lap_yaw_deg);
+    difficulty.night_exposure = args.night_exposure.unwrap_or(difficulty.night_exposure);
+    difficulty.grayscale = args.grayscale.unwrap_or(difficulty.grayscale);
+    difficulty.noise = args.noise.unwrap_or(difficulty.noise);
+    difficulty.blur = args.blur.unwrap_or(difficulty.blur);
     let config = SynthConfig {
         frames: args.frames,
         laps: args.laps,
         seed: args.seed,
-        width: args.width,
-        height: args.height,
+        width: args.width.unwrap_or(base.width),
+        height: args.height.unwrap_or(base.height),
         rate_hz: args.rate,
-        ..SynthConfig::default()
+        difficulty,
+        ..base
     };
     let scene = Scene::new(config)?;
     let started = Instant::now();

@@ -5,6 +5,11 @@
 //! roll) and the lighting drifts (global exposure and colour, per-lap lamp strength), so a
 //! revisited place looks alike but never pixel-identical. Everything derives from the seed.
 //!
+//! [`Difficulty`] makes a sequence hard on purpose, the way real revisits are hard: identical rooms
+//! (perceptual aliasing), a different illumination on every other lap (night), a sideways and yaw
+//! offset between laps, grayscale output, sensor noise and blur; [`Difficulty::hard`] is the preset
+//! (`ecm-lcd synth --preset hard`), used with a low resolution ([`SynthConfig::hard`]).
+//!
 //! Conventions: world z is up, the floor is z = 0; poses are camera-to-world with the TUM camera
 //! axes (x right, y down, z forward, along the optical axis). Stamps start at
 //! [`SynthConfig::start_stamp`] and advance by `1 / rate_hz`, rounded to whole microseconds so
@@ -37,6 +42,61 @@ pub struct SynthConfig {
     pub rate_hz: f64,
     /// Stamp of the first frame.
     pub start_stamp: Stamp,
+    pub difficulty: Difficulty,
+}
+
+/// What makes revisits hard to recognise (module doc). The default adds nothing.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Difficulty {
+    /// Every room decorated alike.
+    pub aliasing: bool,
+    /// Sideways offset in metres of every lap after the first, alternating in sign.
+    pub lap_offset_m: f64,
+    /// Extra heading in degrees of every lap after the first, alternating in sign.
+    pub lap_yaw_deg: f64,
+    /// Exposure factor on every second lap (1 = unchanged; 0.3 is a dim, night-like lap), which also
+    /// turns that lap's light warm (a lower colour temperature).
+    pub night_exposure: f64,
+    /// Grayscale images (still written as RGB).
+    pub grayscale: bool,
+    /// Standard deviation of Gaussian sensor noise, in 8-bit grey levels.
+    pub noise: f64,
+    /// Standard deviation of a Gaussian blur, in pixels (0 = none).
+    pub blur: f64,
+}
+
+impl Default for Difficulty {
+    fn default() -> Self {
+        Difficulty { aliasing: false, lap_offset_m: 0.0, lap_yaw_deg: 0.0, night_exposure: 1.0, grayscale: false, noise: 0.0, blur: 0.0 }
+    }
+}
+
+impl Difficulty {
+    /// The `hard` preset: every difficulty at once.
+    pub fn hard() -> Self {
+        Difficulty { aliasing: true, lap_offset_m: 0.35, lap_yaw_deg: 12.0, night_exposure: 0.3, grayscale: true, noise: 6.0, blur: 0.8 }
+    }
+
+    fn check(&self) -> Result<()> {
+        let finite = [self.lap_offset_m, self.lap_yaw_deg, self.night_exposure, self.noise, self.blur].iter().all(|v| v.is_finite());
+        if !finite
+            || self.lap_offset_m.abs() > 0.6
+            || self.lap_yaw_deg.abs() > 45.0
+            || !(0.05..=1.0).contains(&self.night_exposure)
+            || !(0.0..=64.0).contains(&self.noise)
+            || !(0.0..=10.0).contains(&self.blur)
+        {
+            bail!(
+                "synthetic difficulty out of range: lap offset {} m (|.| <= 0.6), lap yaw {} deg (|.| <= 45), night exposure {} (0.05..=1), noise {} (0..=64), blur {} px (0..=10)",
+                self.lap_offset_m,
+                self.lap_yaw_deg,
+                self.night_exposure,
+                self.noise,
+                self.blur
+            );
+        }
+        Ok(())
+    }
 }
 
 impl Default for SynthConfig {
@@ -50,7 +110,15 @@ impl Default for SynthConfig {
             height: 240,
             rate_hz: 30.0,
             start_stamp: Stamp::from_nanos(1_600_000_000_000_000_000),
+            difficulty: Difficulty::default(),
         }
+    }
+}
+
+impl SynthConfig {
+    /// The `hard` preset at a low resolution (160x120): what `ecm-lcd synth --preset hard` renders.
+    pub fn hard() -> Self {
+        SynthConfig { width: 160, height: 120, difficulty: Difficulty::hard(), ..SynthConfig::default() }
     }
 }
 
@@ -75,9 +143,11 @@ impl Scene {
         if config.start_stamp.nanos < 0 || config.start_stamp.nanos % 1000 != 0 {
             bail!("start stamp {} must be non-negative and a whole number of microseconds", config.start_stamp);
         }
+        config.difficulty.check()?;
+        let d = &config.difficulty;
         Ok(Scene {
-            world: world::World::new(config.seed),
-            path: path::CameraPath::new(config.seed),
+            world: world::World::new(config.seed, d.aliasing),
+            path: path::CameraPath::new(config.seed).with_lap_offsets(d.lap_offset_m, d.lap_yaw_deg.to_radians()),
             config,
         })
     }
@@ -133,20 +203,48 @@ impl Scene {
                 0.65 + 0.45 * h
             })
             .collect();
+        // Every second lap dimmer and warmer (night), when asked for.
+        let night = lap % 2 == 1 && self.config.difficulty.night_exposure < 1.0;
+        let (exposure, warmth) =
+            if night { (exposure * self.config.difficulty.night_exposure as f32, warmth + 0.25) } else { (exposure, warmth) };
         world::Lighting { exposure, tint: [1.0 + warmth, 1.0, 1.0 - warmth], lamps }
+    }
+
+    /// The camera's own faults ([`Difficulty`]): blur, noise, grayscale, in that order.
+    fn degrade(&self, image: RgbImage, noise_seed: u64) -> RgbImage {
+        let d = &self.config.difficulty;
+        let mut image = if d.blur > 0.0 { image::imageops::blur(&image, d.blur as f32) } else { image };
+        if d.noise > 0.0 {
+            let mut rng = world::SplitMix64::new(noise_seed ^ 0x6E6F_6973_6532);
+            for pixel in image.pixels_mut() {
+                // Box-Muller; one draw per pixel, the same for its three channels (luminance noise).
+                let (u1, u2) = (rng.next_f64().max(1e-12), rng.next_f64());
+                let n = d.noise * (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos();
+                pixel.0.iter_mut().for_each(|c| *c = (*c as f64 + n).round().clamp(0.0, 255.0) as u8);
+            }
+        }
+        if d.grayscale {
+            for pixel in image.pixels_mut() {
+                let [r, g, b] = pixel.0.map(|c| c as f64);
+                let y = (0.299 * r + 0.587 * g + 0.114 * b).round() as u8;
+                pixel.0 = [y, y, y];
+            }
+        }
+        image
     }
 
     /// Renders frame `index` (which need not be below `len()`; the path simply continues).
     pub fn render(&self, index: usize) -> RgbImage {
         let noise_seed = self.config.seed.wrapping_mul(0x9E37_79B9).wrapping_add(index as u64);
-        self.world.render(
+        let image = self.world.render(
             &self.pose(index),
             self.config.width,
             self.config.height,
             self.focal_length(),
             &self.lighting(index),
             noise_seed,
-        )
+        );
+        self.degrade(image, noise_seed)
     }
 
     /// Stamp, image and camera-to-world pose of frame `index`.
@@ -215,8 +313,87 @@ mod tests {
         assert!(mean_abs < mean_abs_away, "revisit differs by {mean_abs}, elsewhere by {mean_abs_away}");
     }
 
+    fn with(difficulty: Difficulty) -> Scene {
+        Scene::new(SynthConfig { difficulty, ..small(3) }).unwrap()
+    }
+
+    fn mean_grey(image: &RgbImage) -> f64 {
+        image.as_raw().iter().map(|&v| v as f64).sum::<f64>() / image.as_raw().len() as f64
+    }
+
+    #[test]
+    fn each_difficulty_does_what_it_says_and_the_default_adds_nothing() {
+        let plain = with(Difficulty::default());
+        // Frames 10, 40, 70: the same place on laps 1, 2, 3.
+        let offset = with(Difficulty { lap_offset_m: 0.3, lap_yaw_deg: 10.0, ..Difficulty::default() });
+        assert_eq!(offset.pose(10), plain.pose(10), "the first lap is never offset");
+        for frame in [40, 70] {
+            let (a, b) = (plain.pose(frame), offset.pose(frame));
+            let moved = b.translation.vector - a.translation.vector;
+            assert!((moved.norm() - 0.3).abs() < 1e-6 && moved.z.abs() < 1e-9, "frame {frame} moved {moved:?}");
+            let yaw = (a.rotation.inverse() * b.rotation).angle().to_degrees();
+            assert!((yaw - 10.0).abs() < 1e-6, "frame {frame} turned {yaw} degrees");
+        }
+        // Alternating sides: laps 2 and 3 are offset in opposite directions (in the camera's x).
+        let side = |f: usize| (plain.pose(f).rotation.inverse() * (offset.pose(f).translation.vector - plain.pose(f).translation.vector)).x;
+        assert!(side(40) * side(70) < 0.0, "laps 2 and 3 lie on opposite sides: {} and {}", side(40), side(70));
+
+        let night = with(Difficulty { night_exposure: 0.3, ..Difficulty::default() });
+        assert_eq!(night.render(10), plain.render(10), "the first lap is by day");
+        let (dark, day) = (mean_grey(&night.render(40)), mean_grey(&plain.render(40)));
+        // Exposure 0.3 in linear light is about 0.58 after the sRGB-like encoding.
+        assert!(dark < 0.65 * day, "the second lap is a night lap: mean grey {dark} against {day}");
+        assert_eq!(night.render(70), plain.render(70), "the third lap is by day again");
+
+        let gray = with(Difficulty { grayscale: true, ..Difficulty::default() }).render(10);
+        assert!(gray.pixels().all(|p| p.0[0] == p.0[1] && p.0[1] == p.0[2]));
+        assert!(plain.render(10).pixels().any(|p| p.0[0] != p.0[2]));
+
+        let noisy = with(Difficulty { noise: 8.0, ..Difficulty::default() }).render(10);
+        let clean = plain.render(10);
+        let deviation = (noisy.as_raw().iter().zip(clean.as_raw()).map(|(a, b)| (*a as f64 - *b as f64).powi(2)).sum::<f64>()
+            / clean.as_raw().len() as f64)
+            .sqrt();
+        assert!((5.0..9.0).contains(&deviation), "noise of 8 grey levels measured as {deviation}");
+
+        let blurred = with(Difficulty { blur: 1.5, ..Difficulty::default() }).render(10);
+        let sharpness = |image: &RgbImage| image.as_raw().windows(4).map(|w| (w[3] as f64 - w[0] as f64).abs()).sum::<f64>();
+        assert!(sharpness(&blurred) < 0.8 * sharpness(&clean), "blur must soften edges");
+    }
+
+    #[test]
+    fn aliasing_decorates_every_room_alike() {
+        // The mean colour of a frame per room: with aliasing the rooms' colours agree far more.
+        let spread = |aliasing: bool| {
+            let scene = with(Difficulty { aliasing, ..Difficulty::default() });
+            let colours: Vec<[f64; 3]> = [2, 12, 22]
+                .iter()
+                .map(|&i| {
+                    let image = scene.render(i);
+                    let n = (image.width() * image.height()) as f64;
+                    let mut sum = [0.0; 3];
+                    image.pixels().for_each(|p| (0..3).for_each(|c| sum[c] += p.0[c] as f64 / n));
+                    sum
+                })
+                .collect();
+            let chroma = |c: &[f64; 3]| [c[0] - c[1], c[2] - c[1]];
+            let (a, b) = (chroma(&colours[0]), chroma(&colours[2]));
+            ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
+        };
+        let (alike, distinct) = (spread(true), spread(false));
+        assert!(alike < distinct, "room colours differ by {alike} with aliasing, {distinct} without");
+    }
+
     #[test]
     fn bad_configs_are_refused() {
+        for bad in [
+            Difficulty { lap_offset_m: 2.0, ..Difficulty::default() },
+            Difficulty { night_exposure: 0.0, ..Difficulty::default() },
+            Difficulty { noise: f64::NAN, ..Difficulty::default() },
+            Difficulty { blur: -1.0, ..Difficulty::default() },
+        ] {
+            assert!(Scene::new(SynthConfig { difficulty: bad, ..small(1) }).is_err());
+        }
         assert!(Scene::new(SynthConfig { frames: 0, ..small(1) }).is_err());
         assert!(Scene::new(SynthConfig { laps: 0, ..small(1) }).is_err());
         assert!(Scene::new(SynthConfig { width: 2, ..small(1) }).is_err());

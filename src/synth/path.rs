@@ -34,6 +34,16 @@ pub struct CameraPath {
     params: Vec<f64>,
     /// Phases of the perturbation terms, from the seed.
     phases: [f64; 6],
+    /// Sideways offset (metres) and extra heading (radians) of every lap after the first,
+    /// alternating in sign from lap to lap (a revisit on the other side of the corridor).
+    lap_offset: f64,
+    lap_yaw: f64,
+}
+
+/// Smooth 0 -> 1 over [0, 1] (and 0 before, 1 after).
+fn smoothstep(x: f64) -> f64 {
+    let x = x.clamp(0.0, 1.0);
+    x * x * (3.0 - 2.0 * x)
 }
 
 fn catmull_rom(t: f64) -> [f64; 2] {
@@ -71,7 +81,23 @@ impl CameraPath {
         }
         let mut rng = super::world::SplitMix64::new(seed ^ 0x7061_7468);
         let phases = std::array::from_fn(|_| rng.next_f64() * std::f64::consts::TAU);
-        CameraPath { lengths, params, phases }
+        CameraPath { lengths, params, phases, lap_offset: 0.0, lap_yaw: 0.0 }
+    }
+
+    /// Offsets every lap after the first by `offset` metres sideways and `yaw` radians, alternating in
+    /// sign; the change eases in over the first tenth of each lap.
+    pub fn with_lap_offsets(mut self, offset: f64, yaw: f64) -> Self {
+        self.lap_offset = offset;
+        self.lap_yaw = yaw;
+        self
+    }
+
+    /// This lap's share of the lap offsets at `progress`: 0 on the first lap, then ±1 (eased).
+    fn lap_sign(&self, progress: f64) -> f64 {
+        let lap = progress.floor();
+        let sign = |lap: f64| if lap < 1.0 { 0.0 } else if (lap as i64) % 2 == 1 { 1.0 } else { -1.0 };
+        let (previous, current) = (sign(lap - 1.0), sign(lap));
+        previous + (current - previous) * smoothstep((progress - lap) / 0.1)
     }
 
     /// Length of one lap in metres.
@@ -110,8 +136,10 @@ impl CameraPath {
         let yaw_jitter = 0.07 * (std::f64::consts::TAU * 1.19 * u + ph[3]).sin();
         let pitch = -0.06 + 0.04 * (std::f64::consts::TAU * 2.23 * u + ph[4]).sin();
         let roll = 0.02 * (std::f64::consts::TAU * 3.07 * u + ph[5]).sin();
+        let side = self.lap_sign(progress);
+        let lateral = lateral + side * self.lap_offset;
         let position = Vector3::new(here[0] - ty * lateral, here[1] + tx * lateral, height);
-        let yaw = ty.atan2(tx) + sway + yaw_jitter;
+        let yaw = ty.atan2(tx) + sway + yaw_jitter + side * self.lap_yaw;
         Isometry3::from_parts(Translation3::from(position), camera_rotation(yaw, pitch, roll))
     }
 }

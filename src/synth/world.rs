@@ -14,6 +14,7 @@ use rayon::prelude::*;
 pub type Rgb = [f32; 3];
 
 /// A small, fast, well-mixed generator (SplitMix64); all randomness derives from the seed.
+#[derive(Clone, Debug)]
 pub struct SplitMix64(u64);
 
 impl SplitMix64 {
@@ -470,8 +471,11 @@ fn random_poster(rng: &mut SplitMix64, face: Face, u0: f32, width: f32, bottom: 
 
 impl World {
     /// Builds the fixed floor plan (rooms A, B, C and their doorways, matching the camera path)
-    /// and draws textures, colours, furniture sizes and posters from the seed.
-    pub fn new(seed: u64) -> Self {
+    /// and draws textures, colours, furniture sizes and posters from the seed. With `aliasing`,
+    /// every room is decorated alike (the same wall, floor and ceiling materials, colours,
+    /// furniture materials and poster art, as in a corridor of identical offices); the rooms still
+    /// differ in shape and in where things stand.
+    pub fn new(seed: u64, aliasing: bool) -> Self {
         let mut rng = SplitMix64::new(seed ^ 0x776F_726C_64);
         let base_hue = rng.next_f32();
         // (min, max) of rooms A, B and C; C spans the far side of both A and B.
@@ -525,15 +529,19 @@ impl World {
             ],
         ];
         let mut rooms = Vec::new();
+        let decoration = rng.clone();
         for (r, ((lo, hi), doors)) in bounds.into_iter().zip(doors).enumerate() {
-            let hue = base_hue + r as f32 * 0.31;
+            if aliasing {
+                rng = decoration.clone();
+            }
+            let hue = base_hue + if aliasing { 0.0 } else { r as f32 * 0.31 };
             let walls = std::array::from_fn(|_| random_wall(&mut rng, hue));
-            let floor_kind = r + rng.pick(3);
+            let floor_kind = if aliasing { 0 } else { r } + rng.pick(3);
             let floor = random_floor(&mut rng, floor_kind);
             let ceiling = Material {
                 base: hsv(hue, 0.05, 0.9),
                 alt: [0.8, 0.8, 0.8],
-                pattern: if r == 1 { Pattern::Tiles { size: 0.6 } } else { Pattern::Plain },
+                pattern: if r == 1 && !aliasing { Pattern::Tiles { size: 0.6 } } else { Pattern::Plain },
                 grain: 0.05,
                 grain_scale: 2.0,
                 salt: rng.next_u64(),
