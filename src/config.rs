@@ -476,9 +476,10 @@ impl Params {
     }
 
     /// The verification policy, or `None` when verification is off (`verification.mode` off, or auto
-    /// without intrinsics).
-    pub fn verification(&self) -> Option<VerificationParams> {
-        let intrinsics = self.intrinsics();
+    /// without intrinsics). `camera_info`: intrinsics from the camera driver, used when the `camera.*`
+    /// parameters give none.
+    pub fn verification(&self, camera_info: Option<Intrinsics>) -> Option<VerificationParams> {
+        let intrinsics = self.intrinsics().or(camera_info);
         let on = match self.string("verification.mode") {
             "on" => true,
             "off" => false,

@@ -26,7 +26,7 @@ use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::Arch;
 use crate::types::{LoopCandidate, Stamp, Verified};
-use crate::verification::{LocalFeatures, Verification, Verifier};
+use crate::verification::{Intrinsics, LocalFeatures, Verification, Verifier};
 
 /// Milliseconds spent per stage on one frame.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
@@ -67,6 +67,8 @@ pub struct Pipeline {
     weights: Resolved,
     store: Option<KeyframeStore>,
     verifier: Option<Verifier>,
+    /// Intrinsics from the camera driver (`sensor_msgs/CameraInfo`), when it sent them.
+    camera_info: Option<Intrinsics>,
 }
 
 impl Pipeline {
@@ -81,7 +83,7 @@ impl Pipeline {
         log::info!("weights: {} -> {arch}, input {}², descriptor {}", weights.describe(), params.input_size(), params.descriptor_mode());
         let embedder = Embedder::new(network, params.input_size()).context("network input size")?;
         let descriptor = params.descriptor();
-        let verifier = params.verification().map(Verifier::new).transpose()?;
+        let verifier = params.verification(None).map(Verifier::new).transpose()?;
         if let Some(verifier) = &verifier {
             log::info!("geometric verification on: {:?}", verifier.params());
         }
@@ -95,6 +97,7 @@ impl Pipeline {
             weights,
             store: None,
             verifier,
+            camera_info: None,
         })
     }
 
@@ -298,9 +301,27 @@ impl Pipeline {
         self.params.set_at_runtime(name, value)?;
         self.detector.set_params(self.params.detector());
         self.selector.set_params(self.params.selection());
-        if let (Some(verifier), Some(params)) = (&mut self.verifier, self.params.verification()) {
+        if let (Some(verifier), Some(params)) = (&mut self.verifier, self.params.verification(self.camera_info)) {
             verifier.set_params(params);
         }
         Ok(())
+    }
+
+    /// Intrinsics from the camera driver (a node's `camera_info`). They apply when the `camera.*`
+    /// parameters give none; with `verification.mode auto` the first ones turn verification on, for
+    /// the keyframes from then on (earlier keyframes have no local features, so a candidate that
+    /// matches one of them is rejected). Returns whether verification is on afterwards.
+    pub fn set_camera_info(&mut self, intrinsics: Intrinsics) -> Result<bool> {
+        self.camera_info = Some(intrinsics);
+        if let Some(params) = self.params.verification(self.camera_info) {
+            match &mut self.verifier {
+                Some(verifier) => verifier.set_params(params),
+                None => {
+                    log::info!("geometric verification on from camera_info: {params:?}");
+                    self.verifier = Some(Verifier::new(params)?);
+                }
+            }
+        }
+        Ok(self.verifier.is_some())
     }
 }

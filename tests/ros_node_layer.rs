@@ -1,6 +1,7 @@
 //! The node layer over DDS, with a small recording processor instead of the pipeline: Keyframe, Image and
 //! CompressedImage input, candidates out, malformed messages counted and skipped, parameters set through
-//! the standard `set_parameters` service (valid accepted and applied, invalid refused with a reason).
+//! the standard `set_parameters` service (valid accepted and applied, invalid refused with a reason),
+//! `camera_info` intrinsics passed on once per change (an uncalibrated one ignored).
 //!
 //! Network rule: each test re-runs itself inside a private network namespace (loopback only, see
 //! `ros_support`), so every DDS participant lives there; the outer test only checks the inner run's result.
@@ -8,7 +9,7 @@
 mod ros_support;
 
 use ecm_lcd::config::{ParamValue, Params};
-use ecm_lcd::io::msgs::{CompressedImage, Header, Image};
+use ecm_lcd::io::msgs::{CameraInfo, CompressedImage, Header, Image};
 use ecm_lcd::ros::msgs::{self, Keyframe, LoopCandidate};
 use ecm_lcd::ros::{run_node, KeyframeProcessor, NodeCounters, NodeSettings};
 use ecm_lcd::types::{self, Stamp};
@@ -27,6 +28,7 @@ use std::time::{Duration, Instant};
 struct Seen {
     calls: Vec<(Option<u64>, Stamp, u32, u32)>,
     params: Vec<(String, ParamValue)>,
+    camera_info: Vec<ecm_lcd::verification::Intrinsics>,
 }
 
 /// A real, tiny place recogniser: a frame's "place" is its mean colour; a query matches every earlier
@@ -79,6 +81,11 @@ impl KeyframeProcessor for MeanColourProcessor {
             self.min_score = *v as f32;
         }
         Ok(())
+    }
+
+    fn set_camera_info(&mut self, intrinsics: ecm_lcd::verification::Intrinsics) -> anyhow::Result<bool> {
+        self.seen.lock().unwrap().camera_info.push(intrinsics);
+        Ok(true)
     }
 }
 
@@ -140,6 +147,8 @@ fn node_layer_over_dds() {
     let img_topic = topic(&mut peer, "/t/image", msgs::image_type());
     let cmp_topic = topic(&mut peer, "/t/image/compressed", msgs::compressed_image_type());
     let out_topic = peer.create_topic(&Name::parse("/t/loop_candidates").unwrap(), msgs::loop_candidate_type(), &ecm_lcd::ros::node::output_qos()).unwrap();
+    let info_topic = topic(&mut peer, "/t/camera_info", msgs::camera_info_type());
+    let info_pub = peer.create_publisher::<CameraInfo>(&info_topic, None).unwrap();
     let kf_pub = peer.create_publisher::<Keyframe>(&kf_topic, None).unwrap();
     let img_pub = peer.create_publisher::<Image>(&img_topic, None).unwrap();
     let cmp_pub = peer.create_publisher::<CompressedImage>(&cmp_topic, None).unwrap();
@@ -172,7 +181,8 @@ fn node_layer_over_dds() {
     let deadline = Instant::now() + Duration::from_secs(20);
     while (kf_pub.get_subscription_count(&peer) == 0
         || img_pub.get_subscription_count(&peer) == 0
-        || cmp_pub.get_subscription_count(&peer) == 0)
+        || cmp_pub.get_subscription_count(&peer) == 0
+        || info_pub.get_subscription_count(&peer) == 0)
         && Instant::now() < deadline
     {
         std::thread::sleep(Duration::from_millis(50));
@@ -210,6 +220,20 @@ fn node_layer_over_dds() {
     assert_eq!(got[0].num_candidates, 1);
     let Some(ParamValue::String(mode)) = Params::default().get("descriptor.mode") else { panic!("descriptor.mode") };
     assert_eq!(got[0].descriptor_mode, mode);
+
+    // camera_info: an uncalibrated one (K all zero) is ignored; the calibrated one reaches the
+    // processor once, however often the driver repeats it.
+    info_pub.publish(CameraInfo { header: header(103), width: 640, height: 480, ..Default::default() }).unwrap();
+    let calibrated = CameraInfo { k: [535.4, 0.0, 320.1, 0.0, 539.2, 247.6, 0.0, 0.0, 1.0], ..CameraInfo { header: header(103), width: 640, height: 480, ..Default::default() } };
+    for _ in 0..3 {
+        info_pub.publish(calibrated.clone()).unwrap();
+    }
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while seen.lock().unwrap().camera_info.is_empty() && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(seen.lock().unwrap().camera_info, ecm_lcd::verification::Intrinsics::preset("tum_fr3").into_iter().collect::<Vec<_>>());
 
     // 2. Malformed messages: each logged, counted and skipped.
     let mut short = keyframe(9, 0, 1).image;

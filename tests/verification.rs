@@ -89,3 +89,35 @@ fn verified_relative_poses_agree_with_the_ground_truth() {
     assert!(rotation_error <= 1.0, "median rotation error {rotation_error} deg");
     assert!(direction_error <= 5.0, "median translation direction error {direction_error} deg");
 }
+
+#[test]
+fn camera_info_turns_verification_on_in_auto_mode_only() {
+    let fr3 = ecm_lcd::verification::Intrinsics::preset("tum_fr3").unwrap();
+    let mut auto = pipeline(&[]);
+    assert!(!auto.verifies(), "auto without intrinsics: off");
+    assert!(auto.set_camera_info(fr3).unwrap());
+    assert!(auto.verifies());
+    let mut off = pipeline(&[("verification.mode", "off")]);
+    assert!(!off.set_camera_info(fr3).unwrap(), "off stays off");
+    // Parameters win over camera_info: a preset-configured pipeline keeps its intrinsics.
+    let mut configured = pipeline(&[("camera.preset", "tum_fr1")]);
+    assert!(configured.set_camera_info(fr3).unwrap());
+    assert_eq!(configured.params().intrinsics(), ecm_lcd::verification::Intrinsics::preset("tum_fr1"));
+
+    // Keyframes seen before the intrinsics have no features: their matches are rejected, later ones
+    // verify.
+    let orbit = shared().join("data/real/tum_fr3_desk_orbit/rgb");
+    let frames: Vec<_> = ecm_lcd::eval::images_in_name_order(&orbit).unwrap();
+    let mut late = pipeline(&[("detector.min_history", "2"), ("detector.exclude_recent.count", "3"), ("detector.exclude_recent.seconds", "0"), PERMISSIVE]);
+    let mut reported = Vec::new();
+    for (i, path) in frames.iter().enumerate() {
+        if i == 1 {
+            late.set_camera_info(fr3).unwrap();
+        }
+        let image = ecm_lcd::preprocess::read_image(path).unwrap();
+        let outcome = late.process_keyframe(i as u64, Stamp::from_nanos(i as i64 * 1_000_000_000), &image).unwrap();
+        reported.extend(outcome.candidates.iter().map(|c| (c.query_id, c.match_id)));
+    }
+    // Frame 9 revisits frame 0, whose features were never extracted: nothing is reported.
+    assert!(!reported.contains(&(9, 0)), "{reported:?}");
+}

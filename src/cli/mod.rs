@@ -72,7 +72,7 @@ pub enum Command {
 /// Parses the command line, runs the command and turns an error into one line on stderr.
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
-    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or("info"))
+    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or(default_log_filter(std::env::args())))
         .format_timestamp_millis()
         .init();
     crate::runtime::init_threads(cli.threads);
@@ -84,6 +84,28 @@ pub fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// The log filter when `RUST_LOG` is unset: ecm-lcd's own lines at `info` (or at the level of a ROS
+/// `--log-level LEVEL` among the arguments), every dependency at `warn` (RustDDS logs protocol details
+/// at `info`, hundreds of lines a second with some peers).
+fn default_log_filter(args: impl Iterator<Item = String>) -> String {
+    let args: Vec<String> = args.collect();
+    let level = args
+        .windows(2)
+        .filter(|pair| pair[0] == "--log-level")
+        .filter_map(|pair| {
+            // `[logger:=]LEVEL`; rcl's `fatal` is `error` here.
+            let level = pair[1].rsplit(":=").next()?.to_ascii_lowercase();
+            match level.as_str() {
+                "debug" | "info" | "warn" | "error" => Some(level),
+                "fatal" => Some("error".to_string()),
+                _ => None,
+            }
+        })
+        .last()
+        .unwrap_or_else(|| "info".to_string());
+    format!("ecm_lcd={level},warn")
 }
 
 fn run(command: Command) -> anyhow::Result<()> {
@@ -106,5 +128,20 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Db(args) => db::run(args),
         Command::Train(args) => train::run(args),
         Command::Distill(args) => distill::run(args),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn logs_are_ours_at_info_and_dependencies_at_warn_unless_a_level_is_asked_for() {
+        let args = |list: &[&str]| list.iter().map(|s| s.to_string()).collect::<Vec<_>>().into_iter();
+        assert_eq!(default_log_filter(args(&["ecm-lcd", "node"])), "ecm_lcd=info,warn");
+        assert_eq!(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "debug"])), "ecm_lcd=debug,warn");
+        assert_eq!(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "ecm_lcd:=WARN"])), "ecm_lcd=warn,warn");
+        assert_eq!(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "fatal"])), "ecm_lcd=error,warn");
+        assert_eq!(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "loud"])), "ecm_lcd=info,warn");
     }
 }

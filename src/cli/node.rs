@@ -53,8 +53,8 @@ pub fn run(args: Args) -> Result<()> {
 /// Runs the node with the processor `make_processor` builds from the starting parameters.
 pub fn run_with(args: Args, make_processor: impl FnOnce(&Params) -> Result<Box<dyn KeyframeProcessor>>) -> Result<()> {
     let ros_args = RosArgs::parse(&args.ros_args, DEFAULT_NODE_NAME).context("reading the ROS arguments")?;
-    // `--log-level` can lower the verbosity; raising it above RUST_LOG's filter (default info) needs
-    // RUST_LOG=debug, because the logger's own filter is fixed when the program starts.
+    // `--log-level` also set the logger's filter at start when RUST_LOG is unset (`cli::main`); here
+    // it caps the level under a RUST_LOG that asks for more.
     if let Some(level) = ros_args.log_level {
         log::set_max_level(level);
     }

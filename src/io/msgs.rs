@@ -53,3 +53,41 @@ pub struct CompressedImage {
     #[serde(with = "serde_bytes")]
     pub data: Vec<u8>,
 }
+
+/// `sensor_msgs/RegionOfInterest`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RegionOfInterest {
+    pub x_offset: u32,
+    pub y_offset: u32,
+    pub height: u32,
+    pub width: u32,
+    pub do_rectify: bool,
+}
+
+/// `sensor_msgs/CameraInfo`: a camera driver's calibration, published beside its images.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct CameraInfo {
+    pub header: Header,
+    pub height: u32,
+    pub width: u32,
+    pub distortion_model: String,
+    pub d: Vec<f64>,
+    /// Row-major 3x3 intrinsic matrix of the raw (distorted) images.
+    pub k: [f64; 9],
+    pub r: [f64; 9],
+    pub p: [f64; 12],
+    pub binning_x: u32,
+    pub binning_y: u32,
+    pub roi: RegionOfInterest,
+}
+
+impl CameraInfo {
+    /// The pinhole intrinsics of `k`, or `None` for an uncalibrated camera (driver convention: `k`
+    /// all zero) or values that are not a usable calibration. Distortion is not modelled: geometric
+    /// verification's pixel tolerance absorbs the mild distortion of common RGB-D cameras.
+    pub fn intrinsics(&self) -> Option<crate::verification::Intrinsics> {
+        let [fx, _, cx, _, fy, cy, _, _, _] = self.k;
+        let usable = [fx, fy, cx, cy].iter().all(|v| v.is_finite()) && fx > 0.0 && fy > 0.0;
+        usable.then_some(crate::verification::Intrinsics { fx, fy, cx, cy })
+    }
+}

@@ -6,7 +6,7 @@
 use ros2_client::{Message, MessageTypeName};
 use serde::{Deserialize, Serialize};
 
-use crate::io::msgs::{CompressedImage, Header, Image, Time};
+use crate::io::msgs::{CameraInfo, CompressedImage, Header, Image, Time};
 use crate::types::{self, Stamp};
 
 /// The ROS package name of ecm-lcd's own messages.
@@ -205,6 +205,7 @@ impl Message for Keyframe {}
 impl Message for LoopCandidate {}
 impl Message for Image {}
 impl Message for CompressedImage {}
+impl Message for CameraInfo {}
 
 /// ROS type names of the messages on ecm-lcd's topics.
 pub fn keyframe_type() -> MessageTypeName {
@@ -215,6 +216,9 @@ pub fn loop_candidate_type() -> MessageTypeName {
 }
 pub fn image_type() -> MessageTypeName {
     MessageTypeName::new("sensor_msgs", "Image")
+}
+pub fn camera_info_type() -> MessageTypeName {
+    MessageTypeName::new("sensor_msgs", "CameraInfo")
 }
 pub fn compressed_image_type() -> MessageTypeName {
     MessageTypeName::new("sensor_msgs", "CompressedImage")
@@ -238,6 +242,11 @@ mod tests {
             "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data",
         ),
         ("sensor_msgs/CompressedImage", "std_msgs/Header header\nstring format\nuint8[] data"),
+        (
+            "sensor_msgs/CameraInfo",
+            "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\nfloat64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\nuint32 binning_y\nRegionOfInterest roi",
+        ),
+        ("sensor_msgs/RegionOfInterest", "uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\nbool do_rectify"),
         ("geometry_msgs/Point", "float64 x\nfloat64 y\nfloat64 z"),
         ("geometry_msgs/Quaternion", "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1"),
         ("geometry_msgs/Pose", "Point position\nQuaternion orientation"),
@@ -358,6 +367,23 @@ mod tests {
         let compressed: Vec<_> =
             compressed.into_iter().map(|(p, t)| (p.trim_start_matches("c.").to_string(), t)).collect();
         assert_eq!(rust_fields::<CompressedImage>("CompressedImage"), compressed);
+        let info = msg_side("sensor_msgs/CameraInfo c");
+        let info: Vec<_> = info.into_iter().map(|(p, t)| (p.trim_start_matches("c.").to_string(), t)).collect();
+        assert_eq!(info.len(), 17, "{info:?}");
+        assert_eq!(rust_fields::<CameraInfo>("CameraInfo"), info);
+    }
+
+    #[test]
+    fn camera_info_round_trips_and_gives_its_intrinsics() {
+        let mut info = CameraInfo { width: 640, height: 480, distortion_model: "plumb_bob".into(), d: vec![0.1, -0.2, 0.0, 0.0, 0.0], ..Default::default() };
+        assert_eq!(info.intrinsics(), None, "an uncalibrated camera publishes a zero K");
+        info.k = [535.4, 0.0, 320.1, 0.0, 539.2, 247.6, 0.0, 0.0, 1.0];
+        let bytes = cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&info).unwrap();
+        let back: CameraInfo = cdr_encoding::from_bytes::<_, byteorder::LittleEndian>(&bytes).unwrap().0;
+        assert_eq!(back, info);
+        assert_eq!(back.intrinsics(), crate::verification::Intrinsics::preset("tum_fr3"));
+        info.k[0] = f64::NAN;
+        assert_eq!(info.intrinsics(), None);
     }
 
     #[test]

@@ -11,6 +11,9 @@
 //! (descriptions and ranges included); a `set_parameters` request is validated
 //! against the table (a refused value keeps the old one and the reply carries the reason) and then
 //! reaches the processor through the queue's control lane, before the next keyframe.
+//! `camera_info` (sensor_msgs/CameraInfo) gives the intrinsics for geometric verification when the
+//! `camera.*` parameters give none; the first calibrated one, and any change, reaches the processor
+//! through the same lane (a 30 Hz camera_info is not queued 30 times a second).
 //! QoS: inputs reliable, keep last 10 (default) or sensor data (best effort, keep last 5) with
 //! `--input-qos sensor-data`; output reliable, keep last 100, volatile.
 
@@ -33,8 +36,9 @@ use super::params;
 use super::queue::{DropOldestQueue, Next};
 use crate::config::{ParamValue, Params};
 use crate::io::image_msg::{decode_compressed_image, decode_image};
-use crate::io::msgs::{CompressedImage, Image};
+use crate::io::msgs::{CameraInfo, CompressedImage, Image};
 use crate::types::{self, Stamp};
+use crate::verification::Intrinsics;
 
 /// The node's name unless `-r __node:=...` says otherwise.
 pub const DEFAULT_NODE_NAME: &str = crate::config::NODE_NAME;
@@ -43,6 +47,8 @@ pub const KEYFRAMES_TOPIC: &str = "keyframes";
 pub const IMAGE_TOPIC: &str = "image";
 pub const COMPRESSED_TOPIC: &str = "image/compressed";
 pub const CANDIDATES_TOPIC: &str = "loop_candidates";
+/// The camera driver's calibration (`sensor_msgs/CameraInfo`): intrinsics for geometric verification.
+pub const CAMERA_INFO_TOPIC: &str = "camera_info";
 
 /// What the node runs each keyframe through (the pipeline implements it).
 pub trait KeyframeProcessor: Send + 'static {
@@ -51,6 +57,11 @@ pub trait KeyframeProcessor: Send + 'static {
     fn process(&mut self, id: Option<u64>, stamp: Stamp, image: &image::RgbImage) -> Result<Vec<types::LoopCandidate>>;
     /// Apply a validated runtime parameter change.
     fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String>;
+    /// Camera intrinsics from `camera_info`; returns whether geometric verification is on afterwards.
+    /// A processor without verification has no use for them.
+    fn set_camera_info(&mut self, _intrinsics: Intrinsics) -> Result<bool> {
+        Ok(false)
+    }
 }
 
 impl KeyframeProcessor for crate::pipeline::Pipeline {
@@ -74,6 +85,10 @@ impl KeyframeProcessor for crate::pipeline::Pipeline {
 
     fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String> {
         crate::pipeline::Pipeline::set_param(self, name, value.clone())
+    }
+
+    fn set_camera_info(&mut self, intrinsics: Intrinsics) -> Result<bool> {
+        crate::pipeline::Pipeline::set_camera_info(self, intrinsics)
     }
 }
 
@@ -195,7 +210,13 @@ struct Queued {
     received_at: Instant,
 }
 
-type ParamChange = (String, ParamValue);
+/// What reaches the worker besides images, in order and never dropped.
+enum Control {
+    /// A validated parameter change.
+    Param(String, ParamValue),
+    /// New intrinsics from `camera_info` (sent only when they change).
+    CameraInfo(Intrinsics),
+}
 
 /// Runs the node until `stop` is set: creates the DDS participant, the subscriptions and the publisher,
 /// declares the parameters with `initial` values (and `use_sim_time`), and processes keyframes with
@@ -213,7 +234,7 @@ pub fn run_node(
     let node_name = args.node_name(DEFAULT_NODE_NAME).to_string();
     let fqn = args.fully_qualified_node_name(DEFAULT_NODE_NAME);
     let live = Arc::new(Mutex::new(initial.clone()));
-    let queue: Arc<DropOldestQueue<Queued, ParamChange>> = Arc::new(DropOldestQueue::new(settings.queue_capacity));
+    let queue: Arc<DropOldestQueue<Queued, Control>> = Arc::new(DropOldestQueue::new(settings.queue_capacity));
 
     // The parameter services are ours (see `param_services`): they describe parameters from the table.
     let mut options = NodeOptions::new().enable_rosout(true).start_parameter_services(false);
@@ -245,7 +266,7 @@ pub fn run_node(
         drop(current);
         info!("[{action_fqn}] parameter {name} = {new}");
         action_counters.param_changes.fetch_add(1, Ordering::Relaxed);
-        action_queue.push_control((name.to_string(), new));
+        action_queue.push_control(Control::Param(name.to_string(), new));
         Ok(())
     }));
 
@@ -270,6 +291,7 @@ pub fn run_node(
     let (img_topic, img_name) = topic(&mut node, IMAGE_TOPIC, msgs::image_type(), &input_qos)?;
     let (cmp_topic, cmp_name) = topic(&mut node, COMPRESSED_TOPIC, msgs::compressed_image_type(), &input_qos)?;
     let (out_topic, out_name) = topic(&mut node, CANDIDATES_TOPIC, msgs::loop_candidate_type(), &output_qos())?;
+    let (info_topic, info_name) = topic(&mut node, CAMERA_INFO_TOPIC, msgs::camera_info_type(), &input_qos)?;
     let sub_err = |what: &str| {
         let what = what.to_string();
         move |e| anyhow::anyhow!("subscribing {what}: {e:?}")
@@ -278,6 +300,7 @@ pub fn run_node(
     let mut img_sub: Subscription<Image> = node.create_subscription(&img_topic, None).map_err(sub_err(&img_name))?;
     let mut cmp_sub: Subscription<CompressedImage> =
         node.create_subscription(&cmp_topic, None).map_err(sub_err(&cmp_name))?;
+    let mut info_sub: Subscription<CameraInfo> = node.create_subscription(&info_topic, None).map_err(sub_err(&info_name))?;
     let publisher: Publisher<LoopCandidate> = node
         .create_publisher(&out_topic, None)
         .map_err(|e| anyhow::anyhow!("creating publisher {out_name}: {e:?}"))?;
@@ -289,8 +312,8 @@ pub fn run_node(
         .context("starting the spinner thread")?;
 
     info!(
-        "[{fqn}] listening on {kf_name} (Keyframe), {img_name} (Image), {cmp_name} (CompressedImage) with {:?} QoS; \
-         publishing {out_name}; queue capacity {}",
+        "[{fqn}] listening on {kf_name} (Keyframe), {img_name} (Image), {cmp_name} (CompressedImage), \
+         {info_name} (CameraInfo) with {:?} QoS; publishing {out_name}; queue capacity {}",
         settings.input_qos, settings.queue_capacity
     );
 
@@ -307,10 +330,13 @@ pub fn run_node(
     };
 
     let mut poll = Poll::new().context("creating the poll")?;
-    let (kf_token, img_token, cmp_token) = (Token(1), Token(2), Token(3));
+    let (kf_token, img_token, cmp_token, info_token) = (Token(1), Token(2), Token(3), Token(4));
     poll.registry().register(&mut kf_sub, kf_token, Interest::READABLE).context("polling keyframes")?;
     poll.registry().register(&mut img_sub, img_token, Interest::READABLE).context("polling images")?;
     poll.registry().register(&mut cmp_sub, cmp_token, Interest::READABLE).context("polling compressed images")?;
+    poll.registry().register(&mut info_sub, info_token, Interest::READABLE).context("polling camera_info")?;
+    // The last intrinsics passed on, and whether an uncalibrated camera_info was reported.
+    let mut camera_info: (Option<Intrinsics>, bool) = (None, false);
     let mut services = ParamServices::create(&mut node, &fqn)?;
     services.register(poll.registry(), 10).context("polling the parameter services")?;
     let mut events = Events::with_capacity(16);
@@ -342,6 +368,24 @@ pub fn run_node(
         drain(&kf_sub, &mut indices[0], Incoming::Keyframe, &enqueue, |i, r| malformed(&kf_name, i, r));
         drain(&img_sub, &mut indices[1], Incoming::Image, &enqueue, |i, r| malformed(&img_name, i, r));
         drain(&cmp_sub, &mut indices[2], Incoming::Compressed, &enqueue, |i, r| malformed(&cmp_name, i, r));
+        loop {
+            match info_sub.take() {
+                Ok(Some((info, _))) => match info.intrinsics() {
+                    Some(intrinsics) if camera_info.0 != Some(intrinsics) => {
+                        camera_info.0 = Some(intrinsics);
+                        queue.push_control(Control::CameraInfo(intrinsics));
+                    }
+                    Some(_) => {}
+                    None if !camera_info.1 => {
+                        camera_info.1 = true;
+                        warn!("[{fqn}] {info_name}: the camera is not calibrated (K is zero or not finite); ignored");
+                    }
+                    None => {}
+                },
+                Ok(None) => break,
+                Err(e) => warn!("[{fqn}] malformed message on {info_name} skipped: {e:?}"),
+            }
+        }
         services.serve(&node, &live);
         if last_status.0.elapsed() >= settings.status_period {
             let now = counters.snapshot();
@@ -385,7 +429,7 @@ fn drain<M: 'static + serde::de::DeserializeOwned>(
 fn worker_loop(
     fqn: &str,
     mut processor: Box<dyn KeyframeProcessor>,
-    queue: &DropOldestQueue<Queued, ParamChange>,
+    queue: &DropOldestQueue<Queued, Control>,
     publisher: &Publisher<LoopCandidate>,
     counters: &NodeCounters,
     live: &Mutex<Params>,
@@ -394,9 +438,23 @@ fn worker_loop(
     let mut frame_ids: HashMap<u64, String> = HashMap::new();
     loop {
         let queued = match queue.pop(Duration::from_millis(200)) {
-            Next::Control((name, value)) => {
+            Next::Control(Control::Param(name, value)) => {
                 if let Err(reason) = processor.set_param(&name, &value) {
                     error!("[{fqn}] the processor refused {name} = {value}: {reason}");
+                }
+                continue;
+            }
+            Next::Control(Control::CameraInfo(intrinsics)) => {
+                match processor.set_camera_info(intrinsics) {
+                    Ok(verifying) => info!(
+                        "[{fqn}] camera intrinsics from camera_info: fx {:.1} fy {:.1} cx {:.1} cy {:.1}; geometric verification {}",
+                        intrinsics.fx,
+                        intrinsics.fy,
+                        intrinsics.cx,
+                        intrinsics.cy,
+                        if verifying { "on" } else { "off" }
+                    ),
+                    Err(e) => error!("[{fqn}] camera intrinsics from camera_info refused: {e:#}"),
                 }
                 continue;
             }
