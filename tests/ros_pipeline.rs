@@ -127,6 +127,8 @@ impl NodeProcess {
         let log = self.log_text();
         assert!(status.success(), "node exited with {status} after SIG{signal}:\n{log}");
         assert!(log.contains("stopping: finishing"), "{log}");
+        // A clean stop logs no error of the ROS layer (the spinner is signalled once).
+        assert!(!log.contains("ERROR ros2_client"), "{log}");
         log.lines()
             .find_map(|l| l.split_once("stopped: ").map(|(_, counters)| counters.to_string()))
             .unwrap_or_else(|| panic!("no final counters in the node's log:\n{log}"))

@@ -87,8 +87,9 @@ pub fn main() -> ExitCode {
 }
 
 /// The log filter when `RUST_LOG` is unset: ecm-lcd's own lines at `info` (or at the level of a ROS
-/// `--log-level LEVEL` among the arguments), every dependency at `warn` (RustDDS logs protocol details
-/// at `info`, hundreds of lines a second with some peers).
+/// `--log-level LEVEL` among the arguments), dependencies at `warn`, RustDDS at `error` (it logs
+/// protocol details as `info` and `warn`, hundreds of lines a second with some peers), and
+/// ros2-client's ROS_DISTRO check at `error` (ecm-lcd needs no ROS install).
 fn default_log_filter(args: impl Iterator<Item = String>) -> String {
     let args: Vec<String> = args.collect();
     let level = args
@@ -105,7 +106,7 @@ fn default_log_filter(args: impl Iterator<Item = String>) -> String {
         })
         .last()
         .unwrap_or_else(|| "info".to_string());
-    format!("ecm_lcd={level},warn")
+    format!("ecm_lcd={level},rustdds=error,ros2_client::distributions=error,warn")
 }
 
 fn run(command: Command) -> anyhow::Result<()> {
@@ -138,10 +139,12 @@ mod tests {
     #[test]
     fn logs_are_ours_at_info_and_dependencies_at_warn_unless_a_level_is_asked_for() {
         let args = |list: &[&str]| list.iter().map(|s| s.to_string()).collect::<Vec<_>>().into_iter();
-        assert_eq!(default_log_filter(args(&["ecm-lcd", "node"])), "ecm_lcd=info,warn");
-        assert_eq!(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "debug"])), "ecm_lcd=debug,warn");
-        assert_eq!(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "ecm_lcd:=WARN"])), "ecm_lcd=warn,warn");
-        assert_eq!(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "fatal"])), "ecm_lcd=error,warn");
-        assert_eq!(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "loud"])), "ecm_lcd=info,warn");
+        let ours = |filter: String| filter.split(',').next().unwrap().to_string();
+        let filter = default_log_filter(args(&["ecm-lcd", "node"]));
+        assert_eq!(filter, "ecm_lcd=info,rustdds=error,ros2_client::distributions=error,warn");
+        assert_eq!(ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "debug"]))), "ecm_lcd=debug");
+        assert_eq!(ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "ecm_lcd:=WARN"]))), "ecm_lcd=warn");
+        assert_eq!(ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "fatal"]))), "ecm_lcd=error");
+        assert_eq!(ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "loud"]))), "ecm_lcd=info");
     }
 }

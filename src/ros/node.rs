@@ -399,7 +399,9 @@ pub fn run_node(
     info!("[{fqn}] stopping: finishing {} queued message(s)", queue.len());
     queue.close();
     let _ = worker.join();
-    node.stop_spinner();
+    // Dropping the node signals its spinner to stop (a manual stop_spinner before the drop makes the
+    // drop's second signal fail with an ERROR line on every clean stop).
+    drop(node);
     let _ = spinner_thread.join();
     let final_counters = counters.snapshot();
     info!("[{fqn}] stopped: {final_counters}");
