@@ -48,6 +48,12 @@ impl Stamp {
         Some(Stamp { nanos: if negative { -total } else { total } })
     }
 
+    /// The system clock now (wall time, as ROS stamps diagnostics).
+    pub fn now() -> Self {
+        let since_epoch = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+        Stamp { nanos: since_epoch.as_nanos().min(i64::MAX as u128) as i64 }
+    }
+
     pub fn as_secs_f64(self) -> f64 {
         self.nanos as f64 * 1e-9
     }

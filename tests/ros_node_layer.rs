@@ -343,6 +343,12 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
     );
     assert_eq!(final_counters.processed, 4, "{final_counters}");
     assert_eq!(final_counters.malformed, 0);
+    // /diagnostics, as the Cyclone peer decoded it: the node's health with its counters and timings.
+    let diag = text.lines().find(|l| l.starts_with("DIAG ")).unwrap_or_else(|| panic!("no /diagnostics received:\n{text}"));
+    assert!(diag.starts_with("DIAG 0 /ecm_lcd ok "), "{diag}");
+    for key in ["queue_depth=", "queue_capacity=4", "received=4", "processed=4", "candidates=2", "malformed=0", "dropped=0", "failed=0", "decode_ms_mean=", "process_ms_mean="] {
+        assert!(diag.contains(key), "{key} missing from {diag}");
+    }
     assert_eq!(seen.lock().unwrap().calls.iter().filter(|c| c.0.is_none() && c.2 == 32).count(), 4);
     println!("INNER-DONE {final_counters}");
 }

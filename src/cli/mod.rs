@@ -104,7 +104,7 @@ fn default_log_filter(args: impl Iterator<Item = String>) -> String {
                 _ => None,
             }
         })
-        .last()
+        .next_back()
         .unwrap_or_else(|| "info".to_string());
     format!("ecm_lcd={level},rustdds=error,ros2_client::distributions=error,warn")
 }

@@ -41,6 +41,37 @@ pub struct Pose {
     pub orientation: Quaternion,
 }
 
+/// `diagnostic_msgs/KeyValue`.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct KeyValue {
+    pub key: String,
+    pub value: String,
+}
+
+/// `diagnostic_msgs/DiagnosticStatus`.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DiagnosticStatus {
+    /// `OK` 0, `WARN` 1, `ERROR` 2, `STALE` 3 (a `byte` on the wire).
+    pub level: u8,
+    pub name: String,
+    pub message: String,
+    pub hardware_id: String,
+    pub values: Vec<KeyValue>,
+}
+
+impl DiagnosticStatus {
+    pub const OK: u8 = 0;
+    pub const WARN: u8 = 1;
+}
+
+/// `diagnostic_msgs/DiagnosticArray`: what `/diagnostics` carries (rqt_runtime_monitor, the diagnostic
+/// aggregator).
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DiagnosticArray {
+    pub header: Header,
+    pub status: Vec<DiagnosticStatus>,
+}
+
 /// `ecm_lcd_msgs/Keyframe`: a tracker's keyframe (see `msg/Keyframe.msg`).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Keyframe {
@@ -206,6 +237,7 @@ impl Message for LoopCandidate {}
 impl Message for Image {}
 impl Message for CompressedImage {}
 impl Message for CameraInfo {}
+impl Message for DiagnosticArray {}
 
 /// ROS type names of the messages on ecm-lcd's topics.
 pub fn keyframe_type() -> MessageTypeName {
@@ -216,6 +248,9 @@ pub fn loop_candidate_type() -> MessageTypeName {
 }
 pub fn image_type() -> MessageTypeName {
     MessageTypeName::new("sensor_msgs", "Image")
+}
+pub fn diagnostic_array_type() -> MessageTypeName {
+    MessageTypeName::new("diagnostic_msgs", "DiagnosticArray")
 }
 pub fn camera_info_type() -> MessageTypeName {
     MessageTypeName::new("sensor_msgs", "CameraInfo")

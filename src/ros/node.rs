@@ -14,6 +14,8 @@
 //! `camera_info` (sensor_msgs/CameraInfo) gives the intrinsics for geometric verification when the
 //! `camera.*` parameters give none; the first calibrated one, and any change, reaches the processor
 //! through the same lane (a 30 Hz camera_info is not queued 30 times a second).
+//! `/diagnostics` (diagnostic_msgs/DiagnosticArray) carries the node's health every second: OK, or WARN
+//! while messages are dropped or fail, with the queue, the counters and the mean worker times.
 //! QoS: inputs reliable, keep last 10 (default) or sensor data (best effort, keep last 5) with
 //! `--input-qos sensor-data`; output reliable, keep last 100, volatile.
 
@@ -30,13 +32,13 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use super::args::RosArgs;
-use super::msgs::{self, Keyframe, LoopCandidate};
+use super::msgs::{self, DiagnosticArray, DiagnosticStatus, KeyValue, Keyframe, LoopCandidate};
 use super::param_services::ParamServices;
 use super::params;
 use super::queue::{DropOldestQueue, Next};
 use crate::config::{ParamValue, Params};
 use crate::io::image_msg::{decode_compressed_image, decode_image};
-use crate::io::msgs::{CameraInfo, CompressedImage, Image};
+use crate::io::msgs::{CameraInfo, CompressedImage, Header, Image};
 use crate::types::{self, Stamp};
 use crate::verification::Intrinsics;
 
@@ -49,6 +51,8 @@ pub const COMPRESSED_TOPIC: &str = "image/compressed";
 pub const CANDIDATES_TOPIC: &str = "loop_candidates";
 /// The camera driver's calibration (`sensor_msgs/CameraInfo`): intrinsics for geometric verification.
 pub const CAMERA_INFO_TOPIC: &str = "camera_info";
+/// Where ROS nodes publish their health (absolute, as the ROS tools expect).
+pub const DIAGNOSTICS_TOPIC: &str = "/diagnostics";
 
 /// What the node runs each keyframe through (the pipeline implements it).
 pub trait KeyframeProcessor: Send + 'static {
@@ -61,6 +65,10 @@ pub trait KeyframeProcessor: Send + 'static {
     /// A processor without verification has no use for them.
     fn set_camera_info(&mut self, _intrinsics: Intrinsics) -> Result<bool> {
         Ok(false)
+    }
+    /// Keyframes in the history searched for loops, if the processor keeps one (for `/diagnostics`).
+    fn keyframes(&self) -> Option<u64> {
+        None
     }
 }
 
@@ -89,6 +97,10 @@ impl KeyframeProcessor for crate::pipeline::Pipeline {
 
     fn set_camera_info(&mut self, intrinsics: Intrinsics) -> Result<bool> {
         crate::pipeline::Pipeline::set_camera_info(self, intrinsics)
+    }
+
+    fn keyframes(&self) -> Option<u64> {
+        Some(self.detector().db().len() as u64)
     }
 }
 
@@ -134,6 +146,8 @@ pub struct NodeSettings {
     pub queue_capacity: usize,
     /// How often a status line with the counters is logged (when they changed).
     pub status_period: Duration,
+    /// How often `/diagnostics` is published.
+    pub diagnostics_period: Duration,
 }
 
 impl Default for NodeSettings {
@@ -143,6 +157,7 @@ impl Default for NodeSettings {
             input_qos: InputQos::Reliable,
             queue_capacity: 4,
             status_period: Duration::from_secs(5),
+            diagnostics_period: Duration::from_secs(1),
         }
     }
 }
@@ -157,6 +172,12 @@ pub struct NodeCounters {
     pub failed: AtomicU64,
     pub candidates: AtomicU64,
     pub param_changes: AtomicU64,
+    /// Summed worker time in microseconds over the processed messages: decoding, and the processor
+    /// (network, descriptor, detector, verification).
+    pub decode_us: AtomicU64,
+    pub process_us: AtomicU64,
+    /// The processor's keyframe history after the last message (see [`KeyframeProcessor::keyframes`]).
+    pub keyframes: AtomicU64,
 }
 
 /// A copy of [`NodeCounters`] at one moment.
@@ -292,6 +313,7 @@ pub fn run_node(
     let (cmp_topic, cmp_name) = topic(&mut node, COMPRESSED_TOPIC, msgs::compressed_image_type(), &input_qos)?;
     let (out_topic, out_name) = topic(&mut node, CANDIDATES_TOPIC, msgs::loop_candidate_type(), &output_qos())?;
     let (info_topic, info_name) = topic(&mut node, CAMERA_INFO_TOPIC, msgs::camera_info_type(), &input_qos)?;
+    let (diag_topic, diag_name) = topic(&mut node, DIAGNOSTICS_TOPIC, msgs::diagnostic_array_type(), &diagnostics_qos())?;
     let sub_err = |what: &str| {
         let what = what.to_string();
         move |e| anyhow::anyhow!("subscribing {what}: {e:?}")
@@ -304,6 +326,9 @@ pub fn run_node(
     let publisher: Publisher<LoopCandidate> = node
         .create_publisher(&out_topic, None)
         .map_err(|e| anyhow::anyhow!("creating publisher {out_name}: {e:?}"))?;
+    let diagnostics: Publisher<DiagnosticArray> = node
+        .create_publisher(&diag_topic, None)
+        .map_err(|e| anyhow::anyhow!("creating publisher {diag_name}: {e:?}"))?;
 
     let spinner = node.spinner().map_err(|e| anyhow::anyhow!("starting the spinner: {e:?}"))?;
     let spinner_thread = std::thread::Builder::new()
@@ -342,6 +367,7 @@ pub fn run_node(
     let mut events = Events::with_capacity(16);
     let mut indices = [0u64; 3];
     let mut last_status = (Instant::now(), counters.snapshot());
+    let mut last_diagnostics = (Instant::now(), counters.snapshot());
     let enqueue = |message: Incoming, index: u64| {
         counters.received.fetch_add(1, Ordering::Relaxed);
         if let Some(old) = queue.push(Queued { message, index, received_at: Instant::now() }) {
@@ -394,6 +420,15 @@ pub fn run_node(
             }
             last_status = (Instant::now(), now);
         }
+        if last_diagnostics.0.elapsed() >= settings.diagnostics_period {
+            let now = counters.snapshot();
+            let status = diagnostic_status(&fqn, &counters, &last_diagnostics.1, queue.len(), settings.queue_capacity);
+            let array = DiagnosticArray { header: Header { stamp: Stamp::now().into(), frame_id: String::new() }, status: vec![status] };
+            if let Err(e) = diagnostics.publish(array) {
+                warn!("[{fqn}] publishing {diag_name} failed: {e:?}");
+            }
+            last_diagnostics = (Instant::now(), now);
+        }
     }
 
     info!("[{fqn}] stopping: finishing {} queued message(s)", queue.len());
@@ -406,6 +441,52 @@ pub fn run_node(
     let final_counters = counters.snapshot();
     info!("[{fqn}] stopped: {final_counters}");
     Ok(final_counters)
+}
+
+/// The node's `/diagnostics` entry: `WARN` while messages are being dropped or failing (since `previous`),
+/// else `OK`; the counters, the queue and the mean worker time per message as values.
+fn diagnostic_status(fqn: &str, counters: &NodeCounters, previous: &CountersSnapshot, queue_depth: usize, queue_capacity: usize) -> DiagnosticStatus {
+    let now = counters.snapshot();
+    let (dropping, failing) = (now.dropped > previous.dropped, now.failed > previous.failed);
+    let (level, message) = match (dropping, failing) {
+        (false, false) => (DiagnosticStatus::OK, "ok".to_string()),
+        _ => (
+            DiagnosticStatus::WARN,
+            format!("{} dropped, {} failed in the last period", now.dropped - previous.dropped, now.failed - previous.failed),
+        ),
+    };
+    let per_message = |us: &AtomicU64| {
+        let done = now.processed + now.failed;
+        if done == 0 { 0.0 } else { us.load(Ordering::Relaxed) as f64 / 1e3 / done as f64 }
+    };
+    let values = [
+        ("queue_depth", queue_depth.to_string()),
+        ("queue_capacity", queue_capacity.to_string()),
+        ("received", now.received.to_string()),
+        ("processed", now.processed.to_string()),
+        ("keyframes", counters.keyframes.load(Ordering::Relaxed).to_string()),
+        ("candidates", now.candidates.to_string()),
+        ("malformed", now.malformed.to_string()),
+        ("dropped", now.dropped.to_string()),
+        ("failed", now.failed.to_string()),
+        ("decode_ms_mean", format!("{:.2}", per_message(&counters.decode_us))),
+        ("process_ms_mean", format!("{:.2}", per_message(&counters.process_us))),
+    ];
+    DiagnosticStatus {
+        level,
+        name: format!("{}: loop closure", fqn.trim_start_matches('/')),
+        message,
+        hardware_id: fqn.to_string(),
+        values: values.into_iter().map(|(key, value)| KeyValue { key: key.to_string(), value }).collect(),
+    }
+}
+
+/// `/diagnostics` QoS: reliable, keep last 10, as rclcpp's diagnostic_updater publishes it.
+fn diagnostics_qos() -> QosProfile {
+    QosProfile::publisher_default()
+        .reliability_reliable(WhenFull::DEFAULT)
+        .durability(Durability::Volatile)
+        .history(History::KeepLast { depth: 10 })
 }
 
 /// Takes every message waiting on `subscription`: good ones are queued, undeserialisable ones reported;
@@ -485,10 +566,12 @@ fn worker_loop(
             }
         };
         let decode_ms = started.elapsed().as_secs_f64() * 1e3;
+        counters.decode_us.fetch_add((decode_ms * 1e3) as u64, Ordering::Relaxed);
         let stamp = Stamp::from(header.stamp);
         let process_start = Instant::now();
         let result = processor.process(id, stamp, &image);
         let process_ms = process_start.elapsed().as_secs_f64() * 1e3;
+        counters.process_us.fetch_add((process_ms * 1e3) as u64, Ordering::Relaxed);
         let candidates = match result {
             Ok(c) => c,
             Err(e) => {
@@ -498,6 +581,9 @@ fn worker_loop(
             }
         };
         counters.processed.fetch_add(1, Ordering::Relaxed);
+        if let Some(keyframes) = processor.keyframes() {
+            counters.keyframes.store(keyframes, Ordering::Relaxed);
+        }
         if let Some(id) = id {
             frame_ids.insert(id, header.frame_id.clone());
         }

@@ -2,7 +2,8 @@
 
 Publishes sensor_msgs/Image (rgb8) on rt/image and prints every ecm_lcd_msgs/LoopCandidate received on
 rt/loop_candidates as `CANDIDATE query match rank score query_sec match_sec match_frame_id query_nanosec
-match_nanosec`.
+match_nanosec`, then the newest diagnostic_msgs/DiagnosticArray from rt/diagnostics as
+`DIAG level hardware_id message key=value ...`.
 Types are declared with the ROS 2 DDS names (`pkg::msg::dds_::Type_`) and plain CDR (XCDR1), as
 rmw_cyclonedds does.
 Usage: cyclone_peer.py EXPECTED_CANDIDATES GREY [GREY ...]   (solid 32x24 images of those grey levels)
@@ -86,6 +87,27 @@ class LoopCandidate(IdlStruct, typename="ecm_lcd_msgs::msg::dds_::LoopCandidate_
     covariance: array[float64, 36]
 
 
+@dataclass
+class KeyValue(IdlStruct, typename="diagnostic_msgs::msg::dds_::KeyValue_"):
+    key: str
+    value: str
+
+
+@dataclass
+class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticStatus_"):
+    level: uint8
+    name: str
+    message: str
+    hardware_id: str
+    values: sequence[KeyValue]
+
+
+@dataclass
+class DiagnosticArray(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticArray_"):
+    header: Header
+    status: sequence[DiagnosticStatus]
+
+
 def frames_from_list(path):
     """Images from a frame list (see the module doc); broken ones where it says MALFORMED."""
     images = []
@@ -132,6 +154,7 @@ def main():
     dp = DomainParticipant(0)
     writer = DataWriter(dp, Topic(dp, "rt/image", Image), qos=qos)
     reader = DataReader(dp, Topic(dp, "rt/loop_candidates", LoopCandidate), qos=qos)
+    diagnostics = DataReader(dp, Topic(dp, "rt/diagnostics", DiagnosticArray), qos=qos)
     deadline = time.time() + 20
     while writer.get_publication_matched_status().current_count == 0 or \
             reader.get_subscription_matched_status().current_count == 0:
@@ -160,6 +183,21 @@ def main():
     while got < expected and time.time() < deadline:
         got += drain()
         time.sleep(0.05)
+    # The node's /diagnostics (published every second): the first one published after the candidates
+    # arrived (older ones are discarded), as one line.
+    diagnostics.take(N=64)
+    last = None
+    deadline = time.time() + 5
+    while last is None and time.time() < deadline:
+        for array in diagnostics.take(N=16):
+            last = array
+        time.sleep(0.05)
+    for array in diagnostics.take(N=16):
+        last = array
+    if last is not None:
+        for status in last.status:
+            values = " ".join(f"{kv.key}={kv.value}" for kv in status.values)
+            print(f"DIAG {status.level} {status.hardware_id} {status.message} {values}", flush=True)
     print(f"PEER-DONE {got}", flush=True)
 
 
