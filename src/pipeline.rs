@@ -69,6 +69,9 @@ pub struct Pipeline {
     verifier: Option<Verifier>,
     /// Intrinsics from the camera driver (`sensor_msgs/CameraInfo`), when it sent them.
     camera_info: Option<Intrinsics>,
+    /// Whether the best match is verified even when it is not a candidate (evaluation needs it; a
+    /// node does not, and saves a check per keyframe).
+    verify_best: bool,
 }
 
 impl Pipeline {
@@ -98,6 +101,7 @@ impl Pipeline {
             store: None,
             verifier,
             camera_info: None,
+            verify_best: true,
         })
     }
 
@@ -231,6 +235,12 @@ impl Pipeline {
         Ok(outcome)
     }
 
+    /// Whether [`Outcome::best_verified`] is worked out when the best match is not a candidate (on by
+    /// default, for evaluation; off, it is `None` then).
+    pub fn set_verify_best(&mut self, verify_best: bool) {
+        self.verify_best = verify_best;
+    }
+
     /// Whether geometric verification is on.
     pub fn verifies(&self) -> bool {
         self.verifier.is_some()
@@ -270,7 +280,10 @@ impl Pipeline {
             checked.push((id, v));
             v
         };
-        outcome.best_verified = outcome.best.map(|best| check(best.id).accepted);
+        let best_is_candidate = outcome.best.is_some_and(|best| outcome.candidates.iter().any(|c| c.match_id == best.id));
+        if self.verify_best || best_is_candidate {
+            outcome.best_verified = outcome.best.map(|best| check(best.id).accepted);
+        }
         let before = outcome.candidates.len();
         outcome.candidates.retain_mut(|c| {
             let v = check(c.match_id);

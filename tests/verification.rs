@@ -121,3 +121,25 @@ fn camera_info_turns_verification_on_in_auto_mode_only() {
     // Frame 9 revisits frame 0, whose features were never extracted: nothing is reported.
     assert!(!reported.contains(&(9, 0)), "{reported:?}");
 }
+
+#[test]
+fn a_node_checks_candidates_only_and_evaluation_checks_every_best_match() {
+    let orbit = shared().join("data/real/tum_fr3_desk_orbit/rgb");
+    let frames = ecm_lcd::eval::images_in_name_order(&orbit).unwrap();
+    // No candidate passes 0.999, so only evaluation's best-match check runs.
+    let overrides = [("detector.min_history", "2"), ("detector.exclude_recent.count", "3"), ("detector.exclude_recent.seconds", "0"), ("detector.min_score", "0.999"), ("camera.preset", "tum_fr3")];
+    let checked = |verify_best: bool| {
+        let mut pipeline = pipeline(&overrides);
+        pipeline.set_verify_best(verify_best);
+        let mut checked = 0;
+        for (i, path) in frames.iter().enumerate() {
+            let image = ecm_lcd::preprocess::read_image(path).unwrap();
+            let outcome = pipeline.process_keyframe(i as u64, Stamp::from_nanos(i as i64 * 1_000_000_000), &image).unwrap();
+            assert!(outcome.candidates.is_empty());
+            checked += outcome.best_verified.is_some() as usize;
+        }
+        checked
+    };
+    assert_eq!(checked(true), 6, "queries 4..9 have a best match");
+    assert_eq!(checked(false), 0);
+}

@@ -43,6 +43,8 @@ pub fn run(args: Args) -> Result<()> {
     let db = args.db.clone();
     run_with(args, move |params| {
         let mut pipeline = crate::pipeline::Pipeline::new(params.clone(), weights.as_deref())?;
+        // The node publishes candidates only: no check of a best match that is not one.
+        pipeline.set_verify_best(false);
         if let Some(db) = &db {
             pipeline.open_store(db)?;
         }
