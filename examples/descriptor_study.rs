@@ -1,7 +1,15 @@
 //! Which network tap and aggregation carry place best: every combination on the real development
-//! sets, in memory (maps computed once per image). A program that measures and prints.
+//! sets and the hard synthetic preset, in memory (maps computed once per image). A program that
+//! measures and prints.
 //!
 //!     cargo run --release --example descriptor_study [-- ARCH SIZE]
+//!
+//! Environment: `STUDY_TAPS=12,16` (block indexes; default the last few), `STUDY_AGGS=grid3-mac,...`,
+//! and `STUDY_CALIBRATE="blocks.16 grid3-mac"` to print, pooled over every set, the recall at 100%
+//! precision of one threshold on the raw score and on per-query calibrated statistics (z-score,
+//! margin over the second-best place, ...). Post-processing: `l2`, `pl2` (power first), a trailing
+//! `c` centres on the database mean, `l2pN` projects on N principal axes learned from synthetic
+//! frames, `l2hN` on N axes learned from the database itself.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -68,6 +76,17 @@ fn sets(shared: &Path, tmp: &Path) -> Result<Vec<Set>> {
     let images: Vec<RgbImage> = frames.into_iter().map(|f| f.image).collect();
     let eligible = (0..images.len()).map(|i| Some(i.saturating_sub(2))).collect::<Vec<_>>();
     out.push(Set { name: "tum fr3 two-pass".into(), database: images.clone(), queries: images, eligible, truth });
+
+    // The hard synthetic preset, every second frame (2.5 Hz): queries against frames 10 s older.
+    let hard = tmp.join("synthetic_hard");
+    let config = ecm_lcd::synth::SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..ecm_lcd::synth::SynthConfig::hard() };
+    ecm_lcd::synth::write_tum_folder(&ecm_lcd::synth::Scene::new(config)?, &hard)?;
+    let frames: Vec<_> = open_source(&hard, None)?.step_by(2).collect::<Result<_>>()?;
+    let stamps: Vec<Stamp> = frames.iter().map(|f| f.stamp).collect();
+    let truth = loop_truth_from_poses(&stamps, &read_groundtruth(&hard.join("groundtruth.txt"))?, &PoseLoopCriteria::default());
+    let images: Vec<RgbImage> = frames.into_iter().map(|f| f.image).collect();
+    let eligible = (0..images.len()).map(|i| Some(i.saturating_sub(25))).collect::<Vec<_>>();
+    out.push(Set { name: "synth hard".into(), database: images.clone(), queries: images, eligible, truth });
     Ok(out)
 }
 
@@ -133,6 +152,7 @@ fn aggregate(fm: &FeatureMap, agg: &str) -> Vec<f32> {
         "rmac" => rmac(fm, how),
         "grid2" => grid(fm, how, 2),
         "grid3" => grid(fm, how, 3),
+        "grid4" => grid(fm, how, 4),
         _ => unreachable!(),
     }
 }
@@ -168,8 +188,9 @@ fn mean_of(vs: &[Vec<f32>]) -> Vec<f32> {
 /// Images of our own making to learn centring and whitening from: synthetic frames of several worlds.
 fn learning_images() -> Result<Vec<RgbImage>> {
     let mut images = Vec::new();
-    for seed in 11..15u64 {
-        let scene = ecm_lcd::synth::Scene::new(ecm_lcd::synth::SynthConfig { frames: 120, laps: 1, seed, ..Default::default() })?;
+    for seed in 11..17u64 {
+        let base = if seed % 2 == 0 { ecm_lcd::synth::SynthConfig::hard() } else { Default::default() };
+        let scene = ecm_lcd::synth::Scene::new(ecm_lcd::synth::SynthConfig { frames: 80, laps: 1, seed, ..base })?;
         images.extend((0..scene.len()).map(|i| scene.render(i)));
     }
     Ok(images)
@@ -183,6 +204,11 @@ struct Whitening {
 }
 
 fn learn_whitening(vs: &[Vec<f32>], dim: usize) -> Whitening {
+    learn_projection(vs, dim, true)
+}
+
+/// PCA onto `dim` axes; with `whiten`, each axis scaled to unit variance (regularised).
+fn learn_projection(vs: &[Vec<f32>], dim: usize, whiten: bool) -> Whitening {
     let mean = mean_of(vs);
     let n = mean.len();
     let centred: Vec<Vec<f64>> = vs.iter().map(|v| v.iter().zip(&mean).map(|(a, m)| (a - m) as f64).collect()).collect();
@@ -207,7 +233,7 @@ fn learn_whitening(vs: &[Vec<f32>], dim: usize) -> Whitening {
             }
             let norm = axis.iter().map(|a| a * a).sum::<f64>().sqrt().max(1e-12);
             let variance = lambda / s as f64;
-            let scale = 1.0 / (norm * (variance + eps / s as f64).sqrt());
+            let scale = if whiten { 1.0 / (norm * (variance + eps / s as f64).sqrt()) } else { 1.0 / norm };
             axis.iter().map(|a| (a * scale) as f32).collect()
         })
         .collect();
@@ -233,23 +259,26 @@ fn main() -> Result<()> {
     let weights = resolve::resolve(None)?;
     let mut embedder = Embedder::new(weights.weights.for_arch(arch)?.network(false)?, size)?;
     let blocks = arch.spec().blocks().len();
-    let mut taps: Vec<Tap> = [blocks - 4, blocks - 2, blocks - 1].into_iter().map(Tap::Block).collect();
+    let taps_env = std::env::var("STUDY_TAPS").unwrap_or_else(|_| format!("{},{},{},{},{}", blocks - 9, blocks - 6, blocks - 4, blocks - 2, blocks - 1));
+    let mut taps: Vec<Tap> = taps_env.split(',').map(|t| t.parse().map(Tap::Block)).collect::<Result<_, _>>()?;
     taps.push(Tap::Head);
-    let aggs = ["global-gap", "global-mac", "rmac-mac", "grid2-gap", "grid2-mac"];
-    let posts = ["l2", "pl2", "l2c", "pl2c", "pl2s", "pl2w64", "pl2w128", "pl2w256", "pl2v128"];
+    let aggs: Vec<String> = std::env::var("STUDY_AGGS").unwrap_or_else(|_| "global-gap,global-gem,global-mac,rmac-mac,grid2-gap,grid2-mac,grid3-mac,grid4-mac,grid3-gem".into()).split(',').map(str::to_string).collect();
+    let aggs: Vec<&str> = aggs.iter().map(String::as_str).collect();
+    let posts = ["l2", "l2c", "l2p128", "l2p256", "l2h64", "l2h128"];
     let learning = learning_images()?;
     let learning_maps: Vec<Vec<FeatureMap>> = learning.iter().map(|i| embedder.tapped_maps(i, &taps)).collect::<Result<_>>()?;
     let mut whitenings: BTreeMap<(usize, &str), (Vec<f32>, Whitening, Whitening, Whitening)> = BTreeMap::new();
     for t in 0..taps.len() {
-        for agg in aggs {
+        for &agg in &aggs {
             let raw: Vec<Vec<f32>> = learning_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
             let finished = finish(raw, "pl2", None);
             let mean = mean_of(&finished);
-            let full = learn_whitening(&finished, 256);
+            let full = learn_projection(&finished, 256, false);
             let cut = |d: usize| Whitening { mean: full.mean.clone(), rows: full.rows.iter().take(d).cloned().collect() };
             whitenings.insert((t, agg), (mean, cut(64), cut(128), full));
         }
     }
+    let mut calibration: Vec<CalibrationRecord> = Vec::new();
     // (tap, agg, post) -> per set (r@1, r@100P)
     let mut table: BTreeMap<(String, String, String), Vec<(f64, f64)>> = BTreeMap::new();
     for set in &sets {
@@ -259,12 +288,23 @@ fn main() -> Result<()> {
         let db_maps = maps(&mut embedder, &set.database)?;
         let q_maps = maps(&mut embedder, &set.queries)?;
         for (t, tap) in taps.iter().enumerate() {
-            for agg in aggs {
+            for &agg in &aggs {
                 let db_raw: Vec<Vec<f32>> = db_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
                 let q_raw: Vec<Vec<f32>> = q_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
                 let learned = &whitenings[&(t, agg)];
                 for post in posts {
-                    let (db, q) = if let Some(dim) = post.strip_prefix("pl2w") {
+                    let (db, q) = if let Some(dim) = post.strip_prefix("l2p") {
+                        // PCA learned from synthetic frames (no whitening).
+                        let w = match dim { "64" => &learned.1, "128" => &learned.2, _ => &learned.3 };
+                        let db: Vec<_> = finish(db_raw.clone(), "l2", None).iter().map(|v| whiten(w, v)).collect();
+                        let q: Vec<_> = finish(q_raw.clone(), "l2", None).iter().map(|v| whiten(w, v)).collect();
+                        (db, q)
+                    } else if let Some(dim) = post.strip_prefix("l2h") {
+                        // PCA learned from the database itself (the history), no whitening.
+                        let dbf = finish(db_raw.clone(), "l2", None);
+                        let w = learn_projection(&dbf, dim.parse().unwrap(), false);
+                        (dbf.iter().map(|v| whiten(&w, v)).collect(), finish(q_raw.clone(), "l2", None).iter().map(|v| whiten(&w, v)).collect())
+                    } else if let Some(dim) = post.strip_prefix("pl2w") {
                         let w = match dim { "64" => &learned.1, "128" => &learned.2, _ => &learned.3 };
                         let db: Vec<_> = finish(db_raw.clone(), "pl2", None).iter().map(|v| whiten(w, v)).collect();
                         let q: Vec<_> = finish(q_raw.clone(), "pl2", None).iter().map(|v| whiten(w, v)).collect();
@@ -290,6 +330,15 @@ fn main() -> Result<()> {
                         }
                         let scores = cosine_scores(qv, &db[..limit]);
                         let (best, score) = scores.iter().copied().enumerate().fold((0, f32::NEG_INFINITY), |b, (i, s)| if s > b.1 { (i, s) } else { b });
+                        if post == "l2" && Some(format!("{tap} {agg}")) == std::env::var("STUDY_CALIBRATE").ok() {
+                            if let Some(matches) = set.truth.matches(qi) {
+                                let n = scores.len() as f32;
+                                let mean = scores.iter().sum::<f32>() / n;
+                                let sd = (scores.iter().map(|s| (s - mean) * (s - mean)).sum::<f32>() / n).sqrt().max(1e-6);
+                                let second = scores.iter().enumerate().filter(|(i, _)| i.abs_diff(best) > 2).map(|(_, s)| *s).fold(f32::NEG_INFINITY, f32::max);
+                                calibration.push(CalibrationRecord { set: set.name.clone(), positive: !matches.is_empty(), correct: matches.contains(&best), s1: score, mean, sd, second });
+                            }
+                        }
                         results.push(QueryResult { query: qi, best: Some((best, score)) });
                     }
                     let m = evaluate(&results, &set.truth)?;
@@ -301,6 +350,7 @@ fn main() -> Result<()> {
             }
         }
     }
+    report_calibration(&calibration, &sets);
     let names: Vec<&str> = sets.iter().map(|s| s.name.as_str()).collect();
     println!("arch {arch}, input {size}; per set: recall@1 / recall@100%P ({})", names.join(" | "));
     let mut rows: Vec<_> = table.into_iter().collect();
@@ -313,4 +363,56 @@ fn main() -> Result<()> {
         println!("{tap:10} {agg:11} {post:5} {}", cells.join("  "));
     }
     Ok(())
+}
+
+/// One query's top-1 against its eligible references, for calibrating the score.
+struct CalibrationRecord {
+    set: String,
+    positive: bool,
+    correct: bool,
+    s1: f32,
+    mean: f32,
+    sd: f32,
+    /// Best score more than two references away from the top-1.
+    second: f32,
+}
+
+/// Pooled over every set: the recall at 100% precision of one threshold on each candidate statistic.
+fn report_calibration(records: &[CalibrationRecord], sets: &[Set]) {
+    if records.is_empty() {
+        return;
+    }
+    let stats: [(&str, fn(&CalibrationRecord) -> f32); 7] = [
+        ("raw", |r| r.s1),
+        ("z", |r| (r.s1 - r.mean) / r.sd),
+        ("margin", |r| r.s1 - r.second.max(r.mean)),
+        ("rel-mean", |r| (r.s1 - r.mean) / (1.0 - r.mean).max(1e-6)),
+        ("rel-second", |r| (r.s1 - r.second.max(r.mean)) / (1.0 - r.second.max(r.mean)).max(1e-6)),
+        ("dist-ratio", |r| -((1.0 - r.s1).max(0.0).sqrt() / (1.0 - r.second.max(r.mean)).max(1e-6).sqrt())),
+        ("z*raw", |r| (r.s1 - r.mean) / r.sd * r.s1),
+    ];
+    let positives = records.iter().filter(|r| r.positive).count();
+    for (name, f) in stats {
+        let mut v: Vec<(f32, bool, &str)> = records.iter().map(|r| (f(r), r.correct, r.set.as_str())).collect();
+        v.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let first_false = v.iter().position(|x| !x.1).unwrap_or(v.len());
+        let threshold = if first_false < v.len() { v[first_false].0 } else { f32::NEG_INFINITY };
+        let kept = &v[..first_false];
+        let per_set: Vec<String> = sets
+            .iter()
+            .map(|s| {
+                let pos = records.iter().filter(|r| r.set == s.name && r.positive).count();
+                let tp = kept.iter().filter(|x| x.2 == s.name && x.0 > threshold).count();
+                format!("{}/{}", tp, pos)
+            })
+            .collect();
+        let trues: Vec<f32> = v.iter().filter(|x| x.1).map(|x| x.0).collect();
+        println!(
+            "calibration {name:10}: pooled recall@100%P {:.3} (threshold above {threshold:.4}; true range {:.3}..{:.3}); per set {}",
+            kept.len() as f64 / positives as f64,
+            trues.iter().cloned().fold(f32::INFINITY, f32::min),
+            trues.iter().cloned().fold(f32::NEG_INFINITY, f32::max),
+            per_set.join(" ")
+        );
+    }
 }

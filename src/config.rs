@@ -22,7 +22,8 @@
 //! set (non-zero), which then wins; the score-to-distance mapping is the descriptor mode's
 //! ([`crate::descriptor::Descriptor::score`]).
 
-use crate::descriptor::{Descriptor, DescriptorMode, DEFAULT_CHANNELS};
+use crate::descriptor::{Descriptor, DescriptorMode, Pooling, DEFAULT_GRID};
+use crate::model::{Arch, Tap};
 use crate::detector::selection::SelectionParams;
 use crate::detector::{DetectorParams, Threshold};
 use crate::verification::{Intrinsics, VerificationParams};
@@ -153,12 +154,21 @@ fn one_of(name: &'static str, default: &'static str, allowed: &'static [&'static
     }
 }
 
+/// The values of `descriptor.tap`: `auto` (the head for every mode but `regional`, which reads the
+/// last bottleneck), `head`, `bottleneck` (the last bottleneck's output) or `blocks.N` (bottleneck
+/// `N`'s output, 0-based; MobileNetV2 has 17, ECMobileNet 13).
+const TAP_NAMES: [&str; 20] = [
+    "auto", "head", "bottleneck", "blocks.0", "blocks.1", "blocks.2", "blocks.3", "blocks.4", "blocks.5", "blocks.6",
+    "blocks.7", "blocks.8", "blocks.9", "blocks.10", "blocks.11", "blocks.12", "blocks.13", "blocks.14", "blocks.15",
+    "blocks.16",
+];
+
 /// Upper bound of count-like parameters: large enough for any sequence, small enough to catch typos.
 const MAX_COUNT: i64 = 1_000_000;
 
 static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
     vec![
-        one_of("arch", "ecmobilenet", ARCHES, "Network: ecmobilenet (the paper's) or mobilenetv2 (the baseline)."),
+        one_of("arch", "mobilenetv2", ARCHES, "Network: mobilenetv2 (the pretrained weights as trained) or ecmobilenet (the paper's variant)."),
         ParamSpec {
             name: "input_size",
             kind: ParamKind::Integer,
@@ -171,11 +181,22 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "descriptor.mode",
             DescriptorMode::default().name(),
             &DescriptorMode::NAMES,
-            "Global descriptor: paper (the paper's 128-d), l2 (normalised 1280-d pool), spatial (global + 2x2 regions), power (power-normalised 1280-d pool).",
+            "Global descriptor: paper (the paper's 128-d), l2 (normalised pool), spatial (global + 2x2 regions), power (power-normalised pool), regional (grid of pooled cells).",
         ),
+        one_of(
+            "descriptor.tap",
+            "auto",
+            &TAP_NAMES,
+            "Network map the descriptor reads: auto (head; the last bottleneck for regional), head, bottleneck, or blocks.N.",
+        ),
+        ParamSpec {
+            read_only: true,
+            ..integer("descriptor.grid", DEFAULT_GRID as i64, 1, 4, "Cells per side of the regional descriptor's grid.")
+        },
+        one_of("descriptor.pooling", Pooling::default().name(), &Pooling::NAMES, "How regional cells are pooled: gap (mean), gem (generalised mean, p = 3) or mac (max)."),
         double(
             "detector.min_score",
-            0.8,
+            0.91,
             0.0,
             1.0,
             "A loop is accepted when the match score (in [0, 1], 1 = identical) is at least this.",
@@ -226,7 +247,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
         ParamSpec {
             name: "detector.centre_on_history",
             kind: ParamKind::Bool,
-            default: ParamValue::Bool(true),
+            default: ParamValue::Bool(false),
             range: ParamRange::Any,
             description: "Compare descriptors after removing the mean of the keyframe history (not for the paper descriptor).",
             read_only: false,
@@ -440,9 +461,35 @@ impl Params {
         self.string("descriptor.mode").parse().unwrap_or_default()
     }
 
-    /// The descriptor for the network's 1280 channels.
-    pub fn descriptor(&self) -> Descriptor {
-        Descriptor::new(self.descriptor_mode(), DEFAULT_CHANNELS)
+    /// The network map the descriptor reads (`descriptor.tap`, `auto` resolved for the mode). Errors
+    /// when `blocks.N` is past the architecture's last bottleneck.
+    pub fn tap(&self) -> anyhow::Result<Tap> {
+        let arch: Arch = self.arch().parse()?;
+        let blocks = arch.spec().blocks().len();
+        Ok(match self.string("descriptor.tap") {
+            "auto" if self.descriptor_mode() == DescriptorMode::Regional => Tap::Block(blocks - 1),
+            "auto" | "head" => Tap::Head,
+            "bottleneck" => Tap::Block(blocks - 1),
+            name => {
+                let tap: Tap = name.parse()?;
+                if let Tap::Block(i) = tap {
+                    anyhow::ensure!(i < blocks, "descriptor.tap {name} is past {arch}'s last bottleneck, blocks.{}", blocks - 1);
+                }
+                tap
+            }
+        })
+    }
+
+    /// The descriptor, for the channel count of the tapped map ([`Params::tap`]).
+    pub fn descriptor(&self) -> anyhow::Result<Descriptor> {
+        let arch: Arch = self.arch().parse()?;
+        let spec = arch.spec();
+        let channels = match self.tap()? {
+            Tap::Head => spec.head_channels,
+            Tap::Block(i) => spec.blocks()[i].output,
+        };
+        let pooling = self.string("descriptor.pooling").parse().map_err(anyhow::Error::msg)?;
+        Ok(Descriptor { mode: self.descriptor_mode(), channels, grid: self.count("descriptor.grid"), pooling })
     }
 
     pub fn detector(&self) -> DetectorParams {
@@ -497,7 +544,7 @@ impl Params {
     /// Selection rules; the novelty score is turned into a distance with the descriptor mode's mapping.
     pub fn selection(&self) -> SelectionParams {
         let max_score = self.double("selection.novelty_max_score") as f32;
-        let novelty_min_distance = if max_score >= 1.0 { 0.0 } else { self.descriptor().distance_for_score(max_score) };
+        let novelty_min_distance = if max_score >= 1.0 { 0.0 } else { self.descriptor().unwrap_or_else(|_| Descriptor::new(self.descriptor_mode(), crate::descriptor::DEFAULT_CHANNELS)).distance_for_score(max_score) };
         SelectionParams {
             every_nth: self.count("selection.every_nth"),
             min_period_secs: self.double("selection.min_period"),
@@ -648,6 +695,28 @@ mod tests {
         p.set_from_str("selection.min_period", "0.25").unwrap();
         assert_eq!(p.selection().min_period_secs, 0.25);
         assert!(p.set_from_str("detector.top_k", "two").is_err());
+    }
+
+    #[test]
+    fn the_tap_follows_the_mode_and_the_network() {
+        let mut p = Params::default();
+        // The default: regional on MobileNetV2's last bottleneck (320 channels, 3x3 cells).
+        assert_eq!(p.tap().unwrap(), Tap::Block(16));
+        let d = p.descriptor().unwrap();
+        assert_eq!((d.mode, d.channels, d.dim()), (DescriptorMode::Regional, 320, 2880));
+        p.set_from_str("arch", "ecmobilenet").unwrap();
+        assert_eq!(p.tap().unwrap(), Tap::Block(12));
+        // The head modes read the head unless told otherwise.
+        p.set_from_str("descriptor.mode", "power").unwrap();
+        assert_eq!((p.tap().unwrap(), p.descriptor().unwrap().dim()), (Tap::Head, 1280));
+        p.set_from_str("descriptor.tap", "blocks.9").unwrap();
+        assert_eq!((p.tap().unwrap(), p.descriptor().unwrap().dim()), (Tap::Block(9), 96));
+        p.set_from_str("descriptor.tap", "blocks.16").unwrap();
+        let err = p.descriptor().unwrap_err().to_string();
+        assert!(err.contains("blocks.16") && err.contains("blocks.12"), "{err}");
+        assert!(p.set_from_str("descriptor.tap", "blocks.17").is_err());
+        assert!(p.set_from_str("descriptor.grid", "5").is_err());
+        assert!(p.set_from_str("descriptor.pooling", "max").unwrap_err().contains("mac"));
     }
 
     #[test]

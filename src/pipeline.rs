@@ -24,7 +24,7 @@ use crate::detector::store::{KeyframeStore, StoreIdentity};
 use crate::detector::{Detector, Match};
 use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
-use crate::model::Arch;
+use crate::model::{Arch, Tap};
 use crate::types::{LoopCandidate, Stamp, Verified};
 use crate::verification::{Intrinsics, LocalFeatures, Verification, Verifier};
 
@@ -83,14 +83,15 @@ impl Pipeline {
     pub fn with_weights(params: Params, weights: Resolved) -> Result<Self> {
         let arch: Arch = params.arch().parse()?;
         let network = weights.weights.for_arch(arch)?.network(false)?;
-        log::info!("weights: {} -> {arch}, input {}², descriptor {}", weights.describe(), params.input_size(), params.descriptor_mode());
-        let embedder = Embedder::new(network, params.input_size()).context("network input size")?;
-        let descriptor = params.descriptor();
+        log::info!("weights: {} -> {arch}, input {}²", weights.describe(), params.input_size());
+        let mut embedder = Embedder::new(network, params.input_size()).context("network input size")?;
+        embedder.set_tap(params.tap()?)?;
+        let descriptor = params.descriptor()?;
         let verifier = params.verification(None).map(Verifier::new).transpose()?;
         if let Some(verifier) = &verifier {
             log::info!("geometric verification on: {:?}", verifier.params());
         }
-        Ok(Pipeline {
+        let pipeline = Pipeline {
             embedder,
             selector: KeyframeSelector::new(params.selection()),
             detector: Detector::new(descriptor.clone(), params.detector()),
@@ -102,7 +103,9 @@ impl Pipeline {
             verifier,
             camera_info: None,
             verify_best: true,
-        })
+        };
+        log::info!("descriptor {} ({} values)", pipeline.descriptor_name(), pipeline.descriptor.dim());
+        Ok(pipeline)
     }
 
     pub fn params(&self) -> &Params {
@@ -125,12 +128,21 @@ impl Pipeline {
         &mut self.detector
     }
 
+    /// The descriptor as one name, the tap included: the mode's name for the modes on the head
+    /// (`power`; what stores made before taps existed hold), else `regional-3x3-mac@blocks.16`.
+    pub fn descriptor_name(&self) -> String {
+        match self.embedder.tap() {
+            Tap::Head => self.descriptor.name(),
+            tap => format!("{}@{tap}", self.descriptor.name()),
+        }
+    }
+
     /// What this pipeline's descriptors depend on (a store must match it).
     pub fn store_identity(&self) -> StoreIdentity {
         StoreIdentity {
             weights_sha256: self.weights.sha256.clone(),
             arch: self.params.arch().to_string(),
-            descriptor_mode: self.params.descriptor_mode().name().to_string(),
+            descriptor_mode: self.descriptor_name(),
             input_size: self.params.input_size(),
             dim: self.descriptor.dim(),
         }

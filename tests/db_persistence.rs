@@ -231,7 +231,7 @@ fn restarted_pipeline_continues_ids_and_history() {
     params.set_from_str("descriptor.mode", "paper").unwrap();
     let mut other = Pipeline::with_weights(params, weights()).unwrap();
     let err = format!("{:#}", other.open_store(&db).unwrap_err());
-    assert!(err.contains("descriptor power (1280 values)") && err.contains("descriptor paper (128 values)") && err.contains("node.db"), "{err}");
+    assert!(err.contains("descriptor regional-3x3-mac@blocks.16 (2880 values)") && err.contains("descriptor paper (128 values)") && err.contains("node.db"), "{err}");
 }
 
 #[test]
@@ -250,7 +250,7 @@ fn db_info_export_and_merge_commands() {
     let out = ecm_lcd(&["db", "info", db.to_str().unwrap()]);
     let info = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    for expected in ["keyframes:       6", "ids:             0 .. 5", "arch:            ecmobilenet", "descriptor:      power (1280 values)", "input size:      96"] {
+    for expected in ["keyframes:       6", "ids:             0 .. 5", "arch:            mobilenetv2", "descriptor:      regional-3x3-mac@blocks.16 (2880 values)", "input size:      96"] {
         assert!(info.contains(expected), "{expected:?} not in\n{info}");
     }
     let sha = KeyframeStore::open_existing(&db).unwrap().identity().weights_sha256.clone();
@@ -263,7 +263,7 @@ fn db_info_export_and_merge_commands() {
     let rows: Vec<Vec<&str>> = text.lines().map(|l| l.split(',').collect()).collect();
     assert_eq!(rows.len(), 7);
     assert_eq!(&rows[0][..3], ["id", "stamp", "d0"]);
-    assert!(rows.iter().all(|r| r.len() == 2 + 1280));
+    assert!(rows.iter().all(|r| r.len() == 2 + 2880));
     let stored = KeyframeStore::open_existing(&db).unwrap().keyframes().unwrap();
     let exported: Vec<f32> = rows[4][2..].iter().map(|v| v.parse().unwrap()).collect();
     assert_eq!((rows[4][0], exported), ("3", stored[3].descriptor.clone()));
@@ -281,5 +281,5 @@ fn db_info_export_and_merge_commands() {
     args.extend(["--param", "descriptor.mode=paper"]);
     let out = ecm_lcd(&args);
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("descriptor power") && err.contains("descriptor paper") && err.contains("a.db"), "{err}");
+    assert!(!out.status.success() && err.contains("descriptor regional-3x3-mac@blocks.16") && err.contains("descriptor paper") && err.contains("a.db"), "{err}");
 }

@@ -29,6 +29,8 @@ const PARAMS: &[(&str, &str)] = &[
     ("detector.exclude_recent.count", "8"),
     ("detector.exclude_recent.seconds", "0.0"),
     // The threshold is for this descriptor, uncentred.
+    // The thresholds below are for this network and descriptor, uncentred.
+    ("arch", "ecmobilenet"),
     ("descriptor.mode", "l2"),
     ("detector.centre_on_history", "false"),
     ("detector.min_score", "0.975"),

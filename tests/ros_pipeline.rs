@@ -35,6 +35,8 @@ const SHORT_SEQUENCE_PARAMS: &[(&str, &str)] = &[
     ("detector.min_history", "5"),
     ("detector.exclude_recent.count", "8"),
     ("detector.exclude_recent.seconds", "0.0"),
+    // The thresholds below are for this network and descriptor, uncentred.
+    ("arch", "ecmobilenet"),
     ("descriptor.mode", "l2"),
     ("detector.centre_on_history", "false"),
 ];

@@ -698,7 +698,7 @@ fn end_to_end(args: &BenchArgs, frame: &(RgbImage, String), verify: bool) -> Res
             input: if verify { format!("{input}, verified") } else { input.to_string() },
             stored,
             dim,
-            descriptor: pipeline.params().descriptor_mode().name().to_string(),
+            descriptor: pipeline.descriptor_name(),
             arch: pipeline.params().arch().parse()?,
             frame: frame.1.clone(),
             total: Stats::of(&mut total),
@@ -788,7 +788,8 @@ fn rss_mb() -> Result<(f64, f64)> {
 
 fn memory_child(stored: usize, dim: usize) -> Result<MemoryRow> {
     let (baseline_mb, _) = rss_mb()?;
-    let descriptor = crate::descriptor::Descriptor::new(crate::descriptor::DescriptorMode::default(), dim);
+    // Any unit-vector mode whose length is its channel count: only the length and the score matter here.
+    let descriptor = crate::descriptor::Descriptor::new(crate::descriptor::DescriptorMode::L2, dim);
     let mut params = crate::detector::DetectorParams::default();
     params.min_history = 1;
     let mut detector = Detector::new(descriptor, params);

@@ -35,6 +35,18 @@
 //!   (power) normalisation, which damps bursty channels, and is L2-normalised, then the whole vector is
 //!   scaled by `1/sqrt(5)` so it is a unit vector: the score is `1 - d²/4` as for `l2`.
 //!
+//! - [`DescriptorMode::Regional`]: regional pooling over a `grid` x `grid` grid of cells (the cells of
+//!   `spatial`), each cell pooled per channel by [`Pooling`] (MAC by default), power- and L2-normalised,
+//!   and the cells concatenated and scaled by `1/grid` so the whole is a unit vector (`l2`'s score).
+//!   Meant for mid-level maps (by default the last bottleneck's output, before the 1x1 head that was
+//!   trained to name objects): the grid keeps where things are, which tells two similar rooms apart,
+//!   and the bottleneck's features carry texture and parts rather than classes. Bottleneck outputs
+//!   are linear (they may be negative): MAC and the signed square root take them as they are; GeM
+//!   clamps at zero.
+//!
+//! Every mode reads one map; which one (the head or a bottleneck's output) is the pipeline's tap
+//! ([`crate::model::Tap`], `descriptor.tap`); `channels` is that map's channel count.
+//!
 //! A zero block (all features zero) stays zero rather than dividing by zero.
 
 use crate::types::FeatureMap;
@@ -59,18 +71,77 @@ pub enum DescriptorMode {
     L2,
     /// `spatial`: global average + 2x2 regional max pooling, power- and L2-normalised.
     Spatial,
-    /// `power`: the global average pool, power- and L2-normalised. The default: with the detector's
-    /// centring on the history it measured best on the real development sets
-    /// (`examples/accuracy_table.rs`).
-    #[default]
+    /// `power`: the global average pool, power- and L2-normalised; best with the detector's centring
+    /// on the history.
     Power,
+    /// `regional`: a grid of regionally pooled cells, each power- and L2-normalised. The default: on
+    /// MobileNetV2's last bottleneck it measured best on the development sets
+    /// (`examples/accuracy_table.rs`, `examples/descriptor_study.rs`).
+    #[default]
+    Regional,
+}
+
+/// How the regional mode pools one channel over one cell.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
+pub enum Pooling {
+    /// `gap`: the mean.
+    Gap,
+    /// `gem`: generalised mean with exponent 3 of the values clamped at zero (between mean and max).
+    Gem,
+    /// `mac`: the maximum.
+    #[default]
+    Mac,
+}
+
+/// GeM's exponent: 3 is the usual choice (Radenović et al.) between the mean (1) and the max (inf).
+const GEM_EXPONENT: i32 = 3;
+
+impl Pooling {
+    pub const ALL: [Pooling; 3] = [Pooling::Gap, Pooling::Gem, Pooling::Mac];
+    pub const NAMES: [&'static str; 3] = ["gap", "gem", "mac"];
+
+    pub fn name(self) -> &'static str {
+        Self::NAMES[self as usize]
+    }
+
+    fn pool(self, values: impl Iterator<Item = f32>) -> f32 {
+        match self {
+            Pooling::Gap => {
+                let (sum, n) = values.fold((0.0f32, 0usize), |(s, n), x| (s + x, n + 1));
+                sum / n.max(1) as f32
+            }
+            Pooling::Gem => {
+                let (sum, n) = values.fold((0.0f32, 0usize), |(s, n), x| (s + x.max(0.0).powi(GEM_EXPONENT), n + 1));
+                (sum / n.max(1) as f32).powf(1.0 / GEM_EXPONENT as f32)
+            }
+            Pooling::Mac => values.fold(f32::NEG_INFINITY, f32::max),
+        }
+    }
+}
+
+impl fmt::Display for Pooling {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for Pooling {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        Pooling::ALL
+            .into_iter()
+            .find(|p| p.name() == text)
+            .ok_or_else(|| format!("unknown pooling {text:?} (expected one of {})", Self::NAMES.join(", ")))
+    }
 }
 
 impl DescriptorMode {
     /// Every mode, in the order of the names of [`DescriptorMode::NAMES`].
-    pub const ALL: [DescriptorMode; 4] = [DescriptorMode::Paper, DescriptorMode::L2, DescriptorMode::Spatial, DescriptorMode::Power];
+    pub const ALL: [DescriptorMode; 5] =
+        [DescriptorMode::Paper, DescriptorMode::L2, DescriptorMode::Spatial, DescriptorMode::Power, DescriptorMode::Regional];
     /// The names accepted by [`FromStr`], as used in config files.
-    pub const NAMES: [&'static str; 4] = ["paper", "l2", "spatial", "power"];
+    pub const NAMES: [&'static str; 5] = ["paper", "l2", "spatial", "power", "regional"];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -78,7 +149,13 @@ impl DescriptorMode {
             DescriptorMode::L2 => "l2",
             DescriptorMode::Spatial => "spatial",
             DescriptorMode::Power => "power",
+            DescriptorMode::Regional => "regional",
         }
+    }
+
+    /// Whether the mode's descriptors are unit vectors compared by their cosine (all but `paper`).
+    pub fn is_unit_vector(self) -> bool {
+        self != DescriptorMode::Paper
     }
 }
 
@@ -126,11 +203,19 @@ pub fn squared_distance(a: &[f32], b: &[f32]) -> f32 {
     lanes.iter().sum::<f32>() + tail
 }
 
-/// A descriptor mode bound to the network's channel count (the paper mode's score depends on the length).
+/// The regional mode's default grid side: 3x3 cells measured best on the development sets
+/// (`examples/descriptor_study.rs`).
+pub const DEFAULT_GRID: usize = 3;
+
+/// A descriptor mode bound to the tapped map's channel count (the paper mode's score depends on the
+/// length), with the regional mode's grid and pooling (ignored by the other modes).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Descriptor {
     pub mode: DescriptorMode,
     pub channels: usize,
+    /// Cells per side of the regional grid, at least 1.
+    pub grid: usize,
+    pub pooling: Pooling,
 }
 
 impl Default for Descriptor {
@@ -141,7 +226,21 @@ impl Default for Descriptor {
 
 impl Descriptor {
     pub fn new(mode: DescriptorMode, channels: usize) -> Self {
-        Descriptor { mode, channels }
+        Descriptor { mode, channels, grid: DEFAULT_GRID, pooling: Pooling::default() }
+    }
+
+    /// The regional mode on a `channels`-channel map, `grid` x `grid` cells (at least 1) pooled by `pooling`.
+    pub fn regional(channels: usize, grid: usize, pooling: Pooling) -> Self {
+        Descriptor { mode: DescriptorMode::Regional, channels, grid: grid.max(1), pooling }
+    }
+
+    /// What the descriptor's values depend on besides the network, as one name: the mode's name,
+    /// with the regional grid and pooling (`regional-3x3-mac`).
+    pub fn name(&self) -> String {
+        match self.mode {
+            DescriptorMode::Regional => format!("regional-{0}x{0}-{1}", self.grid, self.pooling),
+            mode => mode.name().to_string(),
+        }
     }
 
     /// Length of the descriptor this mode computes from a `channels`-channel feature map.
@@ -150,6 +249,7 @@ impl Descriptor {
             DescriptorMode::Paper => self.channels.div_ceil(PAPER_GROUP),
             DescriptorMode::L2 | DescriptorMode::Power => self.channels,
             DescriptorMode::Spatial => self.channels * (1 + SPATIAL_GRID * SPATIAL_GRID),
+            DescriptorMode::Regional => self.channels * self.grid * self.grid,
         }
     }
 
@@ -188,6 +288,7 @@ impl Descriptor {
                 l2_normalise(&mut v);
                 v
             }
+            DescriptorMode::Regional => regional_descriptor(fm, self.grid, self.pooling),
         })
     }
 
@@ -200,7 +301,7 @@ impl Descriptor {
         let distance = distance.max(0.0);
         let score = match self.mode {
             DescriptorMode::Paper => 1.0 - distance / (self.dim() as f32).sqrt(),
-            DescriptorMode::L2 | DescriptorMode::Spatial | DescriptorMode::Power => 1.0 - distance * distance / 4.0,
+            _ => 1.0 - distance * distance / 4.0,
         };
         // An infinite distance gives -inf here (and inf * inf stays inf), so clamping is enough.
         score.clamp(0.0, 1.0)
@@ -211,7 +312,7 @@ impl Descriptor {
         let score = if score.is_nan() { 0.0 } else { score.clamp(0.0, 1.0) };
         match self.mode {
             DescriptorMode::Paper => (1.0 - score) * (self.dim() as f32).sqrt(),
-            DescriptorMode::L2 | DescriptorMode::Spatial | DescriptorMode::Power => (4.0 * (1.0 - score)).sqrt(),
+            _ => (4.0 * (1.0 - score)).sqrt(),
         }
     }
 }
@@ -269,6 +370,28 @@ fn spatial_descriptor(fm: &FeatureMap) -> Vec<f32> {
         power_normalise(block);
         l2_normalise(block);
         block.iter_mut().for_each(|x| *x *= block_weight);
+    }
+    out
+}
+
+/// The regional mode (module doc): cells in row-major order, each a block of `channels` values.
+fn regional_descriptor(fm: &FeatureMap, grid: usize, pooling: Pooling) -> Vec<f32> {
+    let plane = fm.height * fm.width;
+    let mut out = Vec::with_capacity(fm.channels * grid * grid);
+    for cell_row in 0..grid {
+        let rows = grid_cell(fm.height, grid, cell_row);
+        for cell_col in 0..grid {
+            let cols = grid_cell(fm.width, grid, cell_col);
+            let start = out.len();
+            for channel in fm.data.chunks_exact(plane) {
+                let values = rows.clone().flat_map(|r| channel[r * fm.width + cols.start..r * fm.width + cols.end].iter().copied());
+                out.push(pooling.pool(values));
+            }
+            let cell = &mut out[start..];
+            power_normalise(cell);
+            l2_normalise(cell);
+            cell.iter_mut().for_each(|x| *x /= grid as f32);
+        }
     }
     out
 }
@@ -378,6 +501,64 @@ mod tests {
         assert_close(&v[0..4], &[w / s5, 2.0 * w / s5, 0.0, w]);
         let norm: f32 = v.iter().map(|x| x * x).sum();
         assert!((norm - 1.0).abs() < 1e-5);
+    }
+
+    /// The regional mode written out plainly: index arithmetic per pixel, f64 sums.
+    fn regional_reference(fm: &FeatureMap, grid: usize, pooling: Pooling) -> Vec<f32> {
+        let at = |c: usize, y: usize, x: usize| fm.data[(c * fm.height + y) * fm.width + x] as f64;
+        let mut out = Vec::new();
+        for gy in 0..grid {
+            for gx in 0..grid {
+                let (y0, y1) = (gy * fm.height / grid, ((gy + 1) * fm.height).div_ceil(grid));
+                let (x0, x1) = (gx * fm.width / grid, ((gx + 1) * fm.width).div_ceil(grid));
+                let mut cell = Vec::new();
+                for c in 0..fm.channels {
+                    let pixels: Vec<f64> = (y0..y1).flat_map(|y| (x0..x1).map(move |x| (y, x))).map(|(y, x)| at(c, y, x)).collect();
+                    let n = pixels.len() as f64;
+                    let pooled = match pooling {
+                        Pooling::Gap => pixels.iter().sum::<f64>() / n,
+                        Pooling::Gem => (pixels.iter().map(|v| v.max(0.0).powi(3)).sum::<f64>() / n).cbrt(),
+                        Pooling::Mac => pixels.iter().cloned().fold(f64::NEG_INFINITY, f64::max),
+                    };
+                    cell.push(pooled.signum() * pooled.abs().sqrt());
+                }
+                let norm = cell.iter().map(|v| v * v).sum::<f64>().sqrt();
+                out.extend(cell.iter().map(|v| if norm > 0.0 { (v / norm / grid as f64) as f32 } else { 0.0 }));
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn regional_mode_matches_the_plain_reference() {
+        // Signed values (a bottleneck's output is linear), odd sizes (overlapping cells), every pooling.
+        let fm = map(5, 7, 6, |c, y, x| ((c * 31 + y * 7 + x * 3) % 11) as f32 - 4.5 + 0.1 * c as f32);
+        for pooling in Pooling::ALL {
+            for grid in 1..=4 {
+                let d = Descriptor::regional(5, grid, pooling);
+                let v = d.compute(&fm).unwrap();
+                assert_eq!(v.len(), d.dim());
+                assert_close(&v, &regional_reference(&fm, grid, pooling));
+                let norm: f32 = v.iter().map(|x| x * x).sum();
+                assert!((norm - 1.0).abs() < 1e-5, "{pooling} {grid}: |v|² = {norm}");
+            }
+        }
+        assert_eq!(Descriptor::regional(320, 3, Pooling::Mac).name(), "regional-3x3-mac");
+        assert_eq!("gem".parse::<Pooling>().unwrap(), Pooling::Gem);
+        assert!("max".parse::<Pooling>().unwrap_err().contains("mac"));
+    }
+
+    #[test]
+    fn regional_mode_hand_computed() {
+        // One channel, a 2x2 map, 2x2 cells: every cell is one pixel; sqrt then L2 of a 1-value
+        // block is its sign; scaled by 1/2.
+        let fm = map(1, 2, 2, |_, y, x| [4.0, -9.0, 0.0, 1.0][y * 2 + x]);
+        let v = Descriptor::regional(1, 2, Pooling::Mac).compute(&fm).unwrap();
+        assert_close(&v, &[0.5, -0.5, 0.0, 0.5]);
+        // Two channels, one cell: MAC (9, 16) -> sqrt (3, 4) -> (0.6, 0.8); GAP (4.5, 8) -> ...
+        let fm = map(2, 1, 2, |c, _, x| if c == 0 { 9.0 * x as f32 } else { 16.0 * x as f32 });
+        assert_close(&Descriptor::regional(2, 1, Pooling::Mac).compute(&fm).unwrap(), &[0.6, 0.8]);
+        assert_close(&Descriptor::regional(2, 1, Pooling::Gap).compute(&fm).unwrap(), &[0.6, 0.8]);
     }
 
     #[test]

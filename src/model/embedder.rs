@@ -4,7 +4,7 @@ use anyhow::Result;
 use image::RgbImage;
 
 use super::layers::Mode;
-use super::Network;
+use super::{Network, Tap};
 use crate::preprocess::Preprocessor;
 use crate::types::FeatureMap;
 
@@ -13,13 +13,30 @@ pub struct Embedder {
     pub network: Network,
     preprocessor: Preprocessor,
     mode: Mode,
+    /// The map [`Embedder::feature_map`] returns.
+    tap: Tap,
 }
 
 impl Embedder {
     /// `input_size`: a multiple of 32 (224 is what the weights were trained at).
     pub fn new(network: Network, input_size: usize) -> Result<Self> {
         super::check_input_size(input_size)?;
-        Ok(Embedder { network, preprocessor: Preprocessor::new(input_size), mode: Mode::Inference })
+        Ok(Embedder { network, preprocessor: Preprocessor::new(input_size), mode: Mode::Inference, tap: Tap::Head })
+    }
+
+    /// Which map [`Embedder::feature_map`] returns (the head by default). Errors when the network
+    /// has no such block.
+    pub fn set_tap(&mut self, tap: Tap) -> Result<()> {
+        if let Tap::Block(i) = tap {
+            let blocks = self.network.blocks.len();
+            anyhow::ensure!(i < blocks, "tap {tap} is past the last of {blocks} bottlenecks");
+        }
+        self.tap = tap;
+        Ok(())
+    }
+
+    pub fn tap(&self) -> Tap {
+        self.tap
     }
 
     /// Use stock candle ops instead of the fast kernels (for verification).
@@ -31,18 +48,15 @@ impl Embedder {
         self.preprocessor.size()
     }
 
-    /// The feature map of `image`, computed on a rayon worker ([`crate::runtime::on_worker`]).
+    /// The feature map of `image` at the tap ([`Embedder::set_tap`]), computed on a rayon worker
+    /// ([`crate::runtime::on_worker`]).
     pub fn feature_map(&mut self, image: &RgbImage) -> Result<FeatureMap> {
-        crate::runtime::on_worker(|| {
-            let x = self.preprocessor.tensor(image)?;
-            let y = self.network.features(&x, self.mode)?;
-            let (_, channels, height, width) = y.dims4()?;
-            Ok(FeatureMap { channels, height, width, data: y.flatten_all()?.to_vec1::<f32>()? })
-        })
+        let tap = self.tap;
+        Ok(self.tapped_maps(image, &[tap])?.pop().expect("one map per tap"))
     }
 
     /// The maps at `taps` of `image` (see [`super::Network::tapped_features`]), computed on a rayon worker.
-    pub fn tapped_maps(&mut self, image: &RgbImage, taps: &[super::Tap]) -> Result<Vec<FeatureMap>> {
+    pub fn tapped_maps(&mut self, image: &RgbImage, taps: &[Tap]) -> Result<Vec<FeatureMap>> {
         crate::runtime::on_worker(|| {
             let x = self.preprocessor.tensor(image)?;
             let maps = self.network.tapped_features(&x, self.mode, taps)?;
