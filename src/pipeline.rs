@@ -94,7 +94,7 @@ impl Pipeline {
         let pipeline = Pipeline {
             embedder,
             selector: KeyframeSelector::new(params.selection()),
-            detector: Detector::new(descriptor.clone(), params.detector()),
+            detector: Detector::new(descriptor, params.detector()),
             descriptor,
             params,
             next_id: 0,

@@ -40,7 +40,7 @@ pub enum DbCommand {
 pub fn run(args: Args) -> Result<()> {
     match args.command {
         DbCommand::Info { path } => {
-            let store = KeyframeStore::open_existing(&path)?;
+            let store = KeyframeStore::open_read_only(&path)?;
             let summary = store.summary()?;
             let identity = store.identity();
             println!("database:        {}", path.display());
@@ -61,7 +61,8 @@ pub fn run(args: Args) -> Result<()> {
             Ok(())
         }
         DbCommand::Export { path, output } => {
-            let store = KeyframeStore::open_existing(&path)?;
+            crate::io::output::ensure_not_an_input(&output, &[&path])?;
+            let store = KeyframeStore::open_read_only(&path)?;
             let file = std::fs::File::create(&output).with_context(|| format!("cannot write {}", output.display()))?;
             let mut out = csv::Writer::from_writer(std::io::BufWriter::new(file));
             let mut header = vec!["id".to_string(), "stamp".to_string()];

@@ -22,9 +22,9 @@ use std::process::ExitCode;
 #[derive(Parser, Debug)]
 #[command(name = "ecm-lcd", version, about = "Loop-closure detection for visual SLAM with ECMobileNet descriptors")]
 pub struct Cli {
-    /// Compute threads (default: number of CPUs).
-    #[arg(long, global = true)]
-    pub threads: Option<usize>,
+    /// Compute threads, 1 to 1024 (default: number of CPUs).
+    #[arg(long, global = true, value_parser = clap::value_parser!(u16).range(1..=1024))]
+    pub threads: Option<u16>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -75,7 +75,7 @@ pub fn main() -> ExitCode {
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or(default_log_filter(std::env::args())))
         .format_timestamp_millis()
         .init();
-    crate::runtime::init_threads(cli.threads);
+    crate::runtime::init_threads(cli.threads.map(usize::from));
     crate::runtime::keep_freed_memory();
     match run(cli.command) {
         Ok(()) => ExitCode::SUCCESS,

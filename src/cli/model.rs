@@ -56,6 +56,7 @@ pub struct ImportArgs {
 }
 
 pub fn import_weights(args: ImportArgs) -> Result<()> {
+    crate::io::output::ensure_not_an_input(&args.output, &[&args.tflite])?;
     let weights = import::import_tflite(&args.tflite)?.for_arch(args.arch)?;
     weights.save(&args.output)?;
     println!("wrote {} ({}, {} tensors) from {}", args.output.display(), weights.arch, weights.tensors.len(), args.tflite.display());
@@ -184,6 +185,8 @@ pub struct EmbedArgs {
 }
 
 pub fn embed(args: EmbedArgs) -> Result<()> {
+    let images: Vec<&std::path::Path> = args.images.iter().map(PathBuf::as_path).collect();
+    crate::io::output::ensure_not_an_input(&args.output, &images)?;
     let (mut embedder, _) = args.network.embedder(Arch::EcMobileNet, false)?;
     // Every image is read before the output is opened, so a bad image leaves an existing file as it was.
     let mut records = Vec::with_capacity(args.images.len());

@@ -153,6 +153,17 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<()> {
+    // Before anything is opened: neither output may be one of the inputs (or the other output).
+    let inputs: Vec<&Path> =
+        [Some(args.source.as_path()), args.source_args.config.as_deref(), args.source_args.weights.as_deref()].into_iter().flatten().collect();
+    if let Some(db) = &args.source_args.db {
+        crate::io::output::ensure_not_an_input(db, &inputs)?;
+    }
+    if let Some(output) = &args.output {
+        let mut read = inputs.clone();
+        read.extend(args.source_args.db.as_deref());
+        crate::io::output::ensure_not_an_input(output, &read)?;
+    }
     let mut pipeline = args.source_args.pipeline()?;
     let resuming = pipeline.store().is_some_and(|store| !store.is_empty());
     let mut csv = match &args.output {

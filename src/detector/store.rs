@@ -131,6 +131,17 @@ fn open_connection(path: &Path, flags: OpenFlags) -> Result<Connection> {
     Ok(connection)
 }
 
+/// An existing regular file (a symlink to one is followed), or an error that says what it is.
+fn ensure_database_file(path: &Path) -> Result<()> {
+    match std::fs::metadata(path) {
+        Ok(m) if m.is_file() => Ok(()),
+        Ok(m) if m.is_dir() => bail!("keyframe database {} is a directory", path.display()),
+        Ok(_) => bail!("keyframe database {} is not a regular file", path.display()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => bail!("keyframe database {} does not exist", path.display()),
+        Err(e) => Err(e).with_context(|| format!("cannot open keyframe database {}", path.display())),
+    }
+}
+
 fn to_sql_id(id: u64) -> Result<i64> {
     i64::try_from(id).with_context(|| format!("keyframe id {id} is too large for the database (at most {})", i64::MAX))
 }
@@ -145,12 +156,26 @@ impl KeyframeStore {
     /// temporary name and renamed into place, so a crash while creating never leaves a file at `path`
     /// that is not a complete, empty store.
     pub fn open_or_create(path: &Path, identity: &StoreIdentity) -> Result<Self> {
-        let created = std::fs::metadata(path).map_or(true, |m| m.len() == 0);
+        // A symlink is written through (the store is created at its target, the link stays).
+        let target;
+        let path = if std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink()) {
+            target = std::fs::canonicalize(path).with_context(|| format!("keyframe database {} is a dangling symlink", path.display()))?;
+            target.as_path()
+        } else {
+            path
+        };
+        // Only a missing path or an empty regular file is created; a device, FIFO or directory is
+        // refused rather than replaced.
+        let created = match std::fs::metadata(path) {
+            Err(_) => true,
+            Ok(m) if m.is_file() => m.len() == 0,
+            Ok(_) => bail!("keyframe database {} is not a regular file; give a file path", path.display()),
+        };
         if created {
             create_store_file(path, identity).with_context(|| format!("creating keyframe database {}", path.display()))?;
         }
         let connection = open_connection(path, OpenFlags::SQLITE_OPEN_READ_WRITE)?;
-        let store = Self::from_connection(connection, path)?;
+        let store = Self::from_connection(connection, path, true)?;
         store.identity.check_same(&format!("keyframe database {}", path.display()), identity, "this pipeline")?;
         #[cfg(unix)]
         if created {
@@ -160,20 +185,44 @@ impl KeyframeStore {
         Ok(store)
     }
 
-    /// Opens an existing store, whatever its identity (for inspection, export and merging).
+    /// Opens an existing store for writing, whatever its identity.
     pub fn open_existing(path: &Path) -> Result<Self> {
-        ensure!(path.is_file(), "keyframe database {} does not exist", path.display());
+        ensure_database_file(path)?;
         let connection = open_connection(path, OpenFlags::SQLITE_OPEN_READ_WRITE)?;
-        Self::from_connection(connection, path)
+        Self::from_connection(connection, path, true)
     }
 
-    fn from_connection(connection: Connection, path: &Path) -> Result<Self> {
+    /// Opens an existing store for reading only (inspection, export, the inputs of a merge): the
+    /// file is never created, converted or modified, and no file is created beside it. A store in
+    /// use (its write-ahead log is there) is read through the log, as a writer sees it; one at rest
+    /// is opened immutable, which needs no shared-memory file and works on a read-only file system.
+    pub fn open_read_only(path: &Path) -> Result<Self> {
+        ensure_database_file(path)?;
+        let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX;
+        let mut wal = path.as_os_str().to_owned();
+        wal.push("-wal");
+        let connection = if Path::new(&wal).exists() {
+            open_connection(path, flags)?
+        } else {
+            let text = path.to_str().with_context(|| format!("{} is not a UTF-8 path", path.display()))?;
+            let uri = format!("file:{}?immutable=1", text.replace('%', "%25").replace('?', "%3f").replace('#', "%23"));
+            let c = Connection::open_with_flags(&uri, flags | OpenFlags::SQLITE_OPEN_URI)
+                .with_context(|| format!("cannot open keyframe database {}", path.display()))?;
+            c.busy_timeout(std::time::Duration::from_secs(5))?;
+            c
+        };
+        Self::from_connection(connection, path, false)
+    }
+
+    fn from_connection(connection: Connection, path: &Path, writable: bool) -> Result<Self> {
         let context = || format!("keyframe database {}", path.display());
-        // WAL and FULL: see the module doc. journal_mode is stored in the file; synchronous is per connection.
-        connection
-            .query_row("PRAGMA journal_mode = WAL", [], |r| r.get::<_, String>(0))
-            .with_context(|| format!("{} is not a keyframe database", path.display()))?;
-        connection.pragma_update(None, "synchronous", "FULL").with_context(context)?;
+        if writable {
+            // WAL and FULL: see the module doc. journal_mode is stored in the file; synchronous is per connection.
+            connection
+                .query_row("PRAGMA journal_mode = WAL", [], |r| r.get::<_, String>(0))
+                .with_context(|| format!("{} is not a keyframe database", path.display()))?;
+            connection.pragma_update(None, "synchronous", "FULL").with_context(context)?;
+        }
         let meta = |key: &str| -> Result<String> {
             connection
                 .query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get::<_, String>(0))
@@ -197,7 +246,20 @@ impl KeyframeStore {
         let (count, max_id): (i64, Option<i64>) = connection
             .query_row("SELECT count(*), max(id) FROM keyframes", [], |r| Ok((r.get(0)?, r.get(1)?)))
             .with_context(context)?;
-        // Stores written before the vector file have no uid: they get one now (first writer wins).
+        // Stores written before the vector file have no uid: they get one now (first writer wins);
+        // read-only, one that is not there is all zeros (it only names the vector file's owner).
+        if !writable && meta("uid").is_err() {
+            return Ok(KeyframeStore {
+                connection,
+                path: path.to_path_buf(),
+                identity,
+                count: count as u64,
+                max_id: max_id.map(|id| id as u64),
+                uid: [b'0'; 32],
+                #[cfg(unix)]
+                vectors: None,
+            });
+        }
         if meta("uid").is_err() {
             connection
                 .execute("INSERT OR IGNORE INTO meta (key, value) VALUES ('uid', ?1)", [new_uid(path)])
@@ -689,8 +751,8 @@ pub struct MergeReport {
 /// naming the clashing ids; `output` must not exist yet. Rows are copied inside SQLite (no descriptor
 /// passes through memory), in one transaction.
 pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) -> Result<MergeReport> {
-    let a = KeyframeStore::open_existing(first)?;
-    let b = KeyframeStore::open_existing(second)?;
+    let a = KeyframeStore::open_read_only(first)?;
+    let b = KeyframeStore::open_read_only(second)?;
     a.identity.check_same(&format!("{}", first.display()), &b.identity, &format!("{}", second.display()))?;
     ensure!(!output.exists(), "{} already exists; merge writes a new database", output.display());
     let offset = to_sql_id(second_id_offset)?;

@@ -7,6 +7,7 @@
 
 pub mod image_msg;
 pub mod msgs;
+pub mod output;
 pub mod ros1bag;
 pub mod ros2bag;
 pub mod tum;

@@ -415,10 +415,14 @@ impl Network {
     }
 }
 
-/// Checks an input size: a positive multiple of 32.
+/// The largest network input side, the `input_size` parameter's bound (activations grow with its
+/// square: a typo such as 65536 would ask for tens of gigabytes).
+pub const MAX_INPUT_SIZE: usize = 1024;
+
+/// `size` when it is a positive multiple of 32 up to [`MAX_INPUT_SIZE`].
 pub fn check_input_size(size: usize) -> anyhow::Result<usize> {
-    if size == 0 || size % 32 != 0 {
-        bail!("input size {size} is not a positive multiple of 32");
+    if size == 0 || !size.is_multiple_of(32) || size > MAX_INPUT_SIZE {
+        bail!("input size {size} is not a multiple of 32 in [32, {MAX_INPUT_SIZE}]");
     }
     Ok(size)
 }

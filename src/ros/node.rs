@@ -508,6 +508,40 @@ fn drain<M: 'static + serde::de::DeserializeOwned>(
     }
 }
 
+/// The `frame_id` of each keyframe a candidate may match, for `LoopCandidate.match_frame_id`: bounded
+/// by the keyframes the processor keeps (the oldest go first), each distinct name stored once
+/// (a tracker sends the same one with every keyframe).
+#[derive(Default)]
+struct FrameIds {
+    order: std::collections::VecDeque<u64>,
+    names: HashMap<u64, Arc<str>>,
+}
+
+impl FrameIds {
+    /// The bound when the processor does not say how many keyframes it keeps.
+    const DEFAULT_CAPACITY: usize = 100_000;
+
+    fn insert(&mut self, id: u64, frame_id: &str) {
+        let shared = self.order.back().and_then(|last| self.names.get(last)).filter(|name| &***name == frame_id).cloned();
+        let name = shared.unwrap_or_else(|| Arc::from(frame_id));
+        if self.names.insert(id, name).is_none() {
+            self.order.push_back(id);
+        }
+    }
+
+    fn keep_newest(&mut self, n: usize) {
+        while self.order.len() > n.max(1) {
+            if let Some(id) = self.order.pop_front() {
+                self.names.remove(&id);
+            }
+        }
+    }
+
+    fn get(&self, id: u64) -> Option<&str> {
+        self.names.get(&id).map(|name| &**name)
+    }
+}
+
 /// Decodes, processes and publishes queued messages until the queue closes.
 fn worker_loop(
     fqn: &str,
@@ -517,8 +551,12 @@ fn worker_loop(
     counters: &NodeCounters,
     live: &Mutex<Params>,
 ) {
-    // frame_id of each keyframe id seen, for LoopCandidate.match_frame_id.
-    let mut frame_ids: HashMap<u64, String> = HashMap::new();
+    let mut frame_ids = FrameIds::default();
+    // Read-only while running: read once.
+    let mode = match live.lock().unwrap_or_else(|e| e.into_inner()).get("descriptor.mode") {
+        Some(ParamValue::String(mode)) => mode,
+        _ => String::new(),
+    };
     loop {
         let queued = match queue.pop(Duration::from_millis(200)) {
             Next::Control(Control::Param(name, value)) => {
@@ -584,19 +622,14 @@ fn worker_loop(
         if let Some(keyframes) = processor.keyframes() {
             counters.keyframes.store(keyframes, Ordering::Relaxed);
         }
-        if let Some(id) = id {
-            frame_ids.insert(id, header.frame_id.clone());
+        if let Some(id) = id.or(candidates.first().map(|c| c.query_id)) {
+            frame_ids.insert(id, &header.frame_id);
         }
-        if let Some(first) = candidates.first() {
-            frame_ids.entry(first.query_id).or_insert_with(|| header.frame_id.clone());
-        }
-        let mode = match live.lock().unwrap_or_else(|e| e.into_inner()).get("descriptor.mode") {
-            Some(ParamValue::String(mode)) => mode,
-            _ => String::new(),
-        };
+        // One entry per keyframe the processor keeps: a match can only be one of those.
+        frame_ids.keep_newest(processor.keyframes().map_or(FrameIds::DEFAULT_CAPACITY, |n| n as usize));
         let total = candidates.len() as u32;
         for candidate in &candidates {
-            let match_frame = frame_ids.get(&candidate.match_id).unwrap_or(&header.frame_id);
+            let match_frame = frame_ids.get(candidate.match_id).unwrap_or(&header.frame_id);
             let msg = LoopCandidate::from_candidate(candidate, &header.frame_id, match_frame, total, &mode);
             match publisher.publish(msg) {
                 Ok(()) => {
@@ -614,5 +647,30 @@ fn worker_loop(
             candidates.len(),
             candidates.first().map_or(String::new(), |c| format!(", best {} -> {} score {:.3}", c.query_id, c.match_id, c.score)),
         );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::FrameIds;
+
+    #[test]
+    fn frame_ids_are_bounded_and_share_one_name() {
+        let mut ids = FrameIds::default();
+        for id in 0..1000 {
+            ids.insert(id, "camera");
+            ids.keep_newest(100);
+        }
+        assert_eq!(ids.order.len(), 100);
+        assert_eq!((ids.get(899), ids.get(900), ids.get(999)), (None, Some("camera"), Some("camera")));
+        // Consecutive equal names are one allocation.
+        let (a, b) = (&ids.names[&998], &ids.names[&999]);
+        assert!(std::sync::Arc::ptr_eq(a, b));
+        ids.insert(1000, "left");
+        assert_eq!(ids.get(1000), Some("left"));
+        // Inserting an id again does not grow the order.
+        ids.insert(1000, "left");
+        ids.keep_newest(1000);
+        assert_eq!(ids.order.len(), 101);
     }
 }

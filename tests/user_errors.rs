@@ -1,0 +1,155 @@
+//! Commands a user mistypes: an output that names an input, a database path that is a device, a
+//! FIFO, a directory or a symlink, read-only inspection of files that are not keyframe databases,
+//! and numbers far out of range. Each must fail fast with an error that says what is wrong, and
+//! every file involved must keep its bytes (and its kind) afterwards.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+use ecm_lcd::detector::store::{KeyframeStore, StoreIdentity};
+use ecm_lcd::types::Stamp;
+
+fn command() -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"));
+    command.env("ECM_LCD_CACHE", Path::new(env!("CARGO_TARGET_TMPDIR")).join("weights-cache")).env("RUST_LOG", "warn");
+    command
+}
+
+/// Runs the binary; it must fail within 2 s (before any network is built) with every `expected`
+/// piece in its error. Returns the error text.
+fn refused(args: &[&str], expected: &[&str]) -> String {
+    let started = Instant::now();
+    let out: Output = command().args(args).output().unwrap();
+    let elapsed = started.elapsed();
+    let err = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(!out.status.success(), "{args:?} succeeded:\n{err}");
+    for piece in expected {
+        assert!(err.contains(piece), "{args:?}: {piece:?} not in:\n{err}");
+    }
+    assert!(elapsed < Duration::from_secs(2), "{args:?} took {elapsed:?}");
+    err
+}
+
+/// Every file in `dir` with its length and a hash of its bytes (compared, and printed on a mismatch).
+fn snapshot(dir: &Path) -> Vec<(PathBuf, usize, u64)> {
+    use std::hash::{Hash, Hasher};
+    let mut files: Vec<_> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| std::fs::symlink_metadata(p).unwrap().is_file())
+        .map(|p| {
+            let bytes = std::fs::read(&p).unwrap();
+            let mut hasher = std::collections::hash_map::DefaultHasher::new();
+            bytes.hash(&mut hasher);
+            (p, bytes.len(), hasher.finish())
+        })
+        .collect();
+    files.sort();
+    files
+}
+
+/// A small valid keyframe store of 3 keyframes.
+fn store(path: &Path) {
+    let identity =
+        StoreIdentity { weights_sha256: "0".repeat(64), arch: "mobilenetv2".into(), descriptor_mode: "l2".into(), input_size: 224, dim: 4 };
+    let mut store = KeyframeStore::open_or_create(path, &identity).unwrap();
+    for id in 0..3u64 {
+        store.append(id, Stamp::from_sec_nsec(100 + id as i64, 0), &[0.5, 0.5, 0.5, id as f32]).unwrap();
+    }
+}
+
+#[test]
+fn an_output_that_is_an_input_is_refused_and_the_input_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    let image = image::RgbImage::from_fn(32, 24, |x, y| image::Rgb([x as u8 * 8, y as u8 * 10, 77]));
+    image.save(d("frame.png")).unwrap();
+    store(Path::new(&d("k.db")));
+    std::fs::write(d("m.tflite"), b"not really a model").unwrap();
+    std::fs::create_dir(dir.path().join("seq")).unwrap();
+    let before = snapshot(dir.path());
+
+    refused(&["embed", &d("frame.png"), "-o", &d("frame.png")], &["frame.png", "destroy"]);
+    refused(&["db", "export", &d("k.db"), "-o", &d("k.db")], &["k.db", "destroy"]);
+    refused(&["replay", &d("seq"), "--db", &d("k.db"), "-o", &d("k.db")], &["k.db", "destroy"]);
+    refused(&["import-weights", &d("m.tflite"), "-o", &d("m.tflite")], &["m.tflite", "destroy"]);
+    // Another spelling of the same file.
+    let spelled = dir.path().join(".").join("frame.png");
+    refused(&["embed", &d("frame.png"), "-o", spelled.to_str().unwrap()], &["destroy"]);
+
+    assert_eq!(snapshot(dir.path()), before, "a refused command changed a file");
+}
+
+#[test]
+fn a_database_path_that_is_not_a_regular_file_is_refused_not_replaced() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    std::fs::create_dir(&seq).unwrap();
+    let seq = seq.to_str().unwrap();
+
+    let folder = dir.path().join("a_folder.db");
+    std::fs::create_dir(&folder).unwrap();
+    refused(&["replay", seq, "--db", folder.to_str().unwrap(), "--quiet"], &["a_folder.db", "not a regular file"]);
+    assert!(folder.is_dir());
+
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        let fifo = dir.path().join("pipe.db");
+        assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+        refused(&["replay", seq, "--db", fifo.to_str().unwrap(), "--quiet"], &["pipe.db", "not a regular file"]);
+        assert!(std::fs::symlink_metadata(&fifo).unwrap().file_type().is_fifo(), "the FIFO was replaced");
+        refused(&["db", "info", fifo.to_str().unwrap()], &["pipe.db", "not a regular file"]);
+    }
+
+    // A symlink to a valid store is read through and stays a symlink.
+    #[cfg(unix)]
+    {
+        let real = dir.path().join("real.db");
+        store(&real);
+        let link = dir.path().join("link.db");
+        std::os::unix::fs::symlink(&real, &link).unwrap();
+        let out = command().args(["db", "info", link.to_str().unwrap()]).output().unwrap();
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert!(String::from_utf8_lossy(&out.stdout).contains("keyframes:       3"));
+        assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink());
+    }
+}
+
+#[test]
+fn inspection_never_creates_converts_or_modifies_a_file() {
+    let dir = tempfile::tempdir().unwrap();
+    // An empty file, an SQLite database of another schema (rollback journal), and a valid store.
+    let empty = dir.path().join("empty.db");
+    std::fs::write(&empty, b"").unwrap();
+    let other = dir.path().join("other.db");
+    {
+        let c = rusqlite::Connection::open(&other).unwrap();
+        c.execute_batch("CREATE TABLE notes (t TEXT); INSERT INTO notes VALUES ('hello');").unwrap();
+    }
+    let valid = dir.path().join("valid.db");
+    store(&valid);
+    let before = snapshot(dir.path());
+
+    refused(&["db", "info", empty.to_str().unwrap()], &["empty.db", "not a keyframe database"]);
+    refused(&["db", "info", other.to_str().unwrap()], &["other.db", "not a keyframe database"]);
+    refused(&["db", "export", other.to_str().unwrap(), "-o", dir.path().join("x.csv").to_str().unwrap()], &["other.db"]);
+    let out = command().args(["db", "info", valid.to_str().unwrap()]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+
+    // Same files, same bytes: nothing was created (no journal, no WAL), nothing converted.
+    assert_eq!(snapshot(dir.path()), before, "inspection changed or created a file");
+    let mode: String = rusqlite::Connection::open(&other).unwrap().query_row("PRAGMA journal_mode", [], |r| r.get(0)).unwrap();
+    assert_eq!(mode, "delete", "the other database was switched to {mode}");
+}
+
+#[test]
+fn numbers_far_out_of_range_are_refused_at_once() {
+    let image = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/imagenet/cat.bmp");
+    let image = image.to_str().unwrap();
+    refused(&["classify", "--size", "65536", image], &["65536", "1024"]);
+    refused(&["classify", "--size", "100", image], &["100", "multiple of 32"]);
+    refused(&["--threads", "100000", "classify", image], &["100000", "--threads"]);
+    refused(&["--threads", "0", "classify", image], &["--threads"]);
+}
