@@ -347,12 +347,13 @@ impl Params {
     /// Defaults overridden by the sections of the ROS 2 params file `path` that apply to `node_name`
     /// (see the module doc for the matching rules).
     pub fn load(path: &Path, node_name: &str) -> anyhow::Result<Params> {
-        let text = std::fs::read_to_string(path).with_context(|| format!("reading params file {}", path.display()))?;
+        let text = crate::io::read_capped_text(path, crate::io::limits::PARAMS_FILE, "params file")?;
         Params::from_yaml_str(&text, node_name).with_context(|| format!("in params file {}", path.display()))
     }
 
     /// As [`Params::load`], from the file's text.
     pub fn from_yaml_str(text: &str, node_name: &str) -> anyhow::Result<Params> {
+        check_flow_depth(text)?;
         let document: serde_yaml_ng::Value = serde_yaml_ng::from_str(text).context("not valid YAML")?;
         let nodes = document.as_mapping().context("the top level must map node names to `ros__parameters`")?;
         let mut params = Params::default();
@@ -567,6 +568,30 @@ fn node_key_matches(key: &str, node_name: &str) -> bool {
 }
 
 /// Flattens nested mappings into dotted names, in file order.
+/// The deepest nesting of flow collections (`[`, `{`) a params file may have. The YAML parser's
+/// time grows with the square of the depth, so a file of nested brackets is refused in one pass
+/// before it is parsed (block nesting needs indentation, so its depth is bounded by the file size).
+const MAX_FLOW_DEPTH: usize = 32;
+
+fn check_flow_depth(text: &str) -> anyhow::Result<()> {
+    let (mut depth, mut quote, mut line) = (0usize, None, 1usize);
+    for c in text.chars() {
+        match (quote, c) {
+            (_, '\n') => line += 1,
+            (Some(q), c) if c == q => quote = None,
+            (Some(_), _) => {}
+            (None, '"' | '\'') => quote = Some(c),
+            (None, '[' | '{') => {
+                depth += 1;
+                anyhow::ensure!(depth <= MAX_FLOW_DEPTH, "line {line}: brackets nested deeper than {MAX_FLOW_DEPTH}");
+            }
+            (None, ']' | '}') => depth = depth.saturating_sub(1),
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
 fn flatten(value: &serde_yaml_ng::Value, prefix: String, out: &mut Vec<(String, serde_yaml_ng::Value)>) -> anyhow::Result<()> {
     let mapping = value.as_mapping().with_context(|| {
         let at = if prefix.is_empty() { "`ros__parameters`".to_string() } else { format!("`{prefix}`") };
@@ -695,6 +720,18 @@ mod tests {
         p.set_from_str("selection.min_period", "0.25").unwrap();
         assert_eq!(p.selection().min_period_secs, 0.25);
         assert!(p.set_from_str("detector.top_k", "two").is_err());
+    }
+
+    #[test]
+    fn deeply_nested_brackets_are_refused_at_once() {
+        let text = format!("ecm_lcd:\n  ros__parameters:\n    x: {}{}\n", "[".repeat(200_000), "]".repeat(200_000));
+        let started = std::time::Instant::now();
+        let err = format!("{:#}", Params::from_yaml_str(&text, NODE_NAME).unwrap_err());
+        assert!(err.contains("line 3") && err.contains("nested deeper"), "{err}");
+        assert!(started.elapsed() < std::time::Duration::from_millis(200));
+        // Brackets inside quotes are text, and modest nesting is fine.
+        let ok = "ecm_lcd:\n  ros__parameters:\n    detector.top_k: 2\n    note: \"[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[\"\n";
+        assert!(check_flow_depth(ok).is_ok());
     }
 
     #[test]

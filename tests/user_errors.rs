@@ -153,3 +153,51 @@ fn numbers_far_out_of_range_are_refused_at_once() {
     refused(&["--threads", "100000", "classify", image], &["100000", "--threads"]);
     refused(&["--threads", "0", "classify", image], &["--threads"]);
 }
+
+#[test]
+fn endless_garbage_and_truth_outside_the_data_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    // A TUM folder whose rgb.txt has one 5 MB line: the error quotes a short excerpt.
+    std::fs::create_dir(d("seq")).unwrap();
+    std::fs::write(d("seq/rgb.txt"), format!("1.0 a {}\n", "x/".repeat(2_500_000))).unwrap();
+    let err = refused(&["replay", &d("seq"), "--quiet"], &["rgb.txt:1", "expected `timestamp path`", "bytes)"]);
+    assert!(err.len() < 2000, "the error echoes the line: {} bytes", err.len());
+    std::fs::write(d("seq/rgb.txt"), format!("1.0 {}\n", "x/".repeat(2_500_000))).unwrap();
+    let err = refused(&["replay", &d("seq"), "--quiet"], &["rgb.txt:1", "does not exist", "bytes)"]);
+    assert!(err.len() < 2000, "the error echoes the path: {} bytes", err.len());
+    // An image path that is a directory, or a symlink loop, says so.
+    std::fs::create_dir(d("seq/rgb")).unwrap();
+    std::fs::write(d("seq/rgb.txt"), "1.0 rgb\n").unwrap();
+    refused(&["replay", &d("seq"), "--quiet"], &["rgb.txt:1", "is a directory"]);
+    #[cfg(unix)]
+    {
+        std::os::unix::fs::symlink(d("seq/loop.png"), d("seq/loop.png")).unwrap();
+        std::fs::write(d("seq/rgb.txt"), "1.0 loop.png\n").unwrap();
+        refused(&["replay", &d("seq"), "--quiet"], &["rgb.txt:1", "symlink that cannot be followed"]);
+        std::fs::remove_file(d("seq/loop.png")).unwrap();
+    }
+    std::fs::remove_dir(d("seq/rgb")).unwrap();
+    std::fs::write(d("seq/rgb.txt"), "1.0 a.png\n").unwrap();
+    #[cfg(unix)]
+    {
+        refused(&["replay", &d("seq"), "--config", "/dev/zero"], &["params file", "/dev/zero", "MiB"]);
+        refused(&["replay", &d("seq"), "--weights", "/dev/zero"], &["/dev/zero", "MiB"]);
+    }
+    // Brackets nested 100 000 deep in a params file.
+    std::fs::write(d("deep.yaml"), format!("ecm_lcd:\n  ros__parameters:\n    x: {}\n", "[".repeat(100_000))).unwrap();
+    refused(&["replay", &d("seq"), "--config", &d("deep.yaml")], &["deep.yaml", "nested deeper"]);
+
+    // Loops that name images past the folders' ends.
+    for folder in ["db", "q"] {
+        std::fs::create_dir(d(folder)).unwrap();
+        for i in 0..3u8 {
+            let image = image::RgbImage::from_fn(32, 32, |x, y| image::Rgb([x as u8 * 7 + i * 40, y as u8 * 5, 60]));
+            image.save(d(&format!("{folder}/{i}.png"))).unwrap();
+        }
+    }
+    std::fs::write(d("loops.csv"), "0,0\n1,7\n").unwrap();
+    refused(&["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv")], &["7", "only 3 references"]);
+    std::fs::write(d("loops.csv"), "5,0\n").unwrap();
+    refused(&["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv")], &["query 5", "only 3 queries"]);
+}

@@ -174,6 +174,7 @@ pub fn run(args: Args) -> Result<()> {
     let mut pipeline = args.source_args.pipeline()?;
     if let Some((database, queries)) = args.database_and_queries()? {
         let truth = load_truth(&args, &[])?;
+        truth.check_within(queries.len(), database.len())?;
         let (results, timings) = run_database_queries(&mut pipeline, &database, &queries)?;
         run_with_results(&args, &truth, &results, &timings, pipeline.params())?;
         return Ok(());
@@ -184,6 +185,7 @@ pub fn run(args: Args) -> Result<()> {
         log::warn!("{} broke off after {} frames; evaluating those: {error}", source.display(), run.frames);
     }
     let truth = load_truth(&args, &run.frame_stamps)?;
+    truth.check_within(run.frame_stamps.len(), run.frame_stamps.len())?;
     let results = run.query_results();
     let mut timings = run.mean_timings();
     timings.push(("wall_s", run.wall_secs));

@@ -130,7 +130,7 @@ fn read_labels(path: Option<&Path>) -> Result<Vec<String>> {
             }
         },
     };
-    let text = std::fs::read_to_string(&path).with_context(|| format!("cannot read labels {}", path.display()))?;
+    let text = crate::io::read_capped_text(&path, crate::io::limits::TEXT_LIST, "labels")?;
     Ok(text.lines().map(str::to_string).collect())
 }
 

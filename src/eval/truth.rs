@@ -50,6 +50,24 @@ impl LoopTruth {
         self.matches.entry(query).or_default().insert(matched);
     }
 
+    /// Refuses indexes outside the data: a query at or past `queries`, a match at or past
+    /// `references` (a loops file for another set, or off by one), and truth that knows no query
+    /// at all (ground truth whose stamps overlap no frame).
+    pub fn check_within(&self, queries: usize, references: usize) -> Result<()> {
+        if let Some((&q, _)) = self.matches.iter().find(|(&q, _)| q >= queries) {
+            bail!("the loop truth names query {q}, but there are only {queries} queries (0..{queries})");
+        }
+        for (q, matched) in &self.matches {
+            if let Some(m) = matched.iter().find(|&&m| m >= references) {
+                bail!("the loop truth matches query {q} to {m}, but there are only {references} references (0..{references})");
+            }
+        }
+        if queries > 0 && (0..queries).all(|q| self.unknown.contains(&q)) {
+            bail!("the ground truth covers none of the {queries} frames (no pose near any frame's stamp)");
+        }
+        Ok(())
+    }
+
     /// Marks `query` as having unknown truth; it is then left out of the metrics.
     pub fn mark_unknown(&mut self, query: usize) {
         self.unknown.insert(query);
@@ -152,7 +170,7 @@ pub fn parse_loops(text: &str) -> Result<LoopTruth> {
         let is_first = std::mem::replace(&mut first_content, false);
         let (query_text, matches_text) = line
             .split_once(',')
-            .with_context(|| format!("line {number}: expected `query_index,match_index ...`, found {line:?}"))?;
+            .with_context(|| format!("line {number}: expected `query_index,match_index ...`, found {}", crate::io::excerpt(line, 80)))?;
         let query_text = query_text.trim();
         if is_first && query_text.starts_with(|c: char| c.is_ascii_alphabetic()) {
             continue; // header
@@ -172,7 +190,7 @@ pub fn parse_loops(text: &str) -> Result<LoopTruth> {
 }
 
 pub fn read_loops(path: &Path) -> Result<LoopTruth> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading loops file {}", path.display()))?;
+    let text = crate::io::read_capped_text(path, crate::io::limits::TEXT_LIST, "loops file")?;
     parse_loops(&text).with_context(|| format!("in loops file {}", path.display()))
 }
 
@@ -202,6 +220,19 @@ mod tests {
     use nalgebra::Translation3;
     use super::*;
     use crate::synth::camera_rotation;
+
+    #[test]
+    fn truth_outside_the_data_is_refused() {
+        let truth = parse_loops("3,1\n4,0 2\n").unwrap();
+        assert!(truth.check_within(5, 5).is_ok());
+        let err = truth.check_within(4, 5).unwrap_err().to_string();
+        assert!(err.contains("query 4") && err.contains("only 4 queries"), "{err}");
+        let err = truth.check_within(5, 2).unwrap_err().to_string();
+        assert!(err.contains("to 2") && err.contains("only 2 references"), "{err}");
+        let mut none = LoopTruth::default();
+        (0..3).for_each(|q| none.mark_unknown(q));
+        assert!(none.check_within(3, 3).unwrap_err().to_string().contains("covers none of the 3 frames"));
+    }
 
     fn pose(x: f64, y: f64, yaw_deg: f64) -> Isometry3<f64> {
         Isometry3::from_parts(Translation3::new(x, y, 1.5), camera_rotation(yaw_deg.to_radians(), 0.0, 0.0))

@@ -162,3 +162,69 @@ mod tests {
         assert!(err.contains("no sensor_msgs Image") && err.contains("/tf (tf2_msgs/TFMessage, 9 messages)"), "{err}");
     }
 }
+
+/// Whole-file reads with a size limit: a file (or `/dev/zero`) larger than `limit` bytes is an
+/// error naming it and the limit, after reading at most `limit + 1` bytes.
+pub fn read_capped(path: &std::path::Path, limit: u64, what: &str) -> anyhow::Result<Vec<u8>> {
+    use anyhow::Context;
+    use std::io::Read;
+    let file = std::fs::File::open(path).with_context(|| format!("cannot read {what} {}", path.display()))?;
+    let mut bytes = Vec::new();
+    file.take(limit + 1).read_to_end(&mut bytes).with_context(|| format!("cannot read {what} {}", path.display()))?;
+    anyhow::ensure!(
+        bytes.len() as u64 <= limit,
+        "{what} {} is larger than {} MiB, the most this program reads as one",
+        path.display(),
+        limit >> 20
+    );
+    Ok(bytes)
+}
+
+/// As [`read_capped`], as UTF-8 text; invalid UTF-8 names the line it is on.
+pub fn read_capped_text(path: &std::path::Path, limit: u64, what: &str) -> anyhow::Result<String> {
+    let bytes = read_capped(path, limit, what)?;
+    String::from_utf8(bytes).map_err(|e| {
+        let valid = e.utf8_error().valid_up_to();
+        let line = e.as_bytes()[..valid].iter().filter(|&&b| b == b'\n').count() + 1;
+        anyhow::anyhow!("{what} {}: line {line} is not valid UTF-8", path.display())
+    })
+}
+
+/// Size limits of whole-file reads.
+pub mod limits {
+    /// Parameter files (`--config`).
+    pub const PARAMS_FILE: u64 = 1 << 20;
+    /// Weights (safetensors, TFLite): MobileNetV2 in f32 with a classifier is about 14 MB.
+    pub const WEIGHTS_FILE: u64 = 128 << 20;
+    /// Text lists: `rgb.txt`, ground truth, loops, labels, training lists.
+    pub const TEXT_LIST: u64 = 64 << 20;
+}
+
+/// At most `max` characters of `text` for an error message, marked when cut.
+pub fn excerpt(text: &str, max: usize) -> String {
+    match text.char_indices().nth(max) {
+        Some((cut, _)) => format!("{:?}... ({} bytes)", &text[..cut], text.len()),
+        None => format!("{text:?}"),
+    }
+}
+
+#[cfg(test)]
+mod capped_tests {
+    #[test]
+    fn reads_are_capped_and_errors_quote_an_excerpt() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("list.txt");
+        std::fs::write(&path, b"a\nb\xffc\n").unwrap();
+        let err = super::read_capped_text(&path, 100, "list").unwrap_err().to_string();
+        assert!(err.contains("line 2") && err.contains("UTF-8"), "{err}");
+        std::fs::write(&path, vec![b'x'; 3 << 20]).unwrap();
+        let err = super::read_capped(&path, 2 << 20, "weights file").unwrap_err().to_string();
+        assert!(err.contains("list.txt") && err.contains("2 MiB"), "{err}");
+        #[cfg(unix)]
+        assert!(super::read_capped(std::path::Path::new("/dev/zero"), 1 << 20, "params file").is_err());
+        assert_eq!(super::excerpt("short", 10), "\"short\"");
+        let long = "y".repeat(1000);
+        let cut = super::excerpt(&long, 20);
+        assert!(cut.len() < 50 && cut.contains("1000 bytes"), "{cut}");
+    }
+}

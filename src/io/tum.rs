@@ -18,13 +18,25 @@ use crate::types::{Frame, Stamp};
 
 /// Reads the non-comment, non-blank lines of a TUM text file with their 1-based line numbers.
 fn data_lines(path: &Path) -> Result<Vec<(usize, String)>> {
-    let text = fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let text = super::read_capped_text(path, super::limits::TEXT_LIST, "list")?;
     Ok(text
         .lines()
         .enumerate()
         .map(|(i, line)| (i + 1, line.trim().to_string()))
         .filter(|(_, line)| !line.is_empty() && !line.starts_with('#'))
         .collect())
+}
+
+/// Why `path` cannot be read as a file: it does not exist, is a directory, a FIFO or device, or a
+/// symlink that leads nowhere (a loop or a missing target).
+fn not_a_file_reason(path: &Path) -> String {
+    match (fs::symlink_metadata(path), fs::metadata(path)) {
+        (Err(_), _) => "does not exist".into(),
+        (Ok(link), Err(e)) if link.file_type().is_symlink() => format!("is a symlink that cannot be followed ({e})"),
+        (_, Ok(m)) if m.is_dir() => "is a directory".into(),
+        (_, Ok(_)) => "is not a regular file (a FIFO, socket or device)".into(),
+        (Ok(_), Err(e)) => format!("cannot be read ({e})"),
+    }
 }
 
 /// One image to load: where it came from (for errors), its stamp and file.
@@ -52,12 +64,15 @@ impl ImageFilesSource {
             let origin = format!("{}:{line_no}", list.display());
             let mut fields = line.split_whitespace();
             let (Some(stamp_text), Some(rel), None) = (fields.next(), fields.next(), fields.next()) else {
-                bail!("{origin}: expected `timestamp path`, found {line:?}");
+                bail!("{origin}: expected `timestamp path`, found {}", super::excerpt(&line, 80));
             };
             let stamp = Stamp::parse_secs(stamp_text)
                 .with_context(|| format!("{origin}: bad timestamp {stamp_text:?}"))?;
             let path = dir.join(rel);
-            ensure!(path.is_file(), "{origin}: image file {} does not exist", path.display());
+            if !path.is_file() {
+                let shown = if rel.len() <= 200 { path.display().to_string() } else { super::excerpt(rel, 120) };
+                bail!("{origin}: image file {shown} {}", not_a_file_reason(&path));
+            }
             entries.push(ImageEntry { origin, stamp, path });
         }
         ensure!(!entries.is_empty(), "{} lists no images", list.display());

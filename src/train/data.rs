@@ -87,7 +87,7 @@ impl ImageFolder {
 
     fn from_lists(dir: &Path, train_list: &Path, test_list: &Path) -> Result<Self> {
         let read_list = |list: &Path| -> Result<Vec<(String, PathBuf)>> {
-            let text = std::fs::read_to_string(list).with_context(|| format!("cannot read {}", list.display()))?;
+            let text = crate::io::read_capped_text(list, crate::io::limits::TEXT_LIST, "image list")?;
             let mut out = Vec::new();
             for (line_no, line) in text.lines().enumerate() {
                 let rel = line.trim();

@@ -19,8 +19,9 @@ use crate::model::Arch;
 
 /// Reads `path` and imports it; see [`import_tflite_bytes`].
 pub fn import_tflite(path: &Path) -> Result<Weights> {
-    let bytes = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let bytes = crate::io::read_capped(path, crate::io::limits::WEIGHTS_FILE, "TFLite model")?;
     let mut weights = import_tflite_bytes(&bytes).with_context(|| format!("cannot import {}", path.display()))?;
+    weights.check_finite().with_context(|| format!("cannot import {}", path.display()))?;
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     weights.source = format!("{name} (TFLite, sha256 {})", super::resolve::sha256_hex(&bytes));
     Ok(weights)

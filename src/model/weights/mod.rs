@@ -76,7 +76,7 @@ impl Weights {
     /// Loads a safetensors file written by [`Weights::save`] (or any file using the naming scheme
     /// with an `arch` in its metadata).
     pub fn load(path: &Path) -> Result<Self> {
-        let bytes = std::fs::read(path).with_context(|| format!("cannot read weights file {}", path.display()))?;
+        let bytes = crate::io::read_capped(path, crate::io::limits::WEIGHTS_FILE, "weights file")?;
         Self::from_bytes(&bytes).with_context(|| format!("{} is not a valid ecm-lcd weights file", path.display()))
     }
 
@@ -98,7 +98,23 @@ impl Weights {
             .into_iter()
             .map(|(name, t)| Ok((name, t.to_dtype(DType::F32)?)))
             .collect::<Result<HashMap<_, _>>>()?;
-        Ok(Weights { arch, classes, source, tensors })
+        let weights = Weights { arch, classes, source, tensors };
+        weights.check_finite()?;
+        Ok(weights)
+    }
+
+    /// Refuses weights with a NaN or infinite value (a diverged training run): every descriptor
+    /// would be garbage and every image would match every other.
+    pub fn check_finite(&self) -> Result<()> {
+        let mut names: Vec<&String> = self.tensors.keys().collect();
+        names.sort();
+        for name in names {
+            let values = self.tensors[name].flatten_all()?.to_vec1::<f32>()?;
+            if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
+                anyhow::bail!("tensor {name} holds a non-finite value ({} at index {bad}); the weights are unusable", values[bad]);
+            }
+        }
+        Ok(())
     }
 
     /// These weights for `arch`: as they are, or ECMobileNet made from MobileNetV2 weights.
@@ -185,5 +201,16 @@ mod tests {
         safetensors::serialize_to_file(data, Some(metadata), &path).unwrap();
         let back = Weights::load(&path).unwrap();
         assert_eq!((back.arch, back.classes, back.source.as_str()), (Arch::MobileNetV2, None, "old"));
+    }
+
+    #[test]
+    fn non_finite_weights_are_refused_naming_the_tensor() {
+        let mut weights = tiny();
+        weights.tensors.insert("c.weight".into(), Tensor::new(&[0f32, f32::NAN], &Device::Cpu).unwrap());
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("nan.safetensors");
+        weights.save(&path).unwrap();
+        let err = format!("{:#}", Weights::load(&path).unwrap_err());
+        assert!(err.contains("c.weight") && err.contains("non-finite") && err.contains("nan.safetensors"), "{err}");
     }
 }

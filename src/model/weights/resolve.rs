@@ -52,7 +52,7 @@ pub fn cache_dir() -> Option<PathBuf> {
 
 /// Reads a weights file: `.tflite` is imported, anything else is read as safetensors.
 pub fn load_file(path: &Path) -> Result<Resolved> {
-    let bytes = std::fs::read(path).with_context(|| format!("cannot read weights file {}", path.display()))?;
+    let bytes = crate::io::read_capped(path, crate::io::limits::WEIGHTS_FILE, "weights file")?;
     let sha256 = sha256_hex(&bytes);
     let is_tflite = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("tflite"));
     let weights = if is_tflite {
