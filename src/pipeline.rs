@@ -165,6 +165,11 @@ impl Pipeline {
         if let Some(max_id) = store.max_id() {
             self.next_id = self.next_id.max(max_id + 1);
         }
+        // Selection goes on from the newest stored keyframe, so a restarted replay selects the
+        // frames an uninterrupted one would (not the first frame after the restart regardless).
+        if let Some((_, stamp, descriptor)) = store.last_keyframe()? {
+            self.selector.resume_after(stamp, &descriptor);
+        }
         log::info!(
             "keyframe database {}: {} keyframes stored, {} loaded (and indexed, if large) in {:.3} s, ids continue at {}",
             store.path().display(),

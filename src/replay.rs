@@ -4,7 +4,8 @@
 //!
 //! Resuming: when the pipeline has a keyframe store attached, frames whose index (= keyframe id) is at
 //! most the largest stored id were processed by an earlier run and are skipped (counted in
-//! [`ReplayRun::skipped`]); keyframe selection starts afresh at the first frame after them.
+//! [`ReplayRun::skipped`]); keyframe selection goes on from the newest stored keyframe
+//! ([`Pipeline::attach_store`]), so the restarted run selects the frames an uninterrupted one would.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;

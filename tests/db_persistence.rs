@@ -283,3 +283,39 @@ fn db_info_export_and_merge_commands() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("descriptor regional-3x3-mac@blocks.16") && err.contains("descriptor paper") && err.contains("a.db"), "{err}");
 }
+
+/// A replay stopped after any frame and restarted under the default selection (frames at 10 Hz,
+/// keyframes at most every 0.5 s) stores exactly the keyframes of an uninterrupted run: selection
+/// continues from the newest stored keyframe rather than taking the first frame after the restart.
+#[test]
+fn a_restarted_replay_selects_the_keyframes_of_an_uninterrupted_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = SynthConfig { frames: 30, laps: 1, width: 96, height: 72, rate_hz: 10.0, ..SynthConfig::default() };
+    let seq = dir.path().join("seq");
+    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    let frames: Vec<_> = ecm_lcd::io::open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    let mut params = Params::default();
+    params.set_from_str("input_size", "64").unwrap();
+    let weights = resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
+    let pipeline = |db: &Path| {
+        let mut p = Pipeline::with_weights(params.clone(), weights.clone()).unwrap();
+        p.open_store(db).unwrap();
+        p
+    };
+    let reference_db = dir.path().join("reference.db");
+    ecm_lcd::replay::run_source(&mut pipeline(&reference_db), &seq, None, false).unwrap();
+    let reference = stored_ids(&reference_db);
+    assert!(reference.len() >= 5 && reference.len() < frames.len() / 2, "selection kept {reference:?}");
+    for stop_after in [0, 3, 5, 6, 12, 17] {
+        let db = dir.path().join(format!("stopped{stop_after}.db"));
+        {
+            let mut first = pipeline(&db);
+            for frame in &frames[..=stop_after] {
+                first.process_frame(frame.index as u64, frame.stamp, &frame.image).unwrap();
+            }
+        }
+        let run = ecm_lcd::replay::run_source(&mut pipeline(&db), &seq, None, false).unwrap();
+        assert!(run.skipped > 0);
+        assert_eq!(stored_ids(&db), reference, "stopped after frame {stop_after}");
+    }
+}

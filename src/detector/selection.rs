@@ -110,6 +110,12 @@ impl KeyframeSelector {
         self.last_descriptor = descriptor.map(<[f32]>::to_vec);
     }
 
+    /// Continues after a keyframe an earlier run selected (a restart from a keyframe store): the
+    /// rules then judge the next frame as they would have without the restart.
+    pub fn resume_after(&mut self, stamp: Stamp, descriptor: &[f32]) {
+        self.record(stamp, Some(descriptor));
+    }
+
     /// Second step, after [`Verdict::NeedsDescriptor`]: the novelty rule; `true` = a keyframe (recorded).
     /// Errors when the descriptor's length differs from the previous keyframe's.
     pub fn offer_descriptor(&mut self, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<bool> {

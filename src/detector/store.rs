@@ -334,6 +334,18 @@ impl KeyframeStore {
         Ok(())
     }
 
+    /// The newest stored keyframe (id, stamp, descriptor), `None` when the store is empty.
+    pub fn last_keyframe(&self) -> Result<Option<(u64, Stamp, Vec<f32>)>> {
+        let mut last = None;
+        if self.count > 0 {
+            self.for_each(self.count - 1, |id, stamp, blob| {
+                last = Some((id, stamp, decode_descriptor(blob).collect()));
+                Ok(())
+            })?;
+        }
+        Ok(last)
+    }
+
     /// Calls `each` with every stored keyframe in insertion order, skipping the first `skip`.
     pub fn for_each(&self, skip: u64, each: impl FnMut(u64, Stamp, &[u8]) -> Result<()>) -> Result<()> {
         match self.seq_at(skip)? {
