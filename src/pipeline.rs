@@ -14,7 +14,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{ensure, Context, Result};
 use image::RgbImage;
 
 use crate::config::{ParamValue, Params};
@@ -236,8 +236,9 @@ impl Pipeline {
         if select && self.selector.needs_descriptor() && !self.selector.offer_descriptor(stamp, &descriptor)? {
             return Ok(outcome);
         }
-        if let Some(store) = &mut self.store {
-            store.append(id, stamp, &descriptor)?;
+        // Refused before the detector sees it, as the store would refuse it after.
+        if let Some(store) = &self.store {
+            ensure!(!store.contains(id)?, "keyframe id {id} is already stored in {}", store.path().display());
         }
         (outcome.best, outcome.candidates) = self.detector.process_with_best(id, stamp, &descriptor)?;
         outcome.keyframe = Some(id);
@@ -248,6 +249,11 @@ impl Pipeline {
             self.verify_outcome(&features, &mut outcome);
             self.remember_features(id, features);
             outcome.timings.verification_ms = after_detector.elapsed().as_secs_f64() * 1e3;
+        }
+        // The keyframe and its final candidates in one transaction, before any caller writes them
+        // out: a restart finds both or neither.
+        if let Some(store) = &mut self.store {
+            store.append_keyframe(id, stamp, &descriptor, &outcome.candidates)?;
         }
         Ok(outcome)
     }

@@ -1,5 +1,6 @@
 //! The persistent keyframe database end to end: `replay --db` killed (SIGKILL) at random moments and
-//! restarted loses no keyframe whose candidates reached the CSV and always leaves a database that loads;
+//! restarted ends with the database and the CSV of an uninterrupted run, and always leaves a database
+//! that loads;
 //! a restarted pipeline continues ids and history; `db info|export|merge`; refusal of other descriptors.
 
 use std::collections::BTreeMap;
@@ -50,7 +51,9 @@ fn replay_args<'a>(source: &'a str, db: &'a str, csv: &'a str) -> Vec<&'a str> {
 }
 
 fn synthetic_sequence(dir: &Path) -> PathBuf {
-    let config = SynthConfig { frames: FRAMES, laps: 2, width: 160, height: 120, rate_hz: 2.0, ..SynthConfig::default() };
+    // 5 Hz against the default selection's 0.5 s: about every third frame is a keyframe, so a
+    // restart must pick up the selection where the killed run left it.
+    let config = SynthConfig { frames: FRAMES, laps: 2, width: 160, height: 120, rate_hz: 5.0, ..SynthConfig::default() };
     let seq = dir.join("seq");
     write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
     seq
@@ -94,7 +97,7 @@ impl Random {
 }
 
 #[test]
-fn replay_killed_at_random_moments_loses_no_emitted_keyframe() {
+fn replay_killed_at_random_moments_ends_as_an_uninterrupted_run() {
     let dir = tempfile::tempdir().unwrap();
     let seq = synthetic_sequence(dir.path());
     let seq_text = seq.to_str().unwrap();
@@ -110,8 +113,17 @@ fn replay_killed_at_random_moments_loses_no_emitted_keyframe() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let full_run_ms = (timed.elapsed().as_millis() as u64).clamp(100, 800);
     let reference = read_candidates(&ref_csv);
-    assert_eq!(stored_ids(&ref_db), (0..FRAMES as u64).collect::<Vec<_>>());
-    assert!(reference.len() >= FRAMES - 2, "only {} candidates in the reference", reference.len());
+    let reference_ids = stored_ids(&ref_db);
+    // A CSV line lost after its keyframe was committed (the window a kill can hit) is written again
+    // from the database by the next run, which finds every frame stored.
+    let full = std::fs::read_to_string(&ref_csv).unwrap();
+    let cut = full.trim_end().rfind('\n').unwrap() + 1;
+    std::fs::write(&ref_csv, &full[..cut]).unwrap();
+    let out = ecm_lcd(&replay_args(seq_text, ref_db.to_str().unwrap(), ref_csv.to_str().unwrap()));
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(std::fs::read_to_string(&ref_csv).unwrap(), full, "the lost line was not written again");
+    assert!(reference_ids.len() > 5 && reference_ids.len() < FRAMES / 2, "selection kept {reference_ids:?}");
+    assert!(reference.len() >= reference_ids.len() - 2, "only {} candidates in the reference", reference.len());
 
     let seed = std::env::var("ECM_LCD_KILL_SEED")
         .ok()
@@ -150,24 +162,25 @@ fn replay_killed_at_random_moments_loses_no_emitted_keyframe() {
         // The database always loads, and every keyframe with a candidate in the CSV is stored; the
         // emitted candidates are the reference's.
         let ids = if db.exists() { stored_ids(&db) } else { Vec::new() };
-        assert!(ids.windows(2).all(|w| w[0] + 1 == w[1]) && ids.first().is_none_or(|&f| f == 0), "stored ids {ids:?}");
+        assert!(reference_ids.starts_with(&ids), "stored ids {ids:?} are not a prefix of {reference_ids:?}");
         let emitted = read_candidates(&csv);
         for (query, (matched, distance)) in &emitted {
             assert!(ids.contains(query), "keyframe {query} has a candidate in the CSV but is not stored (stored: {ids:?})");
             let (ref_match, ref_distance) = reference[query];
             assert_eq!(*matched, ref_match, "keyframe {query}");
-            assert!((distance - ref_distance).abs() < 1e-3, "keyframe {query}: distance {distance} vs {ref_distance}");
+            assert!((distance - ref_distance).abs() < 1e-4, "keyframe {query}: distance {distance} vs {ref_distance}");
         }
         checked += emitted.len();
-        if killed && ids.len() > stored_before && ids.len() < FRAMES {
+        if killed && ids.len() > stored_before && ids.len() < reference_ids.len() {
             kills_mid_sequence += 1;
         }
         stored_before = ids.len();
         if !killed {
-            // A complete run: every keyframe stored; the candidates of keyframes committed just before
-            // a kill and never written are the only ones allowed to be missing.
-            assert_eq!(ids, (0..FRAMES as u64).collect::<Vec<_>>());
+            // A complete run: the database and the CSV are the uninterrupted run's (a line a kill
+            // kept from the CSV is written again from the database on restart).
+            assert_eq!(ids, reference_ids);
             lost += reference.keys().filter(|q| !emitted.contains_key(q)).count();
+            assert_eq!(emitted.keys().collect::<Vec<_>>(), reference.keys().collect::<Vec<_>>());
             completions += 1;
             stored_before = 0;
             for path in [&db, &csv] {
@@ -178,10 +191,10 @@ fn replay_killed_at_random_moments_loses_no_emitted_keyframe() {
     println!(
         "kill test: {kills} kills within {full_run_ms} ms ({kills_mid_sequence} after some keyframes were stored and before the last), \
          {completions} complete sequences, {checked} emitted keyframes checked against the database, \
-         {lost} candidates lost with a kill between commit and write, {:.1} s",
+         {lost} candidates lost, {:.1} s",
         started.elapsed().as_secs_f64()
     );
-    assert!(lost <= kills, "{lost} candidates lost in {kills} kills: at most one per kill is possible");
+    assert_eq!(lost, 0, "{lost} candidates lost in {kills} kills");
 }
 
 #[test]

@@ -96,6 +96,28 @@ impl CandidateCsv {
         Self::new(Box::new(file), path.display().to_string(), !continuing)
     }
 
+    /// The file at `path` holding exactly `candidates` (written beside it and renamed over it when
+    /// it is a regular file or missing, so a crash leaves the old file or the new one), open for
+    /// appending after them.
+    pub fn rewrite(path: &Path, candidates: &[LoopCandidate]) -> Result<Self> {
+        let regular_or_missing = std::fs::symlink_metadata(path).map_or(true, |m| m.is_file());
+        if regular_or_missing {
+            let mut temporary = path.as_os_str().to_owned();
+            temporary.push(".partial");
+            let temporary = PathBuf::from(temporary);
+            let mut fresh = Self::to_file(&temporary, false)?;
+            fresh.write(candidates)?;
+            drop(fresh);
+            File::open(&temporary).and_then(|f| f.sync_all()).with_context(|| format!("cannot write {}", temporary.display()))?;
+            std::fs::rename(&temporary, path).with_context(|| format!("cannot move {} to {}", temporary.display(), path.display()))?;
+            Self::to_file(path, true)
+        } else {
+            let mut csv = Self::to_file(path, false)?;
+            csv.write(candidates)?;
+            Ok(csv)
+        }
+    }
+
     pub fn to_stdout() -> Result<Self> {
         Self::new(Box::new(std::io::stdout()), "standard output".into(), true)
     }
@@ -166,9 +188,16 @@ pub fn run(args: Args) -> Result<()> {
     }
     let mut pipeline = args.source_args.pipeline()?;
     let resuming = pipeline.store().is_some_and(|store| !store.is_empty());
-    let mut csv = match &args.output {
-        Some(path) => CandidateCsv::to_file(path, resuming)?,
-        None => CandidateCsv::to_stdout()?,
+    let stored = match pipeline.store() {
+        Some(store) if resuming => store.stored_candidates()?,
+        _ => None,
+    };
+    let mut csv = match (&args.output, stored) {
+        // Resuming a store that holds every emitted candidate: the CSV is rewritten from it, so a
+        // line lost to a kill between a keyframe's commit and its write comes back.
+        (Some(path), Some(stored)) => CandidateCsv::rewrite(path, &stored)?,
+        (Some(path), None) => CandidateCsv::to_file(path, resuming)?,
+        (None, _) => CandidateCsv::to_stdout()?,
     };
     let run = run_source_with(&mut pipeline, &args.source, args.source_args.topic.as_deref(), !args.source_args.quiet, |_, candidates| {
         csv.write(candidates)

@@ -1,19 +1,21 @@
 //! A keyframe database on disk that survives crashes: every accepted keyframe (id, stamp, descriptor) is
-//! committed before its loop candidates leave the process, and a restarted replay or node loads the
-//! stored keyframes back as the detector's history.
+//! committed together with its loop candidates before they leave the process, and a restarted replay
+//! or node loads the stored keyframes back as the detector's history (and a replay rewrites its CSV
+//! from the stored candidates, so a line a kill kept from the file comes back).
 //!
 //! Storage: one SQLite file (rusqlite, bundled), chosen over a hand-written append-only log because
 //! SQLite already gives what the log would have to re-invent and test: atomic commits (a kill -9 at any
 //! moment leaves either the whole keyframe or nothing, never a file that fails to open), a checked
 //! format, unique ids enforced by an index, and plain SQL for `db info` / `export` / `merge`. It is
 //! already a dependency (ROS 2 bags).
-//! - WAL journal, `synchronous=FULL`, one transaction (one `INSERT`) per keyframe: in WAL mode `NORMAL`
+//! - WAL journal, `synchronous=FULL`, one transaction per keyframe (its row, and its candidates as
+//!   JSON in `candidates` when it has any; meta `candidates` is `all` when every keyframe's are there): in WAL mode `NORMAL`
 //!   survives a process crash but may lose the last commits on power loss or an OS crash, while `FULL`
 //!   fsyncs the WAL on every commit. Keyframes come at a few per second and each costs tens of
 //!   milliseconds of network time, so one fsync per keyframe (about a millisecond, see the tests) is
 //!   cheap, and "stored before published" then holds for power loss too.
-//! - `page_size=16384`: a 1280-value `f32` descriptor (5120 bytes) then fits three to a page with no
-//!   overflow pages, which keeps loading a sequential scan, split across threads ([`KeyframeStore::load_db`]).
+//! - `page_size=16384`: a 1280-value `f32` descriptor (5120 bytes) then fits three to a page, and a
+//!   2880-value one (11520 bytes) one to a page, with no overflow pages, which keeps loading a sequential scan, split across threads ([`KeyframeStore::load_db`]).
 //! - Descriptors are little-endian `f32` blobs; stamps are nanoseconds; ids are SQLite integers, so ids
 //!   above `i64::MAX` are refused. Rows keep insertion order (`seq`), which is the detector's history order.
 //! - Beside the file, `<db>-vectors` holds the descriptors again as one raw matrix, which a load maps
@@ -32,6 +34,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context, Result};
+
+use crate::types::LoopCandidate;
 use rusqlite::{params, Connection, OpenFlags, OptionalExtension};
 
 use crate::detector::rows::DescriptorRows;
@@ -222,6 +226,10 @@ impl KeyframeStore {
                 .query_row("PRAGMA journal_mode = WAL", [], |r| r.get::<_, String>(0))
                 .with_context(|| format!("{} is not a keyframe database", path.display()))?;
             connection.pragma_update(None, "synchronous", "FULL").with_context(context)?;
+            // Stores made before candidates were stored get the table (and keep no `all` mark).
+            connection
+                .execute_batch("CREATE TABLE IF NOT EXISTS candidates (query_id INTEGER PRIMARY KEY, json TEXT NOT NULL)")
+                .with_context(context)?;
         }
         let meta = |key: &str| -> Result<String> {
             connection
@@ -305,6 +313,13 @@ impl KeyframeStore {
     /// disk (fsynced). Refuses a descriptor of the wrong length or with a non-finite value, and an id
     /// that is already stored.
     pub fn append(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> Result<()> {
+        self.append_keyframe(id, stamp, descriptor, &[])
+    }
+
+    /// As [`KeyframeStore::append`], with the keyframe's loop candidates in the same transaction: a
+    /// crash leaves both or neither, so a restarted replay can write out every candidate emitted
+    /// before it ([`KeyframeStore::stored_candidates`]).
+    pub fn append_keyframe(&mut self, id: u64, stamp: Stamp, descriptor: &[f32], candidates: &[LoopCandidate]) -> Result<()> {
         ensure!(
             descriptor.len() == self.identity.dim,
             "keyframe {id} descriptor has {} values, the database {} holds {}-value descriptors",
@@ -316,12 +331,19 @@ impl KeyframeStore {
             bail!("keyframe {id} descriptor value {i} is {} (not finite)", descriptor[i]);
         }
         let sql_id = to_sql_id(id)?;
-        let inserted = self
-            .connection
-            .prepare("INSERT INTO keyframes (id, stamp_nanos, descriptor) VALUES (?1, ?2, ?3)")
-            .and_then(|mut insert| insert.execute(params![sql_id, stamp.nanos, descriptor_blob(descriptor)]));
-        match inserted {
-            Ok(_) => {}
+        let json = if candidates.is_empty() { None } else { Some(serde_json::to_string(candidates)?) };
+        let written = (|| -> rusqlite::Result<()> {
+            let transaction = self.connection.transaction()?;
+            transaction
+                .prepare("INSERT INTO keyframes (id, stamp_nanos, descriptor) VALUES (?1, ?2, ?3)")?
+                .execute(params![sql_id, stamp.nanos, descriptor_blob(descriptor)])?;
+            if let Some(json) = &json {
+                transaction.prepare("INSERT OR REPLACE INTO candidates (query_id, json) VALUES (?1, ?2)")?.execute(params![sql_id, json])?;
+            }
+            transaction.commit()
+        })();
+        match written {
+            Ok(()) => {}
             Err(rusqlite::Error::SqliteFailure(e, _)) if e.code == rusqlite::ErrorCode::ConstraintViolation => {
                 bail!("keyframe id {id} is already stored in {}", self.path.display())
             }
@@ -332,6 +354,41 @@ impl KeyframeStore {
         let seq = self.connection.last_insert_rowid();
         self.extend_vector_file(seq, seq, descriptor);
         Ok(())
+    }
+
+    /// Whether keyframe `id` is stored.
+    pub fn contains(&self, id: u64) -> Result<bool> {
+        let sql_id = to_sql_id(id)?;
+        Ok(self
+            .connection
+            .query_row("SELECT 1 FROM keyframes WHERE id = ?1", [sql_id], |_| Ok(()))
+            .optional()
+            .with_context(|| format!("looking up keyframe {id} in {}", self.path.display()))?
+            .is_some())
+    }
+
+    /// Every stored keyframe's candidates, in the order the keyframes were stored; `None` when the
+    /// store does not hold them all (made before candidates were stored, or merged).
+    pub fn stored_candidates(&self) -> Result<Option<Vec<LoopCandidate>>> {
+        let complete = self
+            .connection
+            .query_row("SELECT value FROM meta WHERE key = 'candidates'", [], |r| r.get::<_, String>(0))
+            .optional()?
+            .is_some_and(|v| v == CANDIDATES_ALL);
+        if !complete {
+            return Ok(None);
+        }
+        let context = || format!("reading the candidates stored in {}", self.path.display());
+        let mut query = self
+            .connection
+            .prepare("SELECT c.json FROM candidates c JOIN keyframes k ON k.id = c.query_id ORDER BY k.seq")
+            .with_context(context)?;
+        let mut all = Vec::new();
+        for json in query.query_map([], |r| r.get::<_, String>(0)).with_context(context)? {
+            let batch: Vec<LoopCandidate> = serde_json::from_str(&json.with_context(context)?).with_context(context)?;
+            all.extend(batch);
+        }
+        Ok(Some(all))
     }
 
     /// The newest stored keyframe (id, stamp, descriptor), `None` when the store is empty.
@@ -722,6 +779,10 @@ fn create_store_file(path: &Path, identity: &StoreIdentity) -> Result<()> {
     Ok(())
 }
 
+/// The `candidates` meta value of a store that holds the candidates of every keyframe it holds;
+/// stores made before candidates were stored, and merged stores, hold none or some.
+const CANDIDATES_ALL: &str = "all";
+
 fn create_schema(connection: &Connection, identity: &StoreIdentity) -> Result<()> {
     // page_size only takes effect before the first table exists (module doc for the value).
     connection.pragma_update(None, "page_size", 16384)?;
@@ -734,9 +795,12 @@ fn create_schema(connection: &Connection, identity: &StoreIdentity) -> Result<()
              id INTEGER NOT NULL UNIQUE,
              stamp_nanos INTEGER NOT NULL,
              descriptor BLOB NOT NULL
-         );",
+         );
+         CREATE TABLE candidates (query_id INTEGER PRIMARY KEY, json TEXT NOT NULL);",
     )?;
     let entries = [
+        // Every keyframe's candidates are stored with it ([`KeyframeStore::append_keyframe`]).
+        ("candidates", CANDIDATES_ALL.to_string()),
         ("format", FORMAT.to_string()),
         ("weights_sha256", identity.weights_sha256.clone()),
         ("arch", identity.arch.clone()),
@@ -798,6 +862,8 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
     }
     let result = (|| -> Result<MergeReport> {
         let out = KeyframeStore::open_or_create(output, &a.identity)?;
+        // Only keyframes are merged, not their candidates.
+        out.connection.execute("UPDATE meta SET value = 'partial' WHERE key = 'candidates'", [])?;
         out.connection.execute("ATTACH DATABASE ?1 AS first", [path_text(first)?])?;
         out.connection.execute("ATTACH DATABASE ?1 AS second", [path_text(second)?])?;
         out.connection.execute_batch("BEGIN")?;

@@ -281,3 +281,38 @@ fn a_damaged_or_foreign_vector_file_is_rebuilt() {
     assert_holds(&store.load_db(None).unwrap(), &ids, dim);
     assert!(std::fs::read(&vector_path).unwrap() == pristine, "a missing vector file was not written as it was");
 }
+
+#[test]
+fn candidates_are_stored_with_their_keyframe_and_read_back_in_order() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("c.db");
+    let mut store = store_with(&path, [0, 1], 4);
+    let candidate = |query: u64, matched: u64| LoopCandidate {
+        query_id: query,
+        query_stamp: stamp(query),
+        match_id: matched,
+        match_stamp: stamp(matched),
+        distance: 0.25,
+        score: 0.9,
+        rank: 0,
+        verified: None,
+    };
+    store.append_keyframe(5, stamp(5), &descriptor(5, 4), &[candidate(5, 0), candidate(5, 1)]).unwrap();
+    store.append_keyframe(3, stamp(3), &descriptor(3, 4), &[candidate(3, 1)]).unwrap();
+    // Insertion order (5 before 3), not id order; keyframes without candidates add nothing.
+    let stored = store.stored_candidates().unwrap().unwrap();
+    assert_eq!(stored.iter().map(|c| (c.query_id, c.match_id)).collect::<Vec<_>>(), [(5, 0), (5, 1), (3, 1)]);
+    assert_eq!(stored[0], candidate(5, 0));
+    // A refused keyframe stores neither it nor its candidates.
+    assert!(store.append_keyframe(5, stamp(5), &descriptor(5, 4), &[candidate(5, 1)]).is_err());
+    assert_eq!(store.stored_candidates().unwrap().unwrap().len(), 3);
+    assert!(store.contains(3).unwrap() && !store.contains(4).unwrap());
+    drop(store);
+    // Read-only opens read them too; a merge holds only some candidates, so it says so.
+    assert_eq!(KeyframeStore::open_read_only(&path).unwrap().stored_candidates().unwrap().unwrap().len(), 3);
+    let other = dir.path().join("o.db");
+    drop(store_with(&other, [10], 4));
+    let merged = dir.path().join("m.db");
+    merge(&path, &other, &merged, 0).unwrap();
+    assert!(KeyframeStore::open_read_only(&merged).unwrap().stored_candidates().unwrap().is_none());
+}
