@@ -6,6 +6,8 @@
 //! most the largest stored id were processed by an earlier run and are skipped (counted in
 //! [`ReplayRun::skipped`]); keyframe selection goes on from the newest stored keyframe
 //! ([`Pipeline::attach_store`]), so the restarted run selects the frames an uninterrupted one would.
+//! The newest stored keyframe must be the source's frame of the same index, stamp and image: a
+//! database is continued only with the source it was built from.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -147,6 +149,12 @@ fn replay_frames(
     mut on_keyframe: impl FnMut(&ReplayedKeyframe, &[LoopCandidate]) -> Result<()>,
 ) -> Result<ReplayRun> {
     let resume_after = pipeline.store().and_then(|store| store.max_id());
+    // The newest stored keyframe must be this source's frame of the same index and stamp: a
+    // database is continued only with the source it was built from.
+    let newest = match pipeline.store() {
+        Some(store) => store.last_keyframe()?.map(|(id, stamp, descriptor)| (id, stamp, descriptor, store.path().to_path_buf())),
+        None => None,
+    };
     let frames = open_source(source, topic)?;
     log::info!("replaying {}", frames.describe());
     let bar = if progress { ProgressBar::new(frames.len_hint().unwrap_or(0) as u64) } else { ProgressBar::hidden() };
@@ -166,6 +174,21 @@ fn replay_frames(
         };
         run.frames += 1;
         run.frame_stamps.push(frame.stamp);
+        if let Some((id, stamp, stored, db)) = &newest {
+            if frame.index as u64 == *id {
+                let another = |what: String| {
+                    anyhow::anyhow!("keyframe database {} was built from another source: {what}", db.display())
+                };
+                if frame.stamp != *stamp {
+                    return Err(another(format!("its keyframe {id} has stamp {stamp}, frame {id} of {} has stamp {}", source.display(), frame.stamp)));
+                }
+                // Same stamp: the same image gives the same descriptor (up to float noise).
+                let difference = crate::descriptor::distance(&pipeline.describe(&frame.image)?, stored);
+                if !(difference <= 1e-3) {
+                    return Err(another(format!("frame {id} of {} differs from its keyframe {id} (descriptor distance {difference:.3})", source.display())));
+                }
+            }
+        }
         if resume_after.is_some_and(|last| frame.index as u64 <= last) {
             run.skipped += 1;
             bar.inc(1);
@@ -191,6 +214,15 @@ fn replay_frames(
         bar.inc(1);
     }
     bar.finish_and_clear();
+    if let (Some((id, _, _, db)), None) = (&newest, &run.error) {
+        anyhow::ensure!(
+            run.frames as u64 > *id,
+            "keyframe database {} was built from another source: it holds keyframe {id}, but {} has only {} frames",
+            db.display(),
+            source.display(),
+            run.frames
+        );
+    }
     run.wall_secs = started.elapsed().as_secs_f64();
     Ok(run)
 }

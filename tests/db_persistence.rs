@@ -332,3 +332,28 @@ fn a_restarted_replay_selects_the_keyframes_of_an_uninterrupted_one() {
         assert_eq!(stored_ids(&db), reference, "stopped after frame {stop_after}");
     }
 }
+
+/// A database is continued only with the source it was built from: another sequence (same stamps,
+/// other images), one with other stamps, or a shorter one is refused with a clear error.
+#[test]
+fn a_database_refuses_to_continue_another_source() {
+    let dir = tempfile::tempdir().unwrap();
+    let write = |name: &str, seed: u64, rate_hz: f64, frames: usize| {
+        let config = SynthConfig { frames, laps: 1, seed, width: 96, height: 72, rate_hz, ..SynthConfig::default() };
+        let seq = dir.path().join(name);
+        write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+        seq.to_str().unwrap().to_string()
+    };
+    let (a, other_images, other_stamps, shorter) = (write("a", 1, 2.0, 8), write("b", 2, 2.0, 8), write("c", 1, 3.0, 8), write("d", 1, 2.0, 4));
+    let db = dir.path().join("a.db");
+    let csv = dir.path().join("a.csv");
+    let run = |source: &str| ecm_lcd(&replay_args(source, db.to_str().unwrap(), csv.to_str().unwrap()));
+    assert!(run(&a).status.success());
+    for (source, expected) in [(&other_images, "differs from its keyframe"), (&other_stamps, "has stamp"), (&shorter, "has only 4 frames")] {
+        let out = run(source);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains("built from another source") && err.contains(expected), "{source}: {err}");
+    }
+    // The same source again is fine.
+    assert!(run(&a).status.success());
+}
