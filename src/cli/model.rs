@@ -198,7 +198,7 @@ pub fn embed(args: EmbedArgs) -> Result<()> {
     }
     let mut writer = csv::Writer::from_path(&args.output).with_context(|| format!("cannot write {}", args.output.display()))?;
     for record in &records {
-        writer.write_record(record)?;
+        writer.write_record(record).with_context(|| format!("cannot write {}", args.output.display()))?;
     }
     writer.flush().with_context(|| format!("cannot write {}", args.output.display()))?;
     println!("wrote {} descriptors of 1280 values to {}", args.images.len(), args.output.display());

@@ -16,9 +16,21 @@ use std::path::{Path, PathBuf};
 use super::FrameSource;
 use crate::types::{Frame, Stamp};
 
-/// Reads the non-comment, non-blank lines of a TUM text file with their 1-based line numbers.
+/// Why a stamp that does not parse is bad, when it looks like a number: it is out of range.
+fn stamp_problem(text: &str) -> &'static str {
+    let digits = text.trim().trim_start_matches('-');
+    if !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit() || b == b'.') && digits.bytes().filter(|&b| b == b'.').count() <= 1 {
+        " (out of range: stamps are whole nanoseconds in a signed 64-bit integer, at most about 9.2e9 s)"
+    } else {
+        ""
+    }
+}
+
+/// Reads the non-comment, non-blank lines of a TUM text file with their 1-based line numbers (a
+/// byte-order mark at the start is skipped).
 fn data_lines(path: &Path) -> Result<Vec<(usize, String)>> {
     let text = super::read_capped_text(path, super::limits::TEXT_LIST, "list")?;
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     Ok(text
         .lines()
         .enumerate()
@@ -67,7 +79,7 @@ impl ImageFilesSource {
                 bail!("{origin}: expected `timestamp path`, found {}", super::excerpt(&line, 80));
             };
             let stamp = Stamp::parse_secs(stamp_text)
-                .with_context(|| format!("{origin}: bad timestamp {stamp_text:?}"))?;
+                .with_context(|| format!("{origin}: bad timestamp {}{}", super::excerpt(stamp_text, 40), stamp_problem(stamp_text)))?;
             let path = dir.join(rel);
             if !path.is_file() {
                 let shown = if rel.len() <= 200 { path.display().to_string() } else { super::excerpt(rel, 120) };
@@ -76,6 +88,15 @@ impl ImageFilesSource {
             entries.push(ImageEntry { origin, stamp, path });
         }
         ensure!(!entries.is_empty(), "{} lists no images", list.display());
+        // Frames replay in file order; stamps that repeat or go back are kept but said.
+        let repeated = entries.windows(2).filter(|w| w[1].stamp == w[0].stamp).count();
+        let backwards = entries.windows(2).filter(|w| w[1].stamp < w[0].stamp).count();
+        if repeated + backwards > 0 {
+            log::warn!(
+                "{}: {repeated} stamp(s) repeat the previous line's and {backwards} go back in time; frames are replayed in file order",
+                list.display()
+            );
+        }
         let description = format!("TUM folder {} ({} images)", dir.display(), entries.len());
         Ok(ImageFilesSource { description, entries, next: 0 })
     }
@@ -149,7 +170,8 @@ pub fn read_groundtruth(path: &Path) -> Result<Vec<(Stamp, Isometry3<f64>)>> {
         let origin = || format!("{}:{line_no}", path.display());
         let fields: Vec<&str> = line.split_whitespace().collect();
         ensure!(fields.len() == 8, "{}: expected 8 fields `timestamp tx ty tz qx qy qz qw`, found {}", origin(), fields.len());
-        let stamp = Stamp::parse_secs(fields[0]).with_context(|| format!("{}: bad timestamp {:?}", origin(), fields[0]))?;
+        let stamp = Stamp::parse_secs(fields[0])
+            .with_context(|| format!("{}: bad timestamp {}{}", origin(), super::excerpt(fields[0], 40), stamp_problem(fields[0])))?;
         let mut values = [0f64; 7];
         for (value, text) in values.iter_mut().zip(&fields[1..]) {
             *value = text.parse().with_context(|| format!("{}: bad number {text:?}", origin()))?;
@@ -270,6 +292,13 @@ mod tests {
         fs::write(dir.path().join("rgb.txt"), "abc rgb/x.png\n").unwrap();
         let err = ImageFilesSource::open_tum(dir.path()).err().unwrap().to_string();
         assert!(err.contains("rgb.txt:1: bad timestamp \"abc\""), "{err}");
+        // A byte-order mark is not part of the first stamp.
+        fs::write(dir.path().join("rgb.txt"), "\u{feff}abc rgb/x.png\n").unwrap();
+        let err = ImageFilesSource::open_tum(dir.path()).err().unwrap().to_string();
+        assert!(err.contains("rgb.txt:1: bad timestamp \"abc\""), "{err}");
+        std::fs::write(dir.path().join("rgb.txt"), "99999999999999999999.0 a.png\n").unwrap();
+        let err = format!("{:#}", ImageFilesSource::open_tum(dir.path()).err().unwrap());
+        assert!(err.contains("rgb.txt:1") && err.contains("out of range"), "{err}");
         fs::write(dir.path().join("rgb.txt"), "1.0\n").unwrap();
         let err = ImageFilesSource::open_tum(dir.path()).err().unwrap().to_string();
         assert!(err.contains("expected `timestamp path`"), "{err}");
