@@ -119,22 +119,6 @@ impl Pooling {
     }
 }
 
-impl fmt::Display for Pooling {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl FromStr for Pooling {
-    type Err = String;
-
-    fn from_str(text: &str) -> Result<Self, Self::Err> {
-        Pooling::ALL
-            .into_iter()
-            .find(|p| p.name() == text)
-            .ok_or_else(|| format!("unknown pooling {text:?} (expected one of {})", Self::NAMES.join(", ")))
-    }
-}
 
 impl DescriptorMode {
     /// Every mode, in the order of the names of [`DescriptorMode::NAMES`].
@@ -159,22 +143,30 @@ impl DescriptorMode {
     }
 }
 
-impl fmt::Display for DescriptorMode {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
+/// `Display` as the name and `FromStr` from it, for an enum with `ALL`, `NAMES` and `name()`.
+macro_rules! named_choice {
+    ($type:ty, $what:literal) => {
+        impl fmt::Display for $type {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str(self.name())
+            }
+        }
+
+        impl FromStr for $type {
+            type Err = String;
+
+            fn from_str(text: &str) -> Result<Self, Self::Err> {
+                Self::ALL
+                    .into_iter()
+                    .find(|choice| choice.name() == text)
+                    .ok_or_else(|| format!(concat!("unknown ", $what, " {:?} (expected one of {})"), text, Self::NAMES.join(", ")))
+            }
+        }
+    };
 }
 
-impl FromStr for DescriptorMode {
-    type Err = String;
-
-    fn from_str(text: &str) -> Result<Self, Self::Err> {
-        DescriptorMode::ALL
-            .into_iter()
-            .find(|mode| mode.name() == text)
-            .ok_or_else(|| format!("unknown descriptor mode {text:?} (expected one of {})", Self::NAMES.join(", ")))
-    }
-}
+named_choice!(DescriptorMode, "descriptor mode");
+named_choice!(Pooling, "pooling");
 
 /// Euclidean distance between two descriptors of the same length (extra values of the longer are ignored;
 /// callers check lengths, see [`crate::detector::KeyframeDb`]).
