@@ -19,12 +19,21 @@ pub mod train;
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+/// `--threads`: 1 to 1024. (A `usize`, as the subcommands that take their own `--threads` lists
+/// read the same argument id.)
+fn parse_threads(text: &str) -> Result<usize, String> {
+    match text.parse::<usize>() {
+        Ok(n) if (1..=1024).contains(&n) => Ok(n),
+        _ => Err(format!("{text:?} is not a thread count from 1 to 1024")),
+    }
+}
+
 #[derive(Parser, Debug)]
 #[command(name = "ecm-lcd", version, about = "Loop-closure detection for visual SLAM with ECMobileNet descriptors")]
 pub struct Cli {
     /// Compute threads, 1 to 1024 (default: number of CPUs).
-    #[arg(long, global = true, value_parser = clap::value_parser!(u16).range(1..=1024))]
-    pub threads: Option<u16>,
+    #[arg(long, global = true, value_parser = parse_threads)]
+    pub threads: Option<usize>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -75,7 +84,7 @@ pub fn main() -> ExitCode {
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or(default_log_filter(std::env::args())))
         .format_timestamp_millis()
         .init();
-    crate::runtime::init_threads(cli.threads.map(usize::from));
+    crate::runtime::init_threads(cli.threads);
     crate::runtime::keep_freed_memory();
     match run(cli.command) {
         Ok(()) => ExitCode::SUCCESS,
