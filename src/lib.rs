@@ -5,6 +5,7 @@
 //! -> keyframe database and detector ([`detector`]) -> geometric verification ([`verification`]) -> loop
 //! candidate -> publisher ([`ros`], CSV).
 //! [`pipeline`] wires those stages together for the offline commands and the node alike;
+//! [`pose_graph`] is a back end that uses the candidates (drift removed from an odometry trajectory);
 //! [`eval`] measures the result against ground truth and [`synth`] makes test sequences.
 //! Nothing below [`ros`] needs DDS.
 
@@ -15,6 +16,7 @@ pub mod eval;
 pub mod io;
 pub mod model;
 pub mod pipeline;
+pub mod pose_graph;
 pub mod preprocess;
 pub mod replay;
 pub mod ros;

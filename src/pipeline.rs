@@ -25,7 +25,7 @@ use crate::detector::{Detector, Match};
 use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::{Arch, Tap};
-use crate::types::{LoopCandidate, Stamp, Verified};
+use crate::types::{DepthImage, Frame, LoopCandidate, Stamp, Verified};
 use crate::verification::{Intrinsics, LocalFeatures, Verification, Verifier};
 
 /// Milliseconds spent per stage on one frame.
@@ -199,13 +199,21 @@ impl Pipeline {
     /// A keyframe whose id the tracker chose: no selection, always inserted.
     pub fn process_keyframe(&mut self, id: u64, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
         self.next_id = self.next_id.max(id + 1);
-        self.run(id, false, stamp, image)
+        self.run(id, false, stamp, image, None)
     }
 
     /// A plain frame: keyframe selection decides; accepted frames get `id`.
     pub fn process_frame(&mut self, id: u64, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
         self.next_id = self.next_id.max(id + 1);
-        self.run(id, true, stamp, image)
+        self.run(id, true, stamp, image, None)
+    }
+
+    /// A frame from a source: selection decides, its index is the id, and its depth image (if any)
+    /// gives verification a metric pose.
+    pub fn process_source_frame(&mut self, frame: &Frame) -> Result<Outcome> {
+        let id = frame.index as u64;
+        self.next_id = self.next_id.max(id + 1);
+        self.run(id, true, frame.stamp, &frame.image, frame.depth.as_ref())
     }
 
     /// A plain frame with the id taken from the pipeline's counter.
@@ -214,17 +222,17 @@ impl Pipeline {
         self.process_frame(id, stamp, image)
     }
 
-    fn run(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
+    fn run(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage, depth: Option<&DepthImage>) -> Result<Outcome> {
         if select && self.selector.offer(stamp) == Verdict::Reject {
             return Ok(Outcome::default());
         }
         // The workers stay hot from the forward pass through the search (its probed lists are
         // scanned in parallel). During a `--db` append (an fsynced transaction) a poller gives up
         // after `runtime::HOT_WORKER_PATIENCE`.
-        crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, stamp, image))
+        crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, stamp, image, depth))
     }
 
-    fn describe_and_detect(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
+    fn describe_and_detect(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage, depth: Option<&DepthImage>) -> Result<Outcome> {
         let mut outcome = Outcome::default();
         let start = Instant::now();
         let feature_map = self.embedder.feature_map(image)?;
@@ -245,7 +253,7 @@ impl Pipeline {
         let after_detector = Instant::now();
         outcome.timings.detector_ms = (after_detector - after_descriptor).as_secs_f64() * 1e3;
         if self.verifier.is_some() {
-            let features = self.local_features(image)?;
+            let features = self.local_features(image, depth)?;
             self.verify_outcome(&features, &mut outcome);
             self.remember_features(id, features);
             outcome.timings.verification_ms = after_detector.elapsed().as_secs_f64() * 1e3;
@@ -269,10 +277,11 @@ impl Pipeline {
         self.verifier.is_some()
     }
 
-    /// The local features of `image` for verification (empty when verification is off).
-    pub fn local_features(&self, image: &RgbImage) -> Result<LocalFeatures> {
+    /// The local features of `image` (with keypoint depths from `depth`) for verification (empty when
+    /// verification is off).
+    pub fn local_features(&self, image: &RgbImage, depth: Option<&DepthImage>) -> Result<LocalFeatures> {
         match &self.verifier {
-            Some(verifier) => verifier.extract(image),
+            Some(verifier) => verifier.extract(image, depth),
             None => Ok(LocalFeatures::default()),
         }
     }

@@ -105,7 +105,7 @@ pub fn run_database_queries(pipeline: &mut Pipeline, database: &[PathBuf], queri
         let image = read_image(path)?;
         let descriptor = pipeline.describe(&image)?;
         pipeline.detector_mut().insert(index as u64, Stamp::from_nanos(index as i64), &descriptor)?;
-        let features = pipeline.local_features(&image)?;
+        let features = pipeline.local_features(&image, None)?;
         pipeline.remember_features(index as u64, features);
     }
     let mut results = Vec::with_capacity(queries.len());
@@ -114,7 +114,7 @@ pub fn run_database_queries(pipeline: &mut Pipeline, database: &[PathBuf], queri
         let descriptor = pipeline.describe(&image)?;
         let best = pipeline.detector_mut().query(Stamp::from_nanos(i64::MAX), &descriptor)?;
         // A best match that fails geometric verification counts as no match.
-        let features = pipeline.local_features(&image)?;
+        let features = pipeline.local_features(&image, None)?;
         let best = best.filter(|m| pipeline.verify(&features, m.id).is_none_or(|v| v.accepted));
         results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
     }
@@ -195,7 +195,7 @@ fn replay_frames(
             continue;
         }
         let outcome = pipeline
-            .process_frame(frame.index as u64, frame.stamp, &frame.image)
+            .process_source_frame(&frame)
             .with_context(|| format!("frame {} (stamp {}) of {}", frame.index, frame.stamp, source.display()))?;
         if outcome.keyframe.is_some() {
             let t = outcome.timings;

@@ -69,6 +69,18 @@ impl Stamp {
     }
 }
 
+/// The position in `sorted` (stamps in increasing order) of the stamp nearest to `stamp`, if it is at
+/// most `max_offset` away; ties go to the earlier one.
+pub fn nearest_stamp(sorted: &[Stamp], stamp: Stamp, max_offset: Stamp) -> Option<usize> {
+    let at = sorted.partition_point(|s| *s < stamp);
+    let gap = |i: usize| sorted[i].nanos.abs_diff(stamp.nanos);
+    [at.checked_sub(1), (at < sorted.len()).then_some(at)]
+        .into_iter()
+        .flatten()
+        .min_by_key(|&i| gap(i))
+        .filter(|&i| gap(i) <= max_offset.nanos.unsigned_abs())
+}
+
 impl fmt::Display for Stamp {
     /// Seconds with nine decimals, e.g. `1341847980.722988000`.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
@@ -83,6 +95,51 @@ pub struct Frame {
     pub index: usize,
     pub stamp: Stamp,
     pub image: image::RgbImage,
+    /// The depth image registered to `image`, where the source has one (TUM `depth.txt`).
+    pub depth: Option<DepthImage>,
+}
+
+/// Depth along the optical axis, in metres, of every pixel of a colour image (0: unknown).
+#[derive(Clone, Debug, PartialEq)]
+pub struct DepthImage {
+    pub width: u32,
+    pub height: u32,
+    /// Row-major, `width * height` values.
+    pub metres: Vec<f32>,
+}
+
+impl DepthImage {
+    /// TUM RGB-D's 16-bit depth PNGs store 5000 units per metre.
+    pub const TUM_UNITS_PER_METRE: f32 = 5000.0;
+
+    /// From a TUM 16-bit depth image.
+    pub fn from_tum(image: &image::ImageBuffer<image::Luma<u16>, Vec<u16>>) -> DepthImage {
+        let metres = image.as_raw().iter().map(|&d| d as f32 / Self::TUM_UNITS_PER_METRE).collect();
+        DepthImage { width: image.width(), height: image.height(), metres }
+    }
+
+    /// As a TUM 16-bit depth image (depths beyond 13.1 m are written as 0, unknown).
+    pub fn to_tum(&self) -> image::ImageBuffer<image::Luma<u16>, Vec<u16>> {
+        let units = |m: f32| {
+            let u = (m * Self::TUM_UNITS_PER_METRE).round();
+            if u.is_finite() && u > 0.0 && u <= u16::MAX as f32 { u as u16 } else { 0 }
+        };
+        let raw = self.metres.iter().map(|&m| units(m)).collect();
+        image::ImageBuffer::from_raw(self.width, self.height, raw).expect("width * height values")
+    }
+
+    /// The depth at pixel position (x, y) (nearest pixel); `None` outside the image or unknown.
+    pub fn at(&self, x: f32, y: f32) -> Option<f32> {
+        if !(x >= 0.0 && y >= 0.0) {
+            return None;
+        }
+        let (col, row) = (x as u32, y as u32);
+        if col >= self.width || row >= self.height {
+            return None;
+        }
+        let d = self.metres[row as usize * self.width as usize + col as usize];
+        (d.is_finite() && d > 0.0).then_some(d)
+    }
 }
 
 /// A loop candidate: the query keyframe probably revisits the place of the matched one.
@@ -113,11 +170,15 @@ pub struct Verified {
 
 /// A relative camera pose from two views: `p_match = rotation * p_query + translation` for a point's
 /// coordinates in each camera's frame (x right, y down, z forward). Two views fix the translation
-/// only up to scale: it is a unit vector (zero for a pure rotation).
+/// only up to scale: it is a unit vector (zero for a pure rotation), unless `metric` (a depth image gave
+/// the scale: metres).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RelativePose {
     pub rotation: nalgebra::UnitQuaternion<f64>,
     pub translation: nalgebra::Vector3<f64>,
+    /// Whether `translation` is in metres (else a unit direction).
+    #[serde(default)]
+    pub metric: bool,
 }
 
 #[cfg(test)]

@@ -155,7 +155,7 @@ pub(crate) fn frames_for_benchmark(source: Option<&std::path::Path>, wanted: usi
     Ok((0..wanted)
         .map(|index| {
             let (stamp, image, _) = scene.frame(index);
-            Frame { index, stamp, image }
+            Frame { index, stamp, image, depth: None }
         })
         .collect())
 }
@@ -223,7 +223,7 @@ fn measure(args: &Args, frames: &[Frame]) -> Result<Vec<f64>> {
         let source = &frames[id % frames.len()];
         // Keyframe id = frame index; one second apart, whatever the source's stamps.
         let stamp = crate::types::Stamp::from_sec_nsec(1_000 + id as i64, 0);
-        let frame = Frame { index: id, stamp, image: source.image.clone() };
+        let frame = Frame { index: id, stamp, image: source.image.clone(), depth: None };
         let sent = Instant::now();
         publisher.publish(&frame)?;
         if id == 0 {

@@ -235,7 +235,7 @@ fn status_kib(pid: u32, field: &str) -> Option<u64> {
 
 fn keyframe(frames: &[Frame], id: usize) -> Frame {
     // Keyframe id = position in the run; 100 ms apart in stamps whatever the real rate.
-    Frame { index: id, stamp: Stamp::from_sec_nsec(1_000 + id as i64 / 10, (id % 10) as u32 * 100_000_000), image: frames[id % frames.len()].image.clone() }
+    Frame { index: id, stamp: Stamp::from_sec_nsec(1_000 + id as i64 / 10, (id % 10) as u32 * 100_000_000), image: frames[id % frames.len()].image.clone(), depth: None }
 }
 
 fn measure(args: &Args, burst_hz: f64, frames: &[Frame], node_pid: u32) -> Result<Measured> {

@@ -12,6 +12,7 @@ pub mod model;
 pub mod node;
 pub mod param;
 pub mod play_keyframes;
+pub mod pose_graph;
 pub mod replay;
 pub mod synth;
 pub mod train;
@@ -70,6 +71,8 @@ pub enum Command {
     LoadTest(load_test::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
     Synth(synth::Args),
+    /// Correct an odometry trajectory with the loop candidates (SE(3) pose graph); ATE and a Fig. 11 plot.
+    PoseGraph(pose_graph::Args),
     /// Inspect, export and merge persistent keyframe databases (--db).
     Db(db::Args),
     /// Train ECMobileNet or MobileNetV2 on an image folder (the paper's classification recipe).
@@ -135,6 +138,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Synth(args) => synth::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::PoseGraph(args) => pose_graph::run(args),
         Command::Db(args) => db::run(args),
         Command::Train(args) => train::run(args),
         Command::Distill(args) => distill::run(args),

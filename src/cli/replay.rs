@@ -6,8 +6,6 @@
 //! whose frames are already stored skips them ([`crate::replay`]) and appends to an existing output CSV
 //! instead of replacing it, so a crashed replay restarted with the same arguments completes the file.
 
-use std::fs::File;
-use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
@@ -15,7 +13,8 @@ use anyhow::{Context, Result};
 use crate::config::{Params, NODE_NAME};
 use crate::pipeline::Pipeline;
 use crate::replay::run_source_with;
-use crate::types::LoopCandidate;
+use crate::io::candidates::CandidateCsv;
+pub use crate::io::candidates::write_candidates_csv;
 
 /// Options every command that replays a source shares.
 #[derive(clap::Args, Debug, Clone)]
@@ -69,98 +68,6 @@ impl SourceArgs {
         }
         Ok(pipeline)
     }
-}
-
-const CSV_HEADER: [&str; 14] =
-    ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score", "inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz"];
-
-/// Candidates as CSV (`query_id,query_stamp,match_id,match_stamp,distance,score`, then geometric
-/// verification's `inliers` and the relative pose `qx,qy,qz,qw,tx,ty,tz` of the query camera in the
-/// match camera's frame, translation a unit direction; empty where not verified or without
-/// intrinsics), written in pieces, each flushed.
-pub struct CandidateCsv {
-    out: csv::Writer<Box<dyn Write + Send>>,
-    name: String,
-}
-
-impl CandidateCsv {
-    /// A new file at `path` (replacing one there), or, with `append` and a non-empty file there, its
-    /// continuation (no second header).
-    pub fn to_file(path: &Path, append: bool) -> Result<Self> {
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        }
-        let continuing = append && std::fs::metadata(path).is_ok_and(|m| m.len() > 0);
-        let file = if continuing { File::options().append(true).open(path) } else { File::create(path) }
-            .with_context(|| format!("cannot write {}", path.display()))?;
-        Self::new(Box::new(file), path.display().to_string(), !continuing)
-    }
-
-    /// The file at `path` holding exactly `candidates` (written beside it and renamed over it when
-    /// it is a regular file or missing, so a crash leaves the old file or the new one), open for
-    /// appending after them.
-    pub fn rewrite(path: &Path, candidates: &[LoopCandidate]) -> Result<Self> {
-        let regular_or_missing = std::fs::symlink_metadata(path).map_or(true, |m| m.is_file());
-        if regular_or_missing {
-            let mut temporary = path.as_os_str().to_owned();
-            temporary.push(".partial");
-            let temporary = PathBuf::from(temporary);
-            let mut fresh = Self::to_file(&temporary, false)?;
-            fresh.write(candidates)?;
-            drop(fresh);
-            File::open(&temporary).and_then(|f| f.sync_all()).with_context(|| format!("cannot write {}", temporary.display()))?;
-            std::fs::rename(&temporary, path).with_context(|| format!("cannot move {} to {}", temporary.display(), path.display()))?;
-            Self::to_file(path, true)
-        } else {
-            let mut csv = Self::to_file(path, false)?;
-            csv.write(candidates)?;
-            Ok(csv)
-        }
-    }
-
-    pub fn to_stdout() -> Result<Self> {
-        Self::new(Box::new(std::io::stdout()), "standard output".into(), true)
-    }
-
-    fn new(out: Box<dyn Write + Send>, name: String, header: bool) -> Result<Self> {
-        let mut csv = CandidateCsv { out: csv::WriterBuilder::new().has_headers(false).from_writer(out), name };
-        if header {
-            csv.out.write_record(CSV_HEADER)?;
-            csv.flush()?;
-        }
-        Ok(csv)
-    }
-
-    fn flush(&mut self) -> Result<()> {
-        self.out.flush().with_context(|| format!("cannot write {}", self.name))
-    }
-
-    /// Writes `candidates` and flushes.
-    pub fn write(&mut self, candidates: &[LoopCandidate]) -> Result<()> {
-        for c in candidates {
-            let mut record = vec![
-                c.query_id.to_string(),
-                c.query_stamp.to_string(),
-                c.match_id.to_string(),
-                c.match_stamp.to_string(),
-                format!("{:.6}", c.distance),
-                format!("{:.6}", c.score),
-                c.verified.map(|v| v.inliers.to_string()).unwrap_or_default(),
-            ];
-            let pose = c.verified.and_then(|v| v.pose).map(|p| {
-                let (q, t) = (p.rotation, p.translation);
-                [q.i, q.j, q.k, q.w, t.x, t.y, t.z]
-            });
-            record.extend((0..7).map(|i| pose.map(|values| format!("{:.6}", values[i])).unwrap_or_default()));
-            self.out.write_record(&record)?;
-        }
-        self.flush()
-    }
-}
-
-/// Writes candidates as a new CSV file ([`CandidateCsv`]).
-pub fn write_candidates_csv(candidates: &[LoopCandidate], path: &Path) -> Result<()> {
-    CandidateCsv::to_file(path, false)?.write(candidates)
 }
 
 #[derive(clap::Args, Debug)]

@@ -53,6 +53,9 @@ pub struct Args {
     /// Gaussian blur, standard deviation in pixels.
     #[arg(long)]
     pub blur: Option<f64>,
+    /// Also write depth images (`depth/`, `depth.txt`; 16-bit PNG, 5000 per metre, as TUM RGB-D).
+    #[arg(long)]
+    pub depth: bool,
     /// Frame rate of the stamps (frames per second).
     #[arg(long, default_value_t = SynthConfig::default().rate_hz)]
     pub rate: f64,
@@ -119,6 +122,7 @@ pub fn run(args: Args) -> Result<()> {
         height: args.height.unwrap_or(base.height),
         rate_hz: args.rate,
         difficulty,
+        depth: args.depth,
         ..base
     };
     let scene = Scene::new(config)?;

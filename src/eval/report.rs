@@ -93,6 +93,77 @@ fn draw_pr_curve(metrics: &Metrics, title: &str, path: &Path, with_text: bool) -
     Ok(())
 }
 
+/// The trajectories of a pose-graph run, for [`plot_trajectories`]: camera positions in metres, all
+/// in the ground truth's frame.
+pub struct TrajectoryPlot<'a> {
+    pub title: &'a str,
+    pub groundtruth: &'a [nalgebra::Vector3<f64>],
+    pub odometry: &'a [nalgebra::Vector3<f64>],
+    pub corrected: &'a [nalgebra::Vector3<f64>],
+    /// Loop edges as (query, match) positions on the corrected trajectory.
+    pub loops: &'a [(nalgebra::Vector3<f64>, nalgebra::Vector3<f64>)],
+}
+
+/// Draws the paper's Fig. 11 kind of figure into a PNG (900x900): the trajectories seen from above
+/// (the two axes along which the ground truth, else the corrected trajectory, extends most), ground truth black, odometry red,
+/// corrected blue, loop edges green.
+pub fn plot_trajectories(plot: &TrajectoryPlot, path: &Path) -> Result<()> {
+    let with_text = font_available();
+    draw_trajectories(plot, path, with_text).map_err(|e| anyhow::anyhow!("{e}")).with_context(|| format!("plotting {}", path.display()))
+}
+
+fn draw_trajectories(plot: &TrajectoryPlot, path: &Path, with_text: bool) -> Result<(), Box<dyn std::error::Error>> {
+    let all = || plot.groundtruth.iter().chain(plot.odometry).chain(plot.corrected);
+    let reference = if plot.groundtruth.is_empty() { plot.corrected } else { plot.groundtruth };
+    let extent = |axis: usize| {
+        let values = reference.iter().map(|p| p[axis]);
+        values.clone().fold(f64::MIN, f64::max) - values.fold(f64::MAX, f64::min)
+    };
+    let mut axes = [0usize, 1, 2];
+    axes.sort_by(|&a, &b| extent(b).total_cmp(&extent(a)));
+    let (u, v) = (axes[0].min(axes[1]), axes[0].max(axes[1]));
+    let range = |axis: usize| {
+        let (lo, hi) = all().fold((f64::MAX, f64::MIN), |(lo, hi), p| (lo.min(p[axis]), hi.max(p[axis])));
+        (lo, hi)
+    };
+    let ((u0, u1), (v0, v1)) = (range(u), range(v));
+    // Equal scales on both axes, with a margin.
+    let half = ((u1 - u0).max(v1 - v0) / 2.0).max(0.5) * 1.08;
+    let (uc, vc) = ((u0 + u1) / 2.0, (v0 + v1) / 2.0);
+    let root = BitMapBackend::new(path, (900, 900)).into_drawing_area();
+    root.fill(&WHITE)?;
+    let mut builder = ChartBuilder::on(&root);
+    builder.margin(20);
+    if with_text {
+        builder.caption(plot.title, ("sans-serif", 20)).x_label_area_size(45).y_label_area_size(55);
+    }
+    let mut chart = builder.build_cartesian_2d(uc - half..uc + half, vc - half..vc + half)?;
+    let mut mesh = chart.configure_mesh();
+    let names = ["x (m)", "y (m)", "z (m)"];
+    if with_text {
+        mesh.x_desc(names[u]).y_desc(names[v]).label_style(("sans-serif", 15));
+    } else {
+        mesh.x_labels(0).y_labels(0);
+    }
+    mesh.draw()?;
+    let project = |p: &nalgebra::Vector3<f64>| (p[u], p[v]);
+    let green = RGBColor(0, 160, 0);
+    for (a, b) in plot.loops {
+        chart.draw_series(LineSeries::new([project(a), project(b)], green.stroke_width(1)))?;
+    }
+    for (points, colour, name) in [(plot.groundtruth, BLACK, "ground truth"), (plot.odometry, RED, "odometry"), (plot.corrected, BLUE, "corrected")] {
+        let series = chart.draw_series(LineSeries::new(points.iter().map(project), colour.stroke_width(2)))?;
+        if with_text {
+            series.label(name).legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(2)));
+        }
+    }
+    if with_text {
+        chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).label_font(("sans-serif", 15)).draw()?;
+    }
+    root.present()?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

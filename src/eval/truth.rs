@@ -104,20 +104,9 @@ pub fn poses_at_stamps(
 ) -> Vec<Option<Isometry3<f64>>> {
     let mut sorted: Vec<&(Stamp, Isometry3<f64>)> = groundtruth.iter().collect();
     sorted.sort_by_key(|(s, _)| *s);
-    let max_offset = (max_offset_s * 1e9).round() as i64;
-    stamps
-        .iter()
-        .map(|stamp| {
-            let k = sorted.partition_point(|(s, _)| s < stamp);
-            [k.checked_sub(1), Some(k)]
-                .into_iter()
-                .flatten()
-                .filter_map(|i| sorted.get(i))
-                .min_by_key(|(s, _)| (s.nanos - stamp.nanos).abs())
-                .filter(|(s, _)| (s.nanos - stamp.nanos).abs() <= max_offset)
-                .map(|(_, pose)| *pose)
-        })
-        .collect()
+    let sorted_stamps: Vec<Stamp> = sorted.iter().map(|(s, _)| *s).collect();
+    let max_offset = Stamp::from_nanos((max_offset_s * 1e9).round() as i64);
+    stamps.iter().map(|&stamp| crate::types::nearest_stamp(&sorted_stamps, stamp, max_offset).map(|i| sorted[i].1)).collect()
 }
 
 /// Loop truth of a sequence from its frame stamps (replay order) and ground-truth poses.

@@ -5,6 +5,7 @@
 //! replay order with [`Frame::index`] counting from 0, and turns a bad input into an `Err` item
 //! naming the file and where it went wrong; after an `Err` a source yields nothing more.
 
+pub mod candidates;
 pub mod image_msg;
 pub mod msgs;
 pub mod output;

@@ -1,11 +1,41 @@
-//! Guards for files a command writes: an output is never one of the command's own inputs.
+//! Files a command writes: an output is never one of the command's own inputs, and a whole-file
+//! output replaces a regular file only by rename.
 //!
-//! Checked before anything is read or written, so a mistyped `-o` that names an input (`embed
-//! img.jpg -o img.jpg`, `db export k.db -o k.db`) leaves every file as it was.
+//! The input check runs before anything is read or written, so a mistyped `-o` that names an input
+//! (`embed img.jpg -o img.jpg`, `db export k.db -o k.db`) leaves every file as it was.
 
+use std::io::Write as _;
 use std::path::Path;
 
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
+
+/// Writes `bytes` as the whole of `path`. A missing path or a regular file is written under a
+/// temporary name beside it and renamed over it, so a crash leaves the old file or the new one, never
+/// half of one. A symlink, FIFO or device is written in place (through the link, into the pipe); a
+/// directory is refused.
+pub fn write_replacing(path: &Path, bytes: &[u8]) -> Result<()> {
+    let in_place = match std::fs::symlink_metadata(path) {
+        Err(_) => false,
+        Ok(m) if m.is_dir() => bail!("cannot write {}: it is a directory", path.display()),
+        Ok(m) => !m.file_type().is_file(),
+    };
+    if in_place {
+        let mut file = std::fs::OpenOptions::new().write(true).truncate(true).open(path).with_context(|| format!("cannot open {} for writing", path.display()))?;
+        return file.write_all(bytes).and_then(|()| file.flush()).with_context(|| format!("cannot write {}", path.display()));
+    }
+    let name = path.file_name().with_context(|| format!("cannot write {}: not a file name", path.display()))?;
+    let temporary = path.with_file_name(format!(".{}.{}.tmp", name.to_string_lossy(), std::process::id()));
+    let written = (|| -> std::io::Result<()> {
+        let mut file = std::fs::File::create(&temporary)?;
+        file.write_all(bytes)?;
+        file.sync_all()
+    })();
+    if let Err(e) = written.and_then(|()| std::fs::rename(&temporary, path)) {
+        let _ = std::fs::remove_file(&temporary);
+        return Err(e).with_context(|| format!("cannot write {}", path.display()));
+    }
+    Ok(())
+}
 
 /// Whether `a` and `b` name the same existing file (hard links and symlinks included).
 pub fn same_file(a: &Path, b: &Path) -> bool {
@@ -38,6 +68,32 @@ pub fn ensure_not_an_input(output: &Path, inputs: &[&Path]) -> Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn whole_file_outputs_replace_regular_files_and_write_through_everything_else() {
+        let dir = tempfile::tempdir().unwrap();
+        let fresh = dir.path().join("new.txt");
+        write_replacing(&fresh, b"one").unwrap();
+        assert_eq!(std::fs::read(&fresh).unwrap(), b"one");
+        write_replacing(&fresh, b"two").unwrap();
+        assert_eq!(std::fs::read(&fresh).unwrap(), b"two");
+        // Nothing but the output is left in the folder.
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+        let err = write_replacing(dir.path(), b"x").unwrap_err().to_string();
+        assert!(err.contains("directory"), "{err}");
+        #[cfg(unix)]
+        {
+            let target = dir.path().join("target.txt");
+            std::fs::write(&target, b"old").unwrap();
+            let link = dir.path().join("link.txt");
+            std::os::unix::fs::symlink(&target, &link).unwrap();
+            write_replacing(&link, b"through").unwrap();
+            assert!(std::fs::symlink_metadata(&link).unwrap().file_type().is_symlink(), "the link stays a link");
+            assert_eq!(std::fs::read(&target).unwrap(), b"through");
+            write_replacing(Path::new("/dev/null"), b"gone").unwrap();
+            assert!(!std::fs::metadata("/dev/null").unwrap().is_file(), "/dev/null stays a device");
+        }
+    }
 
     #[test]
     fn an_input_is_refused_as_the_output_by_any_name() {

@@ -448,7 +448,7 @@ impl Ros1BagSource {
         let decoded = ImageMessage::from_ros1(self.kind, record.data)
             .and_then(|msg| Ok((msg.stamp(), msg.to_rgb()?)))
             .with_context(|| format!("{} ({})", at(), self.kind.ros1_type()))?;
-        Ok(Frame { index, stamp: decoded.0, image: decoded.1 })
+        Ok(Frame { index, stamp: decoded.0, image: decoded.1, depth: None })
     }
 }
 

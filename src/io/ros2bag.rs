@@ -23,7 +23,7 @@ use crate::types::{Frame, Stamp};
 fn cdr_frame(kind: ImageKind, index: usize, payload: &[u8]) -> Result<Frame> {
     // from_cdr names the message type and size.
     let message = ImageMessage::from_cdr(kind, payload)?;
-    Ok(Frame { index, stamp: message.stamp(), image: message.to_rgb()? })
+    Ok(Frame { index, stamp: message.stamp(), image: message.to_rgb()?, depth: None })
 }
 
 /// Finds the storage file of a rosbag2 folder (one with `metadata.yaml`).

@@ -3,7 +3,9 @@
 //!
 //! `rgb.txt` lines are `timestamp path` with `path` relative to the folder; `#` starts a
 //! comment line and blank lines are skipped. `groundtruth.txt` lines are
-//! `timestamp tx ty tz qx qy qz qw`. A plain image folder (no `rgb.txt`) replays its
+//! `timestamp tx ty tz qx qy qz qw`. An optional `depth.txt` (same form as `rgb.txt`) lists 16-bit
+//! depth PNGs (5000 units per metre); each colour image takes the depth image nearest in time, within
+//! [`DEPTH_ASSOCIATION`] (the benchmark's `associate.py` rule). A plain image folder (no `rgb.txt`) replays its
 //! `png`/`jpg`/`jpeg`/`bmp` files in file-name order with stamp = index seconds.
 
 use anyhow::{bail, ensure, Context, Result};
@@ -14,7 +16,11 @@ use std::fs;
 use std::path::{Path, PathBuf};
 
 use super::FrameSource;
-use crate::types::{Frame, Stamp};
+use crate::types::{DepthImage, Frame, Stamp};
+
+/// Largest stamp difference between a colour image and the depth image paired with it (TUM's
+/// `associate.py` default).
+pub const DEPTH_ASSOCIATION: Stamp = Stamp::from_nanos(20_000_000);
 
 /// Why a stamp that does not parse is bad, when it looks like a number: it is out of range.
 fn stamp_problem(text: &str) -> &'static str {
@@ -57,6 +63,8 @@ struct ImageEntry {
     origin: String,
     stamp: Stamp,
     path: PathBuf,
+    /// The depth image paired with it.
+    depth: Option<PathBuf>,
 }
 
 /// Frames from image files listed up front (TUM folder or plain image folder).
@@ -71,23 +79,17 @@ impl ImageFilesSource {
     /// front so that a broken sequence fails before any work is done).
     pub fn open_tum(dir: &Path) -> Result<ImageFilesSource> {
         let list = dir.join("rgb.txt");
-        let mut entries = Vec::new();
-        for (line_no, line) in data_lines(&list)? {
-            let origin = format!("{}:{line_no}", list.display());
-            let mut fields = line.split_whitespace();
-            let (Some(stamp_text), Some(rel), None) = (fields.next(), fields.next(), fields.next()) else {
-                bail!("{origin}: expected `timestamp path`, found {}", super::excerpt(&line, 80));
-            };
-            let stamp = Stamp::parse_secs(stamp_text)
-                .with_context(|| format!("{origin}: bad timestamp {}{}", super::excerpt(stamp_text, 40), stamp_problem(stamp_text)))?;
-            let path = dir.join(rel);
-            if !path.is_file() {
-                let shown = if rel.len() <= 200 { path.display().to_string() } else { super::excerpt(rel, 120) };
-                bail!("{origin}: image file {shown} {}", not_a_file_reason(&path));
-            }
-            entries.push(ImageEntry { origin, stamp, path });
-        }
+        let mut entries: Vec<ImageEntry> = read_list(dir, &list, "image file")?
+            .into_iter()
+            .map(|(origin, stamp, path)| ImageEntry { origin, stamp, path, depth: None })
+            .collect();
         ensure!(!entries.is_empty(), "{} lists no images", list.display());
+        let depth_list = dir.join("depth.txt");
+        if depth_list.exists() {
+            let depths = read_list(dir, &depth_list, "depth image")?;
+            let paired = associate_depth(&mut entries, depths);
+            log::info!("{}: {paired} of {} images have a depth image", depth_list.display(), entries.len());
+        }
         // Frames replay in file order; stamps that repeat or go back are kept but said.
         let repeated = entries.windows(2).filter(|w| w[1].stamp == w[0].stamp).count();
         let backwards = entries.windows(2).filter(|w| w[1].stamp < w[0].stamp).count();
@@ -113,11 +115,66 @@ impl ImageFilesSource {
                 origin: format!("image {i}"),
                 stamp: Stamp::from_sec_nsec(i as i64, 0),
                 path,
+                depth: None,
             })
             .collect();
         let description = format!("image folder {} ({} images)", dir.display(), entries.len());
         Ok(ImageFilesSource { description, entries, next: 0 })
     }
+}
+
+/// The `timestamp path` lines of `rgb.txt` or `depth.txt` with their origin (`file:line`), every
+/// listed file checked up front so that a broken sequence fails before any work is done.
+fn read_list(dir: &Path, list: &Path, what: &str) -> Result<Vec<(String, Stamp, PathBuf)>> {
+    let mut entries = Vec::new();
+    for (line_no, line) in data_lines(list)? {
+        let origin = format!("{}:{line_no}", list.display());
+        let mut fields = line.split_whitespace();
+        let (Some(stamp_text), Some(rel), None) = (fields.next(), fields.next(), fields.next()) else {
+            bail!("{origin}: expected `timestamp path`, found {}", super::excerpt(&line, 80));
+        };
+        let stamp = Stamp::parse_secs(stamp_text)
+            .with_context(|| format!("{origin}: bad timestamp {}{}", super::excerpt(stamp_text, 40), stamp_problem(stamp_text)))?;
+        let path = dir.join(rel);
+        if !path.is_file() {
+            let shown = if rel.len() <= 200 { path.display().to_string() } else { super::excerpt(rel, 120) };
+            bail!("{origin}: {what} {shown} {}", not_a_file_reason(&path));
+        }
+        entries.push((origin, stamp, path));
+    }
+    Ok(entries)
+}
+
+/// Pairs each image with the depth image nearest in time, within [`DEPTH_ASSOCIATION`]; returns how
+/// many were paired.
+fn associate_depth(entries: &mut [ImageEntry], depths: Vec<(String, Stamp, PathBuf)>) -> usize {
+    let mut depths: Vec<(Stamp, PathBuf)> = depths.into_iter().map(|(_, stamp, path)| (stamp, path)).collect();
+    depths.sort_by_key(|(stamp, _)| *stamp);
+    let stamps: Vec<Stamp> = depths.iter().map(|(stamp, _)| *stamp).collect();
+    let mut paired = 0;
+    for entry in entries.iter_mut() {
+        if let Some(i) = crate::types::nearest_stamp(&stamps, entry.stamp, DEPTH_ASSOCIATION) {
+            entry.depth = Some(depths[i].1.clone());
+            paired += 1;
+        }
+    }
+    paired
+}
+
+/// Reads a TUM 16-bit depth PNG; it must have the colour image's size.
+fn load_depth(path: &Path, width: u32, height: u32) -> Result<DepthImage> {
+    let image = image::open(path).map_err(crate::io::image_msg::image_error).with_context(|| format!("cannot decode depth image {}", path.display()))?;
+    let image::DynamicImage::ImageLuma16(depth) = image else {
+        bail!("depth image {} is not a 16-bit grayscale PNG (TUM depth: 5000 units per metre)", path.display());
+    };
+    ensure!(
+        depth.width() == width && depth.height() == height,
+        "depth image {} is {}x{}, its colour image {width}x{height}",
+        path.display(),
+        depth.width(),
+        depth.height()
+    );
+    Ok(DepthImage::from_tum(&depth))
 }
 
 /// The image files (by extension, case-insensitive) directly inside `dir`.
@@ -143,7 +200,15 @@ impl Iterator for ImageFilesSource {
         let loaded = image::open(&entry.path)
             .map_err(crate::io::image_msg::image_error)
             .with_context(|| format!("{}: cannot decode image {}", entry.origin, entry.path.display()));
-        Some(loaded.map(|img| Frame { index, stamp: entry.stamp, image: img.into_rgb8() }))
+        let frame = loaded.and_then(|img| {
+            let image = img.into_rgb8();
+            let depth = match &entry.depth {
+                Some(path) => Some(load_depth(path, image.width(), image.height()).with_context(|| entry.origin.clone())?),
+                None => None,
+            };
+            Ok(Frame { index, stamp: entry.stamp, image, depth })
+        });
+        Some(frame)
     }
 
     fn size_hint(&self) -> (usize, Option<usize>) {
@@ -186,12 +251,15 @@ pub fn read_groundtruth(path: &Path) -> Result<Vec<(Stamp, Isometry3<f64>)>> {
     Ok(poses)
 }
 
-/// Writes a TUM folder: `rgb/<stamp>.png`, `rgb.txt` and `groundtruth.txt`.
-/// Text files are written by [`TumWriter::finish`]; images as they come.
+/// Writes a TUM folder: `rgb/<stamp>.png`, `rgb.txt` and `groundtruth.txt`, and where given
+/// `depth/<stamp>.png` with `depth.txt`, and an odometry trajectory `odometry.txt` (TUM trajectory
+/// format, as `groundtruth.txt`). Text files are written by [`TumWriter::finish`]; images as they come.
 pub struct TumWriter {
     dir: PathBuf,
     rgb_lines: String,
+    depth_lines: String,
     pose_lines: String,
+    odometry_lines: String,
 }
 
 impl TumWriter {
@@ -201,7 +269,9 @@ impl TumWriter {
         Ok(TumWriter {
             dir: dir.to_path_buf(),
             rgb_lines: "# color images\n# timestamp filename\n".to_string(),
+            depth_lines: String::new(),
             pose_lines: "# ground truth trajectory\n# timestamp tx ty tz qx qy qz qw\n".to_string(),
+            odometry_lines: String::new(),
         })
     }
 
@@ -221,26 +291,60 @@ impl TumWriter {
         self.dir.join(rel)
     }
 
+    /// Lists a depth image in `depth.txt` (creating `depth/`) and returns the path its 16-bit PNG
+    /// must be written to.
+    pub fn add_depth(&mut self, stamp: Stamp) -> Result<PathBuf> {
+        if self.depth_lines.is_empty() {
+            fs::create_dir_all(self.dir.join("depth")).with_context(|| format!("cannot create {}/depth", self.dir.display()))?;
+            self.depth_lines = "# depth maps\n# timestamp filename\n".to_string();
+        }
+        let name = tum_stamp(stamp);
+        let rel = format!("depth/{name}.png");
+        let _ = writeln!(self.depth_lines, "{name} {rel}");
+        Ok(self.dir.join(rel))
+    }
+
     pub fn write_pose(&mut self, stamp: Stamp, pose: &Isometry3<f64>) -> Result<()> {
-        let t = pose.translation.vector;
-        let q = pose.rotation.quaternion();
-        let _ = writeln!(
-            self.pose_lines,
-            // Shortest text that reads back to the same f64: ground truth round-trips exactly.
-            "{} {} {} {} {} {} {} {}",
-            tum_stamp(stamp), t.x, t.y, t.z, q.i, q.j, q.k, q.w
-        );
+        write_trajectory_line(&mut self.pose_lines, stamp, pose);
         Ok(())
     }
 
-    /// Writes `rgb.txt` and `groundtruth.txt`.
+    /// One pose of the odometry trajectory (`odometry.txt`).
+    pub fn write_odometry(&mut self, stamp: Stamp, pose: &Isometry3<f64>) {
+        if self.odometry_lines.is_empty() {
+            self.odometry_lines = "# odometry trajectory (drifts)\n# timestamp tx ty tz qx qy qz qw\n".to_string();
+        }
+        write_trajectory_line(&mut self.odometry_lines, stamp, pose);
+    }
+
+    /// Writes `rgb.txt`, `groundtruth.txt`, and `depth.txt` and `odometry.txt` where given.
     pub fn finish(self) -> Result<()> {
-        for (name, text) in [("rgb.txt", &self.rgb_lines), ("groundtruth.txt", &self.pose_lines)] {
+        let lists = [("rgb.txt", &self.rgb_lines), ("groundtruth.txt", &self.pose_lines), ("depth.txt", &self.depth_lines), ("odometry.txt", &self.odometry_lines)];
+        for (name, text) in lists {
+            if text.is_empty() {
+                continue;
+            }
             let path = self.dir.join(name);
             fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))?;
         }
         Ok(())
     }
+}
+
+/// Writes a TUM trajectory (`timestamp tx ty tz qx qy qz qw` per line) to `path`.
+pub fn write_trajectory(path: &Path, poses: &[(Stamp, Isometry3<f64>)]) -> Result<()> {
+    let mut text = "# timestamp tx ty tz qx qy qz qw\n".to_string();
+    for (stamp, pose) in poses {
+        write_trajectory_line(&mut text, *stamp, pose);
+    }
+    crate::io::output::write_replacing(path, text.as_bytes())
+}
+
+fn write_trajectory_line(text: &mut String, stamp: Stamp, pose: &Isometry3<f64>) {
+    let t = pose.translation.vector;
+    let q = pose.rotation.quaternion();
+    // Shortest text that reads back to the same f64: trajectories round-trip exactly.
+    let _ = writeln!(text, "{} {} {} {} {} {} {} {}", tum_stamp(stamp), t.x, t.y, t.z, q.i, q.j, q.k, q.w);
 }
 
 /// `sec.micros`, as TUM files print stamps.
@@ -281,6 +385,34 @@ mod tests {
         assert_eq!(poses[2].0, stamps[2]);
         assert!((poses[2].1.translation.vector - pose.translation.vector).norm() < 1e-9);
         assert!(poses[2].1.rotation.angle_to(&pose.rotation) < 1e-8);
+        assert!(frames.iter().all(|f| f.depth.is_none()), "no depth.txt, no depth");
+    }
+
+    #[test]
+    fn depth_images_pair_with_the_nearest_colour_image_within_20_ms() {
+        let dir = tempfile::tempdir().unwrap();
+        let seq = dir.path().join("seq");
+        let mut writer = TumWriter::create(&seq).unwrap();
+        let colour = [Stamp::from_sec_nsec(10, 0), Stamp::from_sec_nsec(10, 100_000_000), Stamp::from_sec_nsec(10, 200_000_000)];
+        // Depth 15 ms after the first image, 5 ms before the second; none near the third.
+        let depth_stamps = [Stamp::from_sec_nsec(10, 15_000_000), Stamp::from_sec_nsec(10, 95_000_000), Stamp::from_sec_nsec(10, 400_000_000)];
+        for &stamp in &colour {
+            writer.write_frame(stamp, &RgbImage::new(4, 3)).unwrap();
+        }
+        for (i, &stamp) in depth_stamps.iter().enumerate() {
+            let depth = DepthImage { width: 4, height: 3, metres: vec![1.0 + i as f32; 12] };
+            depth.to_tum().save(writer.add_depth(stamp).unwrap()).unwrap();
+        }
+        writer.finish().unwrap();
+        let frames: Vec<Frame> = ImageFilesSource::open_tum(&seq).unwrap().map(|f| f.unwrap()).collect();
+        let depth_at = |f: &Frame| f.depth.as_ref().map(|d| d.at(1.5, 1.5).unwrap());
+        // The second depth (95 ms) is nearer the second image; the first (15 ms) the first image.
+        assert_eq!(frames.iter().map(depth_at).collect::<Vec<_>>(), [Some(1.0), Some(2.0), None]);
+        // A depth image of another size is refused, naming it.
+        let wrong = DepthImage { width: 2, height: 2, metres: vec![1.0; 4] };
+        wrong.to_tum().save(seq.join("depth/10.095000.png")).unwrap();
+        let err = format!("{:#}", ImageFilesSource::open_tum(&seq).unwrap().nth(1).unwrap().unwrap_err());
+        assert!(err.contains("10.095000.png") && err.contains("2x2"), "{err}");
     }
 
     #[test]

@@ -183,6 +183,7 @@ impl LoopCandidate {
             loop_type: match candidate.verified {
                 None => Self::TYPE_APPEARANCE,
                 Some(types::Verified { pose: None, .. }) => Self::TYPE_VERIFIED,
+                Some(types::Verified { pose: Some(pose), .. }) if pose.metric => Self::TYPE_VERIFIED_METRIC,
                 Some(types::Verified { pose: Some(_), .. }) => Self::TYPE_VERIFIED_UP_TO_SCALE,
             },
             descriptor_mode: descriptor_mode.to_string(),
@@ -204,7 +205,10 @@ impl LoopCandidate {
             rank: self.rank,
             verified: (self.loop_type != Self::TYPE_APPEARANCE).then(|| types::Verified {
                 inliers: self.inliers,
-                pose: (self.loop_type != Self::TYPE_VERIFIED).then(|| self.relative_pose.into()),
+                pose: (self.loop_type != Self::TYPE_VERIFIED).then(|| types::RelativePose {
+                    metric: self.loop_type == Self::TYPE_VERIFIED_METRIC,
+                    ..self.relative_pose.into()
+                }),
             }),
         }
     }
@@ -228,6 +232,7 @@ impl From<Pose> for types::RelativePose {
         types::RelativePose {
             rotation: nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q.w, q.x, q.y, q.z)),
             translation: nalgebra::Vector3::new(p.x, p.y, p.z),
+            metric: false,
         }
     }
 }
@@ -434,8 +439,14 @@ mod tests {
         let pose = types::RelativePose {
             rotation: nalgebra::UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
             translation: nalgebra::Vector3::new(0.6, 0.0, 0.8),
+            metric: false,
         };
-        for verified in [types::Verified { inliers: 40, pose: Some(pose) }, types::Verified { inliers: 17, pose: None }] {
+        let metric = types::RelativePose { metric: true, translation: nalgebra::Vector3::new(1.2, 0.0, 1.6), ..pose };
+        for verified in [
+            types::Verified { inliers: 40, pose: Some(pose) },
+            types::Verified { inliers: 17, pose: None },
+            types::Verified { inliers: 33, pose: Some(metric) },
+        ] {
             let candidate = types::LoopCandidate {
                 query_id: 9,
                 query_stamp: Stamp::from_nanos(9_000_000_000),
@@ -447,8 +458,11 @@ mod tests {
                 verified: Some(verified),
             };
             let msg = LoopCandidate::from_candidate(&candidate, "cam", "cam", 1, "power");
-            let expected_type =
-                if verified.pose.is_some() { LoopCandidate::TYPE_VERIFIED_UP_TO_SCALE } else { LoopCandidate::TYPE_VERIFIED };
+            let expected_type = match verified.pose {
+                Some(p) if p.metric => LoopCandidate::TYPE_VERIFIED_METRIC,
+                Some(_) => LoopCandidate::TYPE_VERIFIED_UP_TO_SCALE,
+                None => LoopCandidate::TYPE_VERIFIED,
+            };
             assert_eq!(msg.loop_type, expected_type);
             assert_eq!(msg.covariance, Covariance::UNKNOWN);
             let bytes = cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&msg).unwrap();

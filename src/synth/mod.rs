@@ -23,7 +23,7 @@ pub use path::camera_rotation;
 pub use tum_out::write_tum_folder;
 pub use world::SplitMix64;
 
-use crate::types::Stamp;
+use crate::types::{DepthImage, Stamp};
 use anyhow::{bail, Result};
 use image::RgbImage;
 use nalgebra::Isometry3;
@@ -43,6 +43,31 @@ pub struct SynthConfig {
     /// Stamp of the first frame.
     pub start_stamp: Stamp,
     pub difficulty: Difficulty,
+    /// Also render depth images (written as TUM `depth/` and `depth.txt`).
+    pub depth: bool,
+    /// How the odometry trajectory written beside the ground truth drifts.
+    pub drift: OdometryDrift,
+}
+
+/// Errors of a simulated odometry (a visual or wheel odometry's typical faults), applied to each
+/// frame-to-frame motion: a scale error, a heading bias proportional to the distance travelled, and
+/// seeded Gaussian noise. The drifted trajectory starts at the true first pose.
+#[derive(Clone, Debug, PartialEq)]
+pub struct OdometryDrift {
+    /// Factor on every translation (1 = exact).
+    pub scale: f64,
+    /// Heading error about the world's up axis, in degrees per metre travelled.
+    pub yaw_deg_per_m: f64,
+    /// Standard deviation of the heading noise, degrees per square root of a metre.
+    pub yaw_noise_deg: f64,
+    /// Standard deviation of the translation noise as a fraction of each step's length.
+    pub translation_noise: f64,
+}
+
+impl Default for OdometryDrift {
+    fn default() -> Self {
+        OdometryDrift { scale: 1.03, yaw_deg_per_m: 1.0, yaw_noise_deg: 0.3, translation_noise: 0.05 }
+    }
 }
 
 /// What makes revisits hard to recognise (module doc). The default adds nothing.
@@ -111,6 +136,8 @@ impl Default for SynthConfig {
             rate_hz: 30.0,
             start_stamp: Stamp::from_nanos(1_600_000_000_000_000_000),
             difficulty: Difficulty::default(),
+            depth: false,
+            drift: OdometryDrift::default(),
         }
     }
 }
@@ -245,6 +272,40 @@ impl Scene {
             noise_seed,
         );
         self.degrade(image, noise_seed)
+    }
+
+    /// Depth image of frame `index`, registered to [`Scene::render`]'s image.
+    pub fn depth(&self, index: usize) -> DepthImage {
+        let (width, height) = (self.config.width, self.config.height);
+        DepthImage { width, height, metres: self.world.depth(&self.pose(index), width, height, self.focal_length()) }
+    }
+
+    /// The drifted odometry trajectory of the whole sequence ([`OdometryDrift`]), camera-to-world.
+    pub fn odometry(&self) -> Vec<Isometry3<f64>> {
+        let drift = &self.config.drift;
+        let mut rng = world::SplitMix64::new(self.config.seed ^ 0x6F64_6F6D_6574_7279);
+        let mut gaussian = move || {
+            let (u1, u2) = (rng.next_f64().max(1e-12), rng.next_f64());
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let mut poses = Vec::with_capacity(self.len());
+        let mut odometry = self.pose(0);
+        poses.push(odometry);
+        for index in 1..self.len() {
+            let (before, after) = (self.pose(index - 1), self.pose(index));
+            let step = before.inverse() * after;
+            let length = step.translation.vector.norm();
+            let noise = nalgebra::Vector3::new(gaussian(), gaussian(), gaussian()) * drift.translation_noise * length;
+            let translation = step.translation.vector * drift.scale + noise;
+            let yaw = (drift.yaw_deg_per_m * length + drift.yaw_noise_deg * length.sqrt() * gaussian()).to_radians();
+            // Heading error about world up, expressed in the previous camera's frame.
+            let up = odometry.rotation.inverse() * nalgebra::Vector3::z_axis();
+            let error = nalgebra::UnitQuaternion::from_axis_angle(&up, yaw);
+            let drifted = Isometry3::from_parts(translation.into(), error * step.rotation);
+            odometry *= drifted;
+            poses.push(odometry);
+        }
+        poses
     }
 
     /// Stamp, image and camera-to-world pose of frame `index`.

@@ -770,6 +770,32 @@ impl World {
     }
 }
 
+impl World {
+    /// Depth along the optical axis (camera z) in metres of every pixel seen from `pose`, with the
+    /// camera of [`World::render`]; 0 where a ray hits nothing.
+    pub fn depth(&self, pose: &Isometry3<f64>, width: u32, height: u32, focal: f64) -> Vec<f32> {
+        let m = pose.rotation.to_rotation_matrix();
+        let rot: [[f64; 3]; 3] = std::array::from_fn(|r| std::array::from_fn(|c| m.matrix()[(r, c)]));
+        let t = pose.translation.vector;
+        let origin = [t.x as f32, t.y as f32, t.z as f32];
+        let start_room = self.room_at(origin);
+        let (w, h) = (width as usize, height as usize);
+        let (cx, cy) = (width as f64 / 2.0, height as f64 / 2.0);
+        let mut depth = vec![0f32; w * h];
+        depth.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            let yc = (y as f64 + 0.5 - cy) / focal;
+            for (x, out) in row.iter_mut().enumerate() {
+                let xc = (x as f64 + 0.5 - cx) / focal;
+                let norm = (xc * xc + yc * yc + 1.0).sqrt();
+                let dir: [f32; 3] = std::array::from_fn(|r| ((rot[r][0] * xc + rot[r][1] * yc + rot[r][2]) / norm) as f32);
+                // The ray is a unit vector whose optical-axis component is 1 / norm.
+                *out = self.trace(origin, dir, start_room).map_or(0.0, |hit| (hit.t as f64 / norm) as f32);
+            }
+        });
+        depth
+    }
+}
+
 fn at(origin: [f32; 3], dir: [f32; 3], t: f32) -> [f32; 3] {
     [origin[0] + dir[0] * t, origin[1] + dir[1] * t, origin[2] + dir[2] * t]
 }

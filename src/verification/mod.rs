@@ -15,6 +15,10 @@
 //!    or the homography's decomposition, whichever won; of the candidate motions, the one that puts
 //!    the most inliers in front of both cameras. Two views fix the translation's direction, not its
 //!    length.
+//! 5. With a depth image of the match keyframe, a metric pose: the inliers whose match keypoint has a
+//!    depth are lifted to 3-D points in the match camera, and EPnP inside RANSAC (kornia-3d) finds the
+//!    query camera that sees them where its keypoints are. The metric pose replaces step 4's when
+//!    enough of those points agree ([`MIN_METRIC_INLIERS`]).
 //!
 //! A candidate is verified when the inliers reach [`VerificationParams::min_inliers`]. An 8-point
 //! fit to a dozen random matches always finds about eight "inliers", so the minimum must sit well
@@ -29,10 +33,15 @@ use kornia_3d::pose::{
     decompose_essential, decompose_homography, enforce_essential_constraints, essential_from_fundamental, ransac_fundamental,
     ransac_homography, refine_pose_lm, triangulate_midpoint_known_pose, LmPoseConfig, RansacParams,
 };
-use kornia_algebra::{Mat3F64, Vec2F64, Vec3F64};
+use kornia_3d::pnp::{refine_pose_lm as refine_pnp_lm, solve_pnp_ransac, LMRefineParams, PnPMethod, RansacParams as PnPRansacParams};
+use kornia_algebra::{Mat3AF32, Mat3F64, Vec2F32, Vec2F64, Vec3AF32, Vec3F64};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
 pub use crate::types::RelativePose;
+use crate::types::DepthImage;
+
+/// PnP inliers a metric pose needs (below that, the pose stays up to scale).
+pub const MIN_METRIC_INLIERS: usize = 10;
 use kornia_image::{Image, ImageSize};
 use kornia_imgproc::features::{match_descriptors, OrbDetector};
 
@@ -101,6 +110,8 @@ pub struct LocalFeatures {
     pub keypoints: Vec<[f32; 2]>,
     /// 256-bit rBRIEF descriptors.
     pub descriptors: Vec<[u8; 32]>,
+    /// Depth in metres of each keypoint (0: unknown), or empty when the keyframe has no depth image.
+    pub depths: Vec<f32>,
 }
 
 impl LocalFeatures {
@@ -114,7 +125,7 @@ impl LocalFeatures {
 
     /// Memory the features take.
     pub fn bytes(&self) -> usize {
-        self.len() * (std::mem::size_of::<[f32; 2]>() + std::mem::size_of::<[u8; 32]>())
+        self.len() * (std::mem::size_of::<[f32; 2]>() + std::mem::size_of::<[u8; 32]>()) + self.depths.len() * std::mem::size_of::<f32>()
     }
 }
 
@@ -144,7 +155,24 @@ pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
     }
     let image = Image::<u8, 1>::new(size, gray.into_raw()).map_err(|e| anyhow::anyhow!("grayscale image for ORB: {e}"))?;
     let features = orb.detect_and_extract_u8(&image).map_err(|e| anyhow::anyhow!("ORB extraction: {e}"))?;
-    Ok(LocalFeatures { keypoints: features.keypoints_xy, descriptors: features.descriptors })
+    Ok(LocalFeatures { keypoints: features.keypoints_xy, descriptors: features.descriptors, depths: Vec::new() })
+}
+
+/// [`extract`], with each keypoint's depth read from `depth` where given.
+pub fn extract_with_depth(image: &RgbImage, depth: Option<&DepthImage>, max_features: usize) -> Result<LocalFeatures> {
+    let mut features = extract(image, max_features)?;
+    if let Some(depth) = depth {
+        ensure!(
+            (depth.width, depth.height) == image.dimensions(),
+            "depth image is {}x{}, its colour image {}x{}",
+            depth.width,
+            depth.height,
+            image.width(),
+            image.height()
+        );
+        features.depths = features.keypoints.iter().map(|&[x, y]| depth.at(x, y).unwrap_or(0.0)).collect();
+    }
+    Ok(features)
 }
 
 /// Checks whether `query` and `matched` see one rigid scene (module doc).
@@ -153,12 +181,74 @@ pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &Verificat
     let point = |p: [f32; 2]| Vec2F64::new(p[0] as f64, p[1] as f64);
     let x1: Vec<Vec2F64> = pairs.iter().map(|&(i, _)| point(query.keypoints[i])).collect();
     let x2: Vec<Vec2F64> = pairs.iter().map(|&(_, j)| point(matched.keypoints[j])).collect();
-    fit_geometry(&x1, &x2, params)
+    let (mut verification, inliers) = fit(&x1, &x2, params);
+    if let (true, Some(intrinsics), false) = (verification.accepted, &params.intrinsics, matched.depths.is_empty()) {
+        // Step 5: the inliers whose match keypoint has a depth.
+        let points: Vec<(Vec2F64, Vec2F64, f32)> = pairs
+            .iter()
+            .zip(&inliers)
+            .filter(|&(&(_, j), &inlier)| inlier && matched.depths[j] > 0.0)
+            .map(|(&(i, j), _)| (point(query.keypoints[i]), point(matched.keypoints[j]), matched.depths[j]))
+            .collect();
+        if let Some(pose) = metric_pose(&points, intrinsics, params.pixel_threshold) {
+            verification.pose = Some(pose);
+        }
+    }
+    verification
+}
+
+/// Step 5 of the module doc: from (query pixel, match pixel, match depth) triples, the query camera's
+/// metric pose in the match camera's frame; `None` when too few agree.
+fn metric_pose(points: &[(Vec2F64, Vec2F64, f32)], intrinsics: &Intrinsics, pixel_threshold: f64) -> Option<RelativePose> {
+    if points.len() < MIN_METRIC_INLIERS {
+        return None;
+    }
+    let Intrinsics { fx, fy, cx, cy } = *intrinsics;
+    let world: Vec<Vec3AF32> = points
+        .iter()
+        .map(|&(_, m, d)| {
+            let (x, y) = ((m.x - cx) / fx, (m.y - cy) / fy);
+            Vec3AF32::new(x as f32 * d, y as f32 * d, d)
+        })
+        .collect();
+    let image: Vec<Vec2F32> = points.iter().map(|&(q, _, _)| Vec2F32::new(q.x as f32, q.y as f32)).collect();
+    let k = Mat3AF32::from_cols(
+        Vec3AF32::new(fx as f32, 0.0, 0.0),
+        Vec3AF32::new(0.0, fy as f32, 0.0),
+        Vec3AF32::new(cx as f32, cy as f32, 1.0),
+    );
+    let ransac = PnPRansacParams { reproj_threshold_px: pixel_threshold as f32, random_seed: Some(0), ..PnPRansacParams::default() };
+    let found = solve_pnp_ransac(&world, &image, &k, None, PnPMethod::EPnPDefault, &ransac).ok()?;
+    if found.inliers.len() < MIN_METRIC_INLIERS {
+        return None;
+    }
+    // EPnP minimises an algebraic error; a Levenberg-Marquardt pass on the inliers' reprojection
+    // errors (kornia's PnP refinement) makes the pose the least-squares one.
+    let (inlier_world, inlier_image): (Vec<Vec3AF32>, Vec<Vec2F32>) = found.inliers.iter().map(|&i| (world[i], image[i])).unzip();
+    let pose = refine_pnp_lm(&inlier_world, &inlier_image, &k, &found.pose.rotation, &found.pose.translation, None, &LMRefineParams::default())
+        .unwrap_or(found.pose);
+    // PnP gives the match frame's points in the query camera: p_query = R p_match + t.
+    let r = &pose.rotation;
+    let columns = [r.x_axis, r.y_axis, r.z_axis].map(|c| Vector3::new(c.x as f64, c.y as f64, c.z as f64));
+    let rotation = Matrix3::from_columns(&columns);
+    let t = pose.translation;
+    let t = Vector3::new(t.x as f64, t.y as f64, t.z as f64);
+    let inverse = rotation.transpose();
+    Some(RelativePose {
+        rotation: UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&inverse)),
+        translation: -(inverse * t),
+        metric: true,
+    })
 }
 
 /// Steps 3 and 4 of the module doc on matched pixel positions (`x1[i]` in the query, `x2[i]` in the
 /// match).
 pub fn fit_geometry(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams) -> Verification {
+    fit(x1, x2, params).0
+}
+
+/// [`fit_geometry`] with the winning model's inlier mask.
+fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams) -> (Verification, Vec<bool>) {
     // A fixed seed: the same pair is always judged the same way.
     let ransac = RansacParams {
         max_iterations: 500,
@@ -182,7 +272,8 @@ pub fn fit_geometry(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams)
         (Some((model, fit)), Some(intrinsics)) if accepted => relative_pose(model, &fit.model, &intrinsics.matrix(), x1, x2, &fit.inliers),
         _ => None,
     };
-    Verification { matches: x1.len(), inliers, model: best.map(|(model, _)| model), accepted, pose }
+    let mask = best.map_or_else(|| vec![false; x1.len()], |(_, fit)| fit.inliers.clone());
+    (Verification { matches: x1.len(), inliers, model: best.map(|(model, _)| model), accepted, pose }, mask)
 }
 
 /// Step 4 of the module doc: the motion, among those `model` allows, that puts the most inliers in
@@ -214,6 +305,7 @@ fn relative_pose(model: GeometricModel, fit: &Mat3F64, k: &Mat3F64, x1: &[Vec2F6
     Some(RelativePose {
         rotation: UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation)),
         translation: if norm > 1e-12 { translation / norm } else { Vector3::zeros() },
+        metric: false,
     })
 }
 
@@ -242,9 +334,10 @@ impl Verifier {
         self.params = params;
     }
 
-    /// Features of an image under this verifier's settings.
-    pub fn extract(&self, image: &RgbImage) -> Result<LocalFeatures> {
-        extract(image, self.params.max_features)
+    /// Features of an image (and keypoint depths, from `depth` where given) under this verifier's
+    /// settings.
+    pub fn extract(&self, image: &RgbImage, depth: Option<&DepthImage>) -> Result<LocalFeatures> {
+        extract_with_depth(image, depth, self.params.max_features)
     }
 
     /// Keeps `features` as keyframe `id`'s, dropping the oldest beyond the budget.
@@ -370,7 +463,7 @@ mod tests {
     fn the_budget_drops_the_oldest_features_and_unknown_keyframes_are_not_verified() {
         let mut verifier = Verifier::new(VerificationParams { keyframes: 2, ..VerificationParams::default() }).unwrap();
         let scene = blocks(4, 160, 120);
-        let features = verifier.extract(&scene).unwrap();
+        let features = verifier.extract(&scene, None).unwrap();
         for id in 0..3 {
             verifier.remember(id, features.clone());
         }

@@ -30,26 +30,31 @@ fn target_dir() -> PathBuf {
 
 const VENV_PACKAGES: &[&str] = &["rosbags==0.11.9", "pillow>=10"];
 
-/// Python of `<target>/test-venv`, created on first use (`python3 -m venv` + `pip install`)
-/// and reused afterwards. Built under a temporary name and renamed into place, so concurrent
-/// test binaries never see a half-built venv.
+/// Python of `<target>/test-venv` with rosbags (see [`venv_python`]).
 pub fn rosbags_python() -> PathBuf {
+    venv_python("test-venv", VENV_PACKAGES)
+}
+
+/// Python of the virtualenv `<target>/<name>` with `packages`, created on first use (`python3 -m
+/// venv` + `pip install`) and reused afterwards. Built under a temporary name and renamed into place,
+/// so concurrent test binaries never see a half-built venv.
+pub fn venv_python(name: &str, packages: &[&str]) -> PathBuf {
     // Tests of one binary run in threads of one process: build the venv once per process.
     static BUILDING: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _guard = BUILDING.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-    let venv = target_dir().join("test-venv");
+    let venv = target_dir().join(name);
     let python = venv.join("bin/python");
     if python.is_file() {
         return python;
     }
-    let building = target_dir().join(format!("test-venv.building.{}", std::process::id()));
+    let building = target_dir().join(format!("{name}.building.{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&building);
     run(Command::new("python3").args(["-m", "venv"]).arg(&building), "python3 -m venv");
     run(
         Command::new(building.join("bin/python"))
             .args(["-m", "pip", "install", "--quiet", "--disable-pip-version-check"])
-            .args(VENV_PACKAGES),
-        "pip install rosbags",
+            .args(packages),
+        &format!("pip install {}", packages.join(" ")),
     );
     if std::fs::rename(&building, &venv).is_err() {
         // Another test binary finished first; use its venv.

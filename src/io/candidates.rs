@@ -1,0 +1,214 @@
+//! Loop candidates as CSV: the replay's output, written incrementally, and read back (by the
+//! pose-graph back end and tools).
+
+use std::fs::File;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, ensure, Context, Result};
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+
+use crate::types::{LoopCandidate, RelativePose, Stamp, Verified};
+
+const CSV_HEADER: [&str; 15] =
+    ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score", "inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz", "metric"];
+
+/// Candidates as CSV (`query_id,query_stamp,match_id,match_stamp,distance,score`, then geometric
+/// verification's `inliers` and the relative pose `qx,qy,qz,qw,tx,ty,tz` of the query camera in the
+/// match camera's frame; empty where not verified or without intrinsics), and `metric`: 1 where the
+/// translation is in metres (the match keyframe had depth), 0 where it is a unit direction. Written in
+/// pieces, each flushed.
+pub struct CandidateCsv {
+    out: csv::Writer<Box<dyn Write + Send>>,
+    name: String,
+}
+
+impl CandidateCsv {
+    /// A new file at `path` (replacing one there), or, with `append` and a non-empty file there, its
+    /// continuation (no second header).
+    pub fn to_file(path: &Path, append: bool) -> Result<Self> {
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        }
+        let continuing = append && std::fs::metadata(path).is_ok_and(|m| m.len() > 0);
+        let file = if continuing { File::options().append(true).open(path) } else { File::create(path) }
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        Self::new(Box::new(file), path.display().to_string(), !continuing)
+    }
+
+    /// The file at `path` holding exactly `candidates` (written beside it and renamed over it when
+    /// it is a regular file or missing, so a crash leaves the old file or the new one), open for
+    /// appending after them.
+    pub fn rewrite(path: &Path, candidates: &[LoopCandidate]) -> Result<Self> {
+        let regular_or_missing = std::fs::symlink_metadata(path).map_or(true, |m| m.is_file());
+        if regular_or_missing {
+            let mut temporary = path.as_os_str().to_owned();
+            temporary.push(".partial");
+            let temporary = PathBuf::from(temporary);
+            let mut fresh = Self::to_file(&temporary, false)?;
+            fresh.write(candidates)?;
+            drop(fresh);
+            File::open(&temporary).and_then(|f| f.sync_all()).with_context(|| format!("cannot write {}", temporary.display()))?;
+            std::fs::rename(&temporary, path).with_context(|| format!("cannot move {} to {}", temporary.display(), path.display()))?;
+            Self::to_file(path, true)
+        } else {
+            let mut csv = Self::to_file(path, false)?;
+            csv.write(candidates)?;
+            Ok(csv)
+        }
+    }
+
+    pub fn to_stdout() -> Result<Self> {
+        Self::new(Box::new(std::io::stdout()), "standard output".into(), true)
+    }
+
+    fn new(out: Box<dyn Write + Send>, name: String, header: bool) -> Result<Self> {
+        let mut csv = CandidateCsv { out: csv::WriterBuilder::new().has_headers(false).from_writer(out), name };
+        if header {
+            csv.out.write_record(CSV_HEADER)?;
+            csv.flush()?;
+        }
+        Ok(csv)
+    }
+
+    fn flush(&mut self) -> Result<()> {
+        self.out.flush().with_context(|| format!("cannot write {}", self.name))
+    }
+
+    /// Writes `candidates` and flushes.
+    pub fn write(&mut self, candidates: &[LoopCandidate]) -> Result<()> {
+        for c in candidates {
+            let mut record = vec![
+                c.query_id.to_string(),
+                c.query_stamp.to_string(),
+                c.match_id.to_string(),
+                c.match_stamp.to_string(),
+                format!("{:.6}", c.distance),
+                format!("{:.6}", c.score),
+                c.verified.map(|v| v.inliers.to_string()).unwrap_or_default(),
+            ];
+            let pose = c.verified.and_then(|v| v.pose).map(|p| {
+                let (q, t) = (p.rotation, p.translation);
+                [q.i, q.j, q.k, q.w, t.x, t.y, t.z]
+            });
+            record.extend((0..7).map(|i| pose.map(|values| format!("{:.6}", values[i])).unwrap_or_default()));
+            record.push(c.verified.and_then(|v| v.pose).map(|p| u8::from(p.metric).to_string()).unwrap_or_default());
+            self.out.write_record(&record)?;
+        }
+        self.flush()
+    }
+}
+
+/// Writes candidates as a new CSV file ([`CandidateCsv`]).
+pub fn write_candidates_csv(candidates: &[LoopCandidate], path: &Path) -> Result<()> {
+    CandidateCsv::to_file(path, false)?.write(candidates)
+}
+
+/// Reads a candidates CSV written by [`CandidateCsv`] (columns found by name; files from before the
+/// `metric` column read as up to scale). The rank is the order of a query's lines.
+pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
+    let text = crate::io::read_capped_text(path, crate::io::limits::TEXT_LIST, "candidates CSV")?;
+    let mut reader = csv::ReaderBuilder::new().has_headers(true).from_reader(text.as_bytes());
+    let header = reader.headers().with_context(|| format!("{}: no header line", path.display()))?.clone();
+    let column = |name: &str| header.iter().position(|h| h == name);
+    let required = |name: &str| column(name).with_context(|| format!("{}: no `{name}` column (not a candidates CSV?)", path.display()));
+    let [query_id, query_stamp, match_id, match_stamp, distance, score] =
+        ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score"].map(required);
+    let (query_id, query_stamp, match_id, match_stamp, distance, score) = (query_id?, query_stamp?, match_id?, match_stamp?, distance?, score?);
+    let pose_columns: Option<Vec<usize>> = ["inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz"].iter().map(|n| column(n)).collect();
+    let metric = column("metric");
+    let mut candidates: Vec<LoopCandidate> = Vec::new();
+    for (row, record) in reader.records().enumerate() {
+        let line = row + 2;
+        let record = record.with_context(|| format!("{}:{line}: malformed CSV line", path.display()))?;
+        let field = |i: usize| record.get(i).unwrap_or("");
+        let number = |i: usize| -> Result<f64> {
+            field(i).parse::<f64>().with_context(|| format!("{}:{line}: `{}` is not a number", path.display(), crate::io::excerpt(field(i), 40)))
+        };
+        let stamp = |i: usize| -> Result<Stamp> {
+            Stamp::parse_secs(field(i)).with_context(|| format!("{}:{line}: bad stamp `{}`", path.display(), crate::io::excerpt(field(i), 40)))
+        };
+        let id = |i: usize| -> Result<u64> {
+            field(i).parse::<u64>().with_context(|| format!("{}:{line}: bad keyframe id `{}`", path.display(), crate::io::excerpt(field(i), 40)))
+        };
+        let verified = match &pose_columns {
+            Some(cols) if !field(cols[0]).is_empty() => {
+                let inliers = field(cols[0]).parse::<u32>().with_context(|| format!("{}:{line}: bad inlier count", path.display()))?;
+                let pose = if field(cols[1]).is_empty() {
+                    None
+                } else {
+                    let v: Vec<f64> = cols[1..].iter().map(|&i| number(i)).collect::<Result<_>>()?;
+                    let q = Quaternion::new(v[3], v[0], v[1], v[2]);
+                    ensure!(q.norm() > 0.5, "{}:{line}: the rotation quaternion is not a unit quaternion", path.display());
+                    let metric = match metric.map(field) {
+                        None | Some("") | Some("0") => false,
+                        Some("1") => true,
+                        Some(other) => bail!("{}:{line}: `metric` must be 0 or 1, found {}", path.display(), crate::io::excerpt(other, 20)),
+                    };
+                    Some(RelativePose { rotation: UnitQuaternion::from_quaternion(q), translation: Vector3::new(v[4], v[5], v[6]), metric })
+                };
+                Some(Verified { inliers, pose })
+            }
+            _ => None,
+        };
+        let query = id(query_id)?;
+        let rank = candidates.iter().rev().take_while(|c| c.query_id == query).count() as u32;
+        candidates.push(LoopCandidate {
+            query_id: query,
+            query_stamp: stamp(query_stamp)?,
+            match_id: id(match_id)?,
+            match_stamp: stamp(match_stamp)?,
+            distance: number(distance)? as f32,
+            score: number(score)? as f32,
+            rank,
+            verified,
+        });
+    }
+    Ok(candidates)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn candidates_read_back_as_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.csv");
+        let pose = RelativePose { rotation: UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3), translation: Vector3::new(0.5, -0.25, 1.0), metric: true };
+        let candidate = |query: u64, matched: u64, verified: Option<Verified>, rank: u32| LoopCandidate {
+            query_id: query,
+            query_stamp: Stamp::from_nanos(1_000_000_000 * query as i64 + 5),
+            match_id: matched,
+            match_stamp: Stamp::from_nanos(1_000_000_000 * matched as i64),
+            distance: 0.25,
+            score: 0.96875,
+            rank,
+            verified,
+        };
+        let written = vec![
+            candidate(9, 1, None, 0),
+            candidate(9, 2, Some(Verified { inliers: 40, pose: None }), 1),
+            candidate(12, 3, Some(Verified { inliers: 55, pose: Some(pose) }), 0),
+            candidate(13, 4, Some(Verified { inliers: 20, pose: Some(RelativePose { metric: false, ..pose }) }), 0),
+        ];
+        write_candidates_csv(&written, &path).unwrap();
+        let read = read_candidates_csv(&path).unwrap();
+        assert_eq!(read.len(), written.len());
+        for (r, w) in read.iter().zip(&written) {
+            assert_eq!((r.query_id, r.match_id, r.query_stamp, r.match_stamp, r.rank), (w.query_id, w.match_id, w.query_stamp, w.match_stamp, w.rank));
+            assert_eq!(r.verified.map(|v| v.inliers), w.verified.map(|v| v.inliers));
+            match (r.verified.and_then(|v| v.pose), w.verified.and_then(|v| v.pose)) {
+                (None, None) => {}
+                (Some(a), Some(b)) => {
+                    assert_eq!(a.metric, b.metric);
+                    assert!(a.rotation.angle_to(&b.rotation) < 1e-5 && (a.translation - b.translation).norm() < 1e-5);
+                }
+                other => panic!("pose mismatch {other:?}"),
+            }
+        }
+        std::fs::write(&path, "query_id,stamp\n1,2\n").unwrap();
+        let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
+        assert!(err.contains("query_stamp") && err.contains("c.csv"), "{err}");
+    }
+}

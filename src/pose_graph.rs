@@ -1,0 +1,264 @@
+//! The back end that uses the loops: SE(3) pose-graph optimisation of an odometry trajectory with the
+//! verified, metric loop candidates (the paper's Fig. 11: a tracker's drift removed by loop closure).
+//!
+//! - Nodes: odometry poses, at most [`PoseGraphParams::max_nodes`] of them (every k-th pose, and every
+//!   pose a loop ends at); the first is held fixed (the map's origin).
+//! - Odometry edges: the odometry's own motion between consecutive nodes.
+//! - Loop edges: each candidate's relative pose (the query camera in the match camera's frame, metres).
+//!   Candidates without a metric pose cannot constrain a metric map and are left out (counted).
+//! - Solver: kornia-3d's pose-graph Levenberg-Marquardt (residual `log(T_meas⁻¹ T_b T_a⁻¹)`, rotation in
+//!   radians beside translation in metres, each edge scaled by its weight).
+//! - Robust kernel: a Cauchy kernel on the loop edges, applied by iteratively reweighted least squares
+//!   (the solver's edge weights are set to `sqrt(ρ'(r²))` from the last solution) with graduated
+//!   non-convexity: the kernel's scale starts at the largest loop residual of the odometry and halves
+//!   each round down to [`PoseGraphParams::robust_scale`], so true loops are not discarded for the
+//!   drift they are there to remove, while a false loop, inconsistent with the others, ends with a
+//!   weight near zero.
+//! - Every odometry pose is then moved with the node before it (its odometry offset from that node
+//!   kept), so the corrected trajectory has the odometry's stamps.
+
+use std::collections::BTreeSet;
+
+use anyhow::{bail, ensure, Context, Result};
+use kornia_3d::pgo::{pose_graph_optimize, PgoEdge, PgoParams};
+use kornia_3d::pose::Pose3d;
+use kornia_algebra::{Mat3F64, QuatF32, Vec3AF32, Vec3F64, SE3F32};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+use crate::types::{nearest_stamp, LoopCandidate, Stamp};
+
+/// A loop constraint: where the query camera is in the match camera's frame, in metres.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LoopConstraint {
+    pub query_stamp: Stamp,
+    pub match_stamp: Stamp,
+    /// `p_match = relative * p_query`.
+    pub relative: Isometry3<f64>,
+}
+
+impl LoopConstraint {
+    /// The constraints of the candidates that carry a metric relative pose, and how many did not.
+    pub fn from_candidates(candidates: &[LoopCandidate]) -> (Vec<LoopConstraint>, usize) {
+        let constraints: Vec<LoopConstraint> = candidates
+            .iter()
+            .filter_map(|c| {
+                let pose = c.verified?.pose.filter(|p| p.metric)?;
+                Some(LoopConstraint {
+                    query_stamp: c.query_stamp,
+                    match_stamp: c.match_stamp,
+                    relative: Isometry3::from_parts(Translation3::from(pose.translation), pose.rotation),
+                })
+            })
+            .collect();
+        let skipped = candidates.len() - constraints.len();
+        (constraints, skipped)
+    }
+}
+
+/// How the graph is built and solved.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PoseGraphParams {
+    /// Most nodes in the graph (the solver's normal equations are dense: 6 per node).
+    pub max_nodes: usize,
+    /// Weight of a loop edge against an odometry edge's 1.
+    pub loop_weight: f64,
+    /// Final scale of the Cauchy kernel (metres and radians): loop residuals well beyond it count little.
+    pub robust_scale: f64,
+    /// Largest stamp difference between a loop's keyframe and the odometry pose it is tied to, seconds.
+    pub max_stamp_offset_s: f64,
+    /// Levenberg-Marquardt iterations per reweighting round.
+    pub iterations: usize,
+}
+
+impl Default for PoseGraphParams {
+    fn default() -> Self {
+        PoseGraphParams { max_nodes: 200, loop_weight: 1.0, robust_scale: 0.1, max_stamp_offset_s: 0.05, iterations: 20 }
+    }
+}
+
+/// The optimised trajectory and what the graph held.
+#[derive(Clone, Debug)]
+pub struct PoseGraphResult {
+    /// Corrected camera-to-world poses at the odometry's stamps.
+    pub trajectory: Vec<(Stamp, Isometry3<f64>)>,
+    /// The loop edges as (query, match) indexes into `trajectory`, with their final robust weight
+    /// (1 = fully trusted, near 0 = rejected as inconsistent).
+    pub loops: Vec<(usize, usize, f64)>,
+    /// Loops whose keyframes have no odometry pose within the stamp tolerance (not used).
+    pub unmatched_loops: usize,
+    pub nodes: usize,
+}
+
+/// Camera-to-world to kornia's world-to-camera pose.
+fn to_kornia(camera_to_world: &Isometry3<f64>) -> Pose3d {
+    let world_to_camera = camera_to_world.inverse();
+    let r = world_to_camera.rotation.to_rotation_matrix();
+    let columns: Vec<f64> = r.matrix().iter().copied().collect();
+    let t = world_to_camera.translation.vector;
+    Pose3d::new(Mat3F64::from_cols_array(&columns.try_into().expect("3x3")), Vec3F64::new(t.x, t.y, t.z))
+}
+
+fn from_kornia(pose: &Pose3d) -> Isometry3<f64> {
+    let columns = [pose.rotation.col(0), pose.rotation.col(1), pose.rotation.col(2)].map(|c| Vector3::new(c.x, c.y, c.z));
+    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&Matrix3::from_columns(&columns)));
+    let t = Vector3::new(pose.translation.x, pose.translation.y, pose.translation.z);
+    Isometry3::from_parts(Translation3::from(t), rotation).inverse()
+}
+
+fn to_se3(motion: &Isometry3<f64>) -> SE3F32 {
+    let q = motion.rotation.quaternion();
+    let t = motion.translation.vector;
+    SE3F32::from_qxyz(QuatF32::from_xyzw(q.i as f32, q.j as f32, q.k as f32, q.w as f32), Vec3AF32::new(t.x as f32, t.y as f32, t.z as f32))
+}
+
+/// The size of a relative-pose residual: translation (metres) and rotation angle (radians) together.
+fn residual(measured: &Isometry3<f64>, from: &Isometry3<f64>, to: &Isometry3<f64>) -> f64 {
+    // Poses are camera-to-world; the edge's prediction maps `from`'s camera frame into `to`'s.
+    let predicted = to.inverse() * from;
+    let error = measured.inverse() * predicted;
+    (error.translation.vector.norm_squared() + error.rotation.angle().powi(2)).sqrt()
+}
+
+/// Optimises `odometry` (camera-to-world, in time order) with `loops` (module doc).
+pub fn optimise(odometry: &[(Stamp, Isometry3<f64>)], loops: &[LoopConstraint], params: &PoseGraphParams) -> Result<PoseGraphResult> {
+    ensure!(odometry.len() >= 2, "the odometry has {} pose(s); a pose graph needs at least 2", odometry.len());
+    ensure!(odometry.windows(2).all(|w| w[0].0 < w[1].0), "the odometry's stamps must increase");
+    ensure!(params.max_nodes >= 2, "a pose graph needs at least 2 nodes");
+    ensure!(params.robust_scale > 0.0 && params.loop_weight > 0.0, "the robust scale and the loop weight must be positive");
+    let stamps: Vec<Stamp> = odometry.iter().map(|(s, _)| *s).collect();
+    let max_offset = Stamp::from_nanos((params.max_stamp_offset_s * 1e9).round() as i64);
+    let index_of = |stamp: Stamp| nearest_stamp(&stamps, stamp, max_offset);
+    let mut tied: Vec<(usize, usize, Isometry3<f64>)> = Vec::new();
+    let mut unmatched_loops = 0;
+    for constraint in loops {
+        match (index_of(constraint.query_stamp), index_of(constraint.match_stamp)) {
+            (Some(q), Some(m)) if q != m => tied.push((q, m, constraint.relative)),
+            _ => unmatched_loops += 1,
+        }
+    }
+    let ends: BTreeSet<usize> = tied.iter().flat_map(|&(q, m, _)| [q, m]).collect();
+    if ends.len() + 2 > params.max_nodes {
+        bail!("{} loop ends need more than the {} nodes allowed (raise the node limit)", ends.len(), params.max_nodes);
+    }
+    let spacing = odometry.len().div_ceil(params.max_nodes - ends.len()).max(1);
+    let mut nodes: BTreeSet<usize> = (0..odometry.len()).step_by(spacing).collect();
+    nodes.extend(&ends);
+    nodes.insert(odometry.len() - 1);
+    let nodes: Vec<usize> = nodes.into_iter().collect();
+    let node_of = |index: usize| nodes.binary_search(&index).expect("loop ends are nodes");
+
+    let initial: Vec<Pose3d> = nodes.iter().map(|&i| to_kornia(&odometry[i].1)).collect();
+    // Kornia's edge: T_ab = T_b T_a⁻¹ for world-to-camera poses, i.e. a's camera frame into b's.
+    let mut edges: Vec<PgoEdge> = nodes
+        .windows(2)
+        .enumerate()
+        .map(|(k, w)| PgoEdge { pose_a: k, pose_b: k + 1, t_ab_meas: to_se3(&(odometry[w[1]].1.inverse() * odometry[w[0]].1)), weight: 1.0 })
+        .collect();
+    let first_loop_edge = edges.len();
+    edges.extend(tied.iter().map(|&(q, m, relative)| PgoEdge { pose_a: node_of(q), pose_b: node_of(m), t_ab_meas: to_se3(&relative), weight: params.loop_weight as f32 }));
+
+    let solver = PgoParams { max_iterations: params.iterations, ..PgoParams::default() };
+    let mut estimate: Vec<Isometry3<f64>> = nodes.iter().map(|&i| odometry[i].1).collect();
+    let loop_residuals = |estimate: &[Isometry3<f64>]| -> Vec<f64> {
+        tied.iter().map(|&(q, m, relative)| residual(&relative, &estimate[node_of(q)], &estimate[node_of(m)])).collect()
+    };
+    let mut weights = vec![1.0; tied.len()];
+    if !tied.is_empty() {
+        let largest = loop_residuals(&estimate).into_iter().fold(0.0, f64::max);
+        let mut scale = largest.max(params.robust_scale);
+        let mut poses = initial;
+        loop {
+            for (edge, w) in edges[first_loop_edge..].iter_mut().zip(&weights) {
+                edge.weight = (params.loop_weight * w) as f32;
+            }
+            let solved = pose_graph_optimize(&poses, &edges, &[0], &solver).map_err(|e| anyhow::anyhow!("{e}")).context("pose-graph optimisation")?;
+            poses = solved.poses;
+            estimate = poses.iter().map(from_kornia).collect();
+            // Cauchy: rho'(r^2) = 1 / (1 + r^2 / c^2); the solver scales residuals, hence the root.
+            weights = loop_residuals(&estimate).iter().map(|r| (1.0 / (1.0 + (r / scale).powi(2))).sqrt()).collect();
+            if scale <= params.robust_scale {
+                break;
+            }
+            scale = (scale / 2.0).max(params.robust_scale);
+        }
+    }
+    // Every odometry pose moves with the node before it.
+    let mut trajectory = Vec::with_capacity(odometry.len());
+    let mut k = 0;
+    for (i, (stamp, pose)) in odometry.iter().enumerate() {
+        while k + 1 < nodes.len() && nodes[k + 1] <= i {
+            k += 1;
+        }
+        let node = nodes[k];
+        trajectory.push((*stamp, estimate[k] * (odometry[node].1.inverse() * pose)));
+    }
+    let loops = tied.iter().zip(&weights).map(|(&(q, m, _), &w)| (q, m, w)).collect();
+    Ok(PoseGraphResult { trajectory, loops, unmatched_loops, nodes: nodes.len() })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eval::trajectory::absolute_trajectory_error;
+
+    /// Two laps of a circle (radius 3 m), camera-to-world, looking along the path.
+    fn circle(n: usize) -> Vec<(Stamp, Isometry3<f64>)> {
+        (0..n)
+            .map(|i| {
+                let a = std::f64::consts::TAU * 2.0 * i as f64 / n as f64;
+                let position = Vector3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.0);
+                let rotation = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), a + std::f64::consts::FRAC_PI_2);
+                (Stamp::from_nanos(i as i64 * 100_000_000), Isometry3::from_parts(Translation3::from(position), rotation))
+            })
+            .collect()
+    }
+
+    /// The truth with a heading error accumulating along the path.
+    fn drifted(truth: &[(Stamp, Isometry3<f64>)]) -> Vec<(Stamp, Isometry3<f64>)> {
+        let mut pose = truth[0].1;
+        let mut out = vec![(truth[0].0, pose)];
+        for w in truth.windows(2) {
+            let step = w[0].1.inverse() * w[1].1;
+            let error = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.004);
+            pose *= Isometry3::from_parts(Translation3::from(step.translation.vector * 1.02), error * step.rotation);
+            out.push((w[1].0, pose));
+        }
+        out
+    }
+
+    fn true_loop(truth: &[(Stamp, Isometry3<f64>)], query: usize, matched: usize) -> LoopConstraint {
+        LoopConstraint { query_stamp: truth[query].0, match_stamp: truth[matched].0, relative: truth[matched].1.inverse() * truth[query].1 }
+    }
+
+    #[test]
+    fn true_loops_remove_the_drift_and_a_false_one_is_outweighed() {
+        let truth = circle(120);
+        let odometry = drifted(&truth);
+        let before = absolute_trajectory_error(&odometry, &truth).unwrap().rmse;
+        let mut loops: Vec<LoopConstraint> = (60..120).step_by(4).map(|q| true_loop(&truth, q, q - 60)).collect();
+        // A false loop: a place on the other side of the circle claimed to be right here.
+        loops.push(LoopConstraint { relative: Isometry3::identity(), ..true_loop(&truth, 90, 0) });
+        let params = PoseGraphParams { max_nodes: 60, ..PoseGraphParams::default() };
+        let result = optimise(&odometry, &loops, &params).unwrap();
+        let after = absolute_trajectory_error(&result.trajectory, &truth).unwrap().rmse;
+        assert!(before > 0.3, "the drift is large: {before}");
+        // The loops fix the heading; the odometry's 2% scale error, the same on both laps, they cannot.
+        assert!(after * 5.0 < before, "ATE {before} -> {after}");
+        assert_eq!(result.trajectory.len(), truth.len());
+        let (_, _, false_weight) = *result.loops.last().unwrap();
+        assert!(false_weight < 0.1, "the false loop keeps weight {false_weight}");
+        assert!(result.loops[..result.loops.len() - 1].iter().all(|&(_, _, w)| w > 0.5), "{:?}", result.loops);
+    }
+
+    #[test]
+    fn without_loops_the_odometry_is_returned_and_bad_input_is_refused() {
+        let truth = circle(20);
+        let result = optimise(&truth, &[], &PoseGraphParams::default()).unwrap();
+        assert!(result.trajectory.iter().zip(&truth).all(|(a, b)| a.0 == b.0 && (a.1.translation.vector - b.1.translation.vector).norm() < 1e-9));
+        let far = LoopConstraint { query_stamp: Stamp::from_nanos(1 << 50), ..true_loop(&truth, 10, 0) };
+        assert_eq!(optimise(&truth, &[far], &PoseGraphParams::default()).unwrap().unmatched_loops, 1);
+        assert!(optimise(&truth[..1], &[], &PoseGraphParams::default()).is_err());
+        let reversed: Vec<_> = truth.iter().rev().copied().collect();
+        assert!(optimise(&reversed, &[], &PoseGraphParams::default()).is_err());
+    }
+}
