@@ -98,7 +98,7 @@ impl ParamSpec {
             (ParamRange::Integer { min, max, step }, ParamValue::Integer(v)) => {
                 let in_range = min <= *v && *v <= max;
                 // In range, `v - min` cannot overflow.
-                let on_step = step == 0 || *v == max || (in_range && (*v - min) as u64 % step == 0);
+                let on_step = step == 0 || *v == max || (in_range && ((*v - min) as u64).is_multiple_of(step));
                 if !in_range || !on_step {
                     let steps = if step > 1 { format!(" in steps of {step}") } else { String::new() };
                     return Err(format!("{} must be in [{min}, {max}]{steps}, got {v}", self.name));
@@ -110,11 +110,10 @@ impl ParamSpec {
                     return Err(format!("{} must be in [{min}, {max}], got {v}", self.name));
                 }
             }
-            (ParamRange::OneOf(allowed), ParamValue::String(s)) => {
-                if !allowed.contains(&s.as_str()) {
+            (ParamRange::OneOf(allowed), ParamValue::String(s))
+                if !allowed.contains(&s.as_str()) => {
                     return Err(format!("{} must be one of {}, got {s:?}", self.name, allowed.join(", ")));
                 }
-            }
             _ => {}
         }
         Ok(value)

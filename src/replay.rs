@@ -184,7 +184,7 @@ fn replay_frames(
                 }
                 // Same stamp: the same image gives the same descriptor (up to float noise).
                 let difference = crate::descriptor::distance(&pipeline.describe(&frame.image)?, stored);
-                if !(difference <= 1e-3) {
+                if difference.is_nan() || difference > 1e-3 {
                     return Err(another(format!("frame {id} of {} differs from its keyframe {id} (descriptor distance {difference:.3})", source.display())));
                 }
             }

@@ -135,10 +135,8 @@ pub fn shared_dirs() -> Vec<std::path::PathBuf> {
         let d = std::path::PathBuf::from(d);
         return if d.is_dir() { vec![d] } else { vec![] };
     }
-    let mut dirs: Vec<std::path::PathBuf> = Vec::new();
-    dirs.push("../shared".into());
-    dirs.push("shared".into());
-    dirs.push(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared"));
+    let dirs: Vec<std::path::PathBuf> =
+        vec!["../shared".into(), "shared".into(), std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared")];
     let mut seen = Vec::new();
     dirs.into_iter()
         .filter(|d| d.is_dir())

@@ -790,8 +790,7 @@ fn memory_child(stored: usize, dim: usize) -> Result<MemoryRow> {
     let (baseline_mb, _) = rss_mb()?;
     // Any unit-vector mode whose length is its channel count: only the length and the score matter here.
     let descriptor = crate::descriptor::Descriptor::new(crate::descriptor::DescriptorMode::L2, dim);
-    let mut params = crate::detector::DetectorParams::default();
-    params.min_history = 1;
+    let params = crate::detector::DetectorParams { min_history: 1, ..Default::default() };
     let mut detector = Detector::new(descriptor, params);
     let mut generator = ClusteredVectors::new(dim, clusters_for(stored), 44);
     let mut v = vec![0f32; dim];

@@ -134,7 +134,7 @@ mod mapped {
             let head = (offset - map_offset) as usize;
             let file_bytes = (head + values * 4).div_ceil(page) * page;
             let mapped_bytes = file_bytes + (spare * 4).div_ceil(page) * page;
-            if mapped_bytes == 0 || head % 4 != 0 {
+            if mapped_bytes == 0 || !head.is_multiple_of(4) {
                 return Err(std::io::Error::new(std::io::ErrorKind::InvalidInput, "nothing to map, or values not 4-byte aligned"));
             }
             let error = std::io::Error::last_os_error;

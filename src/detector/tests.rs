@@ -30,7 +30,7 @@ fn top_k_equals_a_naive_sort() {
     }
     for q in 0..10 {
         let query = pseudo_random(500 + q, dim);
-        let eligible = |p: usize| p % 3 != 0;
+        let eligible = |p: usize| !p.is_multiple_of(3);
         for k in [1, 5, 17, 300] {
             let got = db.nearest(&query, k, eligible).unwrap();
             let mut naive: Vec<(usize, f32)> =

@@ -92,7 +92,7 @@ mod tests {
         // alignment is the identity and every error is 0.1 m.
         let corners = |i: f64| {
             let k = i as usize % 4;
-            Vector3::new(if k < 2 { 1.0 } else { -1.0 }, if k % 2 == 0 { 1.0 } else { -1.0 }, 0.0)
+            Vector3::new(if k < 2 { 1.0 } else { -1.0 }, if k.is_multiple_of(2) { 1.0 } else { -1.0 }, 0.0)
         };
         let flat = trajectory(40, corners);
         let saddle: Vec<_> = flat.iter().map(|(s, p)| (*s, Isometry3::translation(0.0, 0.0, 0.1 * p.translation.x * p.translation.y) * p)).collect();

@@ -105,11 +105,11 @@ impl<'a> Fields<'a> {
     }
 
     fn time(&self, name: &str) -> Result<Stamp> {
-        Ok(time_from_bytes(self.get(name)?).with_context(|| format!("field {name:?} is not an 8-byte time"))?)
+        time_from_bytes(self.get(name)?).with_context(|| format!("field {name:?} is not an 8-byte time"))
     }
 
     fn string(&self, name: &str) -> Result<String> {
-        Ok(String::from_utf8(self.get(name)?.to_vec()).with_context(|| format!("field {name:?} is not UTF-8"))?)
+        String::from_utf8(self.get(name)?.to_vec()).with_context(|| format!("field {name:?} is not UTF-8"))
     }
 }
 
@@ -386,7 +386,7 @@ impl Ros1BagSource {
         let mut file = File::open(path).with_context(|| format!("cannot open {name}"))?;
         let file_len = file.metadata().with_context(|| format!("cannot stat {name}"))?.len();
         let BagScan { mut connections, mut chunks, mut damage } =
-            scan(&mut file, file_len).with_context(|| format!("{name}"))?;
+            scan(&mut file, file_len).with_context(|| name.to_string())?;
 
         // Message positions per chunk, from the index data or by walking the chunk.
         let mut per_conn: Vec<(u32, MessageRef)> = Vec::new();

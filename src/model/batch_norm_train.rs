@@ -272,7 +272,7 @@ mod tests {
         let shape = (3, 3, 4, 4);
         let x = Var::randn(0f32, 1.0, shape, &Device::Cpu)?;
         let probe = Tensor::randn(0f32, 1.0, shape, &Device::Cpu)?;
-        let loss = |x: &Tensor| -> Result<f64> { Ok(batch_norm_train(&bn, x)?.mul(&probe)?.sum_all()?.to_dtype(DType::F64)?.to_scalar::<f64>()?) };
+        let loss = |x: &Tensor| -> Result<f64> { batch_norm_train(&bn, x)?.mul(&probe)?.sum_all()?.to_dtype(DType::F64)?.to_scalar::<f64>() };
         let analytic = batch_norm_train(&bn, &x)?.mul(&probe)?.sum_all()?.backward()?.get(&x).unwrap().flatten_all()?.to_vec1::<f32>()?;
         let values = x.flatten_all()?.to_vec1::<f32>()?;
         for index in (0..values.len()).step_by(7) {

@@ -174,17 +174,15 @@ impl RosArgs {
         // The node's name and namespace first: node-targeted rules depend on the final name.
         for Targeted { node, rule: (from, to) } in &remaps {
             match from.as_str() {
-                "__node" | "__name" => {
-                    if node.as_deref().is_none_or(|n| n == default_node_name) {
+                "__node" | "__name"
+                    if node.as_deref().is_none_or(|n| n == default_node_name) => {
                         check_base_name(to)?;
                         out.node_name = Some(to.clone());
                     }
-                }
-                "__ns" => {
-                    if node.as_deref().is_none_or(|n| n == default_node_name) {
+                "__ns"
+                    if node.as_deref().is_none_or(|n| n == default_node_name) => {
                         out.namespace = Some(normalise_namespace(to)?);
                     }
-                }
                 _ => {}
             }
         }

@@ -118,7 +118,7 @@ const NOISE_SIZE: usize = 128;
 
 impl Noise {
     fn new(seed: u64) -> Self {
-        let mut rng = SplitMix64::new(seed ^ 0x6E6F_6973_65);
+        let mut rng = SplitMix64::new(seed ^ 0x006E_6F69_7365);
         Noise { values: (0..NOISE_SIZE * NOISE_SIZE).map(|_| rng.next_f32()).collect() }
     }
 
@@ -476,7 +476,7 @@ impl World {
     /// furniture materials and poster art, as in a corridor of identical offices); the rooms still
     /// differ in shape and in where things stand.
     pub fn new(seed: u64, aliasing: bool) -> Self {
-        let mut rng = SplitMix64::new(seed ^ 0x776F_726C_64);
+        let mut rng = SplitMix64::new(seed ^ 0x0077_6F72_6C64);
         let base_hue = rng.next_f32();
         // (min, max) of rooms A, B and C; C spans the far side of both A and B.
         let bounds = [([0.0, 0.0], [5.0, 4.0]), ([5.0, 0.0], [10.0, 4.0]), ([0.0, 4.0], [10.0, 8.0])];

@@ -183,6 +183,9 @@ pub fn augmented_chw(image: &RgbImage, augment: &Augment, pre: &mut Preprocessor
 /// Where a loader gets image `i` and its label from.
 pub trait ImageSet: Send + Sync {
     fn len(&self) -> usize;
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
     fn image(&self, index: usize) -> Result<RgbImage>;
     fn label(&self, index: usize) -> usize;
 }

@@ -59,7 +59,7 @@ impl<'a> Table<'a> {
         let vtable = usize::try_from(pos as i64 - soffset)
             .with_context(|| format!("table at offset {pos} has a vtable before the file start"))?;
         let vtable_len = buf.u16(vtable)? as usize;
-        ensure!(vtable_len >= 4 && vtable_len % 2 == 0, "bad vtable at offset {vtable}");
+        ensure!(vtable_len >= 4 && vtable_len.is_multiple_of(2), "bad vtable at offset {vtable}");
         buf.bytes(vtable, vtable_len)?;
         Ok(Table { buf, pos, vtable, vtable_len })
     }
@@ -387,7 +387,7 @@ mod tests {
         let err = TfModel::parse(b"\xff\xff\0\0TFL3").unwrap_err();
         assert!(format!("{err:#}").contains("past the end"), "{err:#}");
         // Every truncation of a tiny valid-looking header errors cleanly.
-        let mut bytes = vec![0u8; 64];
+        let mut bytes = [0u8; 64];
         bytes[0] = 12;
         bytes[4..8].copy_from_slice(b"TFL3");
         for len in 0..bytes.len() {
