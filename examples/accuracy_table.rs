@@ -47,19 +47,28 @@ fn degrade_folder(from: &Path, to: &Path) -> Result<()> {
 }
 
 fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> {
-    let shared = ecm_lcd::runtime::shared_dirs().into_iter().next().context("the shared data folder (../shared) is needed")?;
+    let shared =
+        ecm_lcd::runtime::shared_dirs().into_iter().next().context("the shared data folder (../shared) is needed")?;
     let real = shared.join("data/real");
     let gp = real.join("gardens_point_day_night");
     let mut sets = vec![DevSet {
         name: "Gardens Point day/night (real)".into(),
-        data: Data::DatabaseQueries { database: gp.join("ref"), queries: gp.join("query"), loops: gp.join("loops.csv") },
+        data: Data::DatabaseQueries {
+            database: gp.join("ref"),
+            queries: gp.join("query"),
+            loops: gp.join("loops.csv"),
+        },
     }];
     let degraded = tmp.join("gardens_point_64x48_gray");
     degrade_folder(&gp.join("ref"), &degraded.join("ref"))?;
     degrade_folder(&gp.join("query"), &degraded.join("query"))?;
     sets.push(DevSet {
         name: "Gardens Point 64x48 gray (real, degraded)".into(),
-        data: Data::DatabaseQueries { database: degraded.join("ref"), queries: degraded.join("query"), loops: gp.join("loops.csv") },
+        data: Data::DatabaseQueries {
+            database: degraded.join("ref"),
+            queries: degraded.join("query"),
+            loops: gp.join("loops.csv"),
+        },
     });
     let orbit = real.join("tum_fr3_desk_orbit");
     sets.push(DevSet {
@@ -69,7 +78,11 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
                 name: "TUM desk orbit (real)",
                 path: orbit.join("rgb"),
                 criteria: Default::default(),
-                overrides: &[("detector.min_history", "2"), ("detector.exclude_recent.count", "3"), ("detector.exclude_recent.seconds", "0")],
+                overrides: &[
+                    ("detector.min_history", "2"),
+                    ("detector.exclude_recent.count", "3"),
+                    ("detector.exclude_recent.seconds", "0"),
+                ],
             },
             Some(orbit.join("loops.csv")),
         ),
@@ -104,10 +117,18 @@ fn measure(set: &DevSet, overrides: &[(&str, &str)], weights: &Resolved) -> Resu
     }
     let threshold = params.detector().threshold;
     let mut pipeline = Pipeline::with_weights(params, weights.clone())?;
-    let mut row = Row { metrics: Metrics::default(), ms_per_keyframe: 0.0, verification_ms: 0.0, min_score: 0.0, candidates: Vec::new(), groundtruth: Vec::new() };
+    let mut row = Row {
+        metrics: Metrics::default(),
+        ms_per_keyframe: 0.0,
+        verification_ms: 0.0,
+        min_score: 0.0,
+        candidates: Vec::new(),
+        groundtruth: Vec::new(),
+    };
     let (results, truth) = match &set.data {
         Data::DatabaseQueries { database, queries, loops } => {
-            let (results, timings) = run_database_queries(&mut pipeline, &images_in_name_order(database)?, &images_in_name_order(queries)?)?;
+            let (results, timings) =
+                run_database_queries(&mut pipeline, &images_in_name_order(database)?, &images_in_name_order(queries)?)?;
             row.ms_per_keyframe = timings[0].1;
             (results, read_loops(loops)?)
         }
@@ -151,7 +172,9 @@ fn main() -> Result<()> {
     println!();
     // Narrow the table while exploring: ACCURACY_ARCHES=mobilenetv2 ACCURACY_MODES=power,regional.
     let list = |var: &str, all: &[&str]| -> Vec<String> {
-        std::env::var(var).map(|v| v.split(',').map(str::to_string).collect()).unwrap_or_else(|_| all.iter().map(|s| s.to_string()).collect())
+        std::env::var(var)
+            .map(|v| v.split(',').map(str::to_string).collect())
+            .unwrap_or_else(|_| all.iter().map(|s| s.to_string()).collect())
     };
     let arches = list("ACCURACY_ARCHES", ecm_lcd::config::ARCHES);
     let modes = list("ACCURACY_MODES", &ecm_lcd::descriptor::DescriptorMode::NAMES);
@@ -177,7 +200,10 @@ fn main() -> Result<()> {
                             .split(',')
                             .map(|t| {
                                 let t: f32 = t.parse().unwrap_or(1.0);
-                                let (p, r) = row.metrics.at_threshold(t).map_or((None, Some(0.0)), |p| (Some(p.precision), Some(p.recall)));
+                                let (p, r) = row
+                                    .metrics
+                                    .at_threshold(t)
+                                    .map_or((None, Some(0.0)), |p| (Some(p.precision), Some(p.recall)));
                                 format!("{t}: {}/{}", common::figure(p), common::figure(r))
                             })
                             .collect();
@@ -186,8 +212,9 @@ fn main() -> Result<()> {
                     let f = common::figure;
                     let m = &row.metrics;
                     // Nothing above the threshold: precision undefined, recall 0.
-                    let (precision, recall) =
-                        m.at_threshold(row.min_score).map_or((None, Some(0.0)), |p| (Some(p.precision), Some(p.recall)));
+                    let (precision, recall) = m
+                        .at_threshold(row.min_score)
+                        .map_or((None, Some(0.0)), |p| (Some(p.precision), Some(p.recall)));
                     println!(
                         "| {} | {arch} | {mode} | {} | {policy} | {} ({}) | {} | {} | {} | {} / {} | {} | {bytes} | {:.1} |",
                         set.name,
@@ -226,10 +253,21 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
         let tum = set.name.starts_with("TUM");
         // The synthetic camera: focal length from the scene, principal point at the image centre
         // (pixel index coordinates).
-        let synthetic = if set.name.contains("hard") { ecm_lcd::synth::SynthConfig::hard() } else { ecm_lcd::synth::SynthConfig::default() };
+        let synthetic = if set.name.contains("hard") {
+            ecm_lcd::synth::SynthConfig::hard()
+        } else {
+            ecm_lcd::synth::SynthConfig::default()
+        };
         let focal = ecm_lcd::synth::Scene::new(synthetic.clone())?.focal_length().to_string();
-        let (cx, cy) = ((synthetic.width as f64 / 2.0 - 0.5).to_string(), (synthetic.height as f64 / 2.0 - 0.5).to_string());
-        let synthetic_camera = [("camera.fx", focal.as_str()), ("camera.fy", &focal), ("camera.cx", &cx), ("camera.cy", &cy), ("verification.mode", "on")];
+        let (cx, cy) =
+            ((synthetic.width as f64 / 2.0 - 0.5).to_string(), (synthetic.height as f64 / 2.0 - 0.5).to_string());
+        let synthetic_camera = [
+            ("camera.fx", focal.as_str()),
+            ("camera.fy", &focal),
+            ("camera.cx", &cx),
+            ("camera.cy", &cy),
+            ("verification.mode", "on"),
+        ];
         let verification: &[(&str, &str)] = if tum {
             &[("camera.preset", "tum_fr3"), ("verification.mode", "on")]
         } else if set.name.starts_with("synthetic") {
@@ -243,11 +281,21 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
         let (after, _) = measure(set, &overrides, weights)?;
         let (found_before, false_before) = (before.metrics.true_reports, before.metrics.false_reports);
         let (found_after, false_after) = (after.metrics.true_reports, after.metrics.false_reports);
-        let precision = if found_after + false_after > 0 { format!("{:.3}", found_after as f64 / (found_after + false_after) as f64) } else { "-".into() };
+        let precision = if found_after + false_after > 0 {
+            format!("{:.3}", found_after as f64 / (found_after + false_after) as f64)
+        } else {
+            "-".into()
+        };
         println!(
             "| {} | {} | {found_before} | {found_after} | {false_before} | {false_after} | {precision} | {:.1} | {} |",
             set.name,
-            if tum { "TUM fr3" } else if set.name.starts_with("synthetic") { "synthetic camera" } else { "none" },
+            if tum {
+                "TUM fr3"
+            } else if set.name.starts_with("synthetic") {
+                "synthetic camera"
+            } else {
+                "none"
+            },
             after.verification_ms,
             pose_errors(&after)
         );
@@ -258,13 +306,17 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
 /// Median rotation and translation-direction errors of the estimated relative poses against the
 /// ground truth's, over the verified candidates of a sequence with poses.
 fn pose_errors(row: &Row) -> String {
-    let pose_at = |stamp: ecm_lcd::types::Stamp| row.groundtruth.iter().find(|(s, _)| (s.nanos - stamp.nanos).abs() < 50_000_000).map(|(_, p)| *p);
+    let pose_at = |stamp: ecm_lcd::types::Stamp| {
+        row.groundtruth.iter().find(|(s, _)| (s.nanos - stamp.nanos).abs() < 50_000_000).map(|(_, p)| *p)
+    };
     let mut rotation = Vec::new();
     let mut direction = Vec::new();
     let mut baseline = Vec::new();
     let mut true_rotation = Vec::new();
     for c in &row.candidates {
-        let (Some(pose), Some(query), Some(matched)) = (c.verified.and_then(|v| v.pose), pose_at(c.query_stamp), pose_at(c.match_stamp)) else {
+        let (Some(pose), Some(query), Some(matched)) =
+            (c.verified.and_then(|v| v.pose), pose_at(c.query_stamp), pose_at(c.match_stamp))
+        else {
             continue;
         };
         // World poses of the cameras: the query camera in the match camera's frame.

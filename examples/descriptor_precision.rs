@@ -61,17 +61,29 @@ fn main() -> Result<()> {
             let dim = replayed.pipeline.descriptor().dim();
             let mut f32_results: Vec<QueryResult> = Vec::new();
             for format in &FORMATS {
-                let mut detector = Detector::new(*replayed.pipeline.descriptor(), replayed.pipeline.params().detector());
+                let mut detector =
+                    Detector::new(*replayed.pipeline.descriptor(), replayed.pipeline.params().detector());
                 let mut results = Vec::with_capacity(keyframes.len());
                 for keyframe in &keyframes {
-                    let (best, _) = detector.process_with_best(keyframe.id, keyframe.stamp, &(format.round_trip)(&keyframe.descriptor))?;
-                    results.push(QueryResult { query: keyframe.id as usize, best: best.map(|m| (m.id as usize, m.score)) });
+                    let (best, _) = detector.process_with_best(
+                        keyframe.id,
+                        keyframe.stamp,
+                        &(format.round_trip)(&keyframe.descriptor),
+                    )?;
+                    results.push(QueryResult {
+                        query: keyframe.id as usize,
+                        best: best.map(|m| (m.id as usize, m.score)),
+                    });
                 }
                 if format.name == "f32" {
                     ensure!(results == replay_results, "the f32 pass differs from the replay: the method is wrong");
                     f32_results = results.clone();
                 }
-                let same_best = results.iter().zip(&f32_results).filter(|(a, b)| a.best.map(|m| m.0) == b.best.map(|m| m.0)).count();
+                let same_best = results
+                    .iter()
+                    .zip(&f32_results)
+                    .filter(|(a, b)| a.best.map(|m| m.0) == b.best.map(|m| m.0))
+                    .count();
                 let largest_score_change = results
                     .iter()
                     .zip(&f32_results)

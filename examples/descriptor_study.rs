@@ -16,7 +16,9 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use ecm_lcd::descriptor::{grid_cell, l2_normalise, power_normalise};
-use ecm_lcd::eval::{evaluate, loop_truth_from_poses, read_loops, revisit::write_two_pass, LoopTruth, PoseLoopCriteria, QueryResult};
+use ecm_lcd::eval::{
+    evaluate, loop_truth_from_poses, read_loops, revisit::write_two_pass, LoopTruth, PoseLoopCriteria, QueryResult,
+};
 use ecm_lcd::io::open_source;
 use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::model::embedder::Embedder;
@@ -51,7 +53,13 @@ fn sets(shared: &Path, tmp: &Path) -> Result<Vec<Set>> {
     };
     let (database, queries) = (read_dir(&gp.join("ref"))?, read_dir(&gp.join("query"))?);
     let truth = read_loops(&gp.join("loops.csv"))?;
-    out.push(Set { name: "gardens point".into(), eligible: vec![None; queries.len()], database: database.clone(), queries: queries.clone(), truth: truth.clone() });
+    out.push(Set {
+        name: "gardens point".into(),
+        eligible: vec![None; queries.len()],
+        database: database.clone(),
+        queries: queries.clone(),
+        truth: truth.clone(),
+    });
     out.push(Set {
         name: "gardens point low-res gray".into(),
         eligible: vec![None; queries.len()],
@@ -79,11 +87,13 @@ fn sets(shared: &Path, tmp: &Path) -> Result<Vec<Set>> {
 
     // The hard synthetic preset, every second frame (2.5 Hz): queries against frames 10 s older.
     let hard = tmp.join("synthetic_hard");
-    let config = ecm_lcd::synth::SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..ecm_lcd::synth::SynthConfig::hard() };
+    let config =
+        ecm_lcd::synth::SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..ecm_lcd::synth::SynthConfig::hard() };
     ecm_lcd::synth::write_tum_folder(&ecm_lcd::synth::Scene::new(config)?, &hard)?;
     let frames: Vec<_> = open_source(&hard, None)?.step_by(2).collect::<Result<_>>()?;
     let stamps: Vec<Stamp> = frames.iter().map(|f| f.stamp).collect();
-    let truth = loop_truth_from_poses(&stamps, &read_groundtruth(&hard.join("groundtruth.txt"))?, &PoseLoopCriteria::default());
+    let truth =
+        loop_truth_from_poses(&stamps, &read_groundtruth(&hard.join("groundtruth.txt"))?, &PoseLoopCriteria::default());
     let images: Vec<RgbImage> = frames.into_iter().map(|f| f.image).collect();
     let eligible = (0..images.len()).map(|i| Some(i.saturating_sub(25))).collect::<Vec<_>>();
     out.push(Set { name: "synth hard".into(), database: images.clone(), queries: images, eligible, truth });
@@ -97,7 +107,8 @@ fn pool(fm: &FeatureMap, rows: std::ops::Range<usize>, cols: std::ops::Range<usi
     fm.data
         .chunks_exact(plane)
         .map(|ch| {
-            let values = rows.clone().flat_map(|r| ch[r * fm.width + cols.start..r * fm.width + cols.end].iter().copied());
+            let values =
+                rows.clone().flat_map(|r| ch[r * fm.width + cols.start..r * fm.width + cols.end].iter().copied());
             match how {
                 "gap" => values.sum::<f32>() / n,
                 "gem" => (values.map(|x| x.max(0.0).powi(3)).sum::<f32>() / n).cbrt(),
@@ -211,10 +222,12 @@ fn learn_whitening(vs: &[Vec<f32>], dim: usize) -> Whitening {
 fn learn_projection(vs: &[Vec<f32>], dim: usize, whiten: bool) -> Whitening {
     let mean = mean_of(vs);
     let n = mean.len();
-    let centred: Vec<Vec<f64>> = vs.iter().map(|v| v.iter().zip(&mean).map(|(a, m)| (a - m) as f64).collect()).collect();
+    let centred: Vec<Vec<f64>> =
+        vs.iter().map(|v| v.iter().zip(&mean).map(|(a, m)| (a - m) as f64).collect()).collect();
     // Gram matrix trick: eigenvectors of X X^T (samples x samples), as n may exceed the sample count.
     let s = centred.len();
-    let gram = nalgebra::DMatrix::from_fn(s, s, |i, j| centred[i].iter().zip(&centred[j]).map(|(a, b)| a * b).sum::<f64>());
+    let gram =
+        nalgebra::DMatrix::from_fn(s, s, |i, j| centred[i].iter().zip(&centred[j]).map(|(a, b)| a * b).sum::<f64>());
     let eig = nalgebra::SymmetricEigen::new(gram);
     let mut order: Vec<usize> = (0..s).collect();
     order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
@@ -259,14 +272,22 @@ fn main() -> Result<()> {
     let weights = resolve::resolve(None)?;
     let mut embedder = Embedder::new(weights.weights.for_arch(arch)?.network(false)?, size)?;
     let blocks = arch.spec().blocks().len();
-    let taps_env = std::env::var("STUDY_TAPS").unwrap_or_else(|_| format!("{},{},{},{},{}", blocks - 9, blocks - 6, blocks - 4, blocks - 2, blocks - 1));
+    let taps_env = std::env::var("STUDY_TAPS")
+        .unwrap_or_else(|_| format!("{},{},{},{},{}", blocks - 9, blocks - 6, blocks - 4, blocks - 2, blocks - 1));
     let mut taps: Vec<Tap> = taps_env.split(',').map(|t| t.parse().map(Tap::Block)).collect::<Result<_, _>>()?;
     taps.push(Tap::Head);
-    let aggs: Vec<String> = std::env::var("STUDY_AGGS").unwrap_or_else(|_| "global-gap,global-gem,global-mac,rmac-mac,grid2-gap,grid2-mac,grid3-mac,grid4-mac,grid3-gem".into()).split(',').map(str::to_string).collect();
+    let aggs: Vec<String> = std::env::var("STUDY_AGGS")
+        .unwrap_or_else(|_| {
+            "global-gap,global-gem,global-mac,rmac-mac,grid2-gap,grid2-mac,grid3-mac,grid4-mac,grid3-gem".into()
+        })
+        .split(',')
+        .map(str::to_string)
+        .collect();
     let aggs: Vec<&str> = aggs.iter().map(String::as_str).collect();
     let posts = ["l2", "l2c", "l2p128", "l2p256", "l2h64", "l2h128"];
     let learning = learning_images()?;
-    let learning_maps: Vec<Vec<FeatureMap>> = learning.iter().map(|i| embedder.tapped_maps(i, &taps)).collect::<Result<_>>()?;
+    let learning_maps: Vec<Vec<FeatureMap>> =
+        learning.iter().map(|i| embedder.tapped_maps(i, &taps)).collect::<Result<_>>()?;
     let mut whitenings: BTreeMap<(usize, &str), (Vec<f32>, Whitening, Whitening, Whitening)> = BTreeMap::new();
     for t in 0..taps.len() {
         for &agg in &aggs {
@@ -274,7 +295,8 @@ fn main() -> Result<()> {
             let finished = finish(raw, "pl2", None);
             let mean = mean_of(&finished);
             let full = learn_projection(&finished, 256, false);
-            let cut = |d: usize| Whitening { mean: full.mean.clone(), rows: full.rows.iter().take(d).cloned().collect() };
+            let cut =
+                |d: usize| Whitening { mean: full.mean.clone(), rows: full.rows.iter().take(d).cloned().collect() };
             whitenings.insert((t, agg), (mean, cut(64), cut(128), full));
         }
     }
@@ -295,7 +317,11 @@ fn main() -> Result<()> {
                 for post in posts {
                     let (db, q) = if let Some(dim) = post.strip_prefix("l2p") {
                         // PCA learned from synthetic frames (no whitening).
-                        let w = match dim { "64" => &learned.1, "128" => &learned.2, _ => &learned.3 };
+                        let w = match dim {
+                            "64" => &learned.1,
+                            "128" => &learned.2,
+                            _ => &learned.3,
+                        };
                         let db: Vec<_> = finish(db_raw.clone(), "l2", None).iter().map(|v| whiten(w, v)).collect();
                         let q: Vec<_> = finish(q_raw.clone(), "l2", None).iter().map(|v| whiten(w, v)).collect();
                         (db, q)
@@ -303,9 +329,16 @@ fn main() -> Result<()> {
                         // PCA learned from the database itself (the history), no whitening.
                         let dbf = finish(db_raw.clone(), "l2", None);
                         let w = learn_projection(&dbf, dim.parse().unwrap(), false);
-                        (dbf.iter().map(|v| whiten(&w, v)).collect(), finish(q_raw.clone(), "l2", None).iter().map(|v| whiten(&w, v)).collect())
+                        (
+                            dbf.iter().map(|v| whiten(&w, v)).collect(),
+                            finish(q_raw.clone(), "l2", None).iter().map(|v| whiten(&w, v)).collect(),
+                        )
                     } else if let Some(dim) = post.strip_prefix("pl2w") {
-                        let w = match dim { "64" => &learned.1, "128" => &learned.2, _ => &learned.3 };
+                        let w = match dim {
+                            "64" => &learned.1,
+                            "128" => &learned.2,
+                            _ => &learned.3,
+                        };
                         let db: Vec<_> = finish(db_raw.clone(), "pl2", None).iter().map(|v| whiten(w, v)).collect();
                         let q: Vec<_> = finish(q_raw.clone(), "pl2", None).iter().map(|v| whiten(w, v)).collect();
                         (db, q)
@@ -313,9 +346,15 @@ fn main() -> Result<()> {
                         // Whitening learned from the database itself (the history).
                         let dbf = finish(db_raw.clone(), "pl2", None);
                         let w = learn_whitening(&dbf, 128);
-                        (dbf.iter().map(|v| whiten(&w, v)).collect(), finish(q_raw.clone(), "pl2", None).iter().map(|v| whiten(&w, v)).collect())
+                        (
+                            dbf.iter().map(|v| whiten(&w, v)).collect(),
+                            finish(q_raw.clone(), "pl2", None).iter().map(|v| whiten(&w, v)).collect(),
+                        )
                     } else if post == "pl2s" {
-                        (finish(db_raw.clone(), "pl2", Some(&learned.0)), finish(q_raw.clone(), "pl2", Some(&learned.0)))
+                        (
+                            finish(db_raw.clone(), "pl2", Some(&learned.0)),
+                            finish(q_raw.clone(), "pl2", Some(&learned.0)),
+                        )
                     } else {
                         let plain = post.trim_end_matches('c');
                         let mean = post.ends_with('c').then(|| mean_of(&finish(db_raw.clone(), plain, None)));
@@ -329,14 +368,32 @@ fn main() -> Result<()> {
                             continue;
                         }
                         let scores = cosine_scores(qv, &db[..limit]);
-                        let (best, score) = scores.iter().copied().enumerate().fold((0, f32::NEG_INFINITY), |b, (i, s)| if s > b.1 { (i, s) } else { b });
+                        let (best, score) = scores
+                            .iter()
+                            .copied()
+                            .enumerate()
+                            .fold((0, f32::NEG_INFINITY), |b, (i, s)| if s > b.1 { (i, s) } else { b });
                         if post == "l2" && Some(format!("{tap} {agg}")) == std::env::var("STUDY_CALIBRATE").ok() {
                             if let Some(matches) = set.truth.matches(qi) {
                                 let n = scores.len() as f32;
                                 let mean = scores.iter().sum::<f32>() / n;
-                                let sd = (scores.iter().map(|s| (s - mean) * (s - mean)).sum::<f32>() / n).sqrt().max(1e-6);
-                                let second = scores.iter().enumerate().filter(|(i, _)| i.abs_diff(best) > 2).map(|(_, s)| *s).fold(f32::NEG_INFINITY, f32::max);
-                                calibration.push(CalibrationRecord { set: set.name.clone(), positive: !matches.is_empty(), correct: matches.contains(&best), s1: score, mean, sd, second });
+                                let sd =
+                                    (scores.iter().map(|s| (s - mean) * (s - mean)).sum::<f32>() / n).sqrt().max(1e-6);
+                                let second = scores
+                                    .iter()
+                                    .enumerate()
+                                    .filter(|(i, _)| i.abs_diff(best) > 2)
+                                    .map(|(_, s)| *s)
+                                    .fold(f32::NEG_INFINITY, f32::max);
+                                calibration.push(CalibrationRecord {
+                                    set: set.name.clone(),
+                                    positive: !matches.is_empty(),
+                                    correct: matches.contains(&best),
+                                    s1: score,
+                                    mean,
+                                    sd,
+                                    second,
+                                });
                             }
                         }
                         results.push(QueryResult { query: qi, best: Some((best, score)) });

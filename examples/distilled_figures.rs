@@ -30,7 +30,15 @@ fn main() -> Result<()> {
         for (label, arch, weights) in networks {
             let (m, _) = common::evaluate_on(set, arch, None, weights)?;
             let f = common::figure;
-            println!("| {} | {label} | {} ({}) | {} | {} | {} |", set.name, m.queries, m.positives, f(m.recall_at_1), f(m.recall_at_100_precision), f(m.average_precision));
+            println!(
+                "| {} | {label} | {} ({}) | {} | {} | {} |",
+                set.name,
+                m.queries,
+                m.positives,
+                f(m.recall_at_1),
+                f(m.recall_at_100_precision),
+                f(m.average_precision)
+            );
         }
     }
     Ok(())

@@ -23,9 +23,9 @@
 //! ([`crate::descriptor::Descriptor::score`]).
 
 use crate::descriptor::{Descriptor, DescriptorMode, Pooling, DEFAULT_GRID};
-use crate::model::{Arch, Tap};
 use crate::detector::selection::SelectionParams;
 use crate::detector::{DetectorParams, Threshold};
+use crate::model::{Arch, Tap};
 use crate::verification::{Intrinsics, VerificationParams};
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
@@ -110,10 +110,9 @@ impl ParamSpec {
                     return Err(format!("{} must be in [{min}, {max}], got {v}", self.name));
                 }
             }
-            (ParamRange::OneOf(allowed), ParamValue::String(s))
-                if !allowed.contains(&s.as_str()) => {
-                    return Err(format!("{} must be one of {}, got {s:?}", self.name, allowed.join(", ")));
-                }
+            (ParamRange::OneOf(allowed), ParamValue::String(s)) if !allowed.contains(&s.as_str()) => {
+                return Err(format!("{} must be one of {}, got {s:?}", self.name, allowed.join(", ")));
+            }
             _ => {}
         }
         Ok(value)
@@ -142,7 +141,12 @@ fn integer(name: &'static str, default: i64, min: i64, max: i64, description: &'
     }
 }
 
-fn one_of(name: &'static str, default: &'static str, allowed: &'static [&'static str], description: &'static str) -> ParamSpec {
+fn one_of(
+    name: &'static str,
+    default: &'static str,
+    allowed: &'static [&'static str],
+    description: &'static str,
+) -> ParamSpec {
     ParamSpec {
         name,
         kind: ParamKind::String,
@@ -157,8 +161,25 @@ fn one_of(name: &'static str, default: &'static str, allowed: &'static [&'static
 /// last bottleneck), `head`, `bottleneck` (the last bottleneck's output) or `blocks.N` (bottleneck
 /// `N`'s output, 0-based; MobileNetV2 has 17, ECMobileNet 13).
 const TAP_NAMES: [&str; 20] = [
-    "auto", "head", "bottleneck", "blocks.0", "blocks.1", "blocks.2", "blocks.3", "blocks.4", "blocks.5", "blocks.6",
-    "blocks.7", "blocks.8", "blocks.9", "blocks.10", "blocks.11", "blocks.12", "blocks.13", "blocks.14", "blocks.15",
+    "auto",
+    "head",
+    "bottleneck",
+    "blocks.0",
+    "blocks.1",
+    "blocks.2",
+    "blocks.3",
+    "blocks.4",
+    "blocks.5",
+    "blocks.6",
+    "blocks.7",
+    "blocks.8",
+    "blocks.9",
+    "blocks.10",
+    "blocks.11",
+    "blocks.12",
+    "blocks.13",
+    "blocks.14",
+    "blocks.15",
     "blocks.16",
 ];
 
@@ -373,9 +394,7 @@ impl Params {
             for (name, value) in flat {
                 let value = param_value_from_yaml(&value)
                     .with_context(|| format!("parameter `{name}` in node section {key:?}"))?;
-                params
-                    .set(&name, value)
-                    .map_err(|reason| anyhow::anyhow!("{reason} (node section {key:?})"))?;
+                params.set(&name, value).map_err(|reason| anyhow::anyhow!("{reason} (node section {key:?})"))?;
             }
         }
         if !matched {
@@ -406,9 +425,15 @@ impl Params {
         let spec = param_spec(name).ok_or_else(|| format!("unknown parameter `{name}`"))?;
         let text = text.trim();
         let value = match spec.kind {
-            ParamKind::Bool => ParamValue::Bool(text.parse().map_err(|_| format!("{name} must be true or false, got {text:?}"))?),
-            ParamKind::Integer => ParamValue::Integer(text.parse().map_err(|_| format!("{name} must be an integer, got {text:?}"))?),
-            ParamKind::Double => ParamValue::Double(text.parse().map_err(|_| format!("{name} must be a number, got {text:?}"))?),
+            ParamKind::Bool => {
+                ParamValue::Bool(text.parse().map_err(|_| format!("{name} must be true or false, got {text:?}"))?)
+            }
+            ParamKind::Integer => {
+                ParamValue::Integer(text.parse().map_err(|_| format!("{name} must be an integer, got {text:?}"))?)
+            }
+            ParamKind::Double => {
+                ParamValue::Double(text.parse().map_err(|_| format!("{name} must be a number, got {text:?}"))?)
+            }
             ParamKind::String => ParamValue::String(text.to_string()),
         };
         self.set(name, value)
@@ -473,7 +498,11 @@ impl Params {
             name => {
                 let tap: Tap = name.parse()?;
                 if let Tap::Block(i) = tap {
-                    anyhow::ensure!(i < blocks, "descriptor.tap {name} is past {arch}'s last bottleneck, blocks.{}", blocks - 1);
+                    anyhow::ensure!(
+                        i < blocks,
+                        "descriptor.tap {name} is past {arch}'s last bottleneck, blocks.{}",
+                        blocks - 1
+                    );
                 }
                 tap
             }
@@ -544,7 +573,13 @@ impl Params {
     /// Selection rules; the novelty score is turned into a distance with the descriptor mode's mapping.
     pub fn selection(&self) -> SelectionParams {
         let max_score = self.double("selection.novelty_max_score") as f32;
-        let novelty_min_distance = if max_score >= 1.0 { 0.0 } else { self.descriptor().unwrap_or_else(|_| Descriptor::new(self.descriptor_mode(), crate::descriptor::DEFAULT_CHANNELS)).distance_for_score(max_score) };
+        let novelty_min_distance = if max_score >= 1.0 {
+            0.0
+        } else {
+            self.descriptor()
+                .unwrap_or_else(|_| Descriptor::new(self.descriptor_mode(), crate::descriptor::DEFAULT_CHANNELS))
+                .distance_for_score(max_score)
+        };
         SelectionParams {
             every_nth: self.count("selection.every_nth"),
             min_period_secs: self.double("selection.min_period"),
@@ -591,7 +626,11 @@ fn check_flow_depth(text: &str) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn flatten(value: &serde_yaml_ng::Value, prefix: String, out: &mut Vec<(String, serde_yaml_ng::Value)>) -> anyhow::Result<()> {
+fn flatten(
+    value: &serde_yaml_ng::Value,
+    prefix: String,
+    out: &mut Vec<(String, serde_yaml_ng::Value)>,
+) -> anyhow::Result<()> {
     let mapping = value.as_mapping().with_context(|| {
         let at = if prefix.is_empty() { "`ros__parameters`".to_string() } else { format!("`{prefix}`") };
         format!("{at} must be a mapping of parameter names to values")
@@ -713,7 +752,10 @@ mod tests {
         assert!(p.set("detector.nope", ParamValue::Integer(1)).unwrap_err().contains("detector.nope"));
         assert_eq!(p.get("detector.nope"), None);
         // Read-only at run time.
-        assert!(p.set_at_runtime("descriptor.mode", ParamValue::String("l2".into())).unwrap_err().contains("read-only"));
+        assert!(p
+            .set_at_runtime("descriptor.mode", ParamValue::String("l2".into()))
+            .unwrap_err()
+            .contains("read-only"));
         p.set_at_runtime("detector.top_k", ParamValue::Integer(2)).unwrap();
         // From text.
         p.set_from_str("selection.min_period", "0.25").unwrap();
@@ -729,7 +771,8 @@ mod tests {
         assert!(err.contains("line 3") && err.contains("nested deeper"), "{err}");
         assert!(started.elapsed() < std::time::Duration::from_millis(200));
         // Brackets inside quotes are text, and modest nesting is fine.
-        let ok = "ecm_lcd:\n  ros__parameters:\n    detector.top_k: 2\n    note: \"[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[\"\n";
+        let ok =
+            "ecm_lcd:\n  ros__parameters:\n    detector.top_k: 2\n    note: \"[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[\"\n";
         assert!(check_flow_depth(ok).is_ok());
     }
 
@@ -816,7 +859,8 @@ camera:
         let p = Params::from_yaml_str(text, NODE_NAME).unwrap();
         assert_eq!(p.detector().top_k, 5);
         assert_eq!(p.detector().exclude_recent_secs, 4.0);
-        let err = format!("{:#}", Params::from_yaml_str("camera:\n  ros__parameters: {a: 1}\n", NODE_NAME).unwrap_err());
+        let err =
+            format!("{:#}", Params::from_yaml_str("camera:\n  ros__parameters: {a: 1}\n", NODE_NAME).unwrap_err());
         assert!(err.contains("camera") && err.contains("ecm_lcd"), "{err}");
     }
 

@@ -158,7 +158,11 @@ impl Pipeline {
     /// become the detector's database, counted ids continue after the largest stored id, and every
     /// later keyframe is appended to it. Refused when the store's identity differs from the pipeline's.
     pub fn attach_store(&mut self, store: KeyframeStore) -> Result<()> {
-        store.identity().check_same(&format!("keyframe database {}", store.path().display()), &self.store_identity(), "this pipeline")?;
+        store.identity().check_same(
+            &format!("keyframe database {}", store.path().display()),
+            &self.store_identity(),
+            "this pipeline",
+        )?;
         let started = Instant::now();
         let limit = Some(self.params.detector().max_keyframes).filter(|&n| n > 0);
         self.detector.replace_history(store.load_db(limit)?)?;
@@ -222,7 +226,14 @@ impl Pipeline {
         self.process_frame(id, stamp, image)
     }
 
-    fn run(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage, depth: Option<&DepthImage>) -> Result<Outcome> {
+    fn run(
+        &mut self,
+        id: u64,
+        select: bool,
+        stamp: Stamp,
+        image: &RgbImage,
+        depth: Option<&DepthImage>,
+    ) -> Result<Outcome> {
         if select && self.selector.offer(stamp) == Verdict::Reject {
             return Ok(Outcome::default());
         }
@@ -232,7 +243,14 @@ impl Pipeline {
         crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, stamp, image, depth))
     }
 
-    fn describe_and_detect(&mut self, id: u64, select: bool, stamp: Stamp, image: &RgbImage, depth: Option<&DepthImage>) -> Result<Outcome> {
+    fn describe_and_detect(
+        &mut self,
+        id: u64,
+        select: bool,
+        stamp: Stamp,
+        image: &RgbImage,
+        depth: Option<&DepthImage>,
+    ) -> Result<Outcome> {
         let mut outcome = Outcome::default();
         let start = Instant::now();
         let feature_map = self.embedder.feature_map(image)?;
@@ -297,7 +315,13 @@ impl Pipeline {
     /// features are not kept fails (it cannot be checked).
     pub fn verify(&self, features: &LocalFeatures, id: u64) -> Option<Verification> {
         let verifier = self.verifier.as_ref()?;
-        Some(verifier.verify(features, id).unwrap_or(Verification { matches: 0, inliers: 0, model: None, accepted: false, pose: None }))
+        Some(verifier.verify(features, id).unwrap_or(Verification {
+            matches: 0,
+            inliers: 0,
+            model: None,
+            accepted: false,
+            pose: None,
+        }))
     }
 
     /// Drops the candidates that fail verification (counted in [`Outcome::rejected`]) and records
@@ -312,7 +336,8 @@ impl Pipeline {
             checked.push((id, v));
             v
         };
-        let best_is_candidate = outcome.best.is_some_and(|best| outcome.candidates.iter().any(|c| c.match_id == best.id));
+        let best_is_candidate =
+            outcome.best.is_some_and(|best| outcome.candidates.iter().any(|c| c.match_id == best.id));
         if self.verify_best || best_is_candidate {
             outcome.best_verified = outcome.best.map(|best| check(best.id).accepted);
         }

@@ -72,7 +72,13 @@ pub struct PoseGraphParams {
 
 impl Default for PoseGraphParams {
     fn default() -> Self {
-        PoseGraphParams { max_nodes: 200, loop_weight: 1.0, robust_scale: 0.1, max_stamp_offset_s: 0.05, iterations: 20 }
+        PoseGraphParams {
+            max_nodes: 200,
+            loop_weight: 1.0,
+            robust_scale: 0.1,
+            max_stamp_offset_s: 0.05,
+            iterations: 20,
+        }
     }
 }
 
@@ -99,7 +105,8 @@ fn to_kornia(camera_to_world: &Isometry3<f64>) -> Pose3d {
 }
 
 fn from_kornia(pose: &Pose3d) -> Isometry3<f64> {
-    let columns = [pose.rotation.col(0), pose.rotation.col(1), pose.rotation.col(2)].map(|c| Vector3::new(c.x, c.y, c.z));
+    let columns =
+        [pose.rotation.col(0), pose.rotation.col(1), pose.rotation.col(2)].map(|c| Vector3::new(c.x, c.y, c.z));
     let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&Matrix3::from_columns(&columns)));
     let t = Vector3::new(pose.translation.x, pose.translation.y, pose.translation.z);
     Isometry3::from_parts(Translation3::from(t), rotation).inverse()
@@ -108,7 +115,10 @@ fn from_kornia(pose: &Pose3d) -> Isometry3<f64> {
 fn to_se3(motion: &Isometry3<f64>) -> SE3F32 {
     let q = motion.rotation.quaternion();
     let t = motion.translation.vector;
-    SE3F32::from_qxyz(QuatF32::from_xyzw(q.i as f32, q.j as f32, q.k as f32, q.w as f32), Vec3AF32::new(t.x as f32, t.y as f32, t.z as f32))
+    SE3F32::from_qxyz(
+        QuatF32::from_xyzw(q.i as f32, q.j as f32, q.k as f32, q.w as f32),
+        Vec3AF32::new(t.x as f32, t.y as f32, t.z as f32),
+    )
 }
 
 /// The size of a relative-pose residual: translation (metres) and rotation angle (radians) together.
@@ -120,11 +130,18 @@ fn residual(measured: &Isometry3<f64>, from: &Isometry3<f64>, to: &Isometry3<f64
 }
 
 /// Optimises `odometry` (camera-to-world, in time order) with `loops` (module doc).
-pub fn optimise(odometry: &[(Stamp, Isometry3<f64>)], loops: &[LoopConstraint], params: &PoseGraphParams) -> Result<PoseGraphResult> {
+pub fn optimise(
+    odometry: &[(Stamp, Isometry3<f64>)],
+    loops: &[LoopConstraint],
+    params: &PoseGraphParams,
+) -> Result<PoseGraphResult> {
     ensure!(odometry.len() >= 2, "the odometry has {} pose(s); a pose graph needs at least 2", odometry.len());
     ensure!(odometry.windows(2).all(|w| w[0].0 < w[1].0), "the odometry's stamps must increase");
     ensure!(params.max_nodes >= 2, "a pose graph needs at least 2 nodes");
-    ensure!(params.robust_scale > 0.0 && params.loop_weight > 0.0, "the robust scale and the loop weight must be positive");
+    ensure!(
+        params.robust_scale > 0.0 && params.loop_weight > 0.0,
+        "the robust scale and the loop weight must be positive"
+    );
     let stamps: Vec<Stamp> = odometry.iter().map(|(s, _)| *s).collect();
     let max_offset = Stamp::from_nanos((params.max_stamp_offset_s * 1e9).round() as i64);
     let index_of = |stamp: Stamp| nearest_stamp(&stamps, stamp, max_offset);
@@ -152,10 +169,20 @@ pub fn optimise(odometry: &[(Stamp, Isometry3<f64>)], loops: &[LoopConstraint], 
     let mut edges: Vec<PgoEdge> = nodes
         .windows(2)
         .enumerate()
-        .map(|(k, w)| PgoEdge { pose_a: k, pose_b: k + 1, t_ab_meas: to_se3(&(odometry[w[1]].1.inverse() * odometry[w[0]].1)), weight: 1.0 })
+        .map(|(k, w)| PgoEdge {
+            pose_a: k,
+            pose_b: k + 1,
+            t_ab_meas: to_se3(&(odometry[w[1]].1.inverse() * odometry[w[0]].1)),
+            weight: 1.0,
+        })
         .collect();
     let first_loop_edge = edges.len();
-    edges.extend(tied.iter().map(|&(q, m, relative)| PgoEdge { pose_a: node_of(q), pose_b: node_of(m), t_ab_meas: to_se3(&relative), weight: params.loop_weight as f32 }));
+    edges.extend(tied.iter().map(|&(q, m, relative)| PgoEdge {
+        pose_a: node_of(q),
+        pose_b: node_of(m),
+        t_ab_meas: to_se3(&relative),
+        weight: params.loop_weight as f32,
+    }));
 
     let solver = PgoParams { max_iterations: params.iterations, ..PgoParams::default() };
     let mut estimate: Vec<Isometry3<f64>> = nodes.iter().map(|&i| odometry[i].1).collect();
@@ -171,7 +198,9 @@ pub fn optimise(odometry: &[(Stamp, Isometry3<f64>)], loops: &[LoopConstraint], 
             for (edge, w) in edges[first_loop_edge..].iter_mut().zip(&weights) {
                 edge.weight = (params.loop_weight * w) as f32;
             }
-            let solved = pose_graph_optimize(&poses, &edges, &[0], &solver).map_err(|e| anyhow::anyhow!("{e}")).context("pose-graph optimisation")?;
+            let solved = pose_graph_optimize(&poses, &edges, &[0], &solver)
+                .map_err(|e| anyhow::anyhow!("{e}"))
+                .context("pose-graph optimisation")?;
             poses = solved.poses;
             estimate = poses.iter().map(from_kornia).collect();
             // Cauchy: rho'(r^2) = 1 / (1 + r^2 / c^2); the solver scales residuals, hence the root.
@@ -208,7 +237,10 @@ mod tests {
                 let a = std::f64::consts::TAU * 2.0 * i as f64 / n as f64;
                 let position = Vector3::new(3.0 * a.cos(), 3.0 * a.sin(), 0.0);
                 let rotation = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), a + std::f64::consts::FRAC_PI_2);
-                (Stamp::from_nanos(i as i64 * 100_000_000), Isometry3::from_parts(Translation3::from(position), rotation))
+                (
+                    Stamp::from_nanos(i as i64 * 100_000_000),
+                    Isometry3::from_parts(Translation3::from(position), rotation),
+                )
             })
             .collect()
     }
@@ -227,7 +259,11 @@ mod tests {
     }
 
     fn true_loop(truth: &[(Stamp, Isometry3<f64>)], query: usize, matched: usize) -> LoopConstraint {
-        LoopConstraint { query_stamp: truth[query].0, match_stamp: truth[matched].0, relative: truth[matched].1.inverse() * truth[query].1 }
+        LoopConstraint {
+            query_stamp: truth[query].0,
+            match_stamp: truth[matched].0,
+            relative: truth[matched].1.inverse() * truth[query].1,
+        }
     }
 
     #[test]
@@ -254,7 +290,11 @@ mod tests {
     fn without_loops_the_odometry_is_returned_and_bad_input_is_refused() {
         let truth = circle(20);
         let result = optimise(&truth, &[], &PoseGraphParams::default()).unwrap();
-        assert!(result.trajectory.iter().zip(&truth).all(|(a, b)| a.0 == b.0 && (a.1.translation.vector - b.1.translation.vector).norm() < 1e-9));
+        assert!(result
+            .trajectory
+            .iter()
+            .zip(&truth)
+            .all(|(a, b)| a.0 == b.0 && (a.1.translation.vector - b.1.translation.vector).norm() < 1e-9));
         let far = LoopConstraint { query_stamp: Stamp::from_nanos(1 << 50), ..true_loop(&truth, 10, 0) };
         assert_eq!(optimise(&truth, &[far], &PoseGraphParams::default()).unwrap().unmatched_loops, 1);
         assert!(optimise(&truth[..1], &[], &PoseGraphParams::default()).is_err());

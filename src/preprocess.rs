@@ -12,7 +12,9 @@ use std::path::Path;
 
 use anyhow::{Context, Result};
 use candle_core::{Device, Tensor};
-use fast_image_resize::{images::Image as FirImage, images::ImageRef, FilterType, PixelType, ResizeAlg, ResizeOptions, Resizer};
+use fast_image_resize::{
+    images::Image as FirImage, images::ImageRef, FilterType, PixelType, ResizeAlg, ResizeOptions, Resizer,
+};
 use image::RgbImage;
 
 use crate::io::image_msg::{decode_compressed_image, decode_image, image_error};
@@ -24,7 +26,8 @@ pub fn read_image(path: &Path) -> Result<RgbImage> {
         .with_context(|| format!("cannot open image {}", path.display()))?
         .with_guessed_format()
         .with_context(|| format!("cannot read image {}", path.display()))?;
-    let image = reader.decode().map_err(image_error).with_context(|| format!("{} is not a readable image", path.display()))?;
+    let image =
+        reader.decode().map_err(image_error).with_context(|| format!("{} is not a readable image", path.display()))?;
     Ok(image.into_rgb8())
 }
 

@@ -15,12 +15,12 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::config::ParamValue;
 use crate::detector::Match;
 use crate::eval::QueryResult;
-use crate::config::ParamValue;
 use crate::io::open_source;
-use crate::preprocess::read_image;
 use crate::pipeline::{Pipeline, Timings};
+use crate::preprocess::read_image;
 use crate::types::{LoopCandidate, Stamp};
 
 /// One keyframe of a replay.
@@ -95,7 +95,11 @@ impl ReplayRun {
 /// Database/query mode: every database image is stored, then each query is matched against
 /// them all (no recency rules: the two sets are different visits). Both folders are sequences in
 /// name order, which the sequence policy (`detector.sequence.length`) follows.
-pub fn run_database_queries(pipeline: &mut Pipeline, database: &[PathBuf], queries: &[PathBuf]) -> Result<(Vec<QueryResult>, Vec<(&'static str, f64)>)> {
+pub fn run_database_queries(
+    pipeline: &mut Pipeline,
+    database: &[PathBuf],
+    queries: &[PathBuf],
+) -> Result<(Vec<QueryResult>, Vec<(&'static str, f64)>)> {
     for rule in ["detector.min_history", "detector.exclude_recent.count"] {
         pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
     }
@@ -152,7 +156,9 @@ fn replay_frames(
     // The newest stored keyframe must be this source's frame of the same index and stamp: a
     // database is continued only with the source it was built from.
     let newest = match pipeline.store() {
-        Some(store) => store.last_keyframe()?.map(|(id, stamp, descriptor)| (id, stamp, descriptor, store.path().to_path_buf())),
+        Some(store) => {
+            store.last_keyframe()?.map(|(id, stamp, descriptor)| (id, stamp, descriptor, store.path().to_path_buf()))
+        }
         None => None,
     };
     let frames = open_source(source, topic)?;
@@ -180,12 +186,19 @@ fn replay_frames(
                     anyhow::anyhow!("keyframe database {} was built from another source: {what}", db.display())
                 };
                 if frame.stamp != *stamp {
-                    return Err(another(format!("its keyframe {id} has stamp {stamp}, frame {id} of {} has stamp {}", source.display(), frame.stamp)));
+                    return Err(another(format!(
+                        "its keyframe {id} has stamp {stamp}, frame {id} of {} has stamp {}",
+                        source.display(),
+                        frame.stamp
+                    )));
                 }
                 // Same stamp: the same image gives the same descriptor (up to float noise).
                 let difference = crate::descriptor::distance(&pipeline.describe(&frame.image)?, stored);
                 if difference.is_nan() || difference > 1e-3 {
-                    return Err(another(format!("frame {id} of {} differs from its keyframe {id} (descriptor distance {difference:.3})", source.display())));
+                    return Err(another(format!(
+                        "frame {id} of {} differs from its keyframe {id} (descriptor distance {difference:.3})",
+                        source.display()
+                    )));
                 }
             }
         }
@@ -204,8 +217,12 @@ fn replay_frames(
             run.total.detector_ms += t.detector_ms;
             run.total.verification_ms += t.verification_ms;
             run.rejected += outcome.rejected;
-            let keyframe =
-                ReplayedKeyframe { index: frame.index, stamp: frame.stamp, best: outcome.best, best_verified: outcome.best_verified };
+            let keyframe = ReplayedKeyframe {
+                index: frame.index,
+                stamp: frame.stamp,
+                best: outcome.best,
+                best_verified: outcome.best_verified,
+            };
             on_keyframe(&keyframe, &outcome.candidates)?;
             run.keyframes.push(keyframe);
             run.candidates.extend(outcome.candidates);
@@ -226,4 +243,3 @@ fn replay_frames(
     run.wall_secs = started.elapsed().as_secs_f64();
     Ok(run)
 }
-

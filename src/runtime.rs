@@ -163,7 +163,10 @@ mod tests {
             for round in 0..200u64 {
                 let sum = pool.install(|| {
                     super::with_hot_workers(|| {
-                        (0..64u64).into_par_iter().map(|i| (0..100u64).into_par_iter().map(|j| i * j + round).sum::<u64>()).sum::<u64>()
+                        (0..64u64)
+                            .into_par_iter()
+                            .map(|i| (0..100u64).into_par_iter().map(|j| i * j + round).sum::<u64>())
+                            .sum::<u64>()
                     })
                 });
                 let expected: u64 = (0..64u64).map(|i| (0..100u64).map(|j| i * j + round).sum::<u64>()).sum();
@@ -171,7 +174,8 @@ mod tests {
                 // Nested: the inner call runs inside the outer one's hot period.
                 let (inner, flag_inside, flag_after) = pool.install(|| {
                     let (inner, flag_inside) = super::with_hot_workers(|| {
-                        let inner = super::with_hot_workers(|| (0..1000u64).into_par_iter().map(|i| i + round).sum::<u64>());
+                        let inner =
+                            super::with_hot_workers(|| (0..1000u64).into_par_iter().map(|i| i + round).sum::<u64>());
                         (inner, super::KEEPING_HOT.get())
                     });
                     (inner, flag_inside, super::KEEPING_HOT.get())
@@ -180,7 +184,11 @@ mod tests {
                 assert!(flag_inside, "the outer call marks its thread as keeping the workers hot");
                 assert!(!flag_after, "cleared when the call returns");
             }
-            assert!(started.elapsed() < std::time::Duration::from_secs(20), "{threads} threads: {:?}", started.elapsed());
+            assert!(
+                started.elapsed() < std::time::Duration::from_secs(20),
+                "{threads} threads: {:?}",
+                started.elapsed()
+            );
         }
     }
 }

@@ -122,7 +122,11 @@ impl DepthImage {
     pub fn to_tum(&self) -> image::ImageBuffer<image::Luma<u16>, Vec<u16>> {
         let units = |m: f32| {
             let u = (m * Self::TUM_UNITS_PER_METRE).round();
-            if u.is_finite() && u > 0.0 && u <= u16::MAX as f32 { u as u16 } else { 0 }
+            if u.is_finite() && u > 0.0 && u <= u16::MAX as f32 {
+                u as u16
+            } else {
+                0
+            }
         };
         let raw = self.metres.iter().map(|&m| units(m)).collect();
         image::ImageBuffer::from_raw(self.width, self.height, raw).expect("width * height values")
@@ -212,9 +216,6 @@ impl FeatureMap {
     /// Global average pool: one mean per channel.
     pub fn global_average(&self) -> Vec<f32> {
         let plane = self.height * self.width;
-        self.data
-            .chunks_exact(plane)
-            .map(|c| c.iter().sum::<f32>() / plane as f32)
-            .collect()
+        self.data.chunks_exact(plane).map(|c| c.iter().sum::<f32>() / plane as f32).collect()
     }
 }

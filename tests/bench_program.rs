@@ -22,14 +22,18 @@ fn bench_json(cache: &Path, args: &[&str]) -> serde_json::Value {
         .output()
         .unwrap();
     assert!(out.status.success(), "ecm-lcd bench {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
-    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("bench printed no JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
+    serde_json::from_slice(&out.stdout)
+        .unwrap_or_else(|e| panic!("bench printed no JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
 }
 
 #[test]
 fn onnx_export_of_the_weights_equals_ecm_lcd() {
     let cache = tempfile::tempdir().unwrap();
     let weights = tflite();
-    let report = bench_json(cache.path(), &["--only", "ort", "--weights", weights.to_str().unwrap(), "--runs", "2", "--threads", "1"]);
+    let report = bench_json(
+        cache.path(),
+        &["--only", "ort", "--weights", weights.to_str().unwrap(), "--runs", "2", "--threads", "1"],
+    );
     let archs = report["ort"]["archs"].as_array().expect("an ort section");
     assert_eq!(archs.len(), 2, "{report}");
     for arch in archs {
@@ -47,7 +51,18 @@ fn search_and_memory_sections_report_exact_and_indexed_search() {
     let cache = tempfile::tempdir().unwrap();
     let report = bench_json(
         cache.path(),
-        &["--only", "search,memory", "--search-sizes", "1000,8000", "--search-dims", "400", "--queries", "20", "--memory", "7000:400"],
+        &[
+            "--only",
+            "search,memory",
+            "--search-sizes",
+            "1000,8000",
+            "--search-dims",
+            "400",
+            "--queries",
+            "20",
+            "--memory",
+            "7000:400",
+        ],
     );
     let rows = report["search"].as_array().unwrap();
     assert_eq!(rows.len(), 2, "{report}");
@@ -68,7 +83,10 @@ fn search_and_memory_sections_report_exact_and_indexed_search() {
 fn end_to_end_section_times_a_raw_a_jpeg_and_a_verified_keyframe() {
     let cache = tempfile::tempdir().unwrap();
     let weights = tflite();
-    let report = bench_json(cache.path(), &["--only", "e2e", "--weights", weights.to_str().unwrap(), "--e2e-stored", "3000", "--runs", "20"]);
+    let report = bench_json(
+        cache.path(),
+        &["--only", "e2e", "--weights", weights.to_str().unwrap(), "--e2e-stored", "3000", "--runs", "20"],
+    );
     let rows = report["end_to_end"].as_array().expect("an end_to_end section");
     let inputs: Vec<&str> = rows.iter().map(|r| r["input"].as_str().unwrap()).collect();
     assert_eq!(inputs, ["rgb8", "jpeg", "rgb8, verified"], "{report}");
@@ -76,11 +94,19 @@ fn end_to_end_section_times_a_raw_a_jpeg_and_a_verified_keyframe() {
         assert_eq!(row["stored"], 3000);
         // The bench times at least 100 keyframes of each input.
         assert!(row["total"]["runs"].as_u64().unwrap() >= 100, "{row}");
-        let (total, network, detector) = (row["total"]["median_ms"].as_f64().unwrap(), row["network"]["median_ms"].as_f64().unwrap(), row["detector"]["median_ms"].as_f64().unwrap());
+        let (total, network, detector) = (
+            row["total"]["median_ms"].as_f64().unwrap(),
+            row["network"]["median_ms"].as_f64().unwrap(),
+            row["detector"]["median_ms"].as_f64().unwrap(),
+        );
         assert!(network > 0.0 && detector > 0.0 && total >= network + detector, "{row}");
         let verified = row["input"] == "rgb8, verified";
         assert_eq!(row["verification"]["median_ms"].as_f64().is_some_and(|ms| ms > 0.0), verified, "{row}");
     }
     let goals: Vec<&str> = report["goals"].as_array().unwrap().iter().map(|g| g["goal"].as_str().unwrap()).collect();
-    assert!(goals.iter().any(|g| g.starts_with("keyframe (rgb8)")) && goals.iter().any(|g| g.starts_with("keyframe (jpeg)")), "{goals:?}");
+    assert!(
+        goals.iter().any(|g| g.starts_with("keyframe (rgb8)"))
+            && goals.iter().any(|g| g.starts_with("keyframe (jpeg)")),
+        "{goals:?}"
+    );
 }

@@ -92,6 +92,9 @@ fn append_latency_and_loading_100k_keyframes() {
     std::fs::remove_file(&vector_file).unwrap();
     let started = Instant::now();
     let db = store.load_db(None).unwrap();
-    println!("first load without a vector file (read from SQLite, file written): {:.3} s", started.elapsed().as_secs_f64());
+    println!(
+        "first load without a vector file (read from SQLite, file written): {:.3} s",
+        started.elapsed().as_secs_f64()
+    );
     assert_eq!((db.len(), db.descriptor(total as usize - 1)), (total as usize, descriptor(7, dim).as_slice()));
 }

@@ -53,7 +53,8 @@ fn replay_args<'a>(source: &'a str, db: &'a str, csv: &'a str) -> Vec<&'a str> {
 fn synthetic_sequence(dir: &Path) -> PathBuf {
     // 5 Hz against the default selection's 0.5 s: about every third frame is a keyframe, so a
     // restart must pick up the selection where the killed run left it.
-    let config = SynthConfig { frames: FRAMES, laps: 2, width: 160, height: 120, rate_hz: 5.0, ..SynthConfig::default() };
+    let config =
+        SynthConfig { frames: FRAMES, laps: 2, width: 160, height: 120, rate_hz: 5.0, ..SynthConfig::default() };
     let seq = dir.join("seq");
     write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
     seq
@@ -66,7 +67,10 @@ fn read_candidates(csv: &Path) -> BTreeMap<u64, (u64, f64)> {
     let mut lines = text.lines();
     let mut out = BTreeMap::new();
     if let Some(header) = lines.next() {
-        assert_eq!(header, "query_id,query_stamp,match_id,match_stamp,distance,score,inliers,qx,qy,qz,qw,tx,ty,tz,metric");
+        assert_eq!(
+            header,
+            "query_id,query_stamp,match_id,match_stamp,distance,score,inliers,qx,qy,qz,qw,tx,ty,tz,metric"
+        );
     }
     for line in lines {
         let fields: Vec<&str> = line.split(',').collect();
@@ -125,10 +129,9 @@ fn replay_killed_at_random_moments_ends_as_an_uninterrupted_run() {
     assert!(reference_ids.len() > 5 && reference_ids.len() < FRAMES / 2, "selection kept {reference_ids:?}");
     assert!(reference.len() >= reference_ids.len() - 2, "only {} candidates in the reference", reference.len());
 
-    let seed = std::env::var("ECM_LCD_KILL_SEED")
-        .ok()
-        .and_then(|s| s.parse().ok())
-        .unwrap_or_else(|| std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64 | 1);
+    let seed = std::env::var("ECM_LCD_KILL_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or_else(|| {
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64 | 1
+    });
     println!("kill test seed {seed} (ECM_LCD_KILL_SEED to repeat)");
     let mut random = Random(seed);
     let (db, csv) = (dir.path().join("kill.db"), dir.path().join("kill.csv"));
@@ -165,7 +168,10 @@ fn replay_killed_at_random_moments_ends_as_an_uninterrupted_run() {
         assert!(reference_ids.starts_with(&ids), "stored ids {ids:?} are not a prefix of {reference_ids:?}");
         let emitted = read_candidates(&csv);
         for (query, (matched, distance)) in &emitted {
-            assert!(ids.contains(query), "keyframe {query} has a candidate in the CSV but is not stored (stored: {ids:?})");
+            assert!(
+                ids.contains(query),
+                "keyframe {query} has a candidate in the CSV but is not stored (stored: {ids:?})"
+            );
             let (ref_match, ref_distance) = reference[query];
             assert_eq!(*matched, ref_match, "keyframe {query}");
             assert!((distance - ref_distance).abs() < 1e-4, "keyframe {query}: distance {distance} vs {ref_distance}");
@@ -205,7 +211,9 @@ fn restarted_pipeline_continues_ids_and_history() {
         let (name, value) = p.split_once('=').unwrap();
         params.set_from_str(name, value).unwrap();
     }
-    let scene = Scene::new(SynthConfig { frames: 8, laps: 1, width: 160, height: 120, rate_hz: 2.0, ..SynthConfig::default() }).unwrap();
+    let scene =
+        Scene::new(SynthConfig { frames: 8, laps: 1, width: 160, height: 120, rate_hz: 2.0, ..SynthConfig::default() })
+            .unwrap();
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("node.db");
 
@@ -244,13 +252,20 @@ fn restarted_pipeline_continues_ids_and_history() {
     params.set_from_str("descriptor.mode", "paper").unwrap();
     let mut other = Pipeline::with_weights(params, weights()).unwrap();
     let err = format!("{:#}", other.open_store(&db).unwrap_err());
-    assert!(err.contains("descriptor regional-3x3-mac@blocks.16 (2880 values)") && err.contains("descriptor paper (128 values)") && err.contains("node.db"), "{err}");
+    assert!(
+        err.contains("descriptor regional-3x3-mac@blocks.16 (2880 values)")
+            && err.contains("descriptor paper (128 values)")
+            && err.contains("node.db"),
+        "{err}"
+    );
 }
 
 #[test]
 fn db_info_export_and_merge_commands() {
     let dir = tempfile::tempdir().unwrap();
-    let scene = Scene::new(SynthConfig { frames: 6, laps: 1, width: 160, height: 120, rate_hz: 2.0, ..SynthConfig::default() }).unwrap();
+    let scene =
+        Scene::new(SynthConfig { frames: 6, laps: 1, width: 160, height: 120, rate_hz: 2.0, ..SynthConfig::default() })
+            .unwrap();
     let seq = dir.path().join("seq");
     write_tum_folder(&scene, &seq).unwrap();
     let (db, csv) = (dir.path().join("a.db"), dir.path().join("a.csv"));
@@ -258,12 +273,22 @@ fn db_info_export_and_merge_commands() {
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     // A second replay of the same source finds everything stored and adds nothing.
     let out = ecm_lcd(&replay_args(seq.to_str().unwrap(), db.to_str().unwrap(), csv.to_str().unwrap()));
-    assert!(String::from_utf8_lossy(&out.stderr).contains("6 already stored, skipped"), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        String::from_utf8_lossy(&out.stderr).contains("6 already stored, skipped"),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 
     let out = ecm_lcd(&["db", "info", db.to_str().unwrap()]);
     let info = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    for expected in ["keyframes:       6", "ids:             0 .. 5", "arch:            mobilenetv2", "descriptor:      regional-3x3-mac@blocks.16 (2880 values)", "input size:      96"] {
+    for expected in [
+        "keyframes:       6",
+        "ids:             0 .. 5",
+        "arch:            mobilenetv2",
+        "descriptor:      regional-3x3-mac@blocks.16 (2880 values)",
+        "input size:      96",
+    ] {
         assert!(info.contains(expected), "{expected:?} not in\n{info}");
     }
     let sha = KeyframeStore::open_existing(&db).unwrap().identity().weights_sha256.clone();
@@ -284,8 +309,23 @@ fn db_info_export_and_merge_commands() {
     let merged = dir.path().join("merged.db");
     let out = ecm_lcd(&["db", "merge", db.to_str().unwrap(), db.to_str().unwrap(), "-o", merged.to_str().unwrap()]);
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("6 keyframe id(s)") && err.contains("0, 1, 2, 3, 4, 5") && err.contains("--offset 6"), "{err}");
-    let out = ecm_lcd(&["db", "merge", db.to_str().unwrap(), db.to_str().unwrap(), "-o", merged.to_str().unwrap(), "--offset", "6"]);
+    assert!(
+        !out.status.success()
+            && err.contains("6 keyframe id(s)")
+            && err.contains("0, 1, 2, 3, 4, 5")
+            && err.contains("--offset 6"),
+        "{err}"
+    );
+    let out = ecm_lcd(&[
+        "db",
+        "merge",
+        db.to_str().unwrap(),
+        db.to_str().unwrap(),
+        "-o",
+        merged.to_str().unwrap(),
+        "--offset",
+        "6",
+    ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_eq!(stored_ids(&merged), (0..12).collect::<Vec<_>>());
 
@@ -294,7 +334,13 @@ fn db_info_export_and_merge_commands() {
     args.extend(["--param", "descriptor.mode=paper"]);
     let out = ecm_lcd(&args);
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("descriptor regional-3x3-mac@blocks.16") && err.contains("descriptor paper") && err.contains("a.db"), "{err}");
+    assert!(
+        !out.status.success()
+            && err.contains("descriptor regional-3x3-mac@blocks.16")
+            && err.contains("descriptor paper")
+            && err.contains("a.db"),
+        "{err}"
+    );
 }
 
 /// A replay stopped after any frame and restarted under the default selection (frames at 10 Hz,
@@ -344,15 +390,21 @@ fn a_database_refuses_to_continue_another_source() {
         write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
         seq.to_str().unwrap().to_string()
     };
-    let (a, other_images, other_stamps, shorter) = (write("a", 1, 2.0, 8), write("b", 2, 2.0, 8), write("c", 1, 3.0, 8), write("d", 1, 2.0, 4));
+    let (a, other_images, other_stamps, shorter) =
+        (write("a", 1, 2.0, 8), write("b", 2, 2.0, 8), write("c", 1, 3.0, 8), write("d", 1, 2.0, 4));
     let db = dir.path().join("a.db");
     let csv = dir.path().join("a.csv");
     let run = |source: &str| ecm_lcd(&replay_args(source, db.to_str().unwrap(), csv.to_str().unwrap()));
     assert!(run(&a).status.success());
-    for (source, expected) in [(&other_images, "differs from its keyframe"), (&other_stamps, "has stamp"), (&shorter, "has only 4 frames")] {
+    for (source, expected) in
+        [(&other_images, "differs from its keyframe"), (&other_stamps, "has stamp"), (&shorter, "has only 4 frames")]
+    {
         let out = run(source);
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success() && err.contains("built from another source") && err.contains(expected), "{source}: {err}");
+        assert!(
+            !out.status.success() && err.contains("built from another source") && err.contains(expected),
+            "{source}: {err}"
+        );
     }
     // The same source again is fine.
     assert!(run(&a).status.success());

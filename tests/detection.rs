@@ -17,7 +17,11 @@ use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 
 fn shared() -> PathBuf {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
-    assert!(dir.join("data/tum").is_dir(), "shared data missing at {}: tests need ../shared (see README)", dir.display());
+    assert!(
+        dir.join("data/tum").is_dir(),
+        "shared data missing at {}: tests need ../shared (see README)",
+        dir.display()
+    );
     dir
 }
 
@@ -51,12 +55,20 @@ fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
     let seq = dir.path().join("two_pass");
     assert_eq!(write_two_pass(&shared().join("data/tum/fr3_long_office_household"), &seq, 1.0, 0.05).unwrap(), 17);
     // A 17-frame sequence: start matching after 2 keyframes, skip only the previous one.
-    let overrides = [("detector.min_history", "2"), ("detector.exclude_recent.count", "1"), ("detector.exclude_recent.seconds", "2")];
+    let overrides = [
+        ("detector.min_history", "2"),
+        ("detector.exclude_recent.count", "1"),
+        ("detector.exclude_recent.seconds", "2"),
+    ];
     let mut pipeline = Pipeline::with_weights(params(&overrides), weights()).unwrap();
     let run = run_source(&mut pipeline, &seq, None, false).unwrap();
     assert_eq!((run.frames, run.keyframes.len()), (17, 17));
     let poses = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
-    let truth = loop_truth_from_poses(&run.frame_stamps, &poses, &PoseLoopCriteria { min_gap_s: 2.0, ..PoseLoopCriteria::default() });
+    let truth = loop_truth_from_poses(
+        &run.frame_stamps,
+        &poses,
+        &PoseLoopCriteria { min_gap_s: 2.0, ..PoseLoopCriteria::default() },
+    );
 
     assert!(run.candidates.len() >= 5, "only {} candidates", run.candidates.len());
     for c in &run.candidates {
@@ -74,14 +86,21 @@ fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
         }
     }
     let metrics = evaluate(&run.query_results(), &truth).unwrap();
-    println!("TUM two-pass: {} candidates, recall@1 {:?}, recall@100%P {:?}, AP {:?}", run.candidates.len(), metrics.recall_at_1, metrics.recall_at_100_precision, metrics.average_precision);
+    println!(
+        "TUM two-pass: {} candidates, recall@1 {:?}, recall@100%P {:?}, AP {:?}",
+        run.candidates.len(),
+        metrics.recall_at_1,
+        metrics.recall_at_100_precision,
+        metrics.average_precision
+    );
     assert_eq!(metrics.positives, 8);
     assert!(metrics.recall_at_1.unwrap() >= 0.875, "{metrics:?}");
 }
 
 fn synthetic(dir: &Path, frames: usize, laps: usize, rate_hz: f64) -> PathBuf {
     let seq = dir.join("synthetic");
-    let scene = Scene::new(SynthConfig { frames, laps, rate_hz, width: 160, height: 120, ..SynthConfig::default() }).unwrap();
+    let scene =
+        Scene::new(SynthConfig { frames, laps, rate_hz, width: 160, height: 120, ..SynthConfig::default() }).unwrap();
     write_tum_folder(&scene, &seq).unwrap();
     seq
 }
@@ -95,10 +114,20 @@ fn synthetic_loops_are_detected() {
     let poses = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
     let truth = loop_truth_from_poses(&run.frame_stamps, &poses, &PoseLoopCriteria::default());
     let metrics = evaluate(&run.query_results(), &truth).unwrap();
-    println!("synthetic 240 frames, 2 laps: {} candidates, recall@1 {:?}, recall@100%P {:?}, AP {:?}", run.candidates.len(), metrics.recall_at_1, metrics.recall_at_100_precision, metrics.average_precision);
+    println!(
+        "synthetic 240 frames, 2 laps: {} candidates, recall@1 {:?}, recall@100%P {:?}, AP {:?}",
+        run.candidates.len(),
+        metrics.recall_at_1,
+        metrics.recall_at_100_precision,
+        metrics.average_precision
+    );
     assert!(metrics.positives >= 40, "{metrics:?}");
     assert!(metrics.recall_at_100_precision.unwrap() >= 0.9, "{metrics:?}");
-    let false_loops = run.candidates.iter().filter(|c| !truth.matches(c.query_id as usize).unwrap().contains(&(c.match_id as usize))).count();
+    let false_loops = run
+        .candidates
+        .iter()
+        .filter(|c| !truth.matches(c.query_id as usize).unwrap().contains(&(c.match_id as usize)))
+        .count();
     assert_eq!(false_loops, 0);
     assert!(run.candidates.len() as f64 >= 0.8 * metrics.positives as f64, "{} candidates", run.candidates.len());
 }
@@ -108,7 +137,15 @@ fn synthetic_loops_are_detected() {
 #[test]
 fn every_source_kind_replays_to_the_same_candidates() {
     let dir = tempfile::tempdir().unwrap();
-    let scene = Scene::new(SynthConfig { frames: 60, laps: 2, rate_hz: 2.0, width: 160, height: 120, ..SynthConfig::default() }).unwrap();
+    let scene = Scene::new(SynthConfig {
+        frames: 60,
+        laps: 2,
+        rate_hz: 2.0,
+        width: 160,
+        height: 120,
+        ..SynthConfig::default()
+    })
+    .unwrap();
     let tum = dir.path().join("tum");
     write_tum_folder(&scene, &tum).unwrap();
     let frames = || (0..scene.len()).map(|i| (scene.stamp(i), scene.render(i)));
@@ -129,7 +166,8 @@ fn every_source_kind_replays_to_the_same_candidates() {
         assert!(out.status.success(), "{}: {}", source.display(), String::from_utf8_lossy(&out.stderr));
         outputs.push(std::fs::read_to_string(&csv).unwrap());
     }
-    assert!(outputs[0].starts_with("query_id,query_stamp,match_id,match_stamp,distance,score,inliers,qx,qy,qz,qw,tx,ty,tz,metric\n"));
+    assert!(outputs[0]
+        .starts_with("query_id,query_stamp,match_id,match_stamp,distance,score,inliers,qx,qy,qz,qw,tx,ty,tz,metric\n"));
     assert!(outputs[0].lines().count() > 3, "no loops found:\n{}", outputs[0]);
     for (i, other) in outputs.iter().enumerate().skip(1) {
         assert_eq!(&outputs[0], other, "source {i} differs from the TUM folder");
@@ -143,7 +181,16 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
     // Pose truth, JSON on stdout, plot and curve written.
     let plot = dir.path().join("pr.png");
     let curve = dir.path().join("pr.csv");
-    let out = ecm_lcd(&["eval", seq.to_str().unwrap(), "--quiet", "--json", "--plot", plot.to_str().unwrap(), "-o", curve.to_str().unwrap()]);
+    let out = ecm_lcd(&[
+        "eval",
+        seq.to_str().unwrap(),
+        "--quiet",
+        "--json",
+        "--plot",
+        plot.to_str().unwrap(),
+        "-o",
+        curve.to_str().unwrap(),
+    ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     for key in ["queries", "recall_at_1", "recall_at_100_precision", "average_precision"] {
@@ -173,7 +220,16 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
     }
     let loops: String = (0..60).map(|q| format!("{q},{}\n", q)).collect();
     std::fs::write(&loops_file, loops).unwrap();
-    let out = ecm_lcd(&["eval", "--database", db.to_str().unwrap(), "--queries", queries.to_str().unwrap(), "--loops", loops_file.to_str().unwrap(), "--json"]);
+    let out = ecm_lcd(&[
+        "eval",
+        "--database",
+        db.to_str().unwrap(),
+        "--queries",
+        queries.to_str().unwrap(),
+        "--loops",
+        loops_file.to_str().unwrap(),
+        "--json",
+    ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["queries"], 60);
@@ -207,12 +263,30 @@ fn assert_clean_failure(out: &Output, needles: &[&str]) {
 fn bad_sources_give_clear_errors_and_truncated_bags_report_what_was_read() {
     let dir = tempfile::tempdir().unwrap();
     // 320x240 rgb8 frames make several 768 KiB chunks, so a cut leaves whole chunks before it.
-    let scene = Scene::new(SynthConfig { frames: 30, laps: 1, rate_hz: 2.0, width: 320, height: 240, ..SynthConfig::default() }).unwrap();
+    let scene = Scene::new(SynthConfig {
+        frames: 30,
+        laps: 1,
+        rate_hz: 2.0,
+        width: 320,
+        height: 240,
+        ..SynthConfig::default()
+    })
+    .unwrap();
     let bag = dir.path().join("seq.bag");
-    write_ros1_bag(&bag, "/cam/image", (0..scene.len()).map(|i| (scene.stamp(i), scene.render(i))), WireEncoding::Rgb8, Ros1Compression::None).unwrap();
+    write_ros1_bag(
+        &bag,
+        "/cam/image",
+        (0..scene.len()).map(|i| (scene.stamp(i), scene.render(i))),
+        WireEncoding::Rgb8,
+        Ros1Compression::None,
+    )
+    .unwrap();
 
     // Unknown topic: the error lists the image topics there are.
-    assert_clean_failure(&ecm_lcd(&["replay", bag.to_str().unwrap(), "--topic", "/nope", "--quiet"]), &["/nope", "/cam/image"]);
+    assert_clean_failure(
+        &ecm_lcd(&["replay", bag.to_str().unwrap(), "--topic", "/nope", "--quiet"]),
+        &["/nope", "/cam/image"],
+    );
 
     // Truncated bag: candidates of the frames before the damage are written, then the error.
     let bytes = std::fs::read(&bag).unwrap();
@@ -235,7 +309,10 @@ fn bad_sources_give_clear_errors_and_truncated_bags_report_what_was_read() {
     assert_clean_failure(&ecm_lcd(&["replay", tum.to_str().unwrap(), "--quiet"]), &["rgb.txt", "1.0.png"]);
 
     // A bad parameter.
-    assert_clean_failure(&ecm_lcd(&["replay", bag.to_str().unwrap(), "--param", "detector.min_score=2", "--quiet"]), &["detector.min_score"]);
+    assert_clean_failure(
+        &ecm_lcd(&["replay", bag.to_str().unwrap(), "--param", "detector.min_score=2", "--quiet"]),
+        &["detector.min_score"],
+    );
 
     // `embed` with a malformed image names it and leaves an existing output file as it was.
     let (bad_png, csv) = (dir.path().join("bad.png"), dir.path().join("descriptors.csv"));

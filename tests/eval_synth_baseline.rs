@@ -23,15 +23,14 @@ fn thumbnails_find_the_revisits_of_a_synthetic_sequence() {
     let stamps: Vec<Stamp> = (0..scene.len()).map(|i| scene.stamp(i)).collect();
     let poses: Vec<_> = (0..scene.len()).map(|i| (scene.stamp(i), scene.pose(i))).collect();
     // 5 s per lap; a 2.5 s gap leaves only earlier laps as history.
-    let criteria = PoseLoopCriteria { max_distance_m: 0.5, max_angle_deg: 20.0, min_gap_s: 2.5, ..PoseLoopCriteria::default() };
+    let criteria =
+        PoseLoopCriteria { max_distance_m: 0.5, max_angle_deg: 20.0, min_gap_s: 2.5, ..PoseLoopCriteria::default() };
     let truth = loop_truth_from_poses(&stamps, &poses, &criteria);
     let descriptors: Vec<Vec<f32>> = (0..scene.len()).map(|i| thumbnail(&scene.render(i))).collect();
     let gap = (2.5 * 30.0) as usize;
     let recognise = |q: usize, similarity: &dyn Fn(usize, usize) -> f32| QueryResult {
         query: q,
-        best: (0..q.saturating_sub(gap))
-            .map(|m| (m, similarity(q, m)))
-            .max_by(|a, b| a.1.total_cmp(&b.1)),
+        best: (0..q.saturating_sub(gap)).map(|m| (m, similarity(q, m))).max_by(|a, b| a.1.total_cmp(&b.1)),
     };
     let cosine = |q: usize, m: usize| descriptors[q].iter().zip(&descriptors[m]).map(|(a, b)| a * b).sum::<f32>();
     let results: Vec<QueryResult> = (0..scene.len()).map(|q| recognise(q, &cosine)).collect();

@@ -20,7 +20,8 @@ fn shared_dir() -> PathBuf {
 #[test]
 fn tum_frames_take_the_nearest_ground_truth_pose() {
     let dir = shared_dir().join("data/tum/fr3_long_office_household");
-    let rgb = std::fs::read_to_string(dir.join("rgb.txt")).unwrap_or_else(|e| panic!("{}: {e}", dir.join("rgb.txt").display()));
+    let rgb = std::fs::read_to_string(dir.join("rgb.txt"))
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.join("rgb.txt").display()));
     let stamps: Vec<Stamp> = rgb
         .lines()
         .filter(|l| !l.starts_with('#') && !l.trim().is_empty())

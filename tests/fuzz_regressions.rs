@@ -31,6 +31,9 @@ fn seed_corpus_and_fixed_crash_inputs_do_not_panic() {
             }
         }
     }
-    println!("{seeds} seed inputs and {crashes} former crash inputs replayed through {} targets", targets::TARGETS.len());
+    println!(
+        "{seeds} seed inputs and {crashes} former crash inputs replayed through {} targets",
+        targets::TARGETS.len()
+    );
     assert!(panics.is_empty(), "inputs that panic: {panics:#?}");
 }

@@ -104,7 +104,8 @@ fn our_bags_read_by_rosbags_and_by_us() {
         ("png", WireEncoding::Png),
     ];
     let mut bags = Vec::new();
-    for (i, compression) in [Ros1Compression::None, Ros1Compression::Bz2, Ros1Compression::Lz4].into_iter().enumerate() {
+    for (i, compression) in [Ros1Compression::None, Ros1Compression::Bz2, Ros1Compression::Lz4].into_iter().enumerate()
+    {
         let (name, encoding) = cases[i];
         let path = dir.path().join(format!("ours_{compression:?}.bag"));
         write_ros1_bag(&path, "/camera/image", frames.clone(), encoding, compression).unwrap();

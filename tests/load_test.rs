@@ -13,7 +13,18 @@ fn burst_of_ten_times_the_nominal_rate_keeps_the_queue_and_memory_bounded() {
         // A larger input (896 px: about 16x the network cost, some 5 keyframes/s on this 2-core machine)
         // and a queue of 2, so that 20 keyframes/s exceed what the node processes even on a much faster,
         // idle machine: the test is about the overflow policy. (At 448 px the node kept up here.)
-        .args(["load-test", "--seconds", "6", "--json", "--param-period", "0.25", "--queue", "2", "--node-param", "input_size:=896"])
+        .args([
+            "load-test",
+            "--seconds",
+            "6",
+            "--json",
+            "--param-period",
+            "0.25",
+            "--queue",
+            "2",
+            "--node-param",
+            "input_size:=896",
+        ])
         .env("ECM_LCD_CACHE", Path::new(env!("CARGO_TARGET_TMPDIR")).join("weights-cache"))
         .env("RUST_LOG", "warn,rustdds=error,ros2_client=error")
         .output()
@@ -30,13 +41,19 @@ fn burst_of_ten_times_the_nominal_rate_keeps_the_queue_and_memory_bounded() {
     assert_eq!(n("malformed") + n("failed"), 0, "{report:#}");
     // The burst was more than the node could take: the queue dropped rather than grew.
     assert!(n("dropped") > 0, "no keyframe dropped under the burst: {report:#}");
-    assert!(n("received") >= n("published") * 9 / 10, "the node received too few of the published keyframes: {report:#}");
+    assert!(
+        n("received") >= n("published") * 9 / 10,
+        "the node received too few of the published keyframes: {report:#}"
+    );
     // Warm-up keyframe 0 has no history; every other processed keyframe yields one candidate.
     assert_eq!(n("candidates_received"), n("processed") - 1, "{report:#}");
     // Memory: the queue holds 2 keyframes of 0.9 MiB; the peak stays within 200 MiB of the warm node.
     assert!(f("peak_rss_mib") < f("rss_after_warmup_mib") + 200.0, "{report:#}");
     // The parameter services answered during the burst, every call.
-    assert!(report["param_get"]["count"].as_u64().unwrap() >= 10 && report["param_set"]["count"].as_u64().unwrap() >= 10, "{report:#}");
+    assert!(
+        report["param_get"]["count"].as_u64().unwrap() >= 10 && report["param_set"]["count"].as_u64().unwrap() >= 10,
+        "{report:#}"
+    );
     assert_eq!(n("param_failures"), 0, "{report:#}");
     assert!(report["param_get"]["max_ms"].as_f64().unwrap() < 2000.0, "{report:#}");
 }

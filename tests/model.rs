@@ -48,7 +48,12 @@ fn classify_matches_the_tflite_reference() {
     let cache = tempfile::tempdir().unwrap();
     let images = shared().join("data/imagenet");
     // (file, top-1 index, probability from the TFLite runtime on the int8 model)
-    let reference = [("cat.bmp", 286, 0.789), ("grace_hopper.bmp", 653, 0.922), ("bird.bmp", 20, 0.988), ("dragonfly.bmp", 320, 0.984)];
+    let reference = [
+        ("cat.bmp", 286, 0.789),
+        ("grace_hopper.bmp", 653, 0.922),
+        ("bird.bmp", 20, 0.988),
+        ("dragonfly.bmp", 320, 0.984),
+    ];
     let paths: Vec<String> = reference.iter().map(|(f, _, _)| images.join(f).display().to_string()).collect();
     let mut args = vec!["classify", "--json"];
     args.extend(paths.iter().map(String::as_str));
@@ -78,7 +83,16 @@ fn fast_kernels_equal_stock_candle_on_whole_networks() {
         let reference = net.features(&x, Mode::Reference).unwrap();
         assert_eq!(fast.dims(), &[1, 1280, 7, 7]);
         let max = reference.abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap();
-        let diff = (fast - reference).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap();
+        let diff = (fast - reference)
+            .unwrap()
+            .abs()
+            .unwrap()
+            .flatten_all()
+            .unwrap()
+            .max(0)
+            .unwrap()
+            .to_scalar::<f32>()
+            .unwrap();
         // 1e-4 relative to the largest activation: float summation order differs, nothing else.
         assert!(diff <= 1e-4 * max.max(1.0), "{arch}: max diff {diff} (largest value {max})");
     }
@@ -86,7 +100,8 @@ fn fast_kernels_equal_stock_candle_on_whole_networks() {
 
 #[test]
 fn any_input_size_that_is_a_multiple_of_32_works() {
-    let net = resolve::load_file(&tflite()).unwrap().weights.for_arch(Arch::EcMobileNet).unwrap().network(false).unwrap();
+    let net =
+        resolve::load_file(&tflite()).unwrap().weights.for_arch(Arch::EcMobileNet).unwrap().network(false).unwrap();
     for size in [160usize, 256] {
         let x = Tensor::zeros((1, 3, size, size), candle_core::DType::F32, &Device::Cpu).unwrap();
         assert_eq!(net.features(&x, Mode::Inference).unwrap().dims(), &[1, 1280, size / 32, size / 32]);
@@ -99,9 +114,12 @@ fn import_weights_writes_files_that_load() {
     let dir = tempfile::tempdir().unwrap();
     for arch in ["mobilenetv2", "ecmobilenet"] {
         let out_path = dir.path().join(format!("{arch}.safetensors"));
-        let out = ecm_lcd(dir.path(), &["import-weights", tflite().to_str().unwrap(), "-o", out_path.to_str().unwrap(), "--arch", arch])
-            .output()
-            .unwrap();
+        let out = ecm_lcd(
+            dir.path(),
+            &["import-weights", tflite().to_str().unwrap(), "-o", out_path.to_str().unwrap(), "--arch", arch],
+        )
+        .output()
+        .unwrap();
         assert!(out.status.success(), "{}", stderr(&out));
         let loaded = resolve::load_file(&out_path).unwrap();
         assert_eq!(loaded.weights.arch.name(), arch);
@@ -111,9 +129,12 @@ fn import_weights_writes_files_that_load() {
     // Classification through the saved MobileNetV2 file gives the reference class.
     let mnv2 = dir.path().join("mobilenetv2.safetensors");
     let bird = shared().join("data/imagenet/bird.bmp");
-    let out = ecm_lcd(dir.path(), &["classify", "--json", "--arch", "mobilenetv2", "--weights", mnv2.to_str().unwrap(), bird.to_str().unwrap()])
-        .output()
-        .unwrap();
+    let out = ecm_lcd(
+        dir.path(),
+        &["classify", "--json", "--arch", "mobilenetv2", "--weights", mnv2.to_str().unwrap(), bird.to_str().unwrap()],
+    )
+    .output()
+    .unwrap();
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json[0]["top"][0]["index"], 20);
 }
@@ -122,7 +143,8 @@ fn import_weights_writes_files_that_load() {
 fn model_info_reports_params_and_macs() {
     let dir = tempfile::tempdir().unwrap();
     let info = |arch: &str, classes: &str| -> serde_json::Value {
-        let out = ecm_lcd(dir.path(), &["model-info", "--arch", arch, "--classes", classes, "--json"]).output().unwrap();
+        let out =
+            ecm_lcd(dir.path(), &["model-info", "--arch", arch, "--classes", classes, "--json"]).output().unwrap();
         serde_json::from_slice(&out.stdout).unwrap()
     };
     // torchvision's MobileNetV2 has 3,504,872 parameters with 1000 classes.
@@ -183,10 +205,8 @@ fn weights_are_downloaded_checked_and_cached_when_nothing_local_exists() {
     let cat = shared().join("data/imagenet/cat.bmp");
     let labels = shared().join("data/imagenet/imagenet_labels.txt");
     let classify = |url: &str, offline: bool| {
-        let mut cmd = ecm_lcd(
-            cache.path(),
-            &["classify", "--json", "--labels", labels.to_str().unwrap(), cat.to_str().unwrap()],
-        );
+        let mut cmd =
+            ecm_lcd(cache.path(), &["classify", "--json", "--labels", labels.to_str().unwrap(), cat.to_str().unwrap()]);
         cmd.env("ECM_LCD_SHARED", empty_shared.path()).env("ECM_LCD_WEIGHTS_URL", url);
         if offline {
             cmd.env("ECM_LCD_OFFLINE", "1");

@@ -14,7 +14,12 @@ use ecm_lcd::io::tum::read_groundtruth;
 
 fn ecm_lcd(args: &[&str]) -> Output {
     let cache = Path::new(env!("CARGO_TARGET_TMPDIR")).join("weights-cache");
-    let output = Command::new(env!("CARGO_BIN_EXE_ecm-lcd")).args(args).env("ECM_LCD_CACHE", cache).env("RUST_LOG", "warn").output().unwrap();
+    let output = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+        .args(args)
+        .env("ECM_LCD_CACHE", cache)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
     assert!(output.status.success(), "ecm-lcd {args:?} failed:\n{}", String::from_utf8_lossy(&output.stderr));
     output
 }
@@ -48,7 +53,16 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
     ecm_lcd(&["synth", "-o", seq_arg, "--frames", "400", "--laps", "2", "--rate", "5", "--depth"]);
     // The renderer's camera: focal 0.82 * width, principal point at the centre.
     let candidates = dir.path().join("candidates.csv");
-    let camera = ["--param", "camera.fx=262.4", "--param", "camera.fy=262.4", "--param", "camera.cx=160", "--param", "camera.cy=120"];
+    let camera = [
+        "--param",
+        "camera.fx=262.4",
+        "--param",
+        "camera.fy=262.4",
+        "--param",
+        "camera.cx=160",
+        "--param",
+        "camera.cy=120",
+    ];
     let mut replay = vec!["replay", seq_arg, "-o", candidates.to_str().unwrap()];
     replay.extend(camera);
     ecm_lcd(&replay);
@@ -57,7 +71,8 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
     let found = read_candidates_csv(&candidates).unwrap();
     assert!(found.len() >= 30, "{} candidates", found.len());
     let truth = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
-    let pose_at = |stamp| truth.iter().find(|(s, _)| *s == stamp).map(|(_, p)| *p).expect("a ground-truth pose at every frame");
+    let pose_at =
+        |stamp| truth.iter().find(|(s, _)| *s == stamp).map(|(_, p)| *p).expect("a ground-truth pose at every frame");
     let (mut rotation_deg, mut translation_m) = (Vec::new(), Vec::new());
     for c in &found {
         let pose = c.verified.and_then(|v| v.pose).expect("verified with a pose");
@@ -67,7 +82,10 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
         translation_m.push((exact.translation.vector - pose.translation).norm());
     }
     let (rotation, translation) = (median(rotation_deg), median(translation_m));
-    println!("{} metric loops: median rotation error {rotation:.3} deg, translation error {translation:.4} m", found.len());
+    println!(
+        "{} metric loops: median rotation error {rotation:.3} deg, translation error {translation:.4} m",
+        found.len()
+    );
     assert!(rotation <= 1.0 && translation <= 0.05, "median errors {rotation} deg, {translation} m");
 
     let corrected = dir.path().join("corrected.txt");
@@ -102,9 +120,17 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
     let script = dir.path().join("evo_ape.py");
     std::fs::write(&script, EVO_APE).unwrap();
     // evo writes its settings under $HOME; keep them out of the user's.
-    let evo = Command::new(python).arg(&script).arg(&groundtruth).arg(&odometry).arg(&corrected).env("HOME", dir.path()).output().unwrap();
+    let evo = Command::new(python)
+        .arg(&script)
+        .arg(&groundtruth)
+        .arg(&odometry)
+        .arg(&corrected)
+        .env("HOME", dir.path())
+        .output()
+        .unwrap();
     assert!(evo.status.success(), "evo failed:\n{}", String::from_utf8_lossy(&evo.stderr));
-    let evo_rmse: Vec<f64> = String::from_utf8(evo.stdout).unwrap().lines().map(|l| l.trim().parse().unwrap()).collect();
+    let evo_rmse: Vec<f64> =
+        String::from_utf8(evo.stdout).unwrap().lines().map(|l| l.trim().parse().unwrap()).collect();
     println!("evo_ape RMSE: odometry {}, corrected {}", evo_rmse[0], evo_rmse[1]);
     assert!((evo_rmse[0] - before).abs() <= 1e-6, "odometry ATE: ours {before}, evo {}", evo_rmse[0]);
     assert!((evo_rmse[1] - after).abs() <= 1e-6, "corrected ATE: ours {after}, evo {}", evo_rmse[1]);

@@ -72,7 +72,8 @@ fn offline(frames: &[Frame]) -> Vec<(u64, u64)> {
 fn publish_and_listen(frames: &[Frame], expected: usize) -> Vec<(u64, u64)> {
     let tracker = ros2_client::Context::new().unwrap();
     let back_end = ros2_client::Context::new().unwrap();
-    let publisher = FramePublisher::new(&tracker, "/dbtest/keyframes", SendAs::Keyframe, InputQos::Reliable, "camera").unwrap();
+    let publisher =
+        FramePublisher::new(&tracker, "/dbtest/keyframes", SendAs::Keyframe, InputQos::Reliable, "camera").unwrap();
     let listener = CandidateListener::new(&back_end, "/dbtest/loop_candidates").unwrap();
     assert!(publisher.wait_for_subscriber(Duration::from_secs(60)), "the node did not subscribe");
     assert!(listener.wait_for_publisher(Duration::from_secs(60)), "the node did not publish");
@@ -103,7 +104,15 @@ fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
         return ros_support::check_inner_run("node_with_a_database_killed_and_restarted_detects_the_revisit");
     }
     let dir = tempfile::tempdir().unwrap();
-    let config = SynthConfig { frames: FRAMES, laps: 2, seed: 3, width: 160, height: 120, rate_hz: 10.0, ..SynthConfig::default() };
+    let config = SynthConfig {
+        frames: FRAMES,
+        laps: 2,
+        seed: 3,
+        width: 160,
+        height: 120,
+        rate_hz: 10.0,
+        ..SynthConfig::default()
+    };
     let seq = dir.path().join("seq");
     write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
     let frames: Vec<Frame> = open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
@@ -133,8 +142,12 @@ fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
     let mut second = second;
     Command::new("kill").args(["-TERM", &second.child.id().to_string()]).status().unwrap();
     assert!(second.child.wait().unwrap().success(), "{}", second.log_text());
-    let counters = second.log_text().lines().find_map(|l| l.split_once("stopped: ").map(|(_, c)| c.to_string())).unwrap();
-    assert!(counters.starts_with(&format!("received {0} processed {0} candidates {1} ", FRAMES - FIRST_LAP, after.len())), "{counters}");
+    let counters =
+        second.log_text().lines().find_map(|l| l.split_once("stopped: ").map(|(_, c)| c.to_string())).unwrap();
+    assert!(
+        counters.starts_with(&format!("received {0} processed {0} candidates {1} ", FRAMES - FIRST_LAP, after.len())),
+        "{counters}"
+    );
     let stored = KeyframeStore::open_existing(&db).unwrap().keyframes().unwrap().len();
     assert_eq!(stored, FRAMES);
     println!("INNER-DONE first lap {} candidates, after the restart {} candidates, all on the first run's keyframes; {counters}", before.len(), after.len());

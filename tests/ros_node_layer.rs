@@ -41,7 +41,12 @@ struct MeanColourProcessor {
 }
 
 impl KeyframeProcessor for MeanColourProcessor {
-    fn process(&mut self, id: Option<u64>, stamp: Stamp, image: &image::RgbImage) -> anyhow::Result<Vec<types::LoopCandidate>> {
+    fn process(
+        &mut self,
+        id: Option<u64>,
+        stamp: Stamp,
+        image: &image::RgbImage,
+    ) -> anyhow::Result<Vec<types::LoopCandidate>> {
         self.seen.lock().unwrap().calls.push((id, stamp, image.width(), image.height()));
         let id = id.unwrap_or_else(|| {
             self.next_id += 1;
@@ -140,13 +145,22 @@ fn node_layer_over_dds() {
 
     // The peer: publishers on the node's inputs, a subscription on its output, a set_parameters client.
     let context = Context::new().unwrap();
-    let mut peer = context.new_node(NodeName::new("/t", "peer").unwrap(), NodeOptions::new().enable_rosout(false)).unwrap();
+    let mut peer =
+        context.new_node(NodeName::new("/t", "peer").unwrap(), NodeOptions::new().enable_rosout(false)).unwrap();
     let reliable = ecm_lcd::ros::node::InputQos::Reliable.profile();
-    let topic = |peer: &mut ros2_client::Node, name: &str, ty| peer.create_topic(&Name::parse(name).unwrap(), ty, &reliable).unwrap();
+    let topic = |peer: &mut ros2_client::Node, name: &str, ty| {
+        peer.create_topic(&Name::parse(name).unwrap(), ty, &reliable).unwrap()
+    };
     let kf_topic = topic(&mut peer, "/t/keyframes", msgs::keyframe_type());
     let img_topic = topic(&mut peer, "/t/image", msgs::image_type());
     let cmp_topic = topic(&mut peer, "/t/image/compressed", msgs::compressed_image_type());
-    let out_topic = peer.create_topic(&Name::parse("/t/loop_candidates").unwrap(), msgs::loop_candidate_type(), &ecm_lcd::ros::node::output_qos()).unwrap();
+    let out_topic = peer
+        .create_topic(
+            &Name::parse("/t/loop_candidates").unwrap(),
+            msgs::loop_candidate_type(),
+            &ecm_lcd::ros::node::output_qos(),
+        )
+        .unwrap();
     let info_topic = topic(&mut peer, "/t/camera_info", msgs::camera_info_type());
     let info_pub = peer.create_publisher::<CameraInfo>(&info_topic, None).unwrap();
     let kf_pub = peer.create_publisher::<Keyframe>(&kf_topic, None).unwrap();
@@ -224,7 +238,10 @@ fn node_layer_over_dds() {
     // camera_info: an uncalibrated one (K all zero) is ignored; the calibrated one reaches the
     // processor once, however often the driver repeats it.
     info_pub.publish(CameraInfo { header: header(103), width: 640, height: 480, ..Default::default() }).unwrap();
-    let calibrated = CameraInfo { k: [535.4, 0.0, 320.1, 0.0, 539.2, 247.6, 0.0, 0.0, 1.0], ..CameraInfo { header: header(103), width: 640, height: 480, ..Default::default() } };
+    let calibrated = CameraInfo {
+        k: [535.4, 0.0, 320.1, 0.0, 539.2, 247.6, 0.0, 0.0, 1.0],
+        ..CameraInfo { header: header(103), width: 640, height: 480, ..Default::default() }
+    };
     for _ in 0..3 {
         info_pub.publish(calibrated.clone()).unwrap();
     }
@@ -233,7 +250,10 @@ fn node_layer_over_dds() {
         std::thread::sleep(Duration::from_millis(50));
     }
     std::thread::sleep(Duration::from_millis(500));
-    assert_eq!(seen.lock().unwrap().camera_info, ecm_lcd::verification::Intrinsics::preset("tum_fr3").into_iter().collect::<Vec<_>>());
+    assert_eq!(
+        seen.lock().unwrap().camera_info,
+        ecm_lcd::verification::Intrinsics::preset("tum_fr3").into_iter().collect::<Vec<_>>()
+    );
 
     // 2. Malformed messages: each logged, counted and skipped.
     let mut short = keyframe(9, 0, 1).image;
@@ -244,7 +264,9 @@ fn node_layer_over_dds() {
     img_pub.publish(short).unwrap();
     img_pub.publish(odd).unwrap();
     img_pub.publish(empty).unwrap();
-    cmp_pub.publish(CompressedImage { header: header(5), format: "jpeg".into(), data: vec![0xff, 0xd8, 1, 2, 3] }).unwrap();
+    cmp_pub
+        .publish(CompressedImage { header: header(5), format: "jpeg".into(), data: vec![0xff, 0xd8, 1, 2, 3] })
+        .unwrap();
     garbage_pub.publish("not an image".to_string()).unwrap();
     let deadline = Instant::now() + Duration::from_secs(10);
     while counters.snapshot().malformed < 5 && Instant::now() < deadline {
@@ -253,7 +275,9 @@ fn node_layer_over_dds() {
     assert_eq!(counters.snapshot().malformed, 5, "{}", counters.snapshot());
 
     // 3. Still answering: a plain image is processed (id from the processor's counter) ...
-    img_pub.publish(ecm_lcd::io::image_msg::rgb8_message(Stamp::from_sec_nsec(200, 0), "camera", &solid(32, 24, 200))).unwrap();
+    img_pub
+        .publish(ecm_lcd::io::image_msg::rgb8_message(Stamp::from_sec_nsec(200, 0), "camera", &solid(32, 24, 200)))
+        .unwrap();
     let got = collect(2, Duration::from_secs(10));
     assert_eq!(got.iter().map(|c| (c.query_id, c.match_id)).collect::<Vec<_>>(), vec![(1001, 2), (1001, 4)]);
 
@@ -286,7 +310,7 @@ fn node_layer_over_dds() {
     assert_eq!(described.values[0].floating_point_range.len(), 1);
     assert_eq!(described.values[0].r#type, 3); // PARAMETER_DOUBLE
     assert_eq!(described.values[1].r#type, 1); // PARAMETER_BOOL
-    // With the lower threshold a grey of 100 now matches 10 and 200 (scores 0.65, 0.61).
+                                               // With the lower threshold a grey of 100 now matches 10 and 200 (scores 0.65, 0.61).
     kf_pub.publish(keyframe(50, 300, 100)).unwrap();
     let got = collect(5, Duration::from_secs(10));
     let mut matched: Vec<u64> = got.iter().map(|c| c.match_id).collect();
@@ -338,15 +362,30 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
     let candidates: Vec<&str> = text.lines().filter(|l| l.starts_with("CANDIDATE ")).collect();
     assert_eq!(
         candidates,
-        vec!["CANDIDATE 1003 1001 0 1.000 502 500 cyclone_cam 0 0", "CANDIDATE 1004 1002 0 1.000 503 501 cyclone_cam 0 0"],
+        vec![
+            "CANDIDATE 1003 1001 0 1.000 502 500 cyclone_cam 0 0",
+            "CANDIDATE 1004 1002 0 1.000 503 501 cyclone_cam 0 0"
+        ],
         "{text}"
     );
     assert_eq!(final_counters.processed, 4, "{final_counters}");
     assert_eq!(final_counters.malformed, 0);
     // /diagnostics, as the Cyclone peer decoded it: the node's health with its counters and timings.
-    let diag = text.lines().find(|l| l.starts_with("DIAG ")).unwrap_or_else(|| panic!("no /diagnostics received:\n{text}"));
+    let diag =
+        text.lines().find(|l| l.starts_with("DIAG ")).unwrap_or_else(|| panic!("no /diagnostics received:\n{text}"));
     assert!(diag.starts_with("DIAG 0 /ecm_lcd ok "), "{diag}");
-    for key in ["queue_depth=", "queue_capacity=4", "received=4", "processed=4", "candidates=2", "malformed=0", "dropped=0", "failed=0", "decode_ms_mean=", "process_ms_mean="] {
+    for key in [
+        "queue_depth=",
+        "queue_capacity=4",
+        "received=4",
+        "processed=4",
+        "candidates=2",
+        "malformed=0",
+        "dropped=0",
+        "failed=0",
+        "decode_ms_mean=",
+        "process_ms_mean=",
+    ] {
         assert!(diag.contains(key), "{key} missing from {diag}");
     }
     assert_eq!(seen.lock().unwrap().calls.iter().filter(|c| c.0.is_none() && c.2 == 32).count(), 4);
@@ -373,7 +412,9 @@ fn play_keyframes_and_listen_processes_talk_to_the_node() {
     let stop = Arc::new(AtomicBool::new(false));
     let node_thread = {
         let (counters, stop) = (counters.clone(), stop.clone());
-        std::thread::spawn(move || run_node(&NodeSettings::default(), Params::default(), None, Box::new(processor), counters, stop))
+        std::thread::spawn(move || {
+            run_node(&NodeSettings::default(), Params::default(), None, Box::new(processor), counters, stop)
+        })
     };
     let exe = env!("CARGO_BIN_EXE_ecm-lcd");
     // The two cross-keyframe pairs of the first loop and the three of the second: 2->0, 3->1, 4->2, 4->0.
@@ -399,6 +440,9 @@ fn play_keyframes_and_listen_processes_talk_to_the_node() {
     assert_eq!(rows, vec![(2, 0), (3, 1), (4, 0), (4, 2)], "{csv}");
     assert!(csv.lines().next().unwrap().starts_with("2,1002.000000000,0,1000.000000000,"), "{csv}");
     assert_eq!(final_counters.processed, 5, "{final_counters}");
-    assert_eq!(seen.lock().unwrap().calls.iter().map(|c| c.0).collect::<Vec<_>>(), (0..5).map(Some).collect::<Vec<_>>());
+    assert_eq!(
+        seen.lock().unwrap().calls.iter().map(|c| c.0).collect::<Vec<_>>(),
+        (0..5).map(Some).collect::<Vec<_>>()
+    );
     println!("INNER-DONE {final_counters}");
 }

@@ -51,7 +51,15 @@ fn weights() -> PathBuf {
 
 /// Writes the synthetic looped sequence as a TUM folder.
 fn synth_sequence(dir: &Path) -> PathBuf {
-    let config = SynthConfig { frames: FRAMES, laps: 2, seed: 3, width: 160, height: 120, rate_hz: 10.0, ..SynthConfig::default() };
+    let config = SynthConfig {
+        frames: FRAMES,
+        laps: 2,
+        seed: 3,
+        width: 160,
+        height: 120,
+        rate_hz: 10.0,
+        ..SynthConfig::default()
+    };
     let seq = dir.join("seq");
     write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
     seq
@@ -163,7 +171,12 @@ fn play(seq: &Path, extra: &[&str]) -> String {
 
 /// Runs `ecm-lcd param ARGS`: success, stdout, stderr.
 fn param(args: &[&str]) -> (bool, String, String) {
-    let out = Command::new(EXE).arg("param").args(args).env("RUST_LOG", "warn,rustdds=error,ros2_client=off").output().unwrap();
+    let out = Command::new(EXE)
+        .arg("param")
+        .args(args)
+        .env("RUST_LOG", "warn,rustdds=error,ros2_client=off")
+        .output()
+        .unwrap();
     (out.status.success(), String::from_utf8_lossy(&out.stdout).into(), String::from_utf8_lossy(&out.stderr).into())
 }
 
@@ -187,7 +200,10 @@ fn tracker_stand_in_node_and_listener_processes_match_the_offline_run() {
     assert_rows_equal(&got, &expected, &csv);
     assert_eq!(
         counters,
-        format!("received {FRAMES} processed {FRAMES} candidates {} malformed 0 dropped 0 failed 0 param_changes 0", expected.len())
+        format!(
+            "received {FRAMES} processed {FRAMES} candidates {} malformed 0 dropped 0 failed 0 param_changes 0",
+            expected.len()
+        )
     );
     println!("INNER-DONE {} candidates; node: {counters}", got.len());
 }
@@ -230,7 +246,10 @@ fn threshold_set_by_another_process_mid_run_changes_the_output() {
     assert_rows_equal(&got, &expected, &csv);
     assert_eq!(
         counters,
-        format!("received {FRAMES} processed {FRAMES} candidates {} malformed 0 dropped 0 failed 0 param_changes 1", expected.len())
+        format!(
+            "received {FRAMES} processed {FRAMES} candidates {} malformed 0 dropped 0 failed 0 param_changes 1",
+            expected.len()
+        )
     );
     let log = std::fs::read_to_string(dir.path().join("node.log")).unwrap();
     assert!(log.contains("refused parameter change detector.min_score"), "refusals are logged:\n{log}");
@@ -255,7 +274,15 @@ fn cyclone_dds_peer_images_with_malformed_ones_through_the_real_pipeline() {
         let frame = frame.unwrap();
         let outcome = offline_pipeline.process_counted(frame.stamp, &frame.image).unwrap();
         expected.extend(outcome.candidates.iter().map(|c| {
-            format!("{} {} {} {} {} {}", c.query_id, c.match_id, c.query_stamp.sec(), c.match_stamp.sec(), c.query_stamp.nsec(), c.match_stamp.nsec())
+            format!(
+                "{} {} {} {} {} {}",
+                c.query_id,
+                c.match_id,
+                c.query_stamp.sec(),
+                c.match_stamp.sec(),
+                c.query_stamp.nsec(),
+                c.match_stamp.nsec()
+            )
         }));
         let name = format!("{:04}.rgb", frame.index);
         std::fs::write(dir.path().join(&name), frame.image.as_raw()).unwrap();

@@ -19,13 +19,19 @@ fn synth_command_writes_a_consistent_tum_folder() {
         .unwrap();
     assert!(status.success());
     let rgb = std::fs::read_to_string(out.join("rgb.txt")).unwrap();
-    let entries: Vec<(&str, &str)> = rgb
-        .lines()
-        .filter(|l| !l.starts_with('#'))
-        .map(|l| l.split_once(' ').unwrap())
-        .collect();
+    let entries: Vec<(&str, &str)> =
+        rgb.lines().filter(|l| !l.starts_with('#')).map(|l| l.split_once(' ').unwrap()).collect();
     assert_eq!(entries.len(), 24);
-    let scene = Scene::new(SynthConfig { frames: 24, laps: 2, seed: 5, width: 80, height: 60, rate_hz: 10.0, ..SynthConfig::default() }).unwrap();
+    let scene = Scene::new(SynthConfig {
+        frames: 24,
+        laps: 2,
+        seed: 5,
+        width: 80,
+        height: 60,
+        rate_hz: 10.0,
+        ..SynthConfig::default()
+    })
+    .unwrap();
     for (index, (stamp, path)) in entries.iter().enumerate() {
         assert_eq!(Stamp::parse_secs(stamp).unwrap(), scene.stamp(index));
         let image = image::open(out.join(path)).unwrap().to_rgb8();
@@ -52,7 +58,8 @@ fn ground_truth_loops_join_the_laps() {
     let scene = Scene::new(config).unwrap();
     let stamps: Vec<Stamp> = (0..scene.len()).map(|i| scene.stamp(i)).collect();
     let poses: Vec<_> = (0..scene.len()).map(|i| (scene.stamp(i), scene.pose(i))).collect();
-    let criteria = PoseLoopCriteria { max_distance_m: 0.5, max_angle_deg: 20.0, min_gap_s: 5.0, ..PoseLoopCriteria::default() };
+    let criteria =
+        PoseLoopCriteria { max_distance_m: 0.5, max_angle_deg: 20.0, min_gap_s: 5.0, ..PoseLoopCriteria::default() };
     let truth = loop_truth_from_poses(&stamps, &poses, &criteria);
     // The first lap only revisits its own start at its very end (the path is closed).
     for q in 0..280 {
@@ -76,7 +83,8 @@ fn ground_truth_loops_join_the_laps() {
 #[test]
 fn the_hard_preset_is_hard_for_the_default_detector() {
     let dir = tempfile::tempdir().unwrap();
-    let shared = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/mobilenet_v2_1.0_224_quant.tflite");
+    let shared =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/mobilenet_v2_1.0_224_quant.tflite");
     assert!(shared.is_file(), "shared weights missing at {}: tests need ../shared (see README)", shared.display());
     let recall_at_1 = |preset: &str| {
         let out = dir.path().join(preset);
@@ -91,7 +99,10 @@ fn the_hard_preset_is_hard_for_the_default_detector() {
             String::from_utf8(output.stdout).unwrap()
         };
         let out_arg = out.to_str().unwrap();
-        ecm_lcd(&["synth", "-o", out_arg, "--preset", preset, "--frames", "450", "--laps", "3", "--rate", "5", "--width", "160", "--height", "120"]);
+        ecm_lcd(&[
+            "synth", "-o", out_arg, "--preset", preset, "--frames", "450", "--laps", "3", "--rate", "5", "--width",
+            "160", "--height", "120",
+        ]);
         let json = ecm_lcd(&["eval", out_arg, "--json", "--quiet", "--weights", shared.to_str().unwrap()]);
         let summary: serde_json::Value = serde_json::from_str(&json).unwrap();
         assert!(summary["positives"].as_u64().unwrap() >= 90, "laps 2 and 3 revisit lap 1: {summary}");

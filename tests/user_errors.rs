@@ -51,8 +51,13 @@ fn snapshot(dir: &Path) -> Vec<(PathBuf, usize, u64)> {
 
 /// A small valid keyframe store of 3 keyframes.
 fn store(path: &Path) {
-    let identity =
-        StoreIdentity { weights_sha256: "0".repeat(64), arch: "mobilenetv2".into(), descriptor_mode: "l2".into(), input_size: 224, dim: 4 };
+    let identity = StoreIdentity {
+        weights_sha256: "0".repeat(64),
+        arch: "mobilenetv2".into(),
+        descriptor_mode: "l2".into(),
+        input_size: 224,
+        dim: 4,
+    };
     let mut store = KeyframeStore::open_or_create(path, &identity).unwrap();
     for id in 0..3u64 {
         store.append(id, Stamp::from_sec_nsec(100 + id as i64, 0), &[0.5, 0.5, 0.5, id as f32]).unwrap();
@@ -134,13 +139,17 @@ fn inspection_never_creates_converts_or_modifies_a_file() {
 
     refused(&["db", "info", empty.to_str().unwrap()], &["empty.db", "not a keyframe database"]);
     refused(&["db", "info", other.to_str().unwrap()], &["other.db", "not a keyframe database"]);
-    refused(&["db", "export", other.to_str().unwrap(), "-o", dir.path().join("x.csv").to_str().unwrap()], &["other.db"]);
+    refused(
+        &["db", "export", other.to_str().unwrap(), "-o", dir.path().join("x.csv").to_str().unwrap()],
+        &["other.db"],
+    );
     let out = command().args(["db", "info", valid.to_str().unwrap()]).output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
 
     // Same files, same bytes: nothing was created (no journal, no WAL), nothing converted.
     assert_eq!(snapshot(dir.path()), before, "inspection changed or created a file");
-    let mode: String = rusqlite::Connection::open(&other).unwrap().query_row("PRAGMA journal_mode", [], |r| r.get(0)).unwrap();
+    let mode: String =
+        rusqlite::Connection::open(&other).unwrap().query_row("PRAGMA journal_mode", [], |r| r.get(0)).unwrap();
     assert_eq!(mode, "delete", "the other database was switched to {mode}");
 }
 
@@ -199,7 +208,13 @@ fn endless_garbage_and_truth_outside_the_data_are_refused() {
         }
     }
     std::fs::write(d("loops.csv"), "0,0\n1,7\n").unwrap();
-    refused(&["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv")], &["7", "only 3 references"]);
+    refused(
+        &["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv")],
+        &["7", "only 3 references"],
+    );
     std::fs::write(d("loops.csv"), "5,0\n").unwrap();
-    refused(&["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv")], &["query 5", "only 3 queries"]);
+    refused(
+        &["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv")],
+        &["query 5", "only 3 queries"],
+    );
 }

@@ -14,7 +14,11 @@ use ecm_lcd::types::Stamp;
 
 fn shared() -> PathBuf {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
-    assert!(dir.join("data/real").is_dir(), "shared data missing at {}: tests need ../shared (see README)", dir.display());
+    assert!(
+        dir.join("data/real").is_dir(),
+        "shared data missing at {}: tests need ../shared (see README)",
+        dir.display()
+    );
     dir
 }
 
@@ -33,7 +37,11 @@ const PERMISSIVE: (&str, &str) = ("detector.min_score", "0");
 #[test]
 fn the_orbit_revisit_is_verified_and_the_wrong_matches_are_not() {
     let orbit = shared().join("data/real/tum_fr3_desk_orbit");
-    let recency = [("detector.min_history", "2"), ("detector.exclude_recent.count", "3"), ("detector.exclude_recent.seconds", "0")];
+    let recency = [
+        ("detector.min_history", "2"),
+        ("detector.exclude_recent.count", "3"),
+        ("detector.exclude_recent.seconds", "0"),
+    ];
     let mut unverified = pipeline(&[recency[0], recency[1], recency[2], PERMISSIVE, ("verification.mode", "off")]);
     let appearance = run_source(&mut unverified, &orbit.join("rgb"), None, false).unwrap();
     assert!(appearance.candidates.len() >= 4, "{:?}", appearance.candidates);
@@ -85,7 +93,10 @@ fn verified_relative_poses_agree_with_the_ground_truth() {
         values[values.len() / 2]
     };
     let (rotation_error, direction_error) = (median(&mut rotation), median(&mut direction));
-    println!("{} pairs: median rotation error {rotation_error:.2} deg, translation direction {direction_error:.2} deg", rotation.len());
+    println!(
+        "{} pairs: median rotation error {rotation_error:.2} deg, translation direction {direction_error:.2} deg",
+        rotation.len()
+    );
     assert!(rotation_error <= 1.0, "median rotation error {rotation_error} deg");
     assert!(direction_error <= 5.0, "median translation direction error {direction_error} deg");
 }
@@ -108,7 +119,12 @@ fn camera_info_turns_verification_on_in_auto_mode_only() {
     // verify.
     let orbit = shared().join("data/real/tum_fr3_desk_orbit/rgb");
     let frames: Vec<_> = ecm_lcd::eval::images_in_name_order(&orbit).unwrap();
-    let mut late = pipeline(&[("detector.min_history", "2"), ("detector.exclude_recent.count", "3"), ("detector.exclude_recent.seconds", "0"), PERMISSIVE]);
+    let mut late = pipeline(&[
+        ("detector.min_history", "2"),
+        ("detector.exclude_recent.count", "3"),
+        ("detector.exclude_recent.seconds", "0"),
+        PERMISSIVE,
+    ]);
     let mut reported = Vec::new();
     for (i, path) in frames.iter().enumerate() {
         if i == 1 {
@@ -127,14 +143,21 @@ fn a_node_checks_candidates_only_and_evaluation_checks_every_best_match() {
     let orbit = shared().join("data/real/tum_fr3_desk_orbit/rgb");
     let frames = ecm_lcd::eval::images_in_name_order(&orbit).unwrap();
     // No candidate passes 0.999, so only evaluation's best-match check runs.
-    let overrides = [("detector.min_history", "2"), ("detector.exclude_recent.count", "3"), ("detector.exclude_recent.seconds", "0"), ("detector.min_score", "0.999"), ("camera.preset", "tum_fr3")];
+    let overrides = [
+        ("detector.min_history", "2"),
+        ("detector.exclude_recent.count", "3"),
+        ("detector.exclude_recent.seconds", "0"),
+        ("detector.min_score", "0.999"),
+        ("camera.preset", "tum_fr3"),
+    ];
     let checked = |verify_best: bool| {
         let mut pipeline = pipeline(&overrides);
         pipeline.set_verify_best(verify_best);
         let mut checked = 0;
         for (i, path) in frames.iter().enumerate() {
             let image = ecm_lcd::preprocess::read_image(path).unwrap();
-            let outcome = pipeline.process_keyframe(i as u64, Stamp::from_nanos(i as i64 * 1_000_000_000), &image).unwrap();
+            let outcome =
+                pipeline.process_keyframe(i as u64, Stamp::from_nanos(i as i64 * 1_000_000_000), &image).unwrap();
             assert!(outcome.candidates.is_empty());
             checked += outcome.best_verified.is_some() as usize;
         }

@@ -37,7 +37,8 @@ pub fn start() -> Result<(tempfile::TempDir, Vec<EvalSet>)> {
 
 /// Writes both sets under `dir`.
 fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
-    let shared = ecm_lcd::runtime::shared_dirs().into_iter().next().context("the shared data folder (../shared) is needed")?;
+    let shared =
+        ecm_lcd::runtime::shared_dirs().into_iter().next().context("the shared data folder (../shared) is needed")?;
     let real = dir.join("fr3_two_pass");
     write_two_pass(&shared.join("data/tum/fr3_long_office_household"), &real, 1.0, 0.05)?;
     let synthetic = dir.join("synthetic");
@@ -50,10 +51,24 @@ fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
             name: "TUM fr3 two-pass (real)",
             path: real,
             criteria: PoseLoopCriteria { min_gap_s: 2.0, ..PoseLoopCriteria::default() },
-            overrides: &[("detector.min_history", "2"), ("detector.exclude_recent.count", "1"), ("detector.exclude_recent.seconds", "2")],
+            overrides: &[
+                ("detector.min_history", "2"),
+                ("detector.exclude_recent.count", "1"),
+                ("detector.exclude_recent.seconds", "2"),
+            ],
         },
-        EvalSet { name: "synthetic 600 frames, 3 laps", path: synthetic, criteria: PoseLoopCriteria::default(), overrides: &[] },
-        EvalSet { name: "synthetic hard preset, 600 frames, 3 laps", path: hard, criteria: PoseLoopCriteria::default(), overrides: &[] },
+        EvalSet {
+            name: "synthetic 600 frames, 3 laps",
+            path: synthetic,
+            criteria: PoseLoopCriteria::default(),
+            overrides: &[],
+        },
+        EvalSet {
+            name: "synthetic hard preset, 600 frames, 3 laps",
+            path: hard,
+            criteria: PoseLoopCriteria::default(),
+            overrides: &[],
+        },
     ])
 }
 
@@ -73,7 +88,13 @@ pub struct Replayed {
 }
 
 /// Replays `set` as [`evaluate_on`] does; with `db`, every keyframe is also stored there.
-pub fn replay_on(set: &EvalSet, arch: &str, mode: Option<&str>, weights: &Resolved, db: Option<&Path>) -> Result<Replayed> {
+pub fn replay_on(
+    set: &EvalSet,
+    arch: &str,
+    mode: Option<&str>,
+    weights: &Resolved,
+    db: Option<&Path>,
+) -> Result<Replayed> {
     let groundtruth = read_groundtruth(&set.path.join("groundtruth.txt"))?;
     let mut params = Params::default();
     params.set_from_str("arch", arch).map_err(anyhow::Error::msg)?;

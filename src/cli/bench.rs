@@ -151,7 +151,13 @@ pub struct Stats {
 impl Stats {
     pub fn of(samples: &mut [f64]) -> Stats {
         samples.sort_by(f64::total_cmp);
-        let at = |q: f64| if samples.is_empty() { f64::NAN } else { samples[((samples.len() - 1) as f64 * q).round() as usize] };
+        let at = |q: f64| {
+            if samples.is_empty() {
+                f64::NAN
+            } else {
+                samples[((samples.len() - 1) as f64 * q).round() as usize]
+            }
+        };
         Stats { runs: samples.len(), median_ms: at(0.5), p90_ms: at(0.9), p99_ms: at(0.99) }
     }
 
@@ -183,7 +189,9 @@ impl Machine {
         let cpuinfo = std::fs::read_to_string("/proc/cpuinfo").unwrap_or_default();
         let cpu = cpuinfo
             .lines()
-            .find_map(|l| l.strip_prefix("model name").and_then(|r| r.split_once(':')).map(|(_, v)| v.trim().to_string()))
+            .find_map(|l| {
+                l.strip_prefix("model name").and_then(|r| r.split_once(':')).map(|(_, v)| v.trim().to_string())
+            })
             .unwrap_or_else(|| std::env::consts::ARCH.to_string());
         let logical_cores = std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1);
         Machine { cpu, logical_cores, os: std::env::consts::OS.to_string() }
@@ -315,7 +323,8 @@ pub struct ProfileRow {
 
 fn profile(args: &BenchArgs, image: &RgbImage) -> Result<Vec<ProfileRow>> {
     let x = Preprocessor::new(args.size).tensor(image)?;
-    let network = NetworkArgs { weights: args.weights.clone(), arch: Some(Arch::EcMobileNet), size: args.size, reference: false };
+    let network =
+        NetworkArgs { weights: args.weights.clone(), arch: Some(Arch::EcMobileNet), size: args.size, reference: false };
     let (embedder, _) = network.embedder(Arch::EcMobileNet, false)?;
     let costs = Arch::EcMobileNet.spec().stage_costs(None, args.size);
     let mut rows = Vec::new();
@@ -419,7 +428,9 @@ fn forward(args: &BenchArgs, image: &RgbImage) -> Result<Vec<Timing>> {
             let mode = if reference { Mode::Reference } else { Mode::Inference };
             let cost = arch.spec().cost(None, args.size);
             for &threads in &args.threads {
-                let stats = with_threads(threads, || Stats::time(5, args.runs, || embedder.network.features(&x, mode).map(drop).map_err(Into::into)))?;
+                let stats = with_threads(threads, || {
+                    Stats::time(5, args.runs, || embedder.network.features(&x, mode).map(drop).map_err(Into::into))
+                })?;
                 let path = if reference { "stock candle" } else { "fast" };
                 timings.push(Timing {
                     arch,
@@ -454,7 +465,11 @@ fn bench_python(venv: &Path) -> Result<PathBuf> {
         return Ok(python);
     }
     eprintln!("creating the ONNX Runtime virtualenv {} (once)", venv.display());
-    let status = Command::new("python3").args(["-m", "venv"]).arg(venv).status().context("cannot run python3 (needed for the ONNX Runtime comparison)")?;
+    let status = Command::new("python3")
+        .args(["-m", "venv"])
+        .arg(venv)
+        .status()
+        .context("cannot run python3 (needed for the ONNX Runtime comparison)")?;
     ensure!(status.success(), "python3 -m venv {} failed", venv.display());
     let status = Command::new(venv.join("bin/pip"))
         .args(["install", "--quiet", "onnxruntime", "onnx", "numpy", "safetensors"])
@@ -475,7 +490,11 @@ fn write_f32(path: &Path, values: &[f32]) -> Result<()> {
 }
 
 fn run_python(python: &Path, script: &Path, args: &[&std::ffi::OsStr]) -> Result<String> {
-    let output = Command::new(python).arg(script).args(args).output().with_context(|| format!("cannot run {}", script.display()))?;
+    let output = Command::new(python)
+        .arg(script)
+        .args(args)
+        .output()
+        .with_context(|| format!("cannot run {}", script.display()))?;
     if !output.status.success() {
         bail!("{} failed: {}", script.display(), String::from_utf8_lossy(&output.stderr).trim());
     }
@@ -502,7 +521,8 @@ fn ort(args: &BenchArgs, image: &RgbImage) -> Result<Ort> {
                 tensors.insert(format!("{name}.bias"), b.clone());
             }
         })?;
-        let folded = crate::model::weights::Weights { arch, classes: None, source: "ecm-lcd bench (folded)".into(), tensors };
+        let folded =
+            crate::model::weights::Weights { arch, classes: None, source: "ecm-lcd bench (folded)".into(), tensors };
         let weights_path = work.join(format!("{}.safetensors", arch.name()));
         folded.save(&weights_path)?;
         let blocks: Vec<serde_json::Value> = arch
@@ -512,12 +532,26 @@ fn ort(args: &BenchArgs, image: &RgbImage) -> Result<Ort> {
             .map(|b| serde_json::json!({"input": b.input, "hidden": b.hidden, "output": b.output, "stride": b.stride, "eca_kernel": b.eca_kernel}))
             .collect();
         let spec_path = work.join(format!("{}.json", arch.name()));
-        std::fs::write(&spec_path, serde_json::json!({"input_size": args.size, "stem_stride": 2, "blocks": blocks}).to_string())?;
+        std::fs::write(
+            &spec_path,
+            serde_json::json!({"input_size": args.size, "stem_stride": 2, "blocks": blocks}).to_string(),
+        )?;
         let expected = network.features(&x, Mode::Inference)?.flatten_all()?.to_vec1::<f32>()?;
         let expected_path = work.join(format!("{}.expected.f32", arch.name()));
         write_f32(&expected_path, &expected)?;
         let onnx_path = work.join(format!("{}.onnx", arch.name()));
-        run_python(&python, &scripts.join("export_onnx.py"), &["--weights".as_ref(), weights_path.as_ref(), "--spec".as_ref(), spec_path.as_ref(), "--out".as_ref(), onnx_path.as_ref()])?;
+        run_python(
+            &python,
+            &scripts.join("export_onnx.py"),
+            &[
+                "--weights".as_ref(),
+                weights_path.as_ref(),
+                "--spec".as_ref(),
+                spec_path.as_ref(),
+                "--out".as_ref(),
+                onnx_path.as_ref(),
+            ],
+        )?;
         let threads = args.threads.iter().map(|t| t.to_string()).collect::<Vec<_>>().join(",");
         let (size, runs) = (args.size.to_string(), args.runs.to_string());
         let out = run_python(
@@ -544,7 +578,8 @@ fn ort(args: &BenchArgs, image: &RgbImage) -> Result<Ort> {
             max_abs_diff: f64,
             timings: Vec<OrtTiming>,
         }
-        let parsed: OrtOut = serde_json::from_str(out.trim()).with_context(|| format!("time_ort.py printed {out:?}"))?;
+        let parsed: OrtOut =
+            serde_json::from_str(out.trim()).with_context(|| format!("time_ort.py printed {out:?}"))?;
         version = parsed.onnxruntime;
         archs.push(OrtArch { arch, max_abs_diff: parsed.max_abs_diff, timings: parsed.timings });
     }
@@ -590,7 +625,10 @@ fn search(args: &BenchArgs) -> Result<Vec<SearchRow>> {
         for &stored in &args.search_sizes {
             let mb = stored * dim * 4 / 1_000_000;
             if mb > args.search_max_mb {
-                eprintln!("search: skipping {stored} x {dim}-d ({mb} MB of f32 > --search-max-mb {})", args.search_max_mb);
+                eprintln!(
+                    "search: skipping {stored} x {dim}-d ({mb} MB of f32 > --search-max-mb {})",
+                    args.search_max_mb
+                );
                 continue;
             }
             eprintln!("search: {stored} x {dim}-d ...");
@@ -672,7 +710,8 @@ fn end_to_end(args: &BenchArgs, frame: &(RgbImage, String), verify: bool) -> Res
     // The two inputs alternate keyframe by keyframe, so that both see the same machine.
     let raw = rgb8_message(Stamp::default(), "camera", &frame.0);
     let jpeg = jpeg_message(Stamp::default(), "camera", &frame.0, 90)?;
-    let all: [(&str, &dyn Fn() -> Result<RgbImage>); 2] = [("rgb8", &|| decode_image(&raw)), ("jpeg", &|| decode_compressed_image(&jpeg))];
+    let all: [(&str, &dyn Fn() -> Result<RgbImage>); 2] =
+        [("rgb8", &|| decode_image(&raw)), ("jpeg", &|| decode_compressed_image(&jpeg))];
     let inputs = if verify { &all[..1] } else { &all[..] };
     let mut next_id = stored as u64;
     let base = 86_400_000_000_000i64;
@@ -681,7 +720,8 @@ fn end_to_end(args: &BenchArgs, frame: &(RgbImage, String), verify: bool) -> Res
         for ((_, decode), (total, network, detector, verification)) in inputs.iter().zip(samples.iter_mut()) {
             let start = Instant::now();
             let image = decode()?;
-            let outcome = pipeline.process_keyframe(next_id, Stamp::from_nanos(base + next_id as i64 * 1_000_000_000), &image)?;
+            let outcome =
+                pipeline.process_keyframe(next_id, Stamp::from_nanos(base + next_id as i64 * 1_000_000_000), &image)?;
             let elapsed = start.elapsed().as_secs_f64() * 1e3;
             next_id += 1;
             if i >= 5 {
@@ -713,14 +753,20 @@ fn end_to_end(args: &BenchArgs, frame: &(RgbImage, String), verify: bool) -> Res
 
 fn verification(args: &BenchArgs, frame: &(RgbImage, String)) -> Result<VerificationTiming> {
     use crate::verification::{extract, verify, VerificationParams};
-    let params = VerificationParams { intrinsics: crate::verification::Intrinsics::preset("tum_fr3"), ..VerificationParams::default() };
+    let params = VerificationParams {
+        intrinsics: crate::verification::Intrinsics::preset("tum_fr3"),
+        ..VerificationParams::default()
+    };
     let mut paths: Vec<PathBuf> = crate::runtime::shared_dirs()
         .into_iter()
         .filter_map(|dir| std::fs::read_dir(dir.join("data/tum/fr3_long_office_household/rgb")).ok())
         .flat_map(|entries| entries.filter_map(|e| e.ok().map(|e| e.path())).collect::<Vec<_>>())
         .collect();
     paths.sort();
-    ensure!(paths.len() >= 3, "the verification section needs the TUM fr3 frames of ../shared (data/tum/fr3_long_office_household)");
+    ensure!(
+        paths.len() >= 3,
+        "the verification section needs the TUM fr3 frames of ../shared (data/tum/fr3_long_office_household)"
+    );
     let next = crate::preprocess::read_image(&paths[1])?;
     let last = crate::preprocess::read_image(&paths[paths.len() - 1])?;
     let runs = args.runs.max(20);
@@ -757,7 +803,8 @@ fn verification(args: &BenchArgs, frame: &(RgbImage, String)) -> Result<Verifica
 }
 
 fn parse_memory_spec(spec: &str) -> Result<(usize, usize)> {
-    let (stored, dim) = spec.split_once(':').with_context(|| format!("memory spec {spec:?}: expected stored:dim, e.g. 1000000:128"))?;
+    let (stored, dim) =
+        spec.split_once(':').with_context(|| format!("memory spec {spec:?}: expected stored:dim, e.g. 1000000:128"))?;
     Ok((
         stored.trim().parse().with_context(|| format!("memory spec {spec:?}: bad count"))?,
         dim.trim().parse().with_context(|| format!("memory spec {spec:?}: bad dim"))?,
@@ -769,7 +816,8 @@ fn memory(spec: &str) -> Result<MemoryRow> {
     parse_memory_spec(spec)?;
     eprintln!("memory: {spec} in a child process ...");
     let exe = std::env::current_exe().context("cannot find this program to run the memory child")?;
-    let output = Command::new(exe).args(["bench", "--memory-child", spec]).output().context("cannot run the memory child")?;
+    let output =
+        Command::new(exe).args(["bench", "--memory-child", spec]).output().context("cannot run the memory child")?;
     ensure!(output.status.success(), "memory child {spec} failed: {}", String::from_utf8_lossy(&output.stderr).trim());
     let out = String::from_utf8_lossy(&output.stdout);
     serde_json::from_str(out.trim()).with_context(|| format!("memory child printed {out:?}"))
@@ -779,8 +827,10 @@ fn memory(spec: &str) -> Result<MemoryRow> {
 fn rss_mb() -> Result<(f64, f64)> {
     let status = std::fs::read_to_string("/proc/self/status").context("reading /proc/self/status (Linux only)")?;
     let field = |name: &str| -> Result<f64> {
-        let line = status.lines().find(|l| l.starts_with(name)).with_context(|| format!("no {name} in /proc/self/status"))?;
-        let kb: f64 = line[name.len()..].trim().trim_end_matches("kB").trim().parse().with_context(|| format!("bad {line:?}"))?;
+        let line =
+            status.lines().find(|l| l.starts_with(name)).with_context(|| format!("no {name} in /proc/self/status"))?;
+        let kb: f64 =
+            line[name.len()..].trim().trim_end_matches("kB").trim().parse().with_context(|| format!("bad {line:?}"))?;
         Ok(kb * 1024.0 / 1e6)
     };
     Ok((field("VmRSS:")?, field("VmHWM:")?))
@@ -817,10 +867,24 @@ fn goals(report: &Report) -> Vec<Goal> {
     let mut goals = Vec::new();
     let mut goal = |goal: &str, measured: String, met: bool| goals.push(Goal { goal: goal.into(), measured, met });
     let ours = |arch: Arch, threads: usize| {
-        report.forward.as_ref()?.iter().find(|t| t.arch == arch && t.threads == threads && t.path == "fast").map(|t| t.median_ms)
+        report
+            .forward
+            .as_ref()?
+            .iter()
+            .find(|t| t.arch == arch && t.threads == threads && t.path == "fast")
+            .map(|t| t.median_ms)
     };
     let theirs = |arch: Arch, threads: usize| {
-        report.ort.as_ref()?.archs.iter().find(|a| a.arch == arch)?.timings.iter().find(|t| t.threads == threads).map(|t| t.median_ms)
+        report
+            .ort
+            .as_ref()?
+            .archs
+            .iter()
+            .find(|a| a.arch == arch)?
+            .timings
+            .iter()
+            .find(|t| t.threads == threads)
+            .map(|t| t.median_ms)
     };
     if let (Some(e), Some(o)) = (ours(Arch::EcMobileNet, 2), theirs(Arch::MobileNetV2, 2)) {
         goal("ECMobileNet forward <= 1.0 x ORT MobileNetV2 (2 threads)", format!("{:.2} x", e / o), e / o <= 1.0);
@@ -830,11 +894,19 @@ fn goals(report: &Report) -> Vec<Goal> {
     }
     if let Some(ort) = &report.ort {
         for a in &ort.archs {
-            goal(&format!("ORT {} output equals ecm-lcd's within 1e-4", a.arch.name()), format!("max abs diff {:.2e}", a.max_abs_diff), a.max_abs_diff <= 1e-4);
+            goal(
+                &format!("ORT {} output equals ecm-lcd's within 1e-4", a.arch.name()),
+                format!("max abs diff {:.2e}", a.max_abs_diff),
+                a.max_abs_diff <= 1e-4,
+            );
         }
     }
     if let Some(p) = report.preprocess.as_ref().and_then(|rows| rows.first()) {
-        goal("preprocessing 640x480 rgb8 -> tensor <= 1.5 ms", format!("{:.3} ms median", p.stats.median_ms), p.stats.median_ms <= 1.5);
+        goal(
+            "preprocessing 640x480 rgb8 -> tensor <= 1.5 ms",
+            format!("{:.3} ms median", p.stats.median_ms),
+            p.stats.median_ms <= 1.5,
+        );
     }
     for e in report.end_to_end.iter().flatten() {
         let limit = if e.input.ends_with("verified") { 25.0 } else { 15.0 };
@@ -846,7 +918,11 @@ fn goals(report: &Report) -> Vec<Goal> {
     }
     if let Some(v) = &report.verification {
         for (pair, stats) in [("matching", &v.matching_pair), ("non-matching", &v.other_pair)] {
-            goal(&format!("verification of a {pair} pair <= 10 ms"), format!("{:.2} ms median, {:.2} ms p99", stats.median_ms, stats.p99_ms), stats.p99_ms <= 10.0);
+            goal(
+                &format!("verification of a {pair} pair <= 10 ms"),
+                format!("{:.2} ms median, {:.2} ms p99", stats.median_ms, stats.p99_ms),
+                stats.p99_ms <= 10.0,
+            );
         }
     }
     if let Some(rows) = &report.search {
@@ -860,7 +936,11 @@ fn goals(report: &Report) -> Vec<Goal> {
     }
     if let Some(rows) = &report.memory {
         for r in rows.iter().filter(|r| r.stored >= 1_000_000) {
-            goal(&format!("1M stored ({}-d) <= 600 MB RSS", r.dim), format!("{:.0} MB peak", r.peak_mb), r.peak_mb <= 600.0);
+            goal(
+                &format!("1M stored ({}-d) <= 600 MB RSS", r.dim),
+                format!("{:.0} MB peak", r.peak_mb),
+                r.peak_mb <= 600.0,
+            );
         }
     }
     goals
@@ -877,32 +957,72 @@ fn print_report(args: &BenchArgs, report: &Report) {
             let total: f64 = rows.iter().filter(|r| r.threads == threads).map(|r| r.ms).sum();
             for r in rows.iter().filter(|r| r.threads == threads) {
                 let rate = r.macs as f64 / r.ms / 1e6;
-                println!("{:<10} {:>7} {:>10} {:>9.3} {:>8.1} {:>6.1}%", r.stage, threads, r.macs, r.ms, rate, 100.0 * r.ms / total);
+                println!(
+                    "{:<10} {:>7} {:>10} {:>9.3} {:>8.1} {:>6.1}%",
+                    r.stage,
+                    threads,
+                    r.macs,
+                    r.ms,
+                    rate,
+                    100.0 * r.ms / total
+                );
             }
             println!("{:<10} {:>7} {:>10} {:>9.3}", "total", threads, "", total);
         }
     }
     let ort_time = |arch: Arch, threads: usize| {
-        report.ort.as_ref().and_then(|o| o.archs.iter().find(|a| a.arch == arch)).and_then(|a| a.timings.iter().find(|t| t.threads == threads))
+        report
+            .ort
+            .as_ref()
+            .and_then(|o| o.archs.iter().find(|a| a.arch == arch))
+            .and_then(|a| a.timings.iter().find(|t| t.threads == threads))
     };
     if report.forward.is_some() || report.ort.is_some() {
         println!("\nforward, batch 1, {0}x{0} tensor (network only), {1} runs after 5 warm-up", args.size, args.runs);
-        println!("{:<12} {:<14} {:>7} {:>10} {:>12} {:>10} {:>9}", "arch", "runtime", "threads", "params", "MACs", "median ms", "p90 ms");
+        println!(
+            "{:<12} {:<14} {:>7} {:>10} {:>12} {:>10} {:>9}",
+            "arch", "runtime", "threads", "params", "MACs", "median ms", "p90 ms"
+        );
         for t in report.forward.iter().flatten() {
             let runtime = if t.path == "fast" { "ecm-lcd" } else { "ecm-lcd stock" };
-            println!("{:<12} {:<14} {:>7} {:>10} {:>12} {:>10.2} {:>9.2}", t.arch.name(), runtime, t.threads, t.params, t.macs, t.median_ms, t.p90_ms);
+            println!(
+                "{:<12} {:<14} {:>7} {:>10} {:>12} {:>10.2} {:>9.2}",
+                t.arch.name(),
+                runtime,
+                t.threads,
+                t.params,
+                t.macs,
+                t.median_ms,
+                t.p90_ms
+            );
         }
         if let Some(o) = &report.ort {
             for a in &o.archs {
                 for t in &a.timings {
                     let runtime = format!("ORT {}", o.onnxruntime);
-                    println!("{:<12} {:<14} {:>7} {:>10} {:>12} {:>10.2} {:>9.2}", a.arch.name(), runtime, t.threads, "", "", t.median_ms, t.p90_ms);
+                    println!(
+                        "{:<12} {:<14} {:>7} {:>10} {:>12} {:>10.2} {:>9.2}",
+                        a.arch.name(),
+                        runtime,
+                        t.threads,
+                        "",
+                        "",
+                        t.median_ms,
+                        t.p90_ms
+                    );
                 }
                 println!("  ORT {} output vs ecm-lcd: max abs diff {:.2e}", a.arch.name(), a.max_abs_diff);
             }
         }
         for &threads in &args.threads {
-            let ours = |arch| report.forward.iter().flatten().find(|t| t.arch == arch && t.threads == threads && t.path == "fast").map(|t| t.median_ms);
+            let ours = |arch| {
+                report
+                    .forward
+                    .iter()
+                    .flatten()
+                    .find(|t| t.arch == arch && t.threads == threads && t.path == "fast")
+                    .map(|t| t.median_ms)
+            };
             let mut ratios = Vec::new();
             if let (Some(e), Some(m)) = (ours(Arch::EcMobileNet), ours(Arch::MobileNetV2)) {
                 ratios.push(format!("ecmobilenet/mobilenetv2 {:.2}", e / m));
@@ -927,20 +1047,46 @@ fn print_report(args: &BenchArgs, report: &Report) {
         println!("\npreprocessing to a [1, 3, {0}, {0}] tensor (1 thread)", args.size);
         println!("{:<42} {:>6} {:>10} {:>9} {:>9}", "input", "runs", "median ms", "p90 ms", "p99 ms");
         for r in rows {
-            println!("{:<42} {:>6} {:>10.3} {:>9.3} {:>9.3}", r.input, r.stats.runs, r.stats.median_ms, r.stats.p90_ms, r.stats.p99_ms);
+            println!(
+                "{:<42} {:>6} {:>10.3} {:>9.3} {:>9.3}",
+                r.input, r.stats.runs, r.stats.median_ms, r.stats.p90_ms, r.stats.p99_ms
+            );
         }
     }
     if let Some(rows) = &report.search {
         println!("\nsearch: top-{} of clustered unit vectors, newest {BENCH_EXCLUDE_RECENT} excluded, {} queries, 1 thread per query", args.k, args.queries);
         println!(
             "{:>5} {:>8} {:>8} {:>11} {:>10} {:>9} {:>6} {:>10} {:>9} {:>22} {:>8}",
-            "dim", "stored", "build s", "slowest ins", "exact med", "exact p90", "auto", "auto med", "auto p90", "lists/probed, largest", "recall"
+            "dim",
+            "stored",
+            "build s",
+            "slowest ins",
+            "exact med",
+            "exact p90",
+            "auto",
+            "auto med",
+            "auto p90",
+            "lists/probed, largest",
+            "recall"
         );
         for r in rows {
-            let lists = r.index.map(|i| format!("{}/{} max {}", i.nlist, i.nprobe, i.largest_list)).unwrap_or_else(|| "-".into());
+            let lists = r
+                .index
+                .map(|i| format!("{}/{} max {}", i.nlist, i.nprobe, i.largest_list))
+                .unwrap_or_else(|| "-".into());
             println!(
                 "{:>5} {:>8} {:>8.1} {:>8.0} ms {:>10.3} {:>9.3} {:>6} {:>10.3} {:>9.3} {:>22} {:>8.4}",
-                r.dim, r.stored, r.build_s, r.slowest_insert_ms, r.exact.median_ms, r.exact.p90_ms, r.auto_method, r.auto.median_ms, r.auto.p90_ms, lists, r.recall
+                r.dim,
+                r.stored,
+                r.build_s,
+                r.slowest_insert_ms,
+                r.exact.median_ms,
+                r.exact.p90_ms,
+                r.auto_method,
+                r.auto.median_ms,
+                r.auto.p90_ms,
+                lists,
+                r.recall
             );
         }
     }
@@ -957,13 +1103,27 @@ fn print_report(args: &BenchArgs, report: &Report) {
             e.dim,
             e.stored
         );
-        println!("  frame: {}; index: {}", e.frame, e.index.map(|i| format!("ivf {}/{}", i.nlist, i.nprobe)).unwrap_or_else(|| "exact".into()));
-        for (what, s) in [("total", e.total), ("network (preprocess + forward)", e.network), ("detector (search + insert)", e.detector)] {
-            println!("  {what:<32} median {:>7.2} ms  p90 {:>7.2} ms  p99 {:>7.2} ms  ({} runs)", s.median_ms, s.p90_ms, s.p99_ms, s.runs);
+        println!(
+            "  frame: {}; index: {}",
+            e.frame,
+            e.index.map(|i| format!("ivf {}/{}", i.nlist, i.nprobe)).unwrap_or_else(|| "exact".into())
+        );
+        for (what, s) in [
+            ("total", e.total),
+            ("network (preprocess + forward)", e.network),
+            ("detector (search + insert)", e.detector),
+        ] {
+            println!(
+                "  {what:<32} median {:>7.2} ms  p90 {:>7.2} ms  p99 {:>7.2} ms  ({} runs)",
+                s.median_ms, s.p90_ms, s.p99_ms, s.runs
+            );
         }
         if let Some(v) = e.verification {
             let what = "verification (ORB + check)";
-            println!("  {what:<32} median {:>7.2} ms  p90 {:>7.2} ms  p99 {:>7.2} ms  ({} runs)", v.median_ms, v.p90_ms, v.p99_ms, v.runs);
+            println!(
+                "  {what:<32} median {:>7.2} ms  p90 {:>7.2} ms  p99 {:>7.2} ms  ({} runs)",
+                v.median_ms, v.p90_ms, v.p99_ms, v.runs
+            );
         }
     }
     if let Some(v) = &report.verification {
@@ -973,14 +1133,23 @@ fn print_report(args: &BenchArgs, report: &Report) {
             (format!("check, matching pair ({} inliers)", v.matching_inliers), v.matching_pair),
             (format!("check, non-matching pair ({} inliers)", v.other_inliers), v.other_pair),
         ] {
-            println!("  {what:<40} median {:>7.2} ms  p90 {:>7.2} ms  p99 {:>7.2} ms  ({} runs)", s.median_ms, s.p90_ms, s.p99_ms, s.runs);
+            println!(
+                "  {what:<40} median {:>7.2} ms  p90 {:>7.2} ms  p99 {:>7.2} ms  ({} runs)",
+                s.median_ms, s.p90_ms, s.p99_ms, s.runs
+            );
         }
     }
     if let Some(rows) = &report.memory {
         println!("\npeak memory (VmHWM of a child process that stores descriptors in a Detector, then queries)");
-        println!("{:>8} {:>5} {:>12} {:>10} {:>15} {:>8}", "stored", "dim", "baseline MB", "peak MB", "f32 data MB", "indexed");
+        println!(
+            "{:>8} {:>5} {:>12} {:>10} {:>15} {:>8}",
+            "stored", "dim", "baseline MB", "peak MB", "f32 data MB", "indexed"
+        );
         for r in rows {
-            println!("{:>8} {:>5} {:>12.0} {:>10.0} {:>15.0} {:>8}", r.stored, r.dim, r.baseline_mb, r.peak_mb, r.descriptors_mb, r.indexed);
+            println!(
+                "{:>8} {:>5} {:>12.0} {:>10.0} {:>15.0} {:>8}",
+                r.stored, r.dim, r.baseline_mb, r.peak_mb, r.descriptors_mb, r.indexed
+            );
         }
     }
     if !report.goals.is_empty() {

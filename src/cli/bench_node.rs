@@ -142,10 +142,16 @@ fn load_frames(args: &Args) -> Result<Vec<Frame>> {
 }
 
 /// `wanted` frames from a replay source (fewer if it is shorter), or rendered synthetic frames.
-pub(crate) fn frames_for_benchmark(source: Option<&std::path::Path>, wanted: usize, width: u32, height: u32) -> Result<Vec<Frame>> {
+pub(crate) fn frames_for_benchmark(
+    source: Option<&std::path::Path>,
+    wanted: usize,
+    width: u32,
+    height: u32,
+) -> Result<Vec<Frame>> {
     if let Some(path) = source {
         let source = crate::io::open_source(path, None).with_context(|| format!("opening {}", path.display()))?;
-        let frames: Vec<Frame> = source.take(wanted).collect::<Result<_>>().with_context(|| format!("reading {}", path.display()))?;
+        let frames: Vec<Frame> =
+            source.take(wanted).collect::<Result<_>>().with_context(|| format!("reading {}", path.display()))?;
         if frames.is_empty() {
             bail!("{} holds no frames", path.display());
         }
@@ -182,7 +188,12 @@ pub(crate) fn rerun_in_private_netns(what: &str) -> Result<bool> {
 /// after the first yields exactly one candidate (threshold 0, no history or recency limits).
 pub(crate) fn every_keyframe_matches_args(ns: &str) -> Vec<String> {
     let mut args: Vec<String> = vec!["--ros-args".into(), "-r".into(), format!("__ns:={ns}")];
-    for param in ["detector.min_score:=0.0", "detector.min_history:=1", "detector.exclude_recent.count:=0", "detector.exclude_recent.seconds:=0.0"] {
+    for param in [
+        "detector.min_score:=0.0",
+        "detector.min_history:=1",
+        "detector.exclude_recent.count:=0",
+        "detector.exclude_recent.seconds:=0.0",
+    ] {
         args.extend(["-p".to_string(), param.to_string()]);
     }
     args
@@ -197,7 +208,13 @@ pub(crate) fn start_node(args: &[String], log_path: &std::path::Path) -> Result<
         .arg("node")
         .args(args)
         // The final counters line is logged at info: keep it whatever RUST_LOG says (later directives win).
-        .env("RUST_LOG", format!("ecm_lcd::ros::node=info,{}", std::env::var("RUST_LOG").unwrap_or_else(|_| "info,rustdds=error".into())))
+        .env(
+            "RUST_LOG",
+            format!(
+                "ecm_lcd::ros::node=info,{}",
+                std::env::var("RUST_LOG").unwrap_or_else(|_| "info,rustdds=error".into())
+            ),
+        )
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(log);

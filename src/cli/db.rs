@@ -50,7 +50,9 @@ pub fn run(args: Args) -> Result<()> {
                 None => println!("ids:             -"),
             }
             match summary.stamps {
-                Some((first, last)) => println!("stamps:          {first} .. {last} ({:.3} s)", last.as_secs_f64() - first.as_secs_f64()),
+                Some((first, last)) => {
+                    println!("stamps:          {first} .. {last} ({:.3} s)", last.as_secs_f64() - first.as_secs_f64())
+                }
                 None => println!("stamps:          -"),
             }
             println!("weights sha256:  {}", identity.weights_sha256);
@@ -77,7 +79,10 @@ pub fn run(args: Args) -> Result<()> {
                 record.extend(decode_descriptor(blob).map(|v| v.to_string()));
                 out.write_record(&record).with_context(|| format!("writing {}", output.display()))
             })?;
-            out.into_inner().map_err(|e| anyhow::anyhow!("{e}"))?.flush().with_context(|| format!("writing {}", output.display()))?;
+            out.into_inner()
+                .map_err(|e| anyhow::anyhow!("{e}"))?
+                .flush()
+                .with_context(|| format!("writing {}", output.display()))?;
             eprintln!("{} keyframes written to {}", store.len(), output.display());
             Ok(())
         }

@@ -51,7 +51,10 @@ pub fn run(args: Args) -> Result<()> {
     println!("{} frames, {} keyframes from {}", run.frames, run.keyframes.len(), source.display());
     println!("{} loop candidates (query -> match, score):", run.candidates.len());
     for c in &run.candidates {
-        println!("  keyframe {:>4} at {} -> keyframe {:>4} at {}  distance {:.3}  score {:.3}", c.query_id, c.query_stamp, c.match_id, c.match_stamp, c.distance, c.score);
+        println!(
+            "  keyframe {:>4} at {} -> keyframe {:>4} at {}  distance {:.3}  score {:.3}",
+            c.query_id, c.query_stamp, c.match_id, c.match_stamp, c.distance, c.score
+        );
     }
     let poses = read_groundtruth(&groundtruth).context("the demo's ground truth")?;
     let truth = loop_truth_from_poses(&run.frame_stamps, &poses, &PoseLoopCriteria::default());
@@ -65,7 +68,8 @@ pub fn run(args: Args) -> Result<()> {
     println!("reported candidates      {} ({} false)", run.candidates.len(), false_loops);
     print_summary(&metrics, &run.mean_timings());
     std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
-    let (candidates, curve, plot) = (args.out.join("demo_candidates.csv"), args.out.join("demo_pr.csv"), args.out.join("demo_pr.png"));
+    let (candidates, curve, plot) =
+        (args.out.join("demo_candidates.csv"), args.out.join("demo_pr.csv"), args.out.join("demo_pr.png"));
     write_candidates_csv(&run.candidates, &candidates)?;
     write_curve_csv(&metrics, &curve)?;
     plot_pr_curve(&metrics, "ecm-lcd demo: bags/sample_loop.bag", &plot)?;

@@ -57,7 +57,11 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     check_device(&args.device)?;
-    let teacher = if args.teacher == "default" { resolve::resolve(None)? } else { resolve::load_file(std::path::Path::new(&args.teacher))? };
+    let teacher = if args.teacher == "default" {
+        resolve::resolve(None)?
+    } else {
+        resolve::load_file(std::path::Path::new(&args.teacher))?
+    };
     let config = DistillConfig {
         data: args.data,
         size: args.size,

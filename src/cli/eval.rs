@@ -4,13 +4,13 @@
 //! Only the step "run the pipeline over the source and collect one `QueryResult` per query" is
 //! the pipeline's; everything before (truth) and after (metrics, outputs) is here.
 
-use crate::eval::{
-    evaluate, images_in_name_order, loop_truth_from_poses, plot_pr_curve, read_loops,
-    summary_json, write_curve_csv, LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
-};
 use super::replay::SourceArgs;
-use crate::replay::{run_database_queries, run_source};
 use crate::config::Params;
+use crate::eval::{
+    evaluate, images_in_name_order, loop_truth_from_poses, plot_pr_curve, read_loops, summary_json, write_curve_csv,
+    LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
+};
+use crate::replay::{run_database_queries, run_source};
 use crate::types::Stamp;
 use anyhow::{bail, Result};
 use std::path::{Path, PathBuf};
@@ -57,7 +57,9 @@ pub struct Args {
 
 impl Args {
     pub fn criteria(&self) -> Result<PoseLoopCriteria> {
-        for (name, value) in [("--max-distance", self.max_distance), ("--max-angle", self.max_angle), ("--min-gap", self.min_gap)] {
+        for (name, value) in
+            [("--max-distance", self.max_distance), ("--max-angle", self.max_angle), ("--min-gap", self.min_gap)]
+        {
             if !(value.is_finite() && value >= 0.0) {
                 bail!("{name} must be a non-negative number, got {value}");
             }
@@ -73,7 +75,9 @@ impl Args {
     /// Database and query image paths in database/query mode, else `None`.
     pub fn database_and_queries(&self) -> Result<Option<(Vec<PathBuf>, Vec<PathBuf>)>> {
         match (&self.database, &self.queries) {
-            (Some(database), Some(queries)) => Ok(Some((images_in_name_order(database)?, images_in_name_order(queries)?))),
+            (Some(database), Some(queries)) => {
+                Ok(Some((images_in_name_order(database)?, images_in_name_order(queries)?)))
+            }
             (None, None) => Ok(None),
             _ => bail!("--database and --queries go together"),
         }
@@ -161,7 +165,10 @@ fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)], par
 /// The figures as text.
 pub fn print_summary(metrics: &Metrics, timings_ms: &[(&str, f64)]) {
     let show = |v: Option<f64>| v.map(|v| format!("{v:.3}")).unwrap_or_else(|| "n/a (no loops in the truth)".into());
-    println!("queries                 {} ({} with a true loop, {} without ground truth)", metrics.queries, metrics.positives, metrics.unknown);
+    println!(
+        "queries                 {} ({} with a true loop, {} without ground truth)",
+        metrics.queries, metrics.positives, metrics.unknown
+    );
     println!("recall@1                {}", show(metrics.recall_at_1));
     println!("recall at 100% precision {}", show(metrics.recall_at_100_precision));
     println!("average precision       {}", show(metrics.average_precision));
@@ -250,7 +257,8 @@ mod tests {
         for name in ["b.png", "a.JPG", "c.txt", "10.bmp"] {
             std::fs::write(db.join(name), b"x").unwrap();
         }
-        let args = parse(&["--database", db.to_str().unwrap(), "--queries", queries.to_str().unwrap(), "--loops", "l"]).unwrap();
+        let args = parse(&["--database", db.to_str().unwrap(), "--queries", queries.to_str().unwrap(), "--loops", "l"])
+            .unwrap();
         let err = args.database_and_queries().unwrap_err();
         assert!(err.to_string().contains("holds no png, jpg or bmp files"), "{err:#}");
         std::fs::write(queries.join("q0.png"), b"x").unwrap();
@@ -266,10 +274,7 @@ mod tests {
         let (csv, png) = (dir.path().join("pr.csv"), dir.path().join("pr.png"));
         let args = parse(&["seq", "-o", csv.to_str().unwrap(), "--json", "--plot", png.to_str().unwrap()]).unwrap();
         let truth = crate::eval::parse_loops("2,0\n3,1\n").unwrap();
-        let results = [
-            QueryResult { query: 2, best: Some((0, 0.8)) },
-            QueryResult { query: 3, best: Some((0, 0.6)) },
-        ];
+        let results = [QueryResult { query: 2, best: Some((0, 0.8)) }, QueryResult { query: 3, best: Some((0, 0.6)) }];
         let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)], &Params::default()).unwrap();
         assert_eq!(metrics.recall_at_1, Some(0.5));
         assert!(std::fs::read_to_string(&csv).unwrap().starts_with("threshold,precision,recall\n0.8,1,0.5\n"));

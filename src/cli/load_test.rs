@@ -22,7 +22,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use super::bench_node::{every_keyframe_matches_args, frames_for_benchmark, quantile, rerun_in_private_netns, start_node, stop_node};
+use super::bench_node::{
+    every_keyframe_matches_args, frames_for_benchmark, quantile, rerun_in_private_netns, start_node, stop_node,
+};
 use crate::config::Params;
 use crate::ros::node::InputQos;
 use crate::ros::peer::{CandidateListener, FramePublisher, ParamClient, SendAs};
@@ -85,7 +87,11 @@ impl Percentiles {
 
 impl std::fmt::Display for Percentiles {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "n {}  p50 {:.1} ms  p90 {:.1} ms  p99 {:.1} ms  max {:.1} ms", self.count, self.p50_ms, self.p90_ms, self.p99_ms, self.max_ms)
+        write!(
+            f,
+            "n {}  p50 {:.1} ms  p90 {:.1} ms  p99 {:.1} ms  max {:.1} ms",
+            self.count, self.p50_ms, self.p90_ms, self.p99_ms, self.max_ms
+        )
     }
 }
 
@@ -131,13 +137,21 @@ pub fn run(args: Args) -> Result<()> {
         }
     };
     let burst = nominal * args.factor;
-    for (name, value) in [("--seconds", args.seconds), ("--factor", args.factor), ("--nominal-rate", nominal), ("--param-period", args.param_period)] {
+    for (name, value) in [
+        ("--seconds", args.seconds),
+        ("--factor", args.factor),
+        ("--nominal-rate", nominal),
+        ("--param-period", args.param_period),
+    ] {
         if !(value.is_finite() && value > 0.0) {
             bail!("{name} must be a positive number, got {value}");
         }
     }
     if !(burst <= 1000.0 && args.seconds <= 3600.0) {
-        bail!("the load test is bounded: at most 1000 keyframes/s for at most 3600 s (asked {burst} Hz for {} s)", args.seconds);
+        bail!(
+            "the load test is bounded: at most 1000 keyframes/s for at most 3600 s (asked {burst} Hz for {} s)",
+            args.seconds
+        );
     }
     if rerun_in_private_netns("load test")? {
         return Ok(());
@@ -167,7 +181,10 @@ pub fn run(args: Args) -> Result<()> {
         let mut words = counters.split_whitespace();
         while let Some(word) = words.next() {
             if word == name {
-                return words.next().and_then(|v| v.parse().ok()).with_context(|| format!("counter {name} in {counters:?}"));
+                return words
+                    .next()
+                    .and_then(|v| v.parse().ok())
+                    .with_context(|| format!("counter {name} in {counters:?}"));
             }
         }
         bail!("no counter {name} in the node's final line {counters:?}")
@@ -204,13 +221,22 @@ pub fn run(args: Args) -> Result<()> {
         );
         println!(
             "published {}  received {}  processed {}  dropped {}  malformed {}  failed {}  candidates received {}",
-            report.published, report.received, report.processed, report.dropped, report.malformed, report.failed, report.candidates_received
+            report.published,
+            report.received,
+            report.processed,
+            report.dropped,
+            report.malformed,
+            report.failed,
+            report.candidates_received
         );
         println!("latency publish -> candidate: {}", report.latency);
         println!("parameter get: {}", report.param_get);
         println!("parameter set: {}", report.param_set);
         println!("parameter calls failed: {}", report.param_failures);
-        println!("node RSS after warm-up {:.1} MiB, peak (VmHWM) {:.1} MiB", report.rss_after_warmup_mib, report.peak_rss_mib);
+        println!(
+            "node RSS after warm-up {:.1} MiB, peak (VmHWM) {:.1} MiB",
+            report.rss_after_warmup_mib, report.peak_rss_mib
+        );
     }
     Ok(())
 }
@@ -235,18 +261,32 @@ fn status_kib(pid: u32, field: &str) -> Option<u64> {
 
 fn keyframe(frames: &[Frame], id: usize) -> Frame {
     // Keyframe id = position in the run; 100 ms apart in stamps whatever the real rate.
-    Frame { index: id, stamp: Stamp::from_sec_nsec(1_000 + id as i64 / 10, (id % 10) as u32 * 100_000_000), image: frames[id % frames.len()].image.clone(), depth: None }
+    Frame {
+        index: id,
+        stamp: Stamp::from_sec_nsec(1_000 + id as i64 / 10, (id % 10) as u32 * 100_000_000),
+        image: frames[id % frames.len()].image.clone(),
+        depth: None,
+    }
 }
 
 fn measure(args: &Args, burst_hz: f64, frames: &[Frame], node_pid: u32) -> Result<Measured> {
     // One participant each: ros2-client hands a participant's discovery events to one node only.
     let tracker = ros2_client::Context::new().context("creating the DDS participant")?;
     let back_end = ros2_client::Context::new().context("creating the DDS participant")?;
-    let publisher = FramePublisher::new(&tracker, &format!("{NAMESPACE}/keyframes"), SendAs::Keyframe, InputQos::Reliable, "camera")?;
+    let publisher = FramePublisher::new(
+        &tracker,
+        &format!("{NAMESPACE}/keyframes"),
+        SendAs::Keyframe,
+        InputQos::Reliable,
+        "camera",
+    )?;
     let listener = CandidateListener::new(&back_end, &format!("{NAMESPACE}/loop_candidates"))?;
     let ready = Duration::from_secs(60);
     if !publisher.wait_for_subscriber(ready) || !listener.wait_for_publisher(ready) {
-        bail!("the node did not appear on {NAMESPACE}/keyframes and {NAMESPACE}/loop_candidates within {} s", ready.as_secs());
+        bail!(
+            "the node did not appear on {NAMESPACE}/keyframes and {NAMESPACE}/loop_candidates within {} s",
+            ready.as_secs()
+        );
     }
     std::thread::sleep(Duration::from_millis(500));
 
@@ -277,18 +317,25 @@ fn measure(args: &Args, burst_hz: f64, frames: &[Frame], node_pid: u32) -> Resul
     let param_samples = Arc::new(Mutex::new((Vec::new(), Vec::new())));
     let client_ready = Arc::new(AtomicBool::new(false));
     let param_thread = {
-        let (burst_on, failures, samples, ready) = (burst_on.clone(), param_failures.clone(), param_samples.clone(), client_ready.clone());
+        let (burst_on, failures, samples, ready) =
+            (burst_on.clone(), param_failures.clone(), param_samples.clone(), client_ready.clone());
         let period = Duration::from_secs_f64(args.param_period);
         std::thread::Builder::new().name("param-client".into()).spawn(move || -> Result<()> {
             let context = ros2_client::Context::new().context("creating the DDS participant")?;
-            let client = ParamClient::new(&context, &format!("{NAMESPACE}/{}", crate::config::NODE_NAME), Duration::from_secs(10))?;
+            let client = ParamClient::new(
+                &context,
+                &format!("{NAMESPACE}/{}", crate::config::NODE_NAME),
+                Duration::from_secs(10),
+            )?;
             client.get("detector.min_score").context("first parameter call, before the burst")?;
             ready.store(true, Ordering::SeqCst);
             let mut every_nth = 1;
             while burst_on.load(Ordering::SeqCst) {
                 let started = Instant::now();
                 match client.get("detector.min_score") {
-                    Ok(ros2_client::ParameterValue::Double(_)) => samples.lock().unwrap().0.push(started.elapsed().as_secs_f64() * 1e3),
+                    Ok(ros2_client::ParameterValue::Double(_)) => {
+                        samples.lock().unwrap().0.push(started.elapsed().as_secs_f64() * 1e3)
+                    }
                     Ok(other) => {
                         log::warn!("get detector.min_score answered {other:?}");
                         failures.fetch_add(1, Ordering::SeqCst);
@@ -384,7 +431,8 @@ fn measure(args: &Args, burst_hz: f64, frames: &[Frame], node_pid: u32) -> Resul
         }
         take(got, &sent, &mut candidates);
     }
-    let peak_rss_kib = status_kib(node_pid, "VmHWM").context("reading the node's VmHWM")?.max(peak_sampled.load(Ordering::SeqCst));
+    let peak_rss_kib =
+        status_kib(node_pid, "VmHWM").context("reading the node's VmHWM")?.max(peak_sampled.load(Ordering::SeqCst));
     sampling.store(false, Ordering::SeqCst);
     let _ = sampler.join();
     match param_thread.join() {

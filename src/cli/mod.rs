@@ -155,9 +155,21 @@ mod tests {
         let ours = |filter: String| filter.split(',').next().unwrap().to_string();
         let filter = default_log_filter(args(&["ecm-lcd", "node"]));
         assert_eq!(filter, "ecm_lcd=info,rustdds=error,ros2_client::distributions=error,warn");
-        assert_eq!(ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "debug"]))), "ecm_lcd=debug");
-        assert_eq!(ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "ecm_lcd:=WARN"]))), "ecm_lcd=warn");
-        assert_eq!(ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "fatal"]))), "ecm_lcd=error");
-        assert_eq!(ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "loud"]))), "ecm_lcd=info");
+        assert_eq!(
+            ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "debug"]))),
+            "ecm_lcd=debug"
+        );
+        assert_eq!(
+            ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "ecm_lcd:=WARN"]))),
+            "ecm_lcd=warn"
+        );
+        assert_eq!(
+            ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "fatal"]))),
+            "ecm_lcd=error"
+        );
+        assert_eq!(
+            ours(default_log_filter(args(&["ecm-lcd", "node", "--ros-args", "--log-level", "loud"]))),
+            "ecm_lcd=info"
+        );
     }
 }

@@ -59,7 +59,13 @@ pub fn import_weights(args: ImportArgs) -> Result<()> {
     crate::io::output::ensure_not_an_input(&args.output, &[&args.tflite])?;
     let weights = import::import_tflite(&args.tflite)?.for_arch(args.arch)?;
     weights.save(&args.output)?;
-    println!("wrote {} ({}, {} tensors) from {}", args.output.display(), weights.arch, weights.tensors.len(), args.tflite.display());
+    println!(
+        "wrote {} ({}, {} tensors) from {}",
+        args.output.display(),
+        weights.arch,
+        weights.tensors.len(),
+        args.tflite.display()
+    );
     Ok(())
 }
 
@@ -122,7 +128,11 @@ struct Classified {
 fn read_labels(path: Option<&Path>) -> Result<Vec<String>> {
     let path = match path {
         Some(p) => p.to_path_buf(),
-        None => match crate::runtime::shared_dirs().into_iter().map(|d| d.join("data/imagenet/imagenet_labels.txt")).find(|p| p.is_file()) {
+        None => match crate::runtime::shared_dirs()
+            .into_iter()
+            .map(|d| d.join("data/imagenet/imagenet_labels.txt"))
+            .find(|p| p.is_file())
+        {
             Some(p) => p,
             None => {
                 log::warn!("no ImageNet labels file found (pass --labels); showing class indexes");
@@ -155,7 +165,11 @@ pub fn classify(args: ClassifyArgs) -> Result<()> {
         let top = order
             .into_iter()
             .take(args.top)
-            .map(|i| Ranked { index: i, label: labels.get(i).cloned().unwrap_or_else(|| format!("class {i}")), prob: probs[i] })
+            .map(|i| Ranked {
+                index: i,
+                label: labels.get(i).cloned().unwrap_or_else(|| format!("class {i}")),
+                prob: probs[i],
+            })
             .collect();
         results.push(Classified { image: path.display().to_string(), top });
     }
@@ -196,7 +210,8 @@ pub fn embed(args: EmbedArgs) -> Result<()> {
         record.extend(pooled.iter().map(|v| v.to_string()));
         records.push(record);
     }
-    let mut writer = csv::Writer::from_path(&args.output).with_context(|| format!("cannot write {}", args.output.display()))?;
+    let mut writer =
+        csv::Writer::from_path(&args.output).with_context(|| format!("cannot write {}", args.output.display()))?;
     for record in &records {
         writer.write_record(record).with_context(|| format!("cannot write {}", args.output.display()))?;
     }

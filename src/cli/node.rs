@@ -66,7 +66,8 @@ pub fn run_with(args: Args, make_processor: impl FnOnce(&Params) -> Result<Box<d
     let fqn = ros_args.fully_qualified_node_name(DEFAULT_NODE_NAME);
     let (params, use_sim_time) = initial_params(&ros_args, &fqn)?;
     let processor = make_processor(&params)?;
-    let settings = NodeSettings { ros_args, input_qos: args.input_qos, queue_capacity: args.queue, ..Default::default() };
+    let settings =
+        NodeSettings { ros_args, input_qos: args.input_qos, queue_capacity: args.queue, ..Default::default() };
     let counters = Arc::new(NodeCounters::default());
     let stop = Arc::new(AtomicBool::new(false));
     for signal in [SIGINT, SIGTERM] {
@@ -94,8 +95,16 @@ mod tests {
     #[test]
     fn ros_arguments_pass_through_clap() {
         let w = Wrapper::try_parse_from([
-            "node", "--input-qos", "sensor-data", "--ros-args", "-r", "__ns:=/r", "-p", "detector.min_score:=0.5",
-            "--params-file", "p.yaml",
+            "node",
+            "--input-qos",
+            "sensor-data",
+            "--ros-args",
+            "-r",
+            "__ns:=/r",
+            "-p",
+            "detector.min_score:=0.5",
+            "--params-file",
+            "p.yaml",
         ])
         .unwrap();
         assert_eq!(w.args.input_qos, InputQos::SensorData);

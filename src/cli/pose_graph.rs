@@ -61,11 +61,15 @@ pub fn run(args: Args) -> Result<()> {
             bail!("{name} must be positive and finite, got {value}");
         }
     }
-    let odometry = read_groundtruth(&args.odometry).with_context(|| format!("reading the odometry {}", args.odometry.display()))?;
+    let odometry = read_groundtruth(&args.odometry)
+        .with_context(|| format!("reading the odometry {}", args.odometry.display()))?;
     let candidates = read_candidates_csv(&args.candidates)?;
     let (loops, not_metric) = LoopConstraint::from_candidates(&candidates);
     if not_metric > 0 {
-        log::warn!("{not_metric} of {} candidates have no metric relative pose (no depth, or not verified) and are not used", candidates.len());
+        log::warn!(
+            "{not_metric} of {} candidates have no metric relative pose (no depth, or not verified) and are not used",
+            candidates.len()
+        );
     }
     let params = PoseGraphParams {
         max_nodes: args.max_nodes as usize,
@@ -77,28 +81,42 @@ pub fn run(args: Args) -> Result<()> {
     let result = optimise(&odometry, &loops, &params)?;
     let seconds = started.elapsed().as_secs_f64();
     if result.unmatched_loops > 0 {
-        log::warn!("{} loops name keyframes with no odometry pose within {} s; not used", result.unmatched_loops, params.max_stamp_offset_s);
+        log::warn!(
+            "{} loops name keyframes with no odometry pose within {} s; not used",
+            result.unmatched_loops,
+            params.max_stamp_offset_s
+        );
     }
     write_trajectory(&args.output, &result.trajectory)?;
     let kept = result.loops.iter().filter(|&&(_, _, w)| w >= 0.5).count();
     let groundtruth = match &args.groundtruth {
-        Some(path) => Some(read_groundtruth(path).with_context(|| format!("reading the ground truth {}", path.display()))?),
+        Some(path) => {
+            Some(read_groundtruth(path).with_context(|| format!("reading the ground truth {}", path.display()))?)
+        }
         None => None,
     };
     let errors = match &groundtruth {
-        Some(truth) => Some((absolute_trajectory_error(&odometry, truth)?, absolute_trajectory_error(&result.trajectory, truth)?)),
+        Some(truth) => {
+            Some((absolute_trajectory_error(&odometry, truth)?, absolute_trajectory_error(&result.trajectory, truth)?))
+        }
         None => None,
     };
     if let Some(path) = &args.plot {
-        let positions = |poses: &[(crate::types::Stamp, nalgebra::Isometry3<f64>)], alignment: nalgebra::Isometry3<f64>| -> Vec<Vector3<f64>> {
+        let positions = |poses: &[(crate::types::Stamp, nalgebra::Isometry3<f64>)],
+                         alignment: nalgebra::Isometry3<f64>|
+         -> Vec<Vector3<f64>> {
             poses.iter().map(|(_, p)| (alignment * p).translation.vector).collect()
         };
         let identity = nalgebra::Isometry3::identity();
-        let (odometry_alignment, corrected_alignment) = errors.as_ref().map_or((identity, identity), |(b, a)| (b.alignment, a.alignment));
+        let (odometry_alignment, corrected_alignment) =
+            errors.as_ref().map_or((identity, identity), |(b, a)| (b.alignment, a.alignment));
         let corrected = positions(&result.trajectory, corrected_alignment);
-        let loop_lines: Vec<_> = result.loops.iter().filter(|&&(_, _, w)| w >= 0.5).map(|&(q, m, _)| (corrected[q], corrected[m])).collect();
+        let loop_lines: Vec<_> =
+            result.loops.iter().filter(|&&(_, _, w)| w >= 0.5).map(|&(q, m, _)| (corrected[q], corrected[m])).collect();
         let title = match &errors {
-            Some((before, after)) => format!("ATE RMSE {:.3} m (odometry) -> {:.3} m (corrected), {kept} loops", before.rmse, after.rmse),
+            Some((before, after)) => {
+                format!("ATE RMSE {:.3} m (odometry) -> {:.3} m (corrected), {kept} loops", before.rmse, after.rmse)
+            }
             None => format!("corrected with {kept} loops"),
         };
         plot_trajectories(

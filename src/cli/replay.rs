@@ -11,10 +11,10 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 
 use crate::config::{Params, NODE_NAME};
+pub use crate::io::candidates::write_candidates_csv;
+use crate::io::candidates::CandidateCsv;
 use crate::pipeline::Pipeline;
 use crate::replay::run_source_with;
-use crate::io::candidates::CandidateCsv;
-pub use crate::io::candidates::write_candidates_csv;
 
 /// Options every command that replays a source shares.
 #[derive(clap::Args, Debug, Clone)]
@@ -52,9 +52,8 @@ impl SourceArgs {
             None => Params::default(),
         };
         for assignment in &self.params {
-            let (name, value) = assignment
-                .split_once('=')
-                .with_context(|| format!("--param {assignment}: expected NAME=VALUE"))?;
+            let (name, value) =
+                assignment.split_once('=').with_context(|| format!("--param {assignment}: expected NAME=VALUE"))?;
             params.set_from_str(name.trim(), value.trim()).map_err(|e| anyhow::anyhow!("--param {assignment}: {e}"))?;
         }
         Ok(params)
@@ -84,7 +83,10 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     // Before anything is opened: neither output may be one of the inputs (or the other output).
     let inputs: Vec<&Path> =
-        [Some(args.source.as_path()), args.source_args.config.as_deref(), args.source_args.weights.as_deref()].into_iter().flatten().collect();
+        [Some(args.source.as_path()), args.source_args.config.as_deref(), args.source_args.weights.as_deref()]
+            .into_iter()
+            .flatten()
+            .collect();
     if let Some(db) = &args.source_args.db {
         crate::io::output::ensure_not_an_input(db, &inputs)?;
     }
@@ -106,9 +108,13 @@ pub fn run(args: Args) -> Result<()> {
         (Some(path), None) => CandidateCsv::to_file(path, resuming)?,
         (None, _) => CandidateCsv::to_stdout()?,
     };
-    let run = run_source_with(&mut pipeline, &args.source, args.source_args.topic.as_deref(), !args.source_args.quiet, |_, candidates| {
-        csv.write(candidates)
-    })?;
+    let run = run_source_with(
+        &mut pipeline,
+        &args.source,
+        args.source_args.topic.as_deref(),
+        !args.source_args.quiet,
+        |_, candidates| csv.write(candidates),
+    )?;
     let t = run.mean();
     let verification = if pipeline.verifies() {
         format!(", verification {:.2} ms; {} candidates failed verification", t.verification_ms, run.rejected)
@@ -128,7 +134,11 @@ pub fn run(args: Args) -> Result<()> {
         args.output.as_ref().map(|p| format!("; wrote {}", p.display())).unwrap_or_default()
     );
     if let Some(error) = run.error {
-        anyhow::bail!("{} broke off after {} frames (results for those were written): {error}", args.source.display(), run.frames);
+        anyhow::bail!(
+            "{} broke off after {} frames (results for those were written): {error}",
+            args.source.display(),
+            run.frames
+        );
     }
     Ok(())
 }

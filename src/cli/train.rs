@@ -84,7 +84,11 @@ pub fn run(args: Args) -> Result<()> {
             momentum: args.momentum,
             weight_decay: args.weight_decay,
             warmup_epochs: args.warmup_epochs,
-            augment: Augment { min_crop_area: args.min_crop_area, flip: !args.no_flip, colour_jitter: args.colour_jitter },
+            augment: Augment {
+                min_crop_area: args.min_crop_area,
+                flip: !args.no_flip,
+                colour_jitter: args.colour_jitter,
+            },
             seed: args.seed,
         },
         label_smoothing: args.label_smoothing,

@@ -119,11 +119,15 @@ impl Pooling {
     }
 }
 
-
 impl DescriptorMode {
     /// Every mode, in the order of the names of [`DescriptorMode::NAMES`].
-    pub const ALL: [DescriptorMode; 5] =
-        [DescriptorMode::Paper, DescriptorMode::L2, DescriptorMode::Spatial, DescriptorMode::Power, DescriptorMode::Regional];
+    pub const ALL: [DescriptorMode; 5] = [
+        DescriptorMode::Paper,
+        DescriptorMode::L2,
+        DescriptorMode::Spatial,
+        DescriptorMode::Power,
+        DescriptorMode::Regional,
+    ];
     /// The names accepted by [`FromStr`], as used in config files.
     pub const NAMES: [&'static str; 5] = ["paper", "l2", "spatial", "power", "regional"];
 
@@ -156,10 +160,9 @@ macro_rules! named_choice {
             type Err = String;
 
             fn from_str(text: &str) -> Result<Self, Self::Err> {
-                Self::ALL
-                    .into_iter()
-                    .find(|choice| choice.name() == text)
-                    .ok_or_else(|| format!(concat!("unknown ", $what, " {:?} (expected one of {})"), text, Self::NAMES.join(", ")))
+                Self::ALL.into_iter().find(|choice| choice.name() == text).ok_or_else(|| {
+                    format!(concat!("unknown ", $what, " {:?} (expected one of {})"), text, Self::NAMES.join(", "))
+                })
             }
         }
     };
@@ -311,9 +314,7 @@ impl Descriptor {
 
 /// Eq. 7 (min-max) then Eq. 8 (group means of ten), see the module doc.
 fn paper_descriptor(pooled: &[f32]) -> Vec<f32> {
-    let (min, max) = pooled
-        .iter()
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &x| (lo.min(x), hi.max(x)));
+    let (min, max) = pooled.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &x| (lo.min(x), hi.max(x)));
     let range = max - min;
     let normalise = |x: f32| if range > 0.0 { (x - min) / range } else { 0.0 };
     pooled
@@ -376,7 +377,9 @@ fn regional_descriptor(fm: &FeatureMap, grid: usize, pooling: Pooling) -> Vec<f3
             let cols = grid_cell(fm.width, grid, cell_col);
             let start = out.len();
             for channel in fm.data.chunks_exact(plane) {
-                let values = rows.clone().flat_map(|r| channel[r * fm.width + cols.start..r * fm.width + cols.end].iter().copied());
+                let values = rows
+                    .clone()
+                    .flat_map(|r| channel[r * fm.width + cols.start..r * fm.width + cols.end].iter().copied());
                 out.push(pooling.pool(values));
             }
             let cell = &mut out[start..];
@@ -505,7 +508,8 @@ mod tests {
                 let (x0, x1) = (gx * fm.width / grid, ((gx + 1) * fm.width).div_ceil(grid));
                 let mut cell = Vec::new();
                 for c in 0..fm.channels {
-                    let pixels: Vec<f64> = (y0..y1).flat_map(|y| (x0..x1).map(move |x| (y, x))).map(|(y, x)| at(c, y, x)).collect();
+                    let pixels: Vec<f64> =
+                        (y0..y1).flat_map(|y| (x0..x1).map(move |x| (y, x))).map(|(y, x)| at(c, y, x)).collect();
                     let n = pixels.len() as f64;
                     let pooled = match pooling {
                         Pooling::Gap => pixels.iter().sum::<f64>() / n,

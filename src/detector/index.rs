@@ -31,7 +31,6 @@ use crate::descriptor::squared_distance;
 /// Keyframes assigned to the index's lists at once (the rest of the tail is scanned exactly).
 pub const ASSIGN_BATCH: usize = 1024;
 
-
 /// When the database builds and rebuilds its approximate index.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct IndexPolicy {
@@ -55,14 +54,25 @@ impl Default for IndexPolicy {
         // keyframes at 128-d and 1280-d (0.996 at 1M: `ecm-lcd bench --only search` measures it).
         // A retraining slice of 2^27 multiply-adds takes 2-3 ms of matrix products on two cores (a whole
         // retraining at 80k 1280-d keyframes, in one go: 3.5 s).
-        IndexPolicy { min_len: 5000, scan_values: 2_621_440, retrain_growth: 4, probe_fraction: 1.0 / 64.0, retrain_slice_macs: 1 << 27 }
+        IndexPolicy {
+            min_len: 5000,
+            scan_values: 2_621_440,
+            retrain_growth: 4,
+            probe_fraction: 1.0 / 64.0,
+            retrain_slice_macs: 1 << 27,
+        }
     }
 }
 
 impl IndexPolicy {
     /// Always exact.
-    pub const EXACT: IndexPolicy =
-        IndexPolicy { min_len: usize::MAX, scan_values: usize::MAX, retrain_growth: 8, probe_fraction: 1.0, retrain_slice_macs: usize::MAX };
+    pub const EXACT: IndexPolicy = IndexPolicy {
+        min_len: usize::MAX,
+        scan_values: usize::MAX,
+        retrain_growth: 8,
+        probe_fraction: 1.0,
+        retrain_slice_macs: usize::MAX,
+    };
 
     /// The database length from which descriptors of length `dim` are indexed.
     pub fn threshold(&self, dim: usize) -> usize {
@@ -115,7 +125,11 @@ impl TopK {
 
 /// Calls `visit(i, d2)` for each `(i, row)` that `rows` yields.
 #[inline(always)]
-fn scan_portable<'a>(query: &[f32], rows: impl Iterator<Item = (usize, &'a [f32])>, visit: &mut impl FnMut(usize, f32)) {
+fn scan_portable<'a>(
+    query: &[f32],
+    rows: impl Iterator<Item = (usize, &'a [f32])>,
+    visit: &mut impl FnMut(usize, f32),
+) {
     for (i, row) in rows {
         visit(i, squared_distance(query, row));
     }
@@ -128,7 +142,11 @@ fn scan_avx2<'a>(query: &[f32], rows: impl Iterator<Item = (usize, &'a [f32])>, 
 }
 
 /// Squared distances from `query` to each `(i, row)`, with the widest SIMD the CPU has.
-pub(crate) fn scan<'a>(query: &[f32], rows: impl Iterator<Item = (usize, &'a [f32])>, mut visit: impl FnMut(usize, f32)) {
+pub(crate) fn scan<'a>(
+    query: &[f32],
+    rows: impl Iterator<Item = (usize, &'a [f32])>,
+    mut visit: impl FnMut(usize, f32),
+) {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU supports AVX2 (checked just above).
@@ -170,7 +188,8 @@ struct CentroidMatrix {
 impl CentroidMatrix {
     fn new(centroids: &[f32], dim: usize) -> anyhow::Result<Self> {
         use candle_core::{Device, Tensor};
-        let half_norms: Vec<f32> = centroids.chunks_exact(dim).map(|c| 0.5 * c.iter().map(|x| x * x).sum::<f32>()).collect();
+        let half_norms: Vec<f32> =
+            centroids.chunks_exact(dim).map(|c| 0.5 * c.iter().map(|x| x * x).sum::<f32>()).collect();
         let transposed = Tensor::from_slice(centroids, (half_norms.len(), dim), &Device::Cpu)?.t()?.contiguous()?;
         Ok(CentroidMatrix { transposed, half_norms })
     }
@@ -327,7 +346,8 @@ impl IvfTraining {
         let total = rows.len() / dim;
         let live = total - first_live;
         // 2 sqrt(n) lists, up to 1024, and at most MAX_ASSIGN_VALUES / dim.
-        let nlist = ((2.0 * (live as f64).sqrt()).round() as usize).clamp(1, (MAX_ASSIGN_VALUES / dim.max(1)).clamp(1, 1024));
+        let nlist =
+            ((2.0 * (live as f64).sqrt()).round() as usize).clamp(1, (MAX_ASSIGN_VALUES / dim.max(1)).clamp(1, 1024));
         // A fixed sample: evenly spread over the history, then jittered, so training is reproducible.
         let mut sampler = Sampler(0x9E37_79B9_7F4A_7C15 ^ live as u64);
         let sample_len = (nlist * SAMPLE_PER_LIST).min(live).max(1);
@@ -339,7 +359,8 @@ impl IvfTraining {
             })
             .collect();
         // Initial centroids: sample rows spread over the sample.
-        let centroids: Vec<f32> = (0..nlist).flat_map(|c| sample[c * sample_len / nlist * dim..][..dim].iter().copied()).collect();
+        let centroids: Vec<f32> =
+            (0..nlist).flat_map(|c| sample[c * sample_len / nlist * dim..][..dim].iter().copied()).collect();
         IvfTraining {
             dim,
             nlist,
@@ -619,7 +640,10 @@ mod tests {
         assert_eq!(steps, KMEANS_ITERATIONS * 13 + 13);
         assert_eq!(sliced.centroids, whole.centroids);
         assert_eq!(sliced.lists, whole.lists);
-        assert_eq!((sliced.assigned, sliced.trained_len, sliced.nprobe), (whole.assigned, whole.trained_len, whole.nprobe));
+        assert_eq!(
+            (sliced.assigned, sliced.trained_len, sliced.nprobe),
+            (whole.assigned, whole.trained_len, whole.nprobe)
+        );
         Ok(())
     }
 
@@ -629,7 +653,13 @@ mod tests {
         let data = clustered(9000, dim, 80, 13);
         // Retrained at 4000 (growth 2 from 2000), a slice of about 100 rows' worth of work per insert.
         let slice = 100 * 126 * dim;
-        let policy = IndexPolicy { min_len: 2000, scan_values: 0, retrain_growth: 2, retrain_slice_macs: slice, ..IndexPolicy::default() };
+        let policy = IndexPolicy {
+            min_len: 2000,
+            scan_values: 0,
+            retrain_growth: 2,
+            retrain_slice_macs: slice,
+            ..IndexPolicy::default()
+        };
         let mut db = KeyframeDb::new(dim);
         db.set_index_policy(policy)?;
         let mut exact = KeyframeDb::new(dim);
@@ -706,7 +736,12 @@ mod tests {
         let dim = 16;
         let data = clustered(3000, dim, 30, 3);
         let mut db = KeyframeDb::new(dim);
-        db.set_index_policy(IndexPolicy { min_len: 1000, scan_values: 0, retrain_growth: 2, ..IndexPolicy::default() })?;
+        db.set_index_policy(IndexPolicy {
+            min_len: 1000,
+            scan_values: 0,
+            retrain_growth: 2,
+            ..IndexPolicy::default()
+        })?;
         for (i, v) in data.chunks_exact(dim).enumerate() {
             db.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
         }

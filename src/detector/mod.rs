@@ -48,10 +48,10 @@ pub mod sequence;
 pub mod store;
 
 use crate::descriptor::Descriptor;
-use index::{IndexPolicy, IvfIndex, IvfTraining, TopK};
-use rows::DescriptorRows;
 use crate::types::{LoopCandidate, Stamp};
 use anyhow::{ensure, Context};
+use index::{IndexPolicy, IvfIndex, IvfTraining, TopK};
+use rows::DescriptorRows;
 use std::collections::VecDeque;
 
 /// The acceptance threshold, on the distance or on the score (see [`crate::descriptor::Descriptor::score`]).
@@ -156,7 +156,12 @@ impl KeyframeDb {
     /// `descriptors` are one keyframe, in insertion order; every descriptor must have passed
     /// [`KeyframeDb::check_descriptor`]. The index is deferred to the next insert, as after
     /// [`KeyframeDb::index_at_next_insert`].
-    pub(crate) fn from_history(dim: usize, ids: Vec<u64>, stamps: Vec<Stamp>, descriptors: DescriptorRows) -> anyhow::Result<Self> {
+    pub(crate) fn from_history(
+        dim: usize,
+        ids: Vec<u64>,
+        stamps: Vec<Stamp>,
+        descriptors: DescriptorRows,
+    ) -> anyhow::Result<Self> {
         ensure!(
             ids.len() == stamps.len() && ids.len() * dim == descriptors.len(),
             "a history of {} ids, {} stamps and {} values of {dim}-value descriptors does not add up",
@@ -198,7 +203,12 @@ impl KeyframeDb {
 
     /// The approximate index's shape, or `None` while searches are exact.
     pub fn index_info(&self) -> Option<IndexInfo> {
-        self.index.as_ref().map(|i| IndexInfo { nlist: i.nlist(), nprobe: i.nprobe(), trained_len: i.trained_len(), largest_list: i.largest_list() })
+        self.index.as_ref().map(|i| IndexInfo {
+            nlist: i.nlist(),
+            nprobe: i.nprobe(),
+            trained_len: i.trained_len(),
+            largest_list: i.largest_list(),
+        })
     }
 
     /// Trains, retrains or extends the index as the policy and the database length require.
@@ -207,7 +217,10 @@ impl KeyframeDb {
             return Ok(());
         }
         if let Some(training) = &mut self.training {
-            if let Some(index) = training.step(&self.descriptors, self.index_policy.retrain_slice_macs).context("retraining the search index")? {
+            if let Some(index) = training
+                .step(&self.descriptors, self.index_policy.retrain_slice_macs)
+                .context("retraining the search index")?
+            {
                 self.index = Some(index);
                 self.training = None;
             }
@@ -217,7 +230,10 @@ impl KeyframeDb {
         match &mut self.index {
             // The first index is built at once: until it exists every query is an exact scan.
             None if len >= policy.threshold(dim) => {
-                self.index = Some(IvfIndex::train(&self.descriptors, dim, first_live, policy.probe_fraction).context("training the search index")?)
+                self.index = Some(
+                    IvfIndex::train(&self.descriptors, dim, first_live, policy.probe_fraction)
+                        .context("training the search index")?,
+                )
             }
             None => {}
             Some(index) => {
@@ -333,7 +349,12 @@ impl KeyframeDb {
     }
 
     /// [`KeyframeDb::nearest`] by the exact scan, whatever the size (the reference for the index's recall).
-    pub fn nearest_exact(&self, query: &[f32], k: usize, eligible: impl Fn(usize) -> bool) -> anyhow::Result<Vec<Neighbour>> {
+    pub fn nearest_exact(
+        &self,
+        query: &[f32],
+        k: usize,
+        eligible: impl Fn(usize) -> bool,
+    ) -> anyhow::Result<Vec<Neighbour>> {
         Self::check_descriptor(self.dim, query, "query")?;
         if k == 0 || self.dim == 0 {
             // A zero-length descriptor makes every keyframe equally near; take the first eligible ones.
@@ -344,7 +365,10 @@ impl KeyframeDb {
                 .collect());
         }
         let mut top = TopK::new(k);
-        let live = self.descriptors[self.dropped * self.dim..].chunks_exact(self.dim).enumerate().filter(|&(p, _)| eligible(p));
+        let live = self.descriptors[self.dropped * self.dim..]
+            .chunks_exact(self.dim)
+            .enumerate()
+            .filter(|&(p, _)| eligible(p));
         index::scan(query, live, |position, d2| top.offer(position, d2));
         Ok(top.into_vec())
     }
@@ -378,7 +402,14 @@ impl Detector {
     pub fn new(descriptor: Descriptor, params: DetectorParams) -> Self {
         let recent_queries = sequence::RecentQueries::new(params.sequence_length);
         let history_sum = vec![0.0; descriptor.dim()];
-        Detector { db: KeyframeDb::new(descriptor.dim()), descriptor, params, recent_matches: VecDeque::new(), recent_queries, history_sum }
+        Detector {
+            db: KeyframeDb::new(descriptor.dim()),
+            descriptor,
+            params,
+            recent_matches: VecDeque::new(),
+            recent_queries,
+            history_sum,
+        }
     }
 
     pub fn params(&self) -> &DetectorParams {
@@ -401,7 +432,12 @@ impl Detector {
     /// The memory budget applies. A history large enough for the search index gets it now (seconds at
     /// 100k 1280-d keyframes), at start-up, rather than holding up the first keyframe.
     pub fn replace_history(&mut self, db: KeyframeDb) -> anyhow::Result<()> {
-        ensure!(db.dim() == self.db.dim(), "the history has {}-value descriptors, the detector's descriptor {}", db.dim(), self.db.dim());
+        ensure!(
+            db.dim() == self.db.dim(),
+            "the history has {}-value descriptors, the detector's descriptor {}",
+            db.dim(),
+            self.db.dim()
+        );
         self.db = db;
         self.recent_matches.clear();
         self.recent_queries.clear();
@@ -541,7 +577,12 @@ impl Detector {
 
     /// [`Detector::process`] that also returns the nearest eligible keyframe whether or not it passes
     /// (what [`Detector::best_match`] gives), from the same search: one search per keyframe, not two.
-    pub fn process_with_best(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<(Option<Match>, Vec<LoopCandidate>)> {
+    pub fn process_with_best(
+        &mut self,
+        id: u64,
+        stamp: Stamp,
+        descriptor: &[f32],
+    ) -> anyhow::Result<(Option<Match>, Vec<LoopCandidate>)> {
         let ranked = self.ranked_matches(stamp, descriptor, self.params.top_k)?;
         let best = ranked.first().map(|&m| self.to_match(m));
         let passing: Vec<(usize, f32, f32)> =

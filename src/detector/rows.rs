@@ -135,7 +135,10 @@ mod mapped {
             let file_bytes = (head + values * 4).div_ceil(page) * page;
             let mapped_bytes = file_bytes + (spare * 4).div_ceil(page) * page;
             if mapped_bytes == 0 || !head.is_multiple_of(4) {
-                return Err(std::io::Error::new(std::io::ErrorKind::InvalidInput, "nothing to map, or values not 4-byte aligned"));
+                return Err(std::io::Error::new(
+                    std::io::ErrorKind::InvalidInput,
+                    "nothing to map, or values not 4-byte aligned",
+                ));
             }
             let error = std::io::Error::last_os_error;
             // SAFETY: a fresh anonymous reservation; nothing else refers to it.
@@ -152,7 +155,12 @@ mod mapped {
             if base == libc::MAP_FAILED {
                 return Err(error());
             }
-            let rows = MappedRows { base: NonNull::new(base.cast()).expect("mmap returned null"), mapped_bytes, head, len: values };
+            let rows = MappedRows {
+                base: NonNull::new(base.cast()).expect("mmap returned null"),
+                mapped_bytes,
+                head,
+                len: values,
+            };
             if file_bytes > 0 {
                 // The file's pages go over the start of the reservation. Mapped read-only with
                 // MAP_POPULATE, so they are entered as the page cache's pages in one call (populating

@@ -19,7 +19,6 @@
 
 use std::collections::VecDeque;
 
-
 /// Keyframes nearest to the current query that the sequence score re-ranks.
 pub const CANDIDATES: usize = 10;
 

@@ -141,7 +141,9 @@ fn ensure_database_file(path: &Path) -> Result<()> {
         Ok(m) if m.is_file() => Ok(()),
         Ok(m) if m.is_dir() => bail!("keyframe database {} is a directory", path.display()),
         Ok(_) => bail!("keyframe database {} is not a regular file", path.display()),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => bail!("keyframe database {} does not exist", path.display()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            bail!("keyframe database {} does not exist", path.display())
+        }
         Err(e) => Err(e).with_context(|| format!("cannot open keyframe database {}", path.display())),
     }
 }
@@ -163,7 +165,8 @@ impl KeyframeStore {
         // A symlink is written through (the store is created at its target, the link stays).
         let target;
         let path = if std::fs::symlink_metadata(path).is_ok_and(|m| m.file_type().is_symlink()) {
-            target = std::fs::canonicalize(path).with_context(|| format!("keyframe database {} is a dangling symlink", path.display()))?;
+            target = std::fs::canonicalize(path)
+                .with_context(|| format!("keyframe database {} is a dangling symlink", path.display()))?;
             target.as_path()
         } else {
             path
@@ -176,7 +179,8 @@ impl KeyframeStore {
             Ok(_) => bail!("keyframe database {} is not a regular file; give a file path", path.display()),
         };
         if created {
-            create_store_file(path, identity).with_context(|| format!("creating keyframe database {}", path.display()))?;
+            create_store_file(path, identity)
+                .with_context(|| format!("creating keyframe database {}", path.display()))?;
         }
         let connection = open_connection(path, OpenFlags::SQLITE_OPEN_READ_WRITE)?;
         let store = Self::from_connection(connection, path, true)?;
@@ -228,7 +232,9 @@ impl KeyframeStore {
             connection.pragma_update(None, "synchronous", "FULL").with_context(context)?;
             // Stores made before candidates were stored get the table (and keep no `all` mark).
             connection
-                .execute_batch("CREATE TABLE IF NOT EXISTS candidates (query_id INTEGER PRIMARY KEY, json TEXT NOT NULL)")
+                .execute_batch(
+                    "CREATE TABLE IF NOT EXISTS candidates (query_id INTEGER PRIMARY KEY, json TEXT NOT NULL)",
+                )
                 .with_context(context)?;
         }
         let meta = |key: &str| -> Result<String> {
@@ -274,7 +280,9 @@ impl KeyframeStore {
                 .with_context(|| format!("{}: recording its unique id", context()))?;
         }
         let uid = meta("uid")?;
-        let uid = <[u8; 32]>::try_from(uid.as_bytes()).ok().with_context(|| format!("{}: its uid {uid:?} is not 32 characters", context()))?;
+        let uid = <[u8; 32]>::try_from(uid.as_bytes())
+            .ok()
+            .with_context(|| format!("{}: its uid {uid:?} is not 32 characters", context()))?;
         Ok(KeyframeStore {
             connection,
             path: path.to_path_buf(),
@@ -319,7 +327,13 @@ impl KeyframeStore {
     /// As [`KeyframeStore::append`], with the keyframe's loop candidates in the same transaction: a
     /// crash leaves both or neither, so a restarted replay can write out every candidate emitted
     /// before it ([`KeyframeStore::stored_candidates`]).
-    pub fn append_keyframe(&mut self, id: u64, stamp: Stamp, descriptor: &[f32], candidates: &[LoopCandidate]) -> Result<()> {
+    pub fn append_keyframe(
+        &mut self,
+        id: u64,
+        stamp: Stamp,
+        descriptor: &[f32],
+        candidates: &[LoopCandidate],
+    ) -> Result<()> {
         ensure!(
             descriptor.len() == self.identity.dim,
             "keyframe {id} descriptor has {} values, the database {} holds {}-value descriptors",
@@ -338,7 +352,9 @@ impl KeyframeStore {
                 .prepare("INSERT INTO keyframes (id, stamp_nanos, descriptor) VALUES (?1, ?2, ?3)")?
                 .execute(params![sql_id, stamp.nanos, descriptor_blob(descriptor)])?;
             if let Some(json) = &json {
-                transaction.prepare("INSERT OR REPLACE INTO candidates (query_id, json) VALUES (?1, ?2)")?.execute(params![sql_id, json])?;
+                transaction
+                    .prepare("INSERT OR REPLACE INTO candidates (query_id, json) VALUES (?1, ?2)")?
+                    .execute(params![sql_id, json])?;
             }
             transaction.commit()
         })();
@@ -406,7 +422,9 @@ impl KeyframeStore {
     /// Calls `each` with every stored keyframe in insertion order, skipping the first `skip`.
     pub fn for_each(&self, skip: u64, each: impl FnMut(u64, Stamp, &[u8]) -> Result<()>) -> Result<()> {
         match self.seq_at(skip)? {
-            Some(first_seq) => scan_rows(&self.connection, &self.path, self.identity.dim, first_seq, None, Columns::All, each),
+            Some(first_seq) => {
+                scan_rows(&self.connection, &self.path, self.identity.dim, first_seq, None, Columns::All, each)
+            }
             None => Ok(()),
         }
     }
@@ -419,8 +437,10 @@ impl KeyframeStore {
         }
         // Rows are never deleted, so seq normally runs without gaps and the position is arithmetic;
         // otherwise SQLite steps through the rows before it.
-        let (first, last): (Option<i64>, Option<i64>) =
-            self.connection.query_row("SELECT min(seq), max(seq) FROM keyframes", [], |r| Ok((r.get(0)?, r.get(1)?))).with_context(context)?;
+        let (first, last): (Option<i64>, Option<i64>) = self
+            .connection
+            .query_row("SELECT min(seq), max(seq) FROM keyframes", [], |r| Ok((r.get(0)?, r.get(1)?)))
+            .with_context(context)?;
         if let Some((first, last)) = first.zip(last).filter(|(first, last)| (last - first) as u64 + 1 == self.count) {
             return Ok(Some(first + position as i64).filter(|&seq| seq <= last));
         }
@@ -466,7 +486,8 @@ impl KeyframeStore {
         let (vector_file, covered) = match self.checked_vector_file(len * dim) {
             Some((file, header, mut rows)) => {
                 if skip < header.rows {
-                    (ids, stamps, _) = self.read_range(skip, (header.rows - skip) as usize, threads, Columns::IdAndStamp)?;
+                    (ids, stamps, _) =
+                        self.read_range(skip, (header.rows - skip) as usize, threads, Columns::IdAndStamp)?;
                     rows.drain_front(skip as usize * dim);
                     descriptors = rows;
                 }
@@ -477,14 +498,18 @@ impl KeyframeStore {
         #[cfg(not(unix))]
         let covered = 0;
         if covered < self.count {
-            let (tail_ids, tail_stamps, tail_values) = self.read_range(covered, (self.count - covered) as usize, threads, Columns::All)?;
+            let (tail_ids, tail_stamps, tail_values) =
+                self.read_range(covered, (self.count - covered) as usize, threads, Columns::All)?;
             #[cfg(unix)]
             if let Some((file, header)) = &vector_file {
                 let last_seq = self.seq_at(self.count - 1)?.context("keyframe database changed while loading")?;
                 let prev_seq = (header.rows > 0).then_some(header.last_seq);
                 match file.append_after(dim, &self.uid, prev_seq, last_seq, &tail_values) {
                     Ok(true) => {}
-                    Ok(false) => log::warn!("keyframe database {}: its vector file changed while loading; the next load catches it up", self.path.display()),
+                    Ok(false) => log::warn!(
+                        "keyframe database {}: its vector file changed while loading; the next load catches it up",
+                        self.path.display()
+                    ),
                     Err(e) => log::warn!("keyframe database {}: {e:#}", self.path.display()),
                 }
             }
@@ -526,20 +551,32 @@ impl KeyframeStore {
                     .connection
                     .query_row("SELECT descriptor FROM keyframes WHERE seq = ?1", [header.last_seq], |r| r.get(0))
                     .context("reading the database")?;
-                ensure!(stored == file.row(position, self.identity.dim)?, "its row {position} differs from the database's");
+                ensure!(
+                    stored == file.row(position, self.identity.dim)?,
+                    "its row {position} differs from the database's"
+                );
             }
             let rows = file.map_checked(&header, spare)?;
             Ok(Some((file, header, rows)))
         })();
         match checked {
             Ok(Some(found)) => return Some(found),
-            Ok(None) => log::info!("keyframe database {}: writing its vector file {}", self.path.display(), path.display()),
-            Err(e) => log::warn!("keyframe database {}: rebuilding its vector file {}: {e:#}", self.path.display(), path.display()),
+            Ok(None) => {
+                log::info!("keyframe database {}: writing its vector file {}", self.path.display(), path.display())
+            }
+            Err(e) => log::warn!(
+                "keyframe database {}: rebuilding its vector file {}: {e:#}",
+                self.path.display(),
+                path.display()
+            ),
         }
         match VectorFile::create_empty(&path, self.identity.dim, self.uid).and_then(|file| Ok((file.header()?, file))) {
             Ok((header, file)) => Some((file, header, DescriptorRows::with_capacity(0))),
             Err(e) => {
-                log::warn!("keyframe database {}: no vector file, loading from the database alone: {e:#}", self.path.display());
+                log::warn!(
+                    "keyframe database {}: no vector file, loading from the database alone: {e:#}",
+                    self.path.display()
+                );
                 None
             }
         }
@@ -547,23 +584,33 @@ impl KeyframeStore {
 
     /// Ids, stamps and (with [`Columns::All`]) descriptors of the `len` rows from position `first`,
     /// read on up to `threads` threads (one contiguous range and connection each).
-    fn read_range(&self, first: u64, len: usize, threads: usize, columns: Columns) -> Result<(Vec<u64>, Vec<Stamp>, Vec<f32>)> {
+    fn read_range(
+        &self,
+        first: u64,
+        len: usize,
+        threads: usize,
+        columns: Columns,
+    ) -> Result<(Vec<u64>, Vec<Stamp>, Vec<f32>)> {
         let dim = self.identity.dim;
         let threads = threads.min(len.div_ceil(LOAD_ROWS_PER_THREAD_MIN)).max(1);
         let rows_per_thread = len.div_ceil(threads).max(1);
         let mut ids = vec![0u64; len];
         let mut stamps = vec![Stamp::from_nanos(0); len];
         let mut descriptors = vec![0f32; if columns == Columns::All { len * dim } else { 0 }];
-        let starts = (0..len).step_by(rows_per_thread).map(|row| self.seq_at(first + row as u64)).collect::<Result<Vec<_>>>()?;
+        let starts =
+            (0..len).step_by(rows_per_thread).map(|row| self.seq_at(first + row as u64)).collect::<Result<Vec<_>>>()?;
         let path = self.path.as_path();
-        let descriptor_parts = descriptors.chunks_mut(rows_per_thread * dim.max(1)).map(Some).chain(std::iter::repeat_with(|| None));
+        let descriptor_parts =
+            descriptors.chunks_mut(rows_per_thread * dim.max(1)).map(Some).chain(std::iter::repeat_with(|| None));
         let parts = ids.chunks_mut(rows_per_thread).zip(stamps.chunks_mut(rows_per_thread)).zip(descriptor_parts);
         std::thread::scope(|scope| -> Result<()> {
             let mut workers = Vec::new();
             for (((ids, stamps), mut descriptors), first_seq) in parts.zip(starts) {
-                let first_seq = first_seq.with_context(|| format!("keyframe database {}: changed while loading", path.display()))?;
+                let first_seq = first_seq
+                    .with_context(|| format!("keyframe database {}: changed while loading", path.display()))?;
                 workers.push(scope.spawn(move || -> Result<()> {
-                    let connection = open_connection(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)?;
+                    let connection =
+                        open_connection(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)?;
                     if let Some(descriptors) = descriptors.as_deref_mut() {
                         prefault(descriptors);
                     }
@@ -625,7 +672,12 @@ impl KeyframeStore {
                 .prepare("INSERT INTO keyframes (id, stamp_nanos, descriptor) VALUES (?1, ?2, ?3)")
                 .with_context(context)?;
             for (id, stamp, descriptor) in keyframes {
-                ensure!(descriptor.len() == self.identity.dim, "keyframe {id}: {} values, expected {}", descriptor.len(), self.identity.dim);
+                ensure!(
+                    descriptor.len() == self.identity.dim,
+                    "keyframe {id}: {} values, expected {}",
+                    descriptor.len(),
+                    self.identity.dim
+                );
                 insert
                     .execute(params![to_sql_id(id)?, stamp.nanos, descriptor_blob(&descriptor)])
                     .with_context(|| format!("{}: keyframe {id}", context()))?;
@@ -657,12 +709,16 @@ impl KeyframeStore {
                 }
                 let Some(file) = &self.vectors else { return Ok(()) };
                 let prev_seq: Option<i64> =
-                    self.connection.query_row("SELECT max(seq) FROM keyframes WHERE seq < ?1", [first_seq], |r| r.get(0))?;
+                    self.connection
+                        .query_row("SELECT max(seq) FROM keyframes WHERE seq < ?1", [first_seq], |r| r.get(0))?;
                 file.append_after(self.identity.dim, &self.uid, prev_seq, last_seq, values)?;
                 Ok(())
             })();
             if let Err(e) = extended {
-                log::warn!("keyframe database {}: vector file not extended (the next load rebuilds it): {e:#}", self.path.display());
+                log::warn!(
+                    "keyframe database {}: vector file not extended (the next load rebuilds it): {e:#}",
+                    self.path.display()
+                );
             }
         }
         #[cfg(not(unix))]
@@ -773,7 +829,8 @@ fn create_store_file(path: &Path, identity: &StoreIdentity) -> Result<()> {
     create_schema(&connection, identity)?;
     // Closing the last connection checkpoints the log into the file and removes it.
     connection.close().map_err(|(_, e)| e)?;
-    std::fs::rename(&temporary, path).with_context(|| format!("renaming {} to {}", temporary.display(), path.display()))?;
+    std::fs::rename(&temporary, path)
+        .with_context(|| format!("renaming {} to {}", temporary.display(), path.display()))?;
     let folder = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
     std::fs::File::open(folder).and_then(|f| f.sync_all()).with_context(|| format!("syncing {}", folder.display()))?;
     Ok(())
@@ -839,7 +896,8 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
             second.display()
         );
     }
-    let path_text = |p: &Path| p.to_str().map(str::to_string).with_context(|| format!("{} is not a UTF-8 path", p.display()));
+    let path_text =
+        |p: &Path| p.to_str().map(str::to_string).with_context(|| format!("{} is not a UTF-8 path", p.display()));
     a.connection.execute("ATTACH DATABASE ?1 AS other", [path_text(second)?])?;
     let clashes: Vec<i64> = {
         let mut query = a.connection.prepare(
@@ -867,7 +925,8 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
         out.connection.execute("ATTACH DATABASE ?1 AS first", [path_text(first)?])?;
         out.connection.execute("ATTACH DATABASE ?1 AS second", [path_text(second)?])?;
         out.connection.execute_batch("BEGIN")?;
-        let copy = "INSERT INTO main.keyframes (id, stamp_nanos, descriptor) SELECT id + ?1, stamp_nanos, descriptor FROM";
+        let copy =
+            "INSERT INTO main.keyframes (id, stamp_nanos, descriptor) SELECT id + ?1, stamp_nanos, descriptor FROM";
         let from_first = out.connection.execute(&format!("{copy} first.keyframes ORDER BY seq"), [0i64])? as u64;
         let from_second = out.connection.execute(&format!("{copy} second.keyframes ORDER BY seq"), [offset])? as u64;
         out.connection.execute_batch("COMMIT")?;

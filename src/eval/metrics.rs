@@ -120,8 +120,7 @@ pub fn evaluate(results: &[QueryResult], truth: &LoopTruth) -> Result<Metrics> {
     let (recall_at_1, recall_at_100_precision, average_precision) = if positives == 0 {
         (None, None, None)
     } else {
-        let at_full_precision =
-            curve.iter().take_while(|p| p.precision >= 1.0).map(|p| p.recall).fold(0.0, f64::max);
+        let at_full_precision = curve.iter().take_while(|p| p.precision >= 1.0).map(|p| p.recall).fold(0.0, f64::max);
         let mut previous_recall = 0.0;
         let mut ap = 0.0;
         for point in &curve {
@@ -132,7 +131,17 @@ pub fn evaluate(results: &[QueryResult], truth: &LoopTruth) -> Result<Metrics> {
     };
     let true_reports = reported.iter().filter(|(_, correct)| *correct).count();
     let false_reports = reported.len() - true_reports;
-    Ok(Metrics { queries, positives, true_reports, false_reports, unknown, recall_at_1, recall_at_100_precision, average_precision, curve })
+    Ok(Metrics {
+        queries,
+        positives,
+        true_reports,
+        false_reports,
+        unknown,
+        recall_at_1,
+        recall_at_100_precision,
+        average_precision,
+        curve,
+    })
 }
 
 #[cfg(test)]

@@ -57,10 +57,17 @@ fn font_available() -> bool {
 /// a font is available.
 pub fn plot_pr_curve(metrics: &Metrics, title: &str, path: &Path) -> Result<()> {
     let with_text = font_available();
-    draw_pr_curve(metrics, title, path, with_text).map_err(|e| anyhow::anyhow!("{e}")).with_context(|| format!("plotting {}", path.display()))
+    draw_pr_curve(metrics, title, path, with_text)
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .with_context(|| format!("plotting {}", path.display()))
 }
 
-fn draw_pr_curve(metrics: &Metrics, title: &str, path: &Path, with_text: bool) -> Result<(), Box<dyn std::error::Error>> {
+fn draw_pr_curve(
+    metrics: &Metrics,
+    title: &str,
+    path: &Path,
+    with_text: bool,
+) -> Result<(), Box<dyn std::error::Error>> {
     let root = BitMapBackend::new(path, (800, 600)).into_drawing_area();
     root.fill(&WHITE)?;
     let mut builder = ChartBuilder::on(&root);
@@ -109,7 +116,9 @@ pub struct TrajectoryPlot<'a> {
 /// corrected blue, loop edges green.
 pub fn plot_trajectories(plot: &TrajectoryPlot, path: &Path) -> Result<()> {
     let with_text = font_available();
-    draw_trajectories(plot, path, with_text).map_err(|e| anyhow::anyhow!("{e}")).with_context(|| format!("plotting {}", path.display()))
+    draw_trajectories(plot, path, with_text)
+        .map_err(|e| anyhow::anyhow!("{e}"))
+        .with_context(|| format!("plotting {}", path.display()))
 }
 
 fn draw_trajectories(plot: &TrajectoryPlot, path: &Path, with_text: bool) -> Result<(), Box<dyn std::error::Error>> {
@@ -151,14 +160,23 @@ fn draw_trajectories(plot: &TrajectoryPlot, path: &Path, with_text: bool) -> Res
     for (a, b) in plot.loops {
         chart.draw_series(LineSeries::new([project(a), project(b)], green.stroke_width(1)))?;
     }
-    for (points, colour, name) in [(plot.groundtruth, BLACK, "ground truth"), (plot.odometry, RED, "odometry"), (plot.corrected, BLUE, "corrected")] {
+    for (points, colour, name) in [
+        (plot.groundtruth, BLACK, "ground truth"),
+        (plot.odometry, RED, "odometry"),
+        (plot.corrected, BLUE, "corrected"),
+    ] {
         let series = chart.draw_series(LineSeries::new(points.iter().map(project), colour.stroke_width(2)))?;
         if with_text {
             series.label(name).legend(move |(x, y)| PathElement::new([(x, y), (x + 20, y)], colour.stroke_width(2)));
         }
     }
     if with_text {
-        chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).label_font(("sans-serif", 15)).draw()?;
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .label_font(("sans-serif", 15))
+            .draw()?;
     }
     root.present()?;
     Ok(())

@@ -12,8 +12,8 @@ use std::path::Path;
 use anyhow::{ensure, Result};
 
 use crate::eval::poses_at_stamps;
-use crate::io::tum::{read_groundtruth, TumWriter};
 use crate::io::open_source;
+use crate::io::tum::{read_groundtruth, TumWriter};
 use crate::types::Stamp;
 
 /// Replay order of `n` frames: 1, 3, 5, ... then the even indexes backwards.
@@ -27,7 +27,12 @@ pub fn two_pass_order(n: usize) -> Vec<usize> {
 /// one frame every `period_s` seconds from the source's first stamp. Returns the frame count.
 pub fn write_two_pass(source: &Path, out: &Path, period_s: f64, max_offset_s: f64) -> Result<usize> {
     let frames: Vec<_> = open_source(source, None)?.collect::<Result<_>>()?;
-    ensure!(frames.len() >= 3, "{} has {} frames; a two-pass sequence needs at least 3", source.display(), frames.len());
+    ensure!(
+        frames.len() >= 3,
+        "{} has {} frames; a two-pass sequence needs at least 3",
+        source.display(),
+        frames.len()
+    );
     let groundtruth = read_groundtruth(&source.join("groundtruth.txt"))?;
     let stamps: Vec<Stamp> = frames.iter().map(|f| f.stamp).collect();
     let poses = poses_at_stamps(&stamps, &groundtruth, max_offset_s);

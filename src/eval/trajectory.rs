@@ -34,7 +34,8 @@ pub fn umeyama_alignment(points: &[Vector3<f64>], targets: &[Vector3<f64>]) -> I
     let n = points.len().max(1) as f64;
     let mean = |v: &[Vector3<f64>]| v.iter().sum::<Vector3<f64>>() / n;
     let (mean_p, mean_t) = (mean(points), mean(targets));
-    let covariance: Matrix3<f64> = points.iter().zip(targets).map(|(p, t)| (t - mean_t) * (p - mean_p).transpose()).sum::<Matrix3<f64>>() / n;
+    let covariance: Matrix3<f64> =
+        points.iter().zip(targets).map(|(p, t)| (t - mean_t) * (p - mean_p).transpose()).sum::<Matrix3<f64>>() / n;
     let svd = covariance.svd(true, true);
     let (u, v_t) = (svd.u.expect("asked for U"), svd.v_t.expect("asked for V^T"));
     let mut s = Matrix3::identity();
@@ -47,11 +48,17 @@ pub fn umeyama_alignment(points: &[Vector3<f64>], targets: &[Vector3<f64>]) -> I
 }
 
 /// The ATE of `estimate` against `groundtruth` (module doc). Needs at least three paired poses.
-pub fn absolute_trajectory_error(estimate: &[(Stamp, Isometry3<f64>)], groundtruth: &[(Stamp, Isometry3<f64>)]) -> Result<TrajectoryError> {
+pub fn absolute_trajectory_error(
+    estimate: &[(Stamp, Isometry3<f64>)],
+    groundtruth: &[(Stamp, Isometry3<f64>)],
+) -> Result<TrajectoryError> {
     let stamps: Vec<Stamp> = estimate.iter().map(|(s, _)| *s).collect();
     let truth = poses_at_stamps(&stamps, groundtruth, MAX_STAMP_OFFSET_S);
-    let (points, targets): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) =
-        estimate.iter().zip(&truth).filter_map(|((_, e), t)| t.map(|t| (e.translation.vector, t.translation.vector))).unzip();
+    let (points, targets): (Vec<Vector3<f64>>, Vec<Vector3<f64>>) = estimate
+        .iter()
+        .zip(&truth)
+        .filter_map(|((_, e), t)| t.map(|t| (e.translation.vector, t.translation.vector)))
+        .unzip();
     ensure!(
         points.len() >= 3,
         "only {} of {} estimated poses have a ground-truth pose within {MAX_STAMP_OFFSET_S} s (at least 3 needed)",
@@ -59,7 +66,11 @@ pub fn absolute_trajectory_error(estimate: &[(Stamp, Isometry3<f64>)], groundtru
         estimate.len()
     );
     let alignment = umeyama_alignment(&points, &targets);
-    let errors: Vec<f64> = points.iter().zip(&targets).map(|(p, t)| (alignment * nalgebra::Point3::from(*p) - nalgebra::Point3::from(*t)).norm()).collect();
+    let errors: Vec<f64> = points
+        .iter()
+        .zip(&targets)
+        .map(|(p, t)| (alignment * nalgebra::Point3::from(*p) - nalgebra::Point3::from(*t)).norm())
+        .collect();
     let n = errors.len() as f64;
     Ok(TrajectoryError {
         rmse: (errors.iter().map(|e| e * e).sum::<f64>() / n).sqrt(),
@@ -75,7 +86,14 @@ mod tests {
     use super::*;
 
     fn trajectory(n: usize, f: impl Fn(f64) -> Vector3<f64>) -> Vec<(Stamp, Isometry3<f64>)> {
-        (0..n).map(|i| (Stamp::from_nanos(i as i64 * 100_000_000), Isometry3::translation(f(i as f64).x, f(i as f64).y, f(i as f64).z))).collect()
+        (0..n)
+            .map(|i| {
+                (
+                    Stamp::from_nanos(i as i64 * 100_000_000),
+                    Isometry3::translation(f(i as f64).x, f(i as f64).y, f(i as f64).z),
+                )
+            })
+            .collect()
     }
 
     #[test]
@@ -95,7 +113,10 @@ mod tests {
             Vector3::new(if k < 2 { 1.0 } else { -1.0 }, if k.is_multiple_of(2) { 1.0 } else { -1.0 }, 0.0)
         };
         let flat = trajectory(40, corners);
-        let saddle: Vec<_> = flat.iter().map(|(s, p)| (*s, Isometry3::translation(0.0, 0.0, 0.1 * p.translation.x * p.translation.y) * p)).collect();
+        let saddle: Vec<_> = flat
+            .iter()
+            .map(|(s, p)| (*s, Isometry3::translation(0.0, 0.0, 0.1 * p.translation.x * p.translation.y) * p))
+            .collect();
         let error = absolute_trajectory_error(&saddle, &flat).unwrap();
         assert!((error.rmse - 0.1).abs() < 1e-9 && (error.max - 0.1).abs() < 1e-9, "{error:?}");
     }

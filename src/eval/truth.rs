@@ -106,7 +106,10 @@ pub fn poses_at_stamps(
     sorted.sort_by_key(|(s, _)| *s);
     let sorted_stamps: Vec<Stamp> = sorted.iter().map(|(s, _)| *s).collect();
     let max_offset = Stamp::from_nanos((max_offset_s * 1e9).round() as i64);
-    stamps.iter().map(|&stamp| crate::types::nearest_stamp(&sorted_stamps, stamp, max_offset).map(|i| sorted[i].1)).collect()
+    stamps
+        .iter()
+        .map(|&stamp| crate::types::nearest_stamp(&sorted_stamps, stamp, max_offset).map(|i| sorted[i].1))
+        .collect()
 }
 
 /// Loop truth of a sequence from its frame stamps (replay order) and ground-truth poses.
@@ -157,9 +160,9 @@ pub fn parse_loops(text: &str) -> Result<LoopTruth> {
             continue;
         }
         let is_first = std::mem::replace(&mut first_content, false);
-        let (query_text, matches_text) = line
-            .split_once(',')
-            .with_context(|| format!("line {number}: expected `query_index,match_index ...`, found {}", crate::io::excerpt(line, 80)))?;
+        let (query_text, matches_text) = line.split_once(',').with_context(|| {
+            format!("line {number}: expected `query_index,match_index ...`, found {}", crate::io::excerpt(line, 80))
+        })?;
         let query_text = query_text.trim();
         if is_first && query_text.starts_with(|c: char| c.is_ascii_alphabetic()) {
             continue; // header
@@ -206,9 +209,9 @@ pub fn images_in_name_order(dir: &Path) -> Result<Vec<PathBuf>> {
 
 #[cfg(test)]
 mod tests {
-    use nalgebra::Translation3;
     use super::*;
     use crate::synth::camera_rotation;
+    use nalgebra::Translation3;
 
     #[test]
     fn truth_outside_the_data_is_refused() {
@@ -264,7 +267,8 @@ mod tests {
 
     #[test]
     fn stamps_take_the_nearest_pose_within_the_offset() {
-        let groundtruth = vec![(secs(1.0), pose(1.0, 0.0, 0.0)), (secs(0.0), pose(0.0, 0.0, 0.0)), (secs(2.0), pose(2.0, 0.0, 0.0))];
+        let groundtruth =
+            vec![(secs(1.0), pose(1.0, 0.0, 0.0)), (secs(0.0), pose(0.0, 0.0, 0.0)), (secs(2.0), pose(2.0, 0.0, 0.0))];
         let stamps = [secs(0.96), secs(1.03), secs(1.5), secs(-0.04), secs(2.06)];
         let poses = poses_at_stamps(&stamps, &groundtruth, 0.05);
         let xs: Vec<Option<f64>> = poses.iter().map(|p| p.map(|p| p.translation.x)).collect();

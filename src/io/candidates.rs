@@ -10,8 +10,23 @@ use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 use crate::types::{LoopCandidate, RelativePose, Stamp, Verified};
 
-const CSV_HEADER: [&str; 15] =
-    ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score", "inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz", "metric"];
+const CSV_HEADER: [&str; 15] = [
+    "query_id",
+    "query_stamp",
+    "match_id",
+    "match_stamp",
+    "distance",
+    "score",
+    "inliers",
+    "qx",
+    "qy",
+    "qz",
+    "qw",
+    "tx",
+    "ty",
+    "tz",
+    "metric",
+];
 
 /// Candidates as CSV (`query_id,query_stamp,match_id,match_stamp,distance,score`, then geometric
 /// verification's `inliers` and the relative pose `qx,qy,qz,qw,tx,ty,tz` of the query camera in the
@@ -48,8 +63,11 @@ impl CandidateCsv {
             let mut fresh = Self::to_file(&temporary, false)?;
             fresh.write(candidates)?;
             drop(fresh);
-            File::open(&temporary).and_then(|f| f.sync_all()).with_context(|| format!("cannot write {}", temporary.display()))?;
-            std::fs::rename(&temporary, path).with_context(|| format!("cannot move {} to {}", temporary.display(), path.display()))?;
+            File::open(&temporary)
+                .and_then(|f| f.sync_all())
+                .with_context(|| format!("cannot write {}", temporary.display()))?;
+            std::fs::rename(&temporary, path)
+                .with_context(|| format!("cannot move {} to {}", temporary.display(), path.display()))?;
             Self::to_file(path, true)
         } else {
             let mut csv = Self::to_file(path, false)?;
@@ -111,11 +129,15 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
     let mut reader = csv::ReaderBuilder::new().has_headers(true).from_reader(text.as_bytes());
     let header = reader.headers().with_context(|| format!("{}: no header line", path.display()))?.clone();
     let column = |name: &str| header.iter().position(|h| h == name);
-    let required = |name: &str| column(name).with_context(|| format!("{}: no `{name}` column (not a candidates CSV?)", path.display()));
+    let required = |name: &str| {
+        column(name).with_context(|| format!("{}: no `{name}` column (not a candidates CSV?)", path.display()))
+    };
     let [query_id, query_stamp, match_id, match_stamp, distance, score] =
         ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score"].map(required);
-    let (query_id, query_stamp, match_id, match_stamp, distance, score) = (query_id?, query_stamp?, match_id?, match_stamp?, distance?, score?);
-    let pose_columns: Option<Vec<usize>> = ["inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz"].iter().map(|n| column(n)).collect();
+    let (query_id, query_stamp, match_id, match_stamp, distance, score) =
+        (query_id?, query_stamp?, match_id?, match_stamp?, distance?, score?);
+    let pose_columns: Option<Vec<usize>> =
+        ["inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz"].iter().map(|n| column(n)).collect();
     let metric = column("metric");
     let mut candidates: Vec<LoopCandidate> = Vec::new();
     for (row, record) in reader.records().enumerate() {
@@ -123,29 +145,48 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
         let record = record.with_context(|| format!("{}:{line}: malformed CSV line", path.display()))?;
         let field = |i: usize| record.get(i).unwrap_or("");
         let number = |i: usize| -> Result<f64> {
-            field(i).parse::<f64>().with_context(|| format!("{}:{line}: `{}` is not a number", path.display(), crate::io::excerpt(field(i), 40)))
+            field(i).parse::<f64>().with_context(|| {
+                format!("{}:{line}: `{}` is not a number", path.display(), crate::io::excerpt(field(i), 40))
+            })
         };
         let stamp = |i: usize| -> Result<Stamp> {
-            Stamp::parse_secs(field(i)).with_context(|| format!("{}:{line}: bad stamp `{}`", path.display(), crate::io::excerpt(field(i), 40)))
+            Stamp::parse_secs(field(i))
+                .with_context(|| format!("{}:{line}: bad stamp `{}`", path.display(), crate::io::excerpt(field(i), 40)))
         };
         let id = |i: usize| -> Result<u64> {
-            field(i).parse::<u64>().with_context(|| format!("{}:{line}: bad keyframe id `{}`", path.display(), crate::io::excerpt(field(i), 40)))
+            field(i).parse::<u64>().with_context(|| {
+                format!("{}:{line}: bad keyframe id `{}`", path.display(), crate::io::excerpt(field(i), 40))
+            })
         };
         let verified = match &pose_columns {
             Some(cols) if !field(cols[0]).is_empty() => {
-                let inliers = field(cols[0]).parse::<u32>().with_context(|| format!("{}:{line}: bad inlier count", path.display()))?;
+                let inliers = field(cols[0])
+                    .parse::<u32>()
+                    .with_context(|| format!("{}:{line}: bad inlier count", path.display()))?;
                 let pose = if field(cols[1]).is_empty() {
                     None
                 } else {
                     let v: Vec<f64> = cols[1..].iter().map(|&i| number(i)).collect::<Result<_>>()?;
                     let q = Quaternion::new(v[3], v[0], v[1], v[2]);
-                    ensure!(q.norm() > 0.5, "{}:{line}: the rotation quaternion is not a unit quaternion", path.display());
+                    ensure!(
+                        q.norm() > 0.5,
+                        "{}:{line}: the rotation quaternion is not a unit quaternion",
+                        path.display()
+                    );
                     let metric = match metric.map(field) {
                         None | Some("") | Some("0") => false,
                         Some("1") => true,
-                        Some(other) => bail!("{}:{line}: `metric` must be 0 or 1, found {}", path.display(), crate::io::excerpt(other, 20)),
+                        Some(other) => bail!(
+                            "{}:{line}: `metric` must be 0 or 1, found {}",
+                            path.display(),
+                            crate::io::excerpt(other, 20)
+                        ),
                     };
-                    Some(RelativePose { rotation: UnitQuaternion::from_quaternion(q), translation: Vector3::new(v[4], v[5], v[6]), metric })
+                    Some(RelativePose {
+                        rotation: UnitQuaternion::from_quaternion(q),
+                        translation: Vector3::new(v[4], v[5], v[6]),
+                        metric,
+                    })
                 };
                 Some(Verified { inliers, pose })
             }
@@ -175,7 +216,11 @@ mod tests {
     fn candidates_read_back_as_written() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("c.csv");
-        let pose = RelativePose { rotation: UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3), translation: Vector3::new(0.5, -0.25, 1.0), metric: true };
+        let pose = RelativePose {
+            rotation: UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
+            translation: Vector3::new(0.5, -0.25, 1.0),
+            metric: true,
+        };
         let candidate = |query: u64, matched: u64, verified: Option<Verified>, rank: u32| LoopCandidate {
             query_id: query,
             query_stamp: Stamp::from_nanos(1_000_000_000 * query as i64 + 5),
@@ -196,7 +241,10 @@ mod tests {
         let read = read_candidates_csv(&path).unwrap();
         assert_eq!(read.len(), written.len());
         for (r, w) in read.iter().zip(&written) {
-            assert_eq!((r.query_id, r.match_id, r.query_stamp, r.match_stamp, r.rank), (w.query_id, w.match_id, w.query_stamp, w.match_stamp, w.rank));
+            assert_eq!(
+                (r.query_id, r.match_id, r.query_stamp, r.match_stamp, r.rank),
+                (w.query_id, w.match_id, w.query_stamp, w.match_stamp, w.rank)
+            );
             assert_eq!(r.verified.map(|v| v.inliers), w.verified.map(|v| v.inliers));
             match (r.verified.and_then(|v| v.pose), w.verified.and_then(|v| v.pose)) {
                 (None, None) => {}

@@ -342,9 +342,13 @@ pub enum WireEncoding {
     /// Luma (ITU-R BT.601, as `image` computes it).
     Mono8,
     /// Luma scaled to 16 bits (`v * 257`).
-    Mono16 { big_endian: bool },
+    Mono16 {
+        big_endian: bool,
+    },
     /// `CompressedImage` with format "jpeg" at the given quality.
-    Jpeg { quality: u8 },
+    Jpeg {
+        quality: u8,
+    },
     /// `CompressedImage` with format "png".
     Png,
 }
@@ -386,7 +390,11 @@ pub fn encode_image(stamp: Stamp, frame_id: &str, image: &RgbImage, encoding: Wi
                 .into_iter()
                 .flat_map(|v| {
                     let wide = v as u16 * 257;
-                    if big_endian { wide.to_be_bytes() } else { wide.to_le_bytes() }
+                    if big_endian {
+                        wide.to_be_bytes()
+                    } else {
+                        wide.to_le_bytes()
+                    }
                 })
                 .collect();
             raw("mono16", 2, data, big_endian as u8)
@@ -463,7 +471,9 @@ mod tests {
             assert_eq!(cdr.to_rgb().unwrap(), img, "{enc:?}");
         }
         let grey = image::DynamicImage::ImageRgb8(img.clone()).to_luma8();
-        for enc in [WireEncoding::Mono8, WireEncoding::Mono16 { big_endian: false }, WireEncoding::Mono16 { big_endian: true }] {
+        for enc in
+            [WireEncoding::Mono8, WireEncoding::Mono16 { big_endian: false }, WireEncoding::Mono16 { big_endian: true }]
+        {
             let msg = encode_image(stamp, "cam", &img, enc).unwrap();
             let back = ImageMessage::from_cdr(ImageKind::Raw, &msg.to_cdr().unwrap()).unwrap().to_rgb().unwrap();
             for (p, g) in back.pixels().zip(grey.pixels()) {
@@ -513,7 +523,10 @@ mod tests {
         assert!(err.contains("do not decode as Png"), "{err}");
         assert_eq!(err.matches("Invalid PNG signature").count(), 1, "the cause once: {err}");
         jpeg.format = "tiff".into();
-        assert!(decode_compressed_image(&jpeg).unwrap_err().to_string().contains("unsupported CompressedImage format \"tiff\""));
+        assert!(decode_compressed_image(&jpeg)
+            .unwrap_err()
+            .to_string()
+            .contains("unsupported CompressedImage format \"tiff\""));
     }
 
     #[test]

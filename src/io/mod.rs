@@ -88,7 +88,11 @@ impl TopicInfo {
 }
 
 /// Picks the image topic to replay from `topics` of the bag described by `bag`.
-pub(crate) fn choose_image_topic(bag: &str, topics: &[TopicInfo], wanted: Option<&str>) -> Result<(TopicInfo, ImageKind)> {
+pub(crate) fn choose_image_topic(
+    bag: &str,
+    topics: &[TopicInfo],
+    wanted: Option<&str>,
+) -> Result<(TopicInfo, ImageKind)> {
     let image_topics: Vec<&TopicInfo> =
         topics.iter().filter(|t| ImageKind::from_type_name(&t.type_name).is_some()).collect();
     let chosen = match wanted {
@@ -124,10 +128,17 @@ pub(crate) fn choose_image_topic(bag: &str, topics: &[TopicInfo], wanted: Option
 
 /// Small distinct test frames one second apart from `first`.
 #[cfg(test)]
-pub(crate) fn test_frames(n: usize, width: u32, height: u32, first: crate::types::Stamp) -> Vec<(crate::types::Stamp, image::RgbImage)> {
+pub(crate) fn test_frames(
+    n: usize,
+    width: u32,
+    height: u32,
+    first: crate::types::Stamp,
+) -> Vec<(crate::types::Stamp, image::RgbImage)> {
     (0..n)
         .map(|i| {
-            let img = image::RgbImage::from_fn(width, height, |x, y| image::Rgb([(x * 30) as u8, (y * 40) as u8, (i * 20) as u8]));
+            let img = image::RgbImage::from_fn(width, height, |x, y| {
+                image::Rgb([(x * 30) as u8, (y * 40) as u8, (i * 20) as u8])
+            });
             (crate::types::Stamp::from_nanos(first.nanos + i as i64 * 1_000_000_000), img)
         })
         .collect()

@@ -20,8 +20,15 @@ pub fn write_replacing(path: &Path, bytes: &[u8]) -> Result<()> {
         Ok(m) => !m.file_type().is_file(),
     };
     if in_place {
-        let mut file = std::fs::OpenOptions::new().write(true).truncate(true).open(path).with_context(|| format!("cannot open {} for writing", path.display()))?;
-        return file.write_all(bytes).and_then(|()| file.flush()).with_context(|| format!("cannot write {}", path.display()));
+        let mut file = std::fs::OpenOptions::new()
+            .write(true)
+            .truncate(true)
+            .open(path)
+            .with_context(|| format!("cannot open {} for writing", path.display()))?;
+        return file
+            .write_all(bytes)
+            .and_then(|()| file.flush())
+            .with_context(|| format!("cannot write {}", path.display()));
     }
     let name = path.file_name().with_context(|| format!("cannot write {}: not a file name", path.display()))?;
     let temporary = path.with_file_name(format!(".{}.{}.tmp", name.to_string_lossy(), std::process::id()));

@@ -82,7 +82,11 @@ impl<'a> Fields<'a> {
     }
 
     fn get(&self, name: &str) -> Result<&'a [u8]> {
-        self.0.iter().find(|(n, _)| *n == name).map(|(_, v)| *v).with_context(|| format!("record header lacks field {name:?}"))
+        self.0
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, v)| *v)
+            .with_context(|| format!("record header lacks field {name:?}"))
     }
 
     fn op(&self) -> Result<u8> {
@@ -280,7 +284,11 @@ fn scan(file: &mut File, file_len: u64) -> Result<BagScan> {
                     let conn = fields.u32("conn")?;
                     let count = fields.u32("count")?;
                     ensure!(fields.u32("ver")? == 1, "index data version {} (expected 1)", fields.u32("ver")?);
-                    ensure!(rec.data_len as u64 == count as u64 * 12, "index data of {} bytes for {count} entries", rec.data_len);
+                    ensure!(
+                        rec.data_len as u64 == count as u64 * 12,
+                        "index data of {} bytes for {count} entries",
+                        rec.data_len
+                    );
                     let data = read_bytes(file, rec.data_pos, rec.data_len)?;
                     let chunk = scan.chunks.last_mut().context("index data before any chunk")?;
                     for entry in data.chunks_exact(12) {
@@ -404,12 +412,18 @@ impl Ros1BagSource {
                     }
                 }
             };
-            per_conn.extend(entries.into_iter().map(|(conn, time, offset)| (conn, MessageRef { time, chunk: chunk_no, offset })));
+            per_conn.extend(
+                entries.into_iter().map(|(conn, time, offset)| (conn, MessageRef { time, chunk: chunk_no, offset })),
+            );
         }
 
         let mut topics: BTreeMap<&str, TopicInfo> = BTreeMap::new();
         for conn in connections.values() {
-            topics.entry(&conn.topic).or_insert_with(|| TopicInfo { name: conn.topic.clone(), type_name: conn.type_name.clone(), count: 0 });
+            topics.entry(&conn.topic).or_insert_with(|| TopicInfo {
+                name: conn.topic.clone(),
+                type_name: conn.type_name.clone(),
+                count: 0,
+            });
         }
         for (conn, _) in &per_conn {
             if let Some(info) = connections.get(conn).and_then(|c| topics.get_mut(c.topic.as_str())) {
@@ -428,7 +442,18 @@ impl Ros1BagSource {
             .collect();
         messages.sort_by_key(|m| m.time);
         let description = format!("{name}, topic {} ({} messages)", chosen.name, messages.len());
-        Ok(Ros1BagSource { path: path.to_path_buf(), file, description, kind, chunks, messages, next: 0, cached: None, damage, done: false })
+        Ok(Ros1BagSource {
+            path: path.to_path_buf(),
+            file,
+            description,
+            kind,
+            chunks,
+            messages,
+            next: 0,
+            cached: None,
+            damage,
+            done: false,
+        })
     }
 
     fn read_frame(&mut self, index: usize) -> Result<Frame> {
@@ -440,7 +465,8 @@ impl Ros1BagSource {
             self.cached = Some((message.chunk, data));
         }
         let data = &self.cached.as_ref().context("chunk cached above")?.1;
-        let at = || format!("message record at offset {} of the chunk at byte offset {}", message.offset, chunk.record_pos);
+        let at =
+            || format!("message record at offset {} of the chunk at byte offset {}", message.offset, chunk.record_pos);
         let rest = data.get(message.offset as usize..).with_context(|| format!("{} lies outside the chunk", at()))?;
         let record = record_in(rest).with_context(at)?;
         let fields = Fields::parse(record.header).with_context(at)?;
@@ -581,7 +607,11 @@ pub fn write_ros1_bag(
         let mut chunk = Vec::new();
         let mut chunk_entries: Vec<(Stamp, u32)> = Vec::new();
         let mut count = 0usize;
-        let mut flush = |file: &mut std::io::BufWriter<File>, chunk: &mut Vec<u8>, entries: &mut Vec<(Stamp, u32)>, pos: &mut u64| -> Result<()> {
+        let mut flush = |file: &mut std::io::BufWriter<File>,
+                         chunk: &mut Vec<u8>,
+                         entries: &mut Vec<(Stamp, u32)>,
+                         pos: &mut u64|
+         -> Result<()> {
             if entries.is_empty() {
                 return Ok(());
             }
@@ -718,7 +748,10 @@ mod tests {
         assert_eq!(results.len(), 3, "two whole chunks, then the error");
         assert_eq!(results[1].as_ref().unwrap().image.get_pixel(0, 0).0, [1; 3]);
         let err = format!("{:#}", results[2].as_ref().unwrap_err());
-        assert!(err.contains("cut.bag") && err.contains("byte offset") && err.contains("read 2 messages before the damage"), "{err}");
+        assert!(
+            err.contains("cut.bag") && err.contains("byte offset") && err.contains("read 2 messages before the damage"),
+            "{err}"
+        );
 
         for len in [0, 10, 13, 100, 4109] {
             std::fs::write(&cut, &bytes[..len]).unwrap();

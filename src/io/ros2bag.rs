@@ -35,7 +35,10 @@ pub fn storage_file_of_bag_dir(dir: &Path) -> Result<PathBuf> {
         if name.ends_with(".db3") || name.ends_with(".mcap") {
             files.push(path);
         } else if name.ends_with(".zstd") {
-            bail!("{}: compressed rosbag2 files ({name}) are not supported; decompress with `ros2 bag convert`", dir.display());
+            bail!(
+                "{}: compressed rosbag2 files ({name}) are not supported; decompress with `ros2 bag convert`",
+                dir.display()
+            );
         }
     }
     files.sort();
@@ -68,7 +71,8 @@ impl SqliteBagSource {
         ensure!(path.is_file(), "{name} does not exist");
         let db = Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)
             .with_context(|| format!("cannot open {name}"))?;
-        let topics = Self::topics(&db).with_context(|| format!("{name}: cannot read the topics and messages tables"))?;
+        let topics =
+            Self::topics(&db).with_context(|| format!("{name}: cannot read the topics and messages tables"))?;
         let infos: Vec<TopicInfo> = topics.values().map(|(info, _)| info.clone()).collect();
         let (chosen, kind) = choose_image_topic(&name, &infos, topic)?;
         let (topic_id, format) = topics
@@ -130,7 +134,10 @@ impl Iterator for SqliteBagSource {
         let index = self.next;
         self.next += 1;
         let frame = self.read_frame(index).with_context(|| {
-            format!("ROS 2 sqlite3 bag {}: message {index}; read {index} messages before the damage", self.path.display())
+            format!(
+                "ROS 2 sqlite3 bag {}: message {index}; read {index} messages before the damage",
+                self.path.display()
+            )
         });
         self.done = frame.is_err();
         Some(frame)
@@ -201,13 +208,19 @@ impl McapSource {
         let infos: Vec<TopicInfo> = topics.into_values().collect();
         let (chosen, kind) = match choose_image_topic(&name, &infos, topic) {
             Ok(chosen) => chosen,
-            Err(err) => return Err(match damage {
-                Some(d) => err.context(format!("{d:#}")),
-                None => err,
-            }),
+            Err(err) => {
+                return Err(match damage {
+                    Some(d) => err.context(format!("{d:#}")),
+                    None => err,
+                })
+            }
         };
         let encoding = encodings.get(&chosen.name).cloned().unwrap_or_default();
-        ensure!(encoding == "cdr", "{name}: topic {} has message encoding {encoding:?}, only cdr is supported", chosen.name);
+        ensure!(
+            encoding == "cdr",
+            "{name}: topic {} has message encoding {encoding:?}, only cdr is supported",
+            chosen.name
+        );
         let description = format!("{name}, topic {} ({} messages)", chosen.name, chosen.count);
         Ok(McapSource {
             path: path.to_path_buf(),
@@ -322,7 +335,12 @@ pub fn write_ros2_bag(
     write().with_context(|| format!("cannot write ROS 2 bag {}", dir.display()))
 }
 
-fn write_sqlite(path: &Path, topic: &str, kind: ImageKind, messages: impl Iterator<Item = Result<(Stamp, Vec<u8>)>>) -> Result<Vec<Stamp>> {
+fn write_sqlite(
+    path: &Path,
+    topic: &str,
+    kind: ImageKind,
+    messages: impl Iterator<Item = Result<(Stamp, Vec<u8>)>>,
+) -> Result<Vec<Stamp>> {
     let mut db = Connection::open(path)?;
     db.execute_batch(
         "CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, type TEXT NOT NULL, \
@@ -349,7 +367,12 @@ fn write_sqlite(path: &Path, topic: &str, kind: ImageKind, messages: impl Iterat
     Ok(stamps)
 }
 
-fn write_mcap(path: &Path, topic: &str, kind: ImageKind, messages: impl Iterator<Item = Result<(Stamp, Vec<u8>)>>) -> Result<Vec<Stamp>> {
+fn write_mcap(
+    path: &Path,
+    topic: &str,
+    kind: ImageKind,
+    messages: impl Iterator<Item = Result<(Stamp, Vec<u8>)>>,
+) -> Result<Vec<Stamp>> {
     let file = std::io::BufWriter::new(File::create(path)?);
     let mut writer = mcap::WriteOptions::new().profile("ros2").create(file)?;
     let schema = writer.add_schema(kind.ros2_type(), "ros2msg", ros2msg_definition(kind).as_bytes())?;
@@ -358,7 +381,12 @@ fn write_mcap(path: &Path, topic: &str, kind: ImageKind, messages: impl Iterator
     for (sequence, message) in messages.enumerate() {
         let (stamp, payload) = message?;
         let time = u64::try_from(stamp.nanos).with_context(|| format!("negative stamp {stamp}"))?;
-        let header = mcap::records::MessageHeader { channel_id: channel, sequence: sequence as u32, log_time: time, publish_time: time };
+        let header = mcap::records::MessageHeader {
+            channel_id: channel,
+            sequence: sequence as u32,
+            log_time: time,
+            publish_time: time,
+        };
         writer.write_to_known_channel(&header, &payload)?;
         stamps.push(stamp);
     }

@@ -25,7 +25,10 @@ pub const DEPTH_ASSOCIATION: Stamp = Stamp::from_nanos(20_000_000);
 /// Why a stamp that does not parse is bad, when it looks like a number: it is out of range.
 fn stamp_problem(text: &str) -> &'static str {
     let digits = text.trim().trim_start_matches('-');
-    if !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit() || b == b'.') && digits.bytes().filter(|&b| b == b'.').count() <= 1 {
+    if !digits.is_empty()
+        && digits.bytes().all(|b| b.is_ascii_digit() || b == b'.')
+        && digits.bytes().filter(|&b| b == b'.').count() <= 1
+    {
         " (out of range: stamps are whole nanoseconds in a signed 64-bit integer, at most about 9.2e9 s)"
     } else {
         ""
@@ -133,8 +136,9 @@ fn read_list(dir: &Path, list: &Path, what: &str) -> Result<Vec<(String, Stamp, 
         let (Some(stamp_text), Some(rel), None) = (fields.next(), fields.next(), fields.next()) else {
             bail!("{origin}: expected `timestamp path`, found {}", super::excerpt(&line, 80));
         };
-        let stamp = Stamp::parse_secs(stamp_text)
-            .with_context(|| format!("{origin}: bad timestamp {}{}", super::excerpt(stamp_text, 40), stamp_problem(stamp_text)))?;
+        let stamp = Stamp::parse_secs(stamp_text).with_context(|| {
+            format!("{origin}: bad timestamp {}{}", super::excerpt(stamp_text, 40), stamp_problem(stamp_text))
+        })?;
         let path = dir.join(rel);
         if !path.is_file() {
             let shown = if rel.len() <= 200 { path.display().to_string() } else { super::excerpt(rel, 120) };
@@ -163,7 +167,9 @@ fn associate_depth(entries: &mut [ImageEntry], depths: Vec<(String, Stamp, PathB
 
 /// Reads a TUM 16-bit depth PNG; it must have the colour image's size.
 fn load_depth(path: &Path, width: u32, height: u32) -> Result<DepthImage> {
-    let image = image::open(path).map_err(crate::io::image_msg::image_error).with_context(|| format!("cannot decode depth image {}", path.display()))?;
+    let image = image::open(path)
+        .map_err(crate::io::image_msg::image_error)
+        .with_context(|| format!("cannot decode depth image {}", path.display()))?;
     let image::DynamicImage::ImageLuma16(depth) = image else {
         bail!("depth image {} is not a 16-bit grayscale PNG (TUM depth: 5000 units per metre)", path.display());
     };
@@ -203,7 +209,9 @@ impl Iterator for ImageFilesSource {
         let frame = loaded.and_then(|img| {
             let image = img.into_rgb8();
             let depth = match &entry.depth {
-                Some(path) => Some(load_depth(path, image.width(), image.height()).with_context(|| entry.origin.clone())?),
+                Some(path) => {
+                    Some(load_depth(path, image.width(), image.height()).with_context(|| entry.origin.clone())?)
+                }
                 None => None,
             };
             Ok(Frame { index, stamp: entry.stamp, image, depth })
@@ -234,9 +242,15 @@ pub fn read_groundtruth(path: &Path) -> Result<Vec<(Stamp, Isometry3<f64>)>> {
     for (line_no, line) in data_lines(path)? {
         let origin = || format!("{}:{line_no}", path.display());
         let fields: Vec<&str> = line.split_whitespace().collect();
-        ensure!(fields.len() == 8, "{}: expected 8 fields `timestamp tx ty tz qx qy qz qw`, found {}", origin(), fields.len());
-        let stamp = Stamp::parse_secs(fields[0])
-            .with_context(|| format!("{}: bad timestamp {}{}", origin(), super::excerpt(fields[0], 40), stamp_problem(fields[0])))?;
+        ensure!(
+            fields.len() == 8,
+            "{}: expected 8 fields `timestamp tx ty tz qx qy qz qw`, found {}",
+            origin(),
+            fields.len()
+        );
+        let stamp = Stamp::parse_secs(fields[0]).with_context(|| {
+            format!("{}: bad timestamp {}{}", origin(), super::excerpt(fields[0], 40), stamp_problem(fields[0]))
+        })?;
         let mut values = [0f64; 7];
         for (value, text) in values.iter_mut().zip(&fields[1..]) {
             *value = text.parse().with_context(|| format!("{}: bad number {text:?}", origin()))?;
@@ -295,7 +309,8 @@ impl TumWriter {
     /// must be written to.
     pub fn add_depth(&mut self, stamp: Stamp) -> Result<PathBuf> {
         if self.depth_lines.is_empty() {
-            fs::create_dir_all(self.dir.join("depth")).with_context(|| format!("cannot create {}/depth", self.dir.display()))?;
+            fs::create_dir_all(self.dir.join("depth"))
+                .with_context(|| format!("cannot create {}/depth", self.dir.display()))?;
             self.depth_lines = "# depth maps\n# timestamp filename\n".to_string();
         }
         let name = tum_stamp(stamp);
@@ -319,7 +334,12 @@ impl TumWriter {
 
     /// Writes `rgb.txt`, `groundtruth.txt`, and `depth.txt` and `odometry.txt` where given.
     pub fn finish(self) -> Result<()> {
-        let lists = [("rgb.txt", &self.rgb_lines), ("groundtruth.txt", &self.pose_lines), ("depth.txt", &self.depth_lines), ("odometry.txt", &self.odometry_lines)];
+        let lists = [
+            ("rgb.txt", &self.rgb_lines),
+            ("groundtruth.txt", &self.pose_lines),
+            ("depth.txt", &self.depth_lines),
+            ("odometry.txt", &self.odometry_lines),
+        ];
         for (name, text) in lists {
             if text.is_empty() {
                 continue;
@@ -361,11 +381,13 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let seq = dir.path().join("seq");
         let mut writer = TumWriter::create(&seq).unwrap();
-        let stamps = [Stamp::from_sec_nsec(100, 0), Stamp::from_sec_nsec(100, 500_000_000), Stamp::from_sec_nsec(101, 123_456_000)];
-        let pose = Isometry3::from_parts(
-            Translation3::new(1.0, -2.0, 0.5),
-            UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
-        );
+        let stamps = [
+            Stamp::from_sec_nsec(100, 0),
+            Stamp::from_sec_nsec(100, 500_000_000),
+            Stamp::from_sec_nsec(101, 123_456_000),
+        ];
+        let pose =
+            Isometry3::from_parts(Translation3::new(1.0, -2.0, 0.5), UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3));
         for (i, &stamp) in stamps.iter().enumerate() {
             let img = RgbImage::from_fn(4, 3, |x, y| image::Rgb([x as u8, y as u8, i as u8]));
             writer.write_frame(stamp, &img).unwrap();
@@ -393,9 +415,14 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let seq = dir.path().join("seq");
         let mut writer = TumWriter::create(&seq).unwrap();
-        let colour = [Stamp::from_sec_nsec(10, 0), Stamp::from_sec_nsec(10, 100_000_000), Stamp::from_sec_nsec(10, 200_000_000)];
+        let colour =
+            [Stamp::from_sec_nsec(10, 0), Stamp::from_sec_nsec(10, 100_000_000), Stamp::from_sec_nsec(10, 200_000_000)];
         // Depth 15 ms after the first image, 5 ms before the second; none near the third.
-        let depth_stamps = [Stamp::from_sec_nsec(10, 15_000_000), Stamp::from_sec_nsec(10, 95_000_000), Stamp::from_sec_nsec(10, 400_000_000)];
+        let depth_stamps = [
+            Stamp::from_sec_nsec(10, 15_000_000),
+            Stamp::from_sec_nsec(10, 95_000_000),
+            Stamp::from_sec_nsec(10, 400_000_000),
+        ];
         for &stamp in &colour {
             writer.write_frame(stamp, &RgbImage::new(4, 3)).unwrap();
         }
@@ -460,7 +487,8 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         for (name, value) in [("b.png", 2u8), ("a.bmp", 1), ("c.JPG", 3)] {
             let img = RgbImage::from_pixel(2, 2, image::Rgb([value * 50; 3]));
-            img.save_with_format(dir.path().join(name), image::ImageFormat::from_path(name.to_lowercase()).unwrap()).unwrap();
+            img.save_with_format(dir.path().join(name), image::ImageFormat::from_path(name.to_lowercase()).unwrap())
+                .unwrap();
         }
         fs::write(dir.path().join("notes.txt"), "ignored").unwrap();
         let source = ImageFilesSource::open_image_folder(dir.path()).unwrap();

@@ -38,7 +38,12 @@ struct ChannelStats {
     sum_dy_xhat: f64,
 }
 
-fn channel_stats(x: &[f32], dy: Option<&[f32]>, (batch, channels, plane): (usize, usize, usize), eps: f64) -> Vec<ChannelStats> {
+fn channel_stats(
+    x: &[f32],
+    dy: Option<&[f32]>,
+    (batch, channels, plane): (usize, usize, usize),
+    eps: f64,
+) -> Vec<ChannelStats> {
     (0..channels)
         .into_par_iter()
         .map(|c| {
@@ -71,12 +76,25 @@ impl CustomOp3 for BatchNormTrain {
         "batch-norm-train"
     }
 
-    fn cpu_fwd(&self, s_x: &CpuStorage, l_x: &Layout, s_g: &CpuStorage, l_g: &Layout, s_b: &CpuStorage, l_b: &Layout) -> Result<(CpuStorage, Shape)> {
+    fn cpu_fwd(
+        &self,
+        s_x: &CpuStorage,
+        l_x: &Layout,
+        s_g: &CpuStorage,
+        l_g: &Layout,
+        s_b: &CpuStorage,
+        l_b: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
         let dims = split_shape(l_x.shape())?;
-        let (x, gamma, beta) = (contiguous(s_x, l_x, "input")?, contiguous(s_g, l_g, "gamma")?, contiguous(s_b, l_b, "beta")?);
+        let (x, gamma, beta) =
+            (contiguous(s_x, l_x, "input")?, contiguous(s_g, l_g, "gamma")?, contiguous(s_b, l_b, "beta")?);
         let channels = dims.1;
         if gamma.len() != channels || beta.len() != channels {
-            candle_core::bail!("batch norm: {} / {} affine parameters for {channels} channels", gamma.len(), beta.len());
+            candle_core::bail!(
+                "batch norm: {} / {} affine parameters for {channels} channels",
+                gamma.len(),
+                beta.len()
+            );
         }
         let stats = channel_stats(x, None, dims, self.eps);
         let mut out = vec![0f32; x.len()];
@@ -92,7 +110,14 @@ impl CustomOp3 for BatchNormTrain {
         Ok((CpuStorage::F32(out), l_x.shape().clone()))
     }
 
-    fn bwd(&self, x: &Tensor, gamma: &Tensor, _beta: &Tensor, _res: &Tensor, dy: &Tensor) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
+    fn bwd(
+        &self,
+        x: &Tensor,
+        gamma: &Tensor,
+        _beta: &Tensor,
+        _res: &Tensor,
+        dy: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let dy = dy.contiguous()?;
         let dx = x.apply_op3_no_bwd(&dy, gamma, &InputGradient { eps: self.eps })?;
         let params = x.apply_op2_no_bwd(&dy, &ParamGradients { eps: self.eps })?;
@@ -110,30 +135,41 @@ impl CustomOp3 for InputGradient {
         "batch-norm-train-input-grad"
     }
 
-    fn cpu_fwd(&self, s_x: &CpuStorage, l_x: &Layout, s_d: &CpuStorage, l_d: &Layout, s_g: &CpuStorage, l_g: &Layout) -> Result<(CpuStorage, Shape)> {
+    fn cpu_fwd(
+        &self,
+        s_x: &CpuStorage,
+        l_x: &Layout,
+        s_d: &CpuStorage,
+        l_d: &Layout,
+        s_g: &CpuStorage,
+        l_g: &Layout,
+    ) -> Result<(CpuStorage, Shape)> {
         let dims = split_shape(l_x.shape())?;
         if l_d.shape() != l_x.shape() {
             candle_core::bail!("batch norm gradient {:?} for input {:?}", l_d.shape(), l_x.shape());
         }
-        let (x, dy, gamma) = (contiguous(s_x, l_x, "input")?, contiguous(s_d, l_d, "gradient")?, contiguous(s_g, l_g, "gamma")?);
+        let (x, dy, gamma) =
+            (contiguous(s_x, l_x, "input")?, contiguous(s_d, l_d, "gradient")?, contiguous(s_g, l_g, "gamma")?);
         let channels = dims.1;
         let m = (dims.0 * dims.2) as f64;
         let stats = channel_stats(x, Some(dy), dims, self.eps);
         let plane = dims.2.max(1);
         let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(plane).zip(x.par_chunks(plane).zip(dy.par_chunks(plane))).enumerate().for_each(|(p, (dx, (x, dy)))| {
-            let (c, s) = (p % channels, &stats[p % channels]);
-            let inv_std = 1.0 / (s.var + self.eps).sqrt();
-            // dx = a dy + b x + d, expanded so the inner loop is two multiply-adds.
-            let k = gamma[c] as f64 * inv_std;
-            let a = k;
-            let b = -k * s.sum_dy_xhat / m * inv_std;
-            let d = -k * s.sum_dy / m - b * s.mean;
-            let (a, b, d) = (a as f32, b as f32, d as f32);
-            for ((o, &x), &g) in dx.iter_mut().zip(x).zip(dy) {
-                *o = a * g + b * x + d;
-            }
-        });
+        out.par_chunks_mut(plane).zip(x.par_chunks(plane).zip(dy.par_chunks(plane))).enumerate().for_each(
+            |(p, (dx, (x, dy)))| {
+                let (c, s) = (p % channels, &stats[p % channels]);
+                let inv_std = 1.0 / (s.var + self.eps).sqrt();
+                // dx = a dy + b x + d, expanded so the inner loop is two multiply-adds.
+                let k = gamma[c] as f64 * inv_std;
+                let a = k;
+                let b = -k * s.sum_dy_xhat / m * inv_std;
+                let d = -k * s.sum_dy / m - b * s.mean;
+                let (a, b, d) = (a as f32, b as f32, d as f32);
+                for ((o, &x), &g) in dx.iter_mut().zip(x).zip(dy) {
+                    *o = a * g + b * x + d;
+                }
+            },
+        );
         Ok((CpuStorage::F32(out), l_x.shape().clone()))
     }
 }
@@ -153,8 +189,10 @@ impl CustomOp2 for ParamGradients {
         if l_d.shape() != l_x.shape() {
             candle_core::bail!("batch norm gradient {:?} for input {:?}", l_d.shape(), l_x.shape());
         }
-        let stats = channel_stats(contiguous(s_x, l_x, "input")?, Some(contiguous(s_d, l_d, "gradient")?), dims, self.eps);
-        let out: Vec<f32> = stats.iter().map(|s| s.sum_dy_xhat as f32).chain(stats.iter().map(|s| s.sum_dy as f32)).collect();
+        let stats =
+            channel_stats(contiguous(s_x, l_x, "input")?, Some(contiguous(s_d, l_d, "gradient")?), dims, self.eps);
+        let out: Vec<f32> =
+            stats.iter().map(|s| s.sum_dy_xhat as f32).chain(stats.iter().map(|s| s.sum_dy as f32)).collect();
         Ok((CpuStorage::F32(out), Shape::from_dims(&[2, dims.1])))
     }
 }
@@ -175,7 +213,9 @@ impl InplaceOp2 for RunningUpdate {
     fn cpu_fwd(&self, s_r: &mut CpuStorage, l_r: &Layout, s_x: &CpuStorage, l_x: &Layout) -> Result<()> {
         let dims = split_shape(l_x.shape())?;
         let stats = channel_stats(contiguous(s_x, l_x, "input")?, None, dims, 0.0);
-        let (start, end) = l_r.contiguous_offsets().ok_or_else(|| candle_core::Error::Msg("batch norm: running statistics must be contiguous".into()))?;
+        let (start, end) = l_r
+            .contiguous_offsets()
+            .ok_or_else(|| candle_core::Error::Msg("batch norm: running statistics must be contiguous".into()))?;
         let CpuStorage::F32(running) = s_r else { candle_core::bail!("batch norm: f32 running statistics only") };
         let running = &mut running[start..end];
         if running.len() != dims.1 {
@@ -255,7 +295,11 @@ mod tests {
             let g_stock = (&y_stock * &probe)?.sum_all()?.backward()?;
             let (w_ours, b_ours) = ours.weight_and_bias().unwrap();
             let (w_stock, b_stock) = stock.weight_and_bias().unwrap();
-            for (name, a, b) in [("x", g_ours.get(&x).unwrap(), g_stock.get(&x).unwrap()), ("gamma", g_ours.get(w_ours).unwrap(), g_stock.get(w_stock).unwrap()), ("beta", g_ours.get(b_ours).unwrap(), g_stock.get(b_stock).unwrap())] {
+            for (name, a, b) in [
+                ("x", g_ours.get(&x).unwrap(), g_stock.get(&x).unwrap()),
+                ("gamma", g_ours.get(w_ours).unwrap(), g_stock.get(w_stock).unwrap()),
+                ("beta", g_ours.get(b_ours).unwrap(), g_stock.get(b_stock).unwrap()),
+            ] {
                 assert_eq!(a.dims(), b.dims(), "{name}");
                 let d = max_abs_diff(a, b);
                 assert!(d < 1e-4, "{name} gradient {shape:?}: max diff {d}");
@@ -272,8 +316,17 @@ mod tests {
         let shape = (3, 3, 4, 4);
         let x = Var::randn(0f32, 1.0, shape, &Device::Cpu)?;
         let probe = Tensor::randn(0f32, 1.0, shape, &Device::Cpu)?;
-        let loss = |x: &Tensor| -> Result<f64> { batch_norm_train(&bn, x)?.mul(&probe)?.sum_all()?.to_dtype(DType::F64)?.to_scalar::<f64>() };
-        let analytic = batch_norm_train(&bn, &x)?.mul(&probe)?.sum_all()?.backward()?.get(&x).unwrap().flatten_all()?.to_vec1::<f32>()?;
+        let loss = |x: &Tensor| -> Result<f64> {
+            batch_norm_train(&bn, x)?.mul(&probe)?.sum_all()?.to_dtype(DType::F64)?.to_scalar::<f64>()
+        };
+        let analytic = batch_norm_train(&bn, &x)?
+            .mul(&probe)?
+            .sum_all()?
+            .backward()?
+            .get(&x)
+            .unwrap()
+            .flatten_all()?
+            .to_vec1::<f32>()?;
         let values = x.flatten_all()?.to_vec1::<f32>()?;
         for index in (0..values.len()).step_by(7) {
             let eps = 1e-2f32;

@@ -136,7 +136,14 @@ unsafe fn convolve_plane_avx2(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx512f,avx2,fma")]
-unsafe fn convolve_plane_avx512(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act: Activation, out: &mut [f32]) {
+unsafe fn convolve_plane_avx512(
+    g: &PlaneGeometry,
+    src: &[f32],
+    w: &[f32],
+    bias: f32,
+    act: Activation,
+    out: &mut [f32],
+) {
     convolve_plane_generic(g, src, w, bias, act, out)
 }
 
@@ -365,7 +372,13 @@ fn tap_sum_with<const RELU6: bool>(dst: &mut [f32], bias: f32, w: &[f32], taps: 
 
 /// Depthwise convolution (`weight` `[C, 1, kh, kw]`, `bias` `[C]`) of `x` `[B, C, H, W]` with
 /// "SAME" padding, fused bias and activation, by the direct kernel.
-pub fn depthwise_conv(x: &Tensor, weight: &Tensor, bias: &Tensor, stride: usize, activation: Activation) -> Result<Tensor> {
+pub fn depthwise_conv(
+    x: &Tensor,
+    weight: &Tensor,
+    bias: &Tensor,
+    stride: usize,
+    activation: Activation,
+) -> Result<Tensor> {
     x.contiguous()?.apply_op3_no_bwd(&weight.contiguous()?, &bias.contiguous()?, &DepthwiseConv { stride, activation })
 }
 
@@ -451,7 +464,18 @@ mod tests {
         let dev = Device::Cpu;
         // Even and odd sizes, kernels 3 and 5, strides 1 and 2, batch 2; rows narrower and wider
         // than WHOLE_PLANE_BELOW_WIDTH.
-        for &(h, w, k, stride) in &[(14, 14, 3, 1), (14, 14, 3, 2), (15, 9, 3, 2), (11, 12, 5, 1), (8, 7, 5, 2), (2, 3, 3, 2), (29, 31, 3, 2), (30, 28, 3, 2), (5, 40, 3, 1), (6, 67, 3, 2)] {
+        for &(h, w, k, stride) in &[
+            (14, 14, 3, 1),
+            (14, 14, 3, 2),
+            (15, 9, 3, 2),
+            (11, 12, 5, 1),
+            (8, 7, 5, 2),
+            (2, 3, 3, 2),
+            (29, 31, 3, 2),
+            (30, 28, 3, 2),
+            (5, 40, 3, 1),
+            (6, 67, 3, 2),
+        ] {
             let channels = 7;
             let x = Tensor::randn(0f32, 1.0, (2, channels, h, w), &dev)?;
             let weight = Tensor::randn(0f32, 1.0, (channels, 1, k, k), &dev)?;
@@ -489,11 +513,17 @@ mod tests {
                 let mut builds: Vec<(&str, Vec<f32>)> = Vec::new();
                 if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
                     // SAFETY: the CPU has the features.
-                    builds.push(("avx2", run(&|out| unsafe { convolve_plane_avx2(&g, &src, &weights, 0.5, Activation::Relu6, out) })));
+                    builds.push((
+                        "avx2",
+                        run(&|out| unsafe { convolve_plane_avx2(&g, &src, &weights, 0.5, Activation::Relu6, out) }),
+                    ));
                 }
                 if std::is_x86_feature_detected!("avx512f") {
                     // SAFETY: the CPU has the features.
-                    builds.push(("avx512", run(&|out| unsafe { convolve_plane_avx512(&g, &src, &weights, 0.5, Activation::Relu6, out) })));
+                    builds.push((
+                        "avx512",
+                        run(&|out| unsafe { convolve_plane_avx512(&g, &src, &weights, 0.5, Activation::Relu6, out) }),
+                    ));
                 }
                 for (name, out) in builds {
                     let diff = out.iter().zip(&baseline).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
@@ -516,4 +546,3 @@ mod tests {
         Ok(())
     }
 }
-

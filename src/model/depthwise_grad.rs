@@ -106,11 +106,18 @@ impl CustomOp2 for DepthwiseForward {
         Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, channels, g.oh, g.ow])))
     }
 
-    fn bwd(&self, x: &Tensor, weight: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Option<Tensor>)> {
+    fn bwd(
+        &self,
+        x: &Tensor,
+        weight: &Tensor,
+        _res: &Tensor,
+        grad: &Tensor,
+    ) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let (_, _, height, width) = x.dims4()?;
         let grad = grad.contiguous()?;
         let grad_x = grad.apply_op2_no_bwd(weight, &InputGradient { stride: self.stride, height, width })?;
-        let grad_w = x.apply_op2_no_bwd(&grad, &WeightGradient { stride: self.stride, kh: weight.dim(2)?, kw: weight.dim(3)? })?;
+        let grad_w =
+            x.apply_op2_no_bwd(&grad, &WeightGradient { stride: self.stride, kh: weight.dim(2)?, kw: weight.dim(3)? })?;
         Ok((Some(grad_x), Some(grad_w)))
     }
 }
@@ -132,7 +139,13 @@ impl CustomOp2 for InputGradient {
         let (_, _, kh, kw) = l_w.shape().dims4()?;
         let g = Geometry::new(self.height, self.width, kh, kw, self.stride);
         if (g.oh, g.ow) != (oh, ow) || l_w.shape().dim(0)? != channels {
-            candle_core::bail!("depthwise conv gradient: {:?} is not the output of {}x{} through {:?}", l_g.shape(), self.height, self.width, l_w.shape());
+            candle_core::bail!(
+                "depthwise conv gradient: {:?} is not the output of {}x{} through {:?}",
+                l_g.shape(),
+                self.height,
+                self.width,
+                l_w.shape()
+            );
         }
         let (grad, w) = (contiguous(s_g, l_g, "gradient")?, contiguous(s_w, l_w, "weight")?);
         let (s, plane_in) = (g.stride, self.height * self.width);
@@ -222,7 +235,8 @@ mod tests {
     }
 
     /// Sizes covering even/odd planes, strides 1 and 2, kernels 3 (the networks') and 5.
-    const CASES: [(usize, usize, usize, usize); 6] = [(8, 8, 3, 1), (8, 8, 3, 2), (7, 9, 3, 2), (5, 6, 3, 1), (9, 7, 5, 2), (2, 3, 3, 2)];
+    const CASES: [(usize, usize, usize, usize); 6] =
+        [(8, 8, 3, 1), (8, 8, 3, 2), (7, 9, 3, 2), (5, 6, 3, 1), (9, 7, 5, 2), (2, 3, 3, 2)];
 
     #[test]
     fn forward_and_gradients_equal_candles_grouped_convolution() -> Result<()> {
@@ -283,7 +297,10 @@ mod tests {
                     let numeric = (lp - lm) / (2.0 * eps as f64);
                     let a = analytic[index] as f64;
                     // The loss is linear in each argument, so the only error is f32 rounding.
-                    assert!((numeric - a).abs() <= 2e-3 * (1.0 + a.abs()), "{name}[{index}] h={h} w={w} k={k} s={stride}: numeric {numeric} analytic {a}");
+                    assert!(
+                        (numeric - a).abs() <= 2e-3 * (1.0 + a.abs()),
+                        "{name}[{index}] h={h} w={w} k={k} s={stride}: numeric {numeric} analytic {a}"
+                    );
                 }
             }
         }

@@ -31,7 +31,15 @@ use super::{row, Arch, NetworkSpec};
 pub const EC_MOBILENET: NetworkSpec = NetworkSpec {
     arch: Arch::EcMobileNet,
     stem_channels: 32,
-    rows: &[row(1, 16, 1, 1), row(6, 24, 2, 2), row(6, 32, 2, 2), row(6, 64, 3, 2), row(6, 96, 2, 1), row(6, 160, 2, 2), row(6, 320, 1, 1)],
+    rows: &[
+        row(1, 16, 1, 1),
+        row(6, 24, 2, 2),
+        row(6, 32, 2, 2),
+        row(6, 64, 3, 2),
+        row(6, 96, 2, 1),
+        row(6, 160, 2, 2),
+        row(6, 320, 1, 1),
+    ],
     head_channels: 1280,
     eca_kernel: Some(eca_kernel_size),
 };
@@ -145,7 +153,12 @@ mod tests {
         let mnv2 = Network::load(&super::super::mobilenetv2::MOBILENET_V2, vb, None, true)?;
         let tensors = crate::model::weights::inference_tensors(&mnv2)?;
         let ecm_tensors = from_mobilenet_v2(&tensors)?;
-        let mnv2 = Network::load(&super::super::mobilenetv2::MOBILENET_V2, VarBuilder::from_tensors(tensors, DType::F32, &dev), None, false)?;
+        let mnv2 = Network::load(
+            &super::super::mobilenetv2::MOBILENET_V2,
+            VarBuilder::from_tensors(tensors, DType::F32, &dev),
+            None,
+            false,
+        )?;
         let ecm = Network::load(&EC_MOBILENET, VarBuilder::from_tensors(ecm_tensors, DType::F32, &dev), None, false)?;
         // Block 3 of MobileNetV2 (first of the 32-channel stage) is ECMobileNet's block 3 too;
         // block 10 of MobileNetV2 (first 96) is ECMobileNet's block 8.
@@ -175,14 +188,21 @@ mod tests {
         assert_eq!(logits.dims(), &[2, 3]);
         let grads = logits.sqr()?.sum_all()?.backward()?;
         let vars = varmap.data().lock().unwrap();
-        for name in ["blocks.0.eca.weight", "blocks.5.depthwise.weight", "blocks.5.depthwise.bn.weight", "stem.weight", "classifier.weight"] {
+        for name in [
+            "blocks.0.eca.weight",
+            "blocks.5.depthwise.weight",
+            "blocks.5.depthwise.bn.weight",
+            "stem.weight",
+            "classifier.weight",
+        ] {
             let var = vars.get(name).unwrap_or_else(|| panic!("no variable {name}"));
             let g = grads.get(var.as_tensor()).unwrap_or_else(|| panic!("no gradient for {name}"));
             assert!(g.abs()?.sum_all()?.to_scalar::<f32>()? > 0.0, "zero gradient for {name}");
         }
         // Inference form of the same network gives the same logits as the stock path.
         let folded = crate::model::weights::inference_tensors(&net)?;
-        let inference = Network::load(&EC_MOBILENET, VarBuilder::from_tensors(folded, DType::F32, &dev), Some(3), false)?;
+        let inference =
+            Network::load(&EC_MOBILENET, VarBuilder::from_tensors(folded, DType::F32, &dev), Some(3), false)?;
         // Batch 2 runs ECA on the activations, batch 1 folds the (trained, non-constant) gate
         // into the projection weights: both must agree with the stock path.
         for x in [x.clone(), x.narrow(0, 0, 1)?] {

@@ -52,7 +52,9 @@ thread_local! {
     static DEPTHWISE_OUT: Cell<Vec<f32>> = const { Cell::new(Vec::new()) };
 }
 
-use super::simd::{depthwise_row, pointwise, DepthwiseRow, PackedWeights, Pointwise, LANES, SHORT_CALL_ROWS, TILE_ROWS};
+use super::simd::{
+    depthwise_row, pointwise, DepthwiseRow, PackedWeights, Pointwise, LANES, SHORT_CALL_ROWS, TILE_ROWS,
+};
 
 fn to_vec(t: &Tensor) -> Result<Vec<f32>> {
     t.flatten_all()?.to_dtype(candle_core::DType::F32)?.to_vec1::<f32>()
@@ -75,7 +77,11 @@ fn eca_gate(sums: &[f64], count: usize, taps: &[f32]) -> Vec<f32> {
                 .enumerate()
                 .map(|(j, &t)| {
                     let i = c + j as isize - pad;
-                    if (0..channels).contains(&i) { t as f64 * means[i as usize] } else { 0.0 }
+                    if (0..channels).contains(&i) {
+                        t as f64 * means[i as usize]
+                    } else {
+                        0.0
+                    }
                 })
                 .sum();
             (1.0 / (1.0 + (-z).exp())) as f32
@@ -449,7 +455,15 @@ impl FusedBottleneck {
     ///
     /// # Safety
     /// As [`Self::forward_image`]; `residual` is null or the input map.
-    unsafe fn forward_channel_parts(&self, x: Input, h: usize, w: usize, channels: Vec<Range<usize>>, residual: *const f32, out: *mut f32) {
+    unsafe fn forward_channel_parts(
+        &self,
+        x: Input,
+        h: usize,
+        w: usize,
+        channels: Vec<Range<usize>>,
+        residual: *const f32,
+        out: *mut f32,
+    ) {
         let (oh, ow) = (same_padding(h, 3, self.stride).0, same_padding(w, 3, self.stride).0);
         let pitch = self.pitch;
         let size = oh * ow * pitch;
@@ -510,7 +524,16 @@ impl FusedBottleneck {
     /// The sink's buffers hold the whole map (`oh * ow` pixels of `pitch` floats to store, of
     /// `output` to project, of `input` for the residual); no other thread writes this part.
     #[allow(clippy::too_many_arguments)]
-    unsafe fn expand_and_depthwise(&self, x: Input, h: usize, w: usize, rows: Range<usize>, channels: Range<usize>, sink: Sink, sums: &mut [f64]) {
+    unsafe fn expand_and_depthwise(
+        &self,
+        x: Input,
+        h: usize,
+        w: usize,
+        rows: Range<usize>,
+        channels: Range<usize>,
+        sink: Sink,
+        sums: &mut [f64],
+    ) {
         let s = self.stride;
         let (_, pad_top, _) = same_padding(h, 3, s);
         let (ow, pad_left, _) = same_padding(w, 3, s);
@@ -600,7 +623,9 @@ impl CustomOp1 for FusedBottleneck {
                 for (i, image) in x.chunks_exact((a * b * c).max(1)).take(batch).enumerate() {
                     let out = out.add(i * per_image);
                     match &self.stem {
-                        Some(stem) => stem.with_padded(image, image_size.0, image_size.1, |padded| self.forward_image(Input::Image(padded), h, w, out)),
+                        Some(stem) => stem.with_padded(image, image_size.0, image_size.1, |padded| {
+                            self.forward_image(Input::Image(padded), h, w, out)
+                        }),
                         None => self.forward_image(Input::Map(image), h, w, out),
                     }
                 }
@@ -632,7 +657,12 @@ impl DenseConv {
             out_channels,
             kernel: (kh, kw),
             stride,
-            weights: PackedWeights::from_output_major(&to_vec(weight)?, &to_vec(bias)?, out_channels, in_channels * kh * kw),
+            weights: PackedWeights::from_output_major(
+                &to_vec(weight)?,
+                &to_vec(bias)?,
+                out_channels,
+                in_channels * kh * kw,
+            ),
             relu6: activation == Activation::Relu6,
         })
     }
@@ -664,7 +694,9 @@ impl DenseConv {
                     row[left..left + n].copy_from_slice(&source_row[..n]);
                 }
             }
-            let taps = (0..self.in_channels * kh * kw).map(|t| (t / (kh * kw)) * ph * pw + (t / kw % kh) * pw + t % kw).collect();
+            let taps = (0..self.in_channels * kh * kw)
+                .map(|t| (t / (kh * kw)) * ph * pw + (t / kw % kh) * pw + t % kw)
+                .collect();
             f(&PaddedImage { data: padded, width: pw, taps })
         };
         PADDED_IMAGE.with(|buffer| match buffer.try_borrow_mut() {
@@ -686,7 +718,15 @@ impl DenseConv {
     /// # Safety
     /// `out` points at `ow` pixels of `ldo` floats covering `columns`, which no other thread
     /// writes meanwhile; `oy` and `ow` are within the convolution's output.
-    unsafe fn output_row(&self, image: &PaddedImage, ow: usize, oy: usize, columns: Range<usize>, out: *mut f32, ldo: usize) {
+    unsafe fn output_row(
+        &self,
+        image: &PaddedImage,
+        ow: usize,
+        oy: usize,
+        columns: Range<usize>,
+        out: *mut f32,
+        ldo: usize,
+    ) {
         let p = Pointwise {
             rows: ow,
             a: image.data[oy * self.stride * image.width..].as_ptr(),
@@ -718,7 +758,16 @@ impl DenseConv {
             split(oh, rayon::current_num_threads()).into_par_iter().for_each(|rows| {
                 for oy in rows {
                     // SAFETY: output row `oy` is this task's alone.
-                    unsafe { self.output_row(image, ow, oy, 0..self.out_channels, out.get().wrapping_add(oy * row_out), self.out_channels) };
+                    unsafe {
+                        self.output_row(
+                            image,
+                            ow,
+                            oy,
+                            0..self.out_channels,
+                            out.get().wrapping_add(oy * row_out),
+                            self.out_channels,
+                        )
+                    };
                 }
             })
         })
@@ -914,9 +963,16 @@ mod tests {
                 ("weight".to_string(), random(&[out, 3, kernel, kernel], 1.0)),
                 ("bias".to_string(), random(&[out], 1.0)),
             ]);
-            let unit = ConvUnit::load(VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu), (out, 3, kernel, kernel), kind, activation, false)?;
+            let unit = ConvUnit::load(
+                VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu),
+                (out, 3, kernel, kernel),
+                kind,
+                activation,
+                false,
+            )?;
             let x = random(&[2, 3, h, w], 2.0);
-            let (fast, reference) = (pool.install(|| unit.forward_t(&x, Mode::Inference))?, unit.forward_t(&x, Mode::Reference)?);
+            let (fast, reference) =
+                (pool.install(|| unit.forward_t(&x, Mode::Inference))?, unit.forward_t(&x, Mode::Reference)?);
             assert_eq!(fast.dims(), reference.dims());
             let diff = max_diff(&fast, &reference);
             assert!(diff < 1e-4, "{kernel}x{kernel} s{stride} {h}x{w} -> {out}: max diff {diff}");
@@ -930,8 +986,17 @@ mod tests {
     #[test]
     fn stem_fused_into_first_block_equals_stock_ops() -> Result<()> {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
-        let stem_tensors = HashMap::from([("weight".to_string(), random(&[32, 3, 3, 3], 0.5)), ("bias".to_string(), random(&[32], 1.0))]);
-        let stem = ConvUnit::load(VarBuilder::from_tensors(stem_tensors, DType::F32, &Device::Cpu), (32, 3, 3, 3), ConvKind::Full { stride: 2 }, Activation::Relu6, false)?;
+        let stem_tensors = HashMap::from([
+            ("weight".to_string(), random(&[32, 3, 3, 3], 0.5)),
+            ("bias".to_string(), random(&[32], 1.0)),
+        ]);
+        let stem = ConvUnit::load(
+            VarBuilder::from_tensors(stem_tensors, DType::F32, &Device::Cpu),
+            (32, 3, 3, 3),
+            ConvKind::Full { stride: 2 },
+            Activation::Relu6,
+            false,
+        )?;
         for (eca_kernel, h, w) in [(Some(3), 61, 50), (None, 40, 33)] {
             let block = random_block(BlockShape { input: 32, hidden: 32, output: 16, stride: 1, eca_kernel })?;
             let fused = block.fused_with_stem(&stem).expect("a first block without expansion takes the stem");

@@ -71,7 +71,9 @@ impl ConvUnit {
     /// A folded unit (bias, no BatchNorm), with its fused kernel where it has one.
     fn with_bias(weight: Tensor, bias: Tensor, kind: ConvKind, activation: Activation) -> Result<Self> {
         let dense = match kind {
-            ConvKind::Full { stride } if frozen(&weight) => Some(Arc::new(DenseConv::new(&weight, &bias, stride, activation)?)),
+            ConvKind::Full { stride } if frozen(&weight) => {
+                Some(Arc::new(DenseConv::new(&weight, &bias, stride, activation)?))
+            }
             ConvKind::Pointwise if frozen(&weight) => Some(Arc::new(DenseConv::new(&weight, &bias, 1, activation)?)),
             _ => None,
         };
@@ -127,7 +129,9 @@ impl ConvUnit {
         if fast {
             let bias = self.bias.as_ref().expect("a unit without BatchNorm has a bias");
             return match (self.kind, &self.dense) {
-                (ConvKind::Depthwise { stride }, _) => depthwise::depthwise_conv(x, &self.weight, bias, stride, self.activation),
+                (ConvKind::Depthwise { stride }, _) => {
+                    depthwise::depthwise_conv(x, &self.weight, bias, stride, self.activation)
+                }
                 (_, Some(dense)) => {
                     // The op works channels-last; this per-unit entry keeps NCHW on both sides.
                     let x = if dense.is_pointwise() { to_channels_last(x)? } else { x.contiguous()? };
@@ -149,7 +153,9 @@ impl ConvUnit {
         let y = match self.kind {
             ConvKind::Full { stride } if mode.is_training() => train_ops::conv_same(x, &self.weight, stride)?,
             ConvKind::Full { stride } => self.convolve(x, stride, 1)?,
-            ConvKind::Depthwise { stride } if mode.is_training() => depthwise_grad::depthwise_conv_train(x, &self.weight, stride)?,
+            ConvKind::Depthwise { stride } if mode.is_training() => {
+                depthwise_grad::depthwise_conv_train(x, &self.weight, stride)?
+            }
             ConvKind::Depthwise { stride } => self.convolve(x, stride, x.dim(1)?)?,
             ConvKind::Pointwise if mode.is_training() => train_ops::pointwise_conv(x, &self.weight)?,
             ConvKind::Pointwise => x.conv2d(&self.weight, 0, 1, 1, 1)?,
@@ -169,7 +175,8 @@ impl ConvUnit {
     /// The inference fast path on channels-last maps, where the unit has a fused kernel: the stem
     /// takes the NCHW image and gives `[B, H, W, C]`, a 1x1 unit takes and gives `[B, H, W, C]`.
     pub fn forward_channels_last(&self, x: &Tensor) -> Result<Tensor> {
-        let dense = self.dense.as_ref().ok_or_else(|| candle_core::Error::Msg("this unit has no fused kernel".into()))?;
+        let dense =
+            self.dense.as_ref().ok_or_else(|| candle_core::Error::Msg("this unit has no fused kernel".into()))?;
         x.contiguous()?.apply_op1_no_bwd(dense.as_ref())
     }
 
@@ -293,7 +300,13 @@ pub struct InvertedResidual {
 impl InvertedResidual {
     pub fn load(vb: VarBuilder, shape: BlockShape, batch_norm: bool) -> Result<Self> {
         let expand = if shape.has_expansion() {
-            Some(ConvUnit::load(vb.pp("expand"), (shape.hidden, shape.input, 1, 1), ConvKind::Pointwise, Activation::Relu6, batch_norm)?)
+            Some(ConvUnit::load(
+                vb.pp("expand"),
+                (shape.hidden, shape.input, 1, 1),
+                ConvKind::Pointwise,
+                Activation::Relu6,
+                batch_norm,
+            )?)
         } else {
             None
         };
@@ -305,14 +318,26 @@ impl InvertedResidual {
             batch_norm,
         )?;
         let eca = shape.eca_kernel.map(|k| Eca::load(vb.pp("eca"), k)).transpose()?;
-        let project = ConvUnit::load(vb.pp("project"), (shape.output, shape.hidden, 1, 1), ConvKind::Pointwise, Activation::Identity, batch_norm)?;
+        let project = ConvUnit::load(
+            vb.pp("project"),
+            (shape.output, shape.hidden, 1, 1),
+            ConvKind::Pointwise,
+            Activation::Identity,
+            batch_norm,
+        )?;
         let fused = match (&expand, &depthwise, &project) {
             (_, ConvUnit { bias: Some(dw_bias), bn: None, .. }, ConvUnit { bias: Some(p_bias), bn: None, .. })
                 if frozen(&depthwise.weight) && expand.as_ref().is_none_or(|e| e.bn.is_none()) =>
             {
-                let expand = expand.as_ref().map(|e| (&e.weight, e.bias.as_ref().expect("folded"))) ;
+                let expand = expand.as_ref().map(|e| (&e.weight, e.bias.as_ref().expect("folded")));
                 let eca = eca.as_ref().map(|e| &e.weight);
-                Some(Arc::new(FusedBottleneck::new(shape.stride, expand, (&depthwise.weight, dw_bias), eca, (&project.weight, p_bias))?))
+                Some(Arc::new(FusedBottleneck::new(
+                    shape.stride,
+                    expand,
+                    (&depthwise.weight, dw_bias),
+                    eca,
+                    (&project.weight, p_bias),
+                )?))
             }
             _ => None,
         };
@@ -337,7 +362,8 @@ impl InvertedResidual {
     /// The inference fast path on a channels-last map `[B, H, W, C]`, where the block has its
     /// fused kernel.
     pub fn forward_channels_last(&self, x: &Tensor) -> Result<Tensor> {
-        let fused = self.fused.as_ref().ok_or_else(|| candle_core::Error::Msg("this block has no fused kernel".into()))?;
+        let fused =
+            self.fused.as_ref().ok_or_else(|| candle_core::Error::Msg("this block has no fused kernel".into()))?;
         x.contiguous()?.apply_op1_no_bwd(fused.as_ref())
     }
 

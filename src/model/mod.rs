@@ -9,12 +9,12 @@
 pub mod batch_norm_train;
 pub mod depthwise;
 pub mod depthwise_grad;
+pub mod ecmobilenet;
 pub mod embedder;
 pub mod fused;
-pub mod simd;
-pub mod ecmobilenet;
 pub mod layers;
 pub mod mobilenetv2;
+pub mod simd;
 pub mod train_ops;
 pub mod weights;
 
@@ -121,7 +121,11 @@ impl NetworkSpec {
     /// classifier's weight and bias), as PyTorch counts them, and multiply-accumulates per image.
     pub fn cost(&self, classes: Option<usize>, input_size: usize) -> ModelCost {
         let stages = self.stage_costs(classes, input_size);
-        ModelCost { arch: self.arch, params: stages.iter().map(|s| s.params).sum(), macs: stages.iter().map(|s| s.macs).sum() }
+        ModelCost {
+            arch: self.arch,
+            params: stages.iter().map(|s| s.params).sum(),
+            macs: stages.iter().map(|s| s.macs).sum(),
+        }
     }
 
     /// [`NetworkSpec::cost`] stage by stage: `stem`, `blocks.{i}`, `head` and `classifier`.
@@ -257,7 +261,13 @@ impl Network {
             .map(|(i, shape)| InvertedResidual::load(vb.pp(format!("blocks.{i}")), shape, batch_norm))
             .collect::<Result<Vec<_>>>()?;
         let last = blocks.last().map(|b| b.shape.output).unwrap_or(spec.stem_channels);
-        let head = ConvUnit::load(vb.pp("head"), (spec.head_channels, last, 1, 1), ConvKind::Pointwise, Activation::Relu6, batch_norm)?;
+        let head = ConvUnit::load(
+            vb.pp("head"),
+            (spec.head_channels, last, 1, 1),
+            ConvKind::Pointwise,
+            Activation::Relu6,
+            batch_norm,
+        )?;
         let classifier = classes.map(|k| candle_nn::linear(spec.head_channels, k, vb.pp("classifier"))).transpose()?;
         let stem_and_first_block = blocks.first().and_then(|b| b.fused_with_stem(&stem));
         Ok(Network { spec: spec.clone(), stem, blocks, head, classifier, stem_and_first_block })
@@ -358,7 +368,10 @@ impl Network {
     /// Whether a pass in `mode` runs the fused channels-last kernels from end to end: inference
     /// with folded constant weights (not weights being trained).
     fn runs_channels_last(&self, mode: Mode) -> bool {
-        mode == Mode::Inference && self.stem.is_fused() && self.head.is_fused() && self.blocks.iter().all(|b| b.is_fused())
+        mode == Mode::Inference
+            && self.stem.is_fused()
+            && self.head.is_fused()
+            && self.blocks.iter().all(|b| b.is_fused())
     }
 
     /// Mean time of each stage ([`Self::stage_name`]) over `runs` passes of `x` in `mode`,
@@ -379,7 +392,11 @@ impl Network {
                     }
                 }
             }
-            Ok(stages.into_iter().zip(totals).map(|(stage, t)| (Self::stage_name(stage), t / runs.max(1) as u32)).collect())
+            Ok(stages
+                .into_iter()
+                .zip(totals)
+                .map(|(stage, t)| (Self::stage_name(stage), t / runs.max(1) as u32))
+                .collect())
         })
     }
 

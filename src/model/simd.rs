@@ -320,7 +320,10 @@ impl Build {
                 Some(&build) => build,
                 None => {
                     if let Some(name) = wanted {
-                        log::warn!("ECM_LCD_KERNELS={name}: not a build this CPU runs ({available:?}); using {:?}", available[0]);
+                        log::warn!(
+                            "ECM_LCD_KERNELS={name}: not a build this CPU runs ({available:?}); using {:?}",
+                            available[0]
+                        );
                     }
                     available[0]
                 }
@@ -450,7 +453,11 @@ pub(crate) unsafe fn pointwise(p: &Pointwise) {
 /// # Safety
 /// As [`pointwise`].
 unsafe fn pointwise_in(build: Build, p: &Pointwise) {
-    assert!(p.columns.start.is_multiple_of(LANES) && p.columns.end <= p.weights.n, "pointwise: columns {:?}", p.columns);
+    assert!(
+        p.columns.start.is_multiple_of(LANES) && p.columns.end <= p.weights.n,
+        "pointwise: columns {:?}",
+        p.columns
+    );
     match build {
         #[cfg(target_arch = "x86_64")]
         Build::Avx512 => unsafe { avx512::pointwise(p) },
@@ -710,7 +717,9 @@ pub(crate) unsafe fn depthwise_row(p: &DepthwiseRow, sums: &mut [f64]) {
 /// # Safety
 /// As [`depthwise_row`].
 unsafe fn depthwise_row_in(build: Build, p: &DepthwiseRow, sums: &mut [f64]) {
-    assert!(p.channels.start.is_multiple_of(LANES) && p.channels.end.is_multiple_of(LANES) && p.channels.end <= p.pitch);
+    assert!(
+        p.channels.start.is_multiple_of(LANES) && p.channels.end.is_multiple_of(LANES) && p.channels.end <= p.pitch
+    );
     assert!(p.weights.len() >= 9 * p.pitch && p.bias.len() >= p.pitch && sums.len() >= p.channels.len());
     match build {
         #[cfg(target_arch = "x86_64")]
@@ -766,12 +775,22 @@ const fn feeds(i: usize, first: usize) -> bool {
 /// Tile row `i`, or the last of `rows` rows past the end (those repeat the last row).
 #[inline(always)]
 const fn last_row_from(i: usize, rows: usize) -> usize {
-    if i < rows { i } else { rows - 1 }
+    if i < rows {
+        i
+    } else {
+        rows - 1
+    }
 }
 
 /// Output pixels `x..x + P` of channel vector `c` of [`depthwise_row`]; returns their sum.
 #[inline(always)]
-unsafe fn depthwise_step<L: Lanes, const S: usize, const P: usize>(p: &DepthwiseRow, c: usize, x: usize, w: &[L; 9], bias: L) -> L {
+unsafe fn depthwise_step<L: Lanes, const S: usize, const P: usize>(
+    p: &DepthwiseRow,
+    c: usize,
+    x: usize,
+    w: &[L; 9],
+    bias: L,
+) -> L {
     let pitch = p.pitch;
     let mut acc = [bias; P];
     unrolled!(KY in [0 1 2] {
@@ -870,7 +889,14 @@ mod tests {
     /// Every build of `depthwise_row` against naive loops, strides 1 and 2, both paddings.
     #[test]
     fn depthwise_row_equals_naive_loops_in_every_build() {
-        for (stride, first_pixel, width, pitch, channels) in [(1, 0, 9, 32, 0..32), (2, 1, 5, 48, 16..48), (2, 0, 4, 16, 0..16), (1, 0, 1, 64, 32..64), (1, 1, 14, 16, 0..16), (2, 1, 11, 32, 0..32)] {
+        for (stride, first_pixel, width, pitch, channels) in [
+            (1, 0, 9, 32, 0..32),
+            (2, 1, 5, 48, 16..48),
+            (2, 0, 4, 16, 0..16),
+            (1, 0, 1, 64, 32..64),
+            (1, 1, 14, 16, 0..16),
+            (2, 1, 11, 32, 0..32),
+        ] {
             let pixels = first_pixel + (width - 1) * stride + 3;
             let rows: Vec<Vec<f32>> = (0..3).map(|i| random(pixels * pitch, 10 + i)).collect();
             let weights = random(9 * pitch, 20);

@@ -62,11 +62,25 @@ fn matmul(m: usize, n: usize, k: usize, dst: &mut [f32], accumulate: bool, lhs: 
     // not alias the inputs (distinct borrows).
     unsafe {
         gemm::gemm(
-            m, n, k,
-            dst.as_mut_ptr(), 1, n as isize, accumulate,
-            lhs.data.as_ptr(), lhs.col_stride as isize, lhs.row_stride as isize,
-            rhs.data.as_ptr(), rhs.col_stride as isize, rhs.row_stride as isize,
-            1.0, 1.0, false, false, false, gemm::Parallelism::None,
+            m,
+            n,
+            k,
+            dst.as_mut_ptr(),
+            1,
+            n as isize,
+            accumulate,
+            lhs.data.as_ptr(),
+            lhs.col_stride as isize,
+            lhs.row_stride as isize,
+            rhs.data.as_ptr(),
+            rhs.col_stride as isize,
+            rhs.row_stride as isize,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            gemm::Parallelism::None,
         );
     }
 }
@@ -158,7 +172,10 @@ impl CustomOp2 for PointwiseConv {
 
     fn cpu_fwd(&self, s_x: &CpuStorage, l_x: &Layout, s_w: &CpuStorage, l_w: &Layout) -> Result<(CpuStorage, Shape)> {
         let (batch, channels, plane, outputs) = pointwise_dims(l_x.shape(), l_w.shape())?;
-        let (x, w) = (contiguous(s_x, l_x, "pointwise conv", "the input")?, contiguous(s_w, l_w, "pointwise conv", "the weight")?);
+        let (x, w) = (
+            contiguous(s_x, l_x, "pointwise conv", "the input")?,
+            contiguous(s_w, l_w, "pointwise conv", "the weight")?,
+        );
         let mut out = vec![0f32; batch * outputs * plane];
         out.par_chunks_mut((outputs * plane).max(1)).zip(x.par_chunks((channels * plane).max(1))).for_each(|(y, x)| {
             matmul(outputs, plane, channels, y, false, View::rows(w, channels), View::rows(x, plane));
@@ -169,7 +186,11 @@ impl CustomOp2 for PointwiseConv {
 
     fn bwd(&self, x: &Tensor, w: &Tensor, _res: &Tensor, grad: &Tensor) -> Result<(Option<Tensor>, Option<Tensor>)> {
         let grad = grad.contiguous()?;
-        let grad_x = if x.track_op() { Some(grad.apply_op2_no_bwd(w, &PointwiseInputGrad { input: x.shape().clone() })?) } else { None };
+        let grad_x = if x.track_op() {
+            Some(grad.apply_op2_no_bwd(w, &PointwiseInputGrad { input: x.shape().clone() })?)
+        } else {
+            None
+        };
         let grad_w = x.apply_op2_no_bwd(&grad, &PointwiseWeightGrad { weight: w.shape().clone() })?;
         Ok((grad_x, Some(grad_w)))
     }
@@ -190,11 +211,16 @@ impl CustomOp2 for PointwiseInputGrad {
         if l_g.shape().elem_count() != batch * outputs * plane {
             candle_core::bail!("pointwise conv gradient {:?} for input {:?}", l_g.shape(), self.input);
         }
-        let (g, w) = (contiguous(s_g, l_g, "pointwise conv", "the gradient")?, contiguous(s_w, l_w, "pointwise conv", "the weight")?);
+        let (g, w) = (
+            contiguous(s_g, l_g, "pointwise conv", "the gradient")?,
+            contiguous(s_w, l_w, "pointwise conv", "the weight")?,
+        );
         let mut out = vec![0f32; batch * channels * plane];
-        out.par_chunks_mut((channels * plane).max(1)).zip(g.par_chunks((outputs * plane).max(1))).for_each(|(dx, g)| {
-            matmul(channels, plane, outputs, dx, false, View::transposed(w, channels), View::rows(g, plane));
-        });
+        out.par_chunks_mut((channels * plane).max(1)).zip(g.par_chunks((outputs * plane).max(1))).for_each(
+            |(dx, g)| {
+                matmul(channels, plane, outputs, dx, false, View::transposed(w, channels), View::rows(g, plane));
+            },
+        );
         Ok((CpuStorage::F32(out), self.input.clone()))
     }
 }
@@ -214,7 +240,10 @@ impl CustomOp2 for PointwiseWeightGrad {
         if l_g.shape().elem_count() != batch * outputs * plane {
             candle_core::bail!("pointwise conv gradient {:?} for input {:?}", l_g.shape(), l_x.shape());
         }
-        let (x, g) = (contiguous(s_x, l_x, "pointwise conv", "the input")?, contiguous(s_g, l_g, "pointwise conv", "the gradient")?);
+        let (x, g) = (
+            contiguous(s_x, l_x, "pointwise conv", "the input")?,
+            contiguous(s_g, l_g, "pointwise conv", "the gradient")?,
+        );
         let mut out = vec![0f32; outputs * channels];
         // Rows of dW split across threads; each thread sums over the whole batch.
         let threads = rayon::current_num_threads().max(1);
@@ -388,7 +417,8 @@ impl CustomOp1 for ChannelMean {
         let (batch, channels, h, w) = l.shape().dims4()?;
         let x = contiguous(s, l, "channel mean", "the input")?;
         let plane = (h * w).max(1);
-        let out: Vec<f32> = x.par_chunks(plane).map(|p| (p.iter().map(|&v| v as f64).sum::<f64>() / plane as f64) as f32).collect();
+        let out: Vec<f32> =
+            x.par_chunks(plane).map(|p| (p.iter().map(|&v| v as f64).sum::<f64>() / plane as f64) as f32).collect();
         Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, channels])))
     }
 
@@ -442,13 +472,16 @@ impl CustomOp2 for ChannelScale {
 
     fn cpu_fwd(&self, s_x: &CpuStorage, l_x: &Layout, s_g: &CpuStorage, l_g: &Layout) -> Result<(CpuStorage, Shape)> {
         let (_, plane) = scale_dims(l_x.shape(), l_g.shape())?;
-        let (x, gate) = (contiguous(s_x, l_x, "channel scale", "the input")?, contiguous(s_g, l_g, "channel scale", "the gate")?);
+        let (x, gate) =
+            (contiguous(s_x, l_x, "channel scale", "the input")?, contiguous(s_g, l_g, "channel scale", "the gate")?);
         let mut out = vec![0f32; x.len()];
-        out.par_chunks_mut(plane.max(1)).zip(x.par_chunks(plane.max(1))).zip(gate.par_iter()).for_each(|((y, x), &g)| {
-            for (y, &x) in y.iter_mut().zip(x) {
-                *y = x * g;
-            }
-        });
+        out.par_chunks_mut(plane.max(1)).zip(x.par_chunks(plane.max(1))).zip(gate.par_iter()).for_each(
+            |((y, x), &g)| {
+                for (y, &x) in y.iter_mut().zip(x) {
+                    *y = x * g;
+                }
+            },
+        );
         Ok((CpuStorage::F32(out), l_x.shape().clone()))
     }
 
@@ -473,9 +506,16 @@ impl CustomOp2 for ChannelScaleGateGrad {
             candle_core::bail!("channel scale gradient {:?} for input {:?}", l_d.shape(), l_x.shape());
         }
         let (b, c, h, w) = l_x.shape().dims4()?;
-        let (x, d) = (contiguous(s_x, l_x, "channel scale", "the input")?, contiguous(s_d, l_d, "channel scale", "the gradient")?);
+        let (x, d) = (
+            contiguous(s_x, l_x, "channel scale", "the input")?,
+            contiguous(s_d, l_d, "channel scale", "the gradient")?,
+        );
         let plane = (h * w).max(1);
-        let out: Vec<f32> = x.par_chunks(plane).zip(d.par_chunks(plane)).map(|(x, d)| x.iter().zip(d).map(|(&x, &d)| x as f64 * d as f64).sum::<f64>() as f32).collect();
+        let out: Vec<f32> = x
+            .par_chunks(plane)
+            .zip(d.par_chunks(plane))
+            .map(|(x, d)| x.iter().zip(d).map(|(&x, &d)| x as f64 * d as f64).sum::<f64>() as f32)
+            .collect();
         Ok((CpuStorage::F32(out), Shape::from_dims(&[b, c])))
     }
 }
@@ -497,7 +537,12 @@ mod tests {
     }
 
     /// Compares `ours(vars)` with `stock(vars)`: values, and gradients of `Σ probe · out` for each var.
-    fn check_against_stock(what: &str, vars: &[&Var], ours: impl Fn(&[Tensor]) -> Result<Tensor>, stock: impl Fn(&[Tensor]) -> Result<Tensor>) -> Result<()> {
+    fn check_against_stock(
+        what: &str,
+        vars: &[&Var],
+        ours: impl Fn(&[Tensor]) -> Result<Tensor>,
+        stock: impl Fn(&[Tensor]) -> Result<Tensor>,
+    ) -> Result<()> {
         let args: Vec<Tensor> = vars.iter().map(|v| v.as_tensor().clone()).collect();
         let (a, b) = (ours(&args)?, stock(&args)?);
         assert_eq!(a.dims(), b.dims(), "{what}: shapes");
@@ -532,7 +577,12 @@ mod tests {
         for (b, c, o, h, w) in [(3, 5, 7, 4, 6), (2, 16, 3, 1, 1), (1, 4, 9, 3, 3), (4, 24, 40, 8, 8)] {
             let x = Var::randn(0f32, 1.0, (b, c, h, w), &dev)?;
             let weight = Var::randn(0f32, 1.0, (o, c, 1, 1), &dev)?;
-            check_against_stock(&format!("pointwise {b}x{c}x{h}x{w} -> {o}"), &[&x, &weight], |a| pointwise_conv(&a[0], &a[1]), |a| a[0].conv2d(&a[1], 0, 1, 1, 1))?;
+            check_against_stock(
+                &format!("pointwise {b}x{c}x{h}x{w} -> {o}"),
+                &[&x, &weight],
+                |a| pointwise_conv(&a[0], &a[1]),
+                |a| a[0].conv2d(&a[1], 0, 1, 1, 1),
+            )?;
         }
         Ok(())
     }
@@ -544,7 +594,12 @@ mod tests {
             let x = Var::randn(0f32, 1.0, (3, 3, h, w), &dev)?;
             let weight = Var::randn(0f32, 1.0, (8, 3, k, k), &dev)?;
             let stock = |a: &[Tensor]| pad_same(&a[0], h, w, k, k, stride)?.conv2d(&a[1], 0, stride, 1, 1);
-            check_against_stock(&format!("conv {h}x{w} k{k} s{stride}"), &[&x, &weight], |a| conv_same(&a[0], &a[1], stride), stock)?;
+            check_against_stock(
+                &format!("conv {h}x{w} k{k} s{stride}"),
+                &[&x, &weight],
+                |a| conv_same(&a[0], &a[1], stride),
+                stock,
+            )?;
         }
         // The image needs no gradient: the patches' backward is skipped, the weight's is not.
         let x = Tensor::randn(0f32, 1.0, (2, 3, 8, 8), &dev)?;
@@ -562,7 +617,12 @@ mod tests {
             let x = Var::randn(0f32, 1.0, (b, c, h, w), &dev)?;
             let gate = Var::randn(0f32, 1.0, (b, c, 1, 1), &dev)?;
             check_against_stock("channel mean", &[&x], |a| channel_mean(&a[0]), |a| a[0].mean((2, 3)))?;
-            check_against_stock("channel scale", &[&x, &gate], |a| channel_scale(&a[0], &a[1]), |a| a[0].broadcast_mul(&a[1]))?;
+            check_against_stock(
+                "channel scale",
+                &[&x, &gate],
+                |a| channel_scale(&a[0], &a[1]),
+                |a| a[0].broadcast_mul(&a[1]),
+            )?;
         }
         Ok(())
     }

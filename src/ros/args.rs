@@ -165,8 +165,12 @@ impl RosArgs {
                     let value = value_of(arg)?;
                     out.ignored.push(format!("{arg} {value}"));
                 }
-                "--enable-rosout-logs" | "--disable-rosout-logs" | "--enable-stdout-logs" | "--disable-stdout-logs"
-                | "--enable-external-lib-logs" | "--disable-external-lib-logs" => out.ignored.push(arg.to_string()),
+                "--enable-rosout-logs"
+                | "--disable-rosout-logs"
+                | "--enable-stdout-logs"
+                | "--disable-stdout-logs"
+                | "--enable-external-lib-logs"
+                | "--disable-external-lib-logs" => out.ignored.push(arg.to_string()),
                 other => bail!("unknown ROS argument {other:?}"),
             }
         }
@@ -174,15 +178,13 @@ impl RosArgs {
         // The node's name and namespace first: node-targeted rules depend on the final name.
         for Targeted { node, rule: (from, to) } in &remaps {
             match from.as_str() {
-                "__node" | "__name"
-                    if node.as_deref().is_none_or(|n| n == default_node_name) => {
-                        check_base_name(to)?;
-                        out.node_name = Some(to.clone());
-                    }
-                "__ns"
-                    if node.as_deref().is_none_or(|n| n == default_node_name) => {
-                        out.namespace = Some(normalise_namespace(to)?);
-                    }
+                "__node" | "__name" if node.as_deref().is_none_or(|n| n == default_node_name) => {
+                    check_base_name(to)?;
+                    out.node_name = Some(to.clone());
+                }
+                "__ns" if node.as_deref().is_none_or(|n| n == default_node_name) => {
+                    out.namespace = Some(normalise_namespace(to)?);
+                }
                 _ => {}
             }
         }
@@ -334,7 +336,10 @@ mod tests {
     #[test]
     fn sections_and_separators() {
         let a = parse(&["--ros-args", "-p", "a:=1", "--", "--ros-args", "-p", "b:=x y"]).unwrap();
-        assert_eq!(a.params, vec![("a".into(), ParamValue::Integer(1)), ("b".into(), ParamValue::String("x y".into()))]);
+        assert_eq!(
+            a.params,
+            vec![("a".into(), ParamValue::Integer(1)), ("b".into(), ParamValue::String("x y".into()))]
+        );
         assert!(parse(&[]).unwrap() == RosArgs::default());
         let ignored = parse(&["--ros-args", "--disable-rosout-logs", "-e", "/enclave"]).unwrap();
         assert_eq!(ignored.ignored.len(), 2);

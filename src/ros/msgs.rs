@@ -216,7 +216,8 @@ impl LoopCandidate {
 
 impl Pose {
     /// No motion (what `relative_pose` holds when there is none).
-    pub const IDENTITY: Pose = Pose { position: Point { x: 0.0, y: 0.0, z: 0.0 }, orientation: Quaternion { x: 0.0, y: 0.0, z: 0.0, w: 1.0 } };
+    pub const IDENTITY: Pose =
+        Pose { position: Point { x: 0.0, y: 0.0, z: 0.0 }, orientation: Quaternion { x: 0.0, y: 0.0, z: 0.0, w: 1.0 } };
 }
 
 impl From<types::RelativePose> for Pose {
@@ -315,8 +316,18 @@ mod tests {
             let base = ty.split('[').next().unwrap();
             let primitive = matches!(
                 base,
-                "bool" | "int8" | "uint8" | "int16" | "uint16" | "int32" | "uint32" | "int64" | "uint64"
-                    | "float32" | "float64" | "string"
+                "bool"
+                    | "int8"
+                    | "uint8"
+                    | "int16"
+                    | "uint16"
+                    | "int32"
+                    | "uint32"
+                    | "int64"
+                    | "uint64"
+                    | "float32"
+                    | "float64"
+                    | "string"
             );
             if primitive {
                 out.push((path, ty));
@@ -354,9 +365,7 @@ mod tests {
     }
 
     fn flatten_rust(registry: &Registry, container: &str, prefix: &str, out: &mut Vec<(String, String)>) {
-        let ContainerFormat::Struct(fields) = &registry[container] else {
-            panic!("{container} is not a struct")
-        };
+        let ContainerFormat::Struct(fields) = &registry[container] else { panic!("{container} is not a struct") };
         for Named { name, value } in fields {
             let path = format!("{prefix}{name}");
             match value {
@@ -400,8 +409,7 @@ mod tests {
     #[test]
     fn standard_messages_agree_with_their_definitions() {
         let image = msg_side("sensor_msgs/Image image");
-        let image: Vec<_> =
-            image.into_iter().map(|(p, t)| (p.trim_start_matches("image.").to_string(), t)).collect();
+        let image: Vec<_> = image.into_iter().map(|(p, t)| (p.trim_start_matches("image.").to_string(), t)).collect();
         assert_eq!(rust_fields::<Image>("Image"), image);
         let compressed = msg_side("sensor_msgs/CompressedImage c");
         let compressed: Vec<_> =
@@ -415,7 +423,13 @@ mod tests {
 
     #[test]
     fn camera_info_round_trips_and_gives_its_intrinsics() {
-        let mut info = CameraInfo { width: 640, height: 480, distortion_model: "plumb_bob".into(), d: vec![0.1, -0.2, 0.0, 0.0, 0.0], ..Default::default() };
+        let mut info = CameraInfo {
+            width: 640,
+            height: 480,
+            distortion_model: "plumb_bob".into(),
+            d: vec![0.1, -0.2, 0.0, 0.0, 0.0],
+            ..Default::default()
+        };
         assert_eq!(info.intrinsics(), None, "an uncalibrated camera publishes a zero K");
         info.k = [535.4, 0.0, 320.1, 0.0, 539.2, 247.6, 0.0, 0.0, 1.0];
         let bytes = cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&info).unwrap();

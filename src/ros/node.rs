@@ -212,7 +212,13 @@ impl std::fmt::Display for CountersSnapshot {
         write!(
             f,
             "received {} processed {} candidates {} malformed {} dropped {} failed {} param_changes {}",
-            self.received, self.processed, self.candidates, self.malformed, self.dropped, self.failed, self.param_changes
+            self.received,
+            self.processed,
+            self.candidates,
+            self.malformed,
+            self.dropped,
+            self.failed,
+            self.param_changes
         )
     }
 }
@@ -293,18 +299,14 @@ pub fn run_node(
 
     let context = Context::new().context("creating the DDS participant")?;
     let mut node = context
-        .new_node(
-            NodeName::new(args.namespace(), &node_name).with_context(|| format!("node name {fqn}"))?,
-            options,
-        )
+        .new_node(NodeName::new(args.namespace(), &node_name).with_context(|| format!("node name {fqn}"))?, options)
         .map_err(|e| anyhow::anyhow!("creating node {fqn}: {e:?}"))?;
 
     let topic = |node: &mut Node, name: &str, ty: ros2_client::MessageTypeName, qos: &QosProfile| -> Result<_> {
         let resolved = args.resolve_topic(name, DEFAULT_NODE_NAME)?;
         let ros_name = Name::parse(&resolved).with_context(|| format!("topic name {resolved}"))?;
-        let topic = node
-            .create_topic(&ros_name, ty, qos)
-            .map_err(|e| anyhow::anyhow!("creating topic {resolved}: {e:?}"))?;
+        let topic =
+            node.create_topic(&ros_name, ty, qos).map_err(|e| anyhow::anyhow!("creating topic {resolved}: {e:?}"))?;
         Ok((topic, resolved))
     };
     let input_qos = settings.input_qos.profile();
@@ -313,7 +315,8 @@ pub fn run_node(
     let (cmp_topic, cmp_name) = topic(&mut node, COMPRESSED_TOPIC, msgs::compressed_image_type(), &input_qos)?;
     let (out_topic, out_name) = topic(&mut node, CANDIDATES_TOPIC, msgs::loop_candidate_type(), &output_qos())?;
     let (info_topic, info_name) = topic(&mut node, CAMERA_INFO_TOPIC, msgs::camera_info_type(), &input_qos)?;
-    let (diag_topic, diag_name) = topic(&mut node, DIAGNOSTICS_TOPIC, msgs::diagnostic_array_type(), &diagnostics_qos())?;
+    let (diag_topic, diag_name) =
+        topic(&mut node, DIAGNOSTICS_TOPIC, msgs::diagnostic_array_type(), &diagnostics_qos())?;
     let sub_err = |what: &str| {
         let what = what.to_string();
         move |e| anyhow::anyhow!("subscribing {what}: {e:?}")
@@ -322,10 +325,10 @@ pub fn run_node(
     let mut img_sub: Subscription<Image> = node.create_subscription(&img_topic, None).map_err(sub_err(&img_name))?;
     let mut cmp_sub: Subscription<CompressedImage> =
         node.create_subscription(&cmp_topic, None).map_err(sub_err(&cmp_name))?;
-    let mut info_sub: Subscription<CameraInfo> = node.create_subscription(&info_topic, None).map_err(sub_err(&info_name))?;
-    let publisher: Publisher<LoopCandidate> = node
-        .create_publisher(&out_topic, None)
-        .map_err(|e| anyhow::anyhow!("creating publisher {out_name}: {e:?}"))?;
+    let mut info_sub: Subscription<CameraInfo> =
+        node.create_subscription(&info_topic, None).map_err(sub_err(&info_name))?;
+    let publisher: Publisher<LoopCandidate> =
+        node.create_publisher(&out_topic, None).map_err(|e| anyhow::anyhow!("creating publisher {out_name}: {e:?}"))?;
     let diagnostics: Publisher<DiagnosticArray> = node
         .create_publisher(&diag_topic, None)
         .map_err(|e| anyhow::anyhow!("creating publisher {diag_name}: {e:?}"))?;
@@ -350,7 +353,9 @@ pub fn run_node(
         std::thread::Builder::new()
             .name("lcd-worker".into())
             // On a rayon worker for its whole life: see `runtime::on_worker`.
-            .spawn(move || crate::runtime::on_worker(|| worker_loop(&fqn, processor, &queue, &publisher, &counters, &live)))
+            .spawn(move || {
+                crate::runtime::on_worker(|| worker_loop(&fqn, processor, &queue, &publisher, &counters, &live))
+            })
             .context("starting the worker thread")?
     };
 
@@ -423,7 +428,10 @@ pub fn run_node(
         if last_diagnostics.0.elapsed() >= settings.diagnostics_period {
             let now = counters.snapshot();
             let status = diagnostic_status(&fqn, &counters, &last_diagnostics.1, queue.len(), settings.queue_capacity);
-            let array = DiagnosticArray { header: Header { stamp: Stamp::now().into(), frame_id: String::new() }, status: vec![status] };
+            let array = DiagnosticArray {
+                header: Header { stamp: Stamp::now().into(), frame_id: String::new() },
+                status: vec![status],
+            };
             if let Err(e) = diagnostics.publish(array) {
                 warn!("[{fqn}] publishing {diag_name} failed: {e:?}");
             }
@@ -445,19 +453,33 @@ pub fn run_node(
 
 /// The node's `/diagnostics` entry: `WARN` while messages are being dropped or failing (since `previous`),
 /// else `OK`; the counters, the queue and the mean worker time per message as values.
-fn diagnostic_status(fqn: &str, counters: &NodeCounters, previous: &CountersSnapshot, queue_depth: usize, queue_capacity: usize) -> DiagnosticStatus {
+fn diagnostic_status(
+    fqn: &str,
+    counters: &NodeCounters,
+    previous: &CountersSnapshot,
+    queue_depth: usize,
+    queue_capacity: usize,
+) -> DiagnosticStatus {
     let now = counters.snapshot();
     let (dropping, failing) = (now.dropped > previous.dropped, now.failed > previous.failed);
     let (level, message) = match (dropping, failing) {
         (false, false) => (DiagnosticStatus::OK, "ok".to_string()),
         _ => (
             DiagnosticStatus::WARN,
-            format!("{} dropped, {} failed in the last period", now.dropped - previous.dropped, now.failed - previous.failed),
+            format!(
+                "{} dropped, {} failed in the last period",
+                now.dropped - previous.dropped,
+                now.failed - previous.failed
+            ),
         ),
     };
     let per_message = |us: &AtomicU64| {
         let done = now.processed + now.failed;
-        if done == 0 { 0.0 } else { us.load(Ordering::Relaxed) as f64 / 1e3 / done as f64 }
+        if done == 0 {
+            0.0
+        } else {
+            us.load(Ordering::Relaxed) as f64 / 1e3 / done as f64
+        }
     };
     let values = [
         ("queue_depth", queue_depth.to_string()),
@@ -522,7 +544,8 @@ impl FrameIds {
     const DEFAULT_CAPACITY: usize = 100_000;
 
     fn insert(&mut self, id: u64, frame_id: &str) {
-        let shared = self.order.back().and_then(|last| self.names.get(last)).filter(|name| &***name == frame_id).cloned();
+        let shared =
+            self.order.back().and_then(|last| self.names.get(last)).filter(|name| &***name == frame_id).cloned();
         let name = shared.unwrap_or_else(|| Arc::from(frame_id));
         if self.names.insert(id, name).is_none() {
             self.order.push_back(id);
@@ -635,7 +658,10 @@ fn worker_loop(
                 Ok(()) => {
                     counters.candidates.fetch_add(1, Ordering::Relaxed);
                 }
-                Err(e) => error!("[{fqn}] publishing candidate {} -> {} failed: {e:?}", candidate.query_id, candidate.match_id),
+                Err(e) => error!(
+                    "[{fqn}] publishing candidate {} -> {} failed: {e:?}",
+                    candidate.query_id, candidate.match_id
+                ),
             }
         }
         debug!(

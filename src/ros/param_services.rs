@@ -43,8 +43,14 @@ fn server<Req: Message + Clone + 'static, Resp: Message + Clone + 'static>(
 ) -> Result<Server<Req, Resp>> {
     let qos = QosProfile::publisher_default().history(History::KeepLast { depth: 1 });
     let name = Name::parse(&format!("{fqn}/{service}")).map_err(|e| anyhow::anyhow!("service name: {e:?}"))?;
-    node.create_server(ServiceMapping::Enhanced, &name, &ServiceTypeName::new("rcl_interfaces", type_name), qos.clone(), qos)
-        .map_err(|e| anyhow::anyhow!("creating service {fqn}/{service}: {e:?}"))
+    node.create_server(
+        ServiceMapping::Enhanced,
+        &name,
+        &ServiceTypeName::new("rcl_interfaces", type_name),
+        qos.clone(),
+        qos,
+    )
+    .map_err(|e| anyhow::anyhow!("creating service {fqn}/{service}: {e:?}"))
 }
 
 /// The descriptor of one parameter, from the table.
@@ -94,7 +100,10 @@ pub fn list(names: &[String], prefixes: &[String], depth: u64) -> ListParameters
             } else {
                 prefixes.iter().any(|p| {
                     name.as_str() == p
-                        || name.strip_prefix(p.as_str()).and_then(|r| r.strip_prefix('.')).is_some_and(|rest| depth == 0 || dots(rest) < depth)
+                        || name
+                            .strip_prefix(p.as_str())
+                            .and_then(|r| r.strip_prefix('.'))
+                            .is_some_and(|rest| depth == 0 || dots(rest) < depth)
                 })
             }
         })
@@ -206,7 +215,9 @@ mod tests {
             assert_eq!(d.description, spec.description);
             assert_eq!(d.read_only, spec.read_only);
             match spec.range {
-                ParamRange::Integer { min, max, .. } => assert_eq!((d.integer_range[0].from_value, d.integer_range[0].to_value), (min, max)),
+                ParamRange::Integer { min, max, .. } => {
+                    assert_eq!((d.integer_range[0].from_value, d.integer_range[0].to_value), (min, max))
+                }
                 ParamRange::Double { min, max, .. } => {
                     assert_eq!((d.floating_point_range[0].from_value, d.floating_point_range[0].to_value), (min, max))
                 }

@@ -60,7 +60,9 @@ pub fn from_ros(value: &ParameterValue) -> Result<ParamValue, String> {
         ParameterValue::Integer(i) => ParamValue::Integer(*i),
         ParameterValue::Double(d) => ParamValue::Double(*d),
         ParameterValue::String(s) => ParamValue::String(s.clone()),
-        other => return Err(format!("unsupported parameter type {other:?} (ecm-lcd uses bool, integer, double, string)")),
+        other => {
+            return Err(format!("unsupported parameter type {other:?} (ecm-lcd uses bool, integer, double, string)"))
+        }
     })
 }
 
@@ -105,8 +107,12 @@ mod tests {
         assert_eq!(ok, spec.default);
         let err = validate_change(&params, spec.name, &ParameterValue::String("high".into())).unwrap_err();
         assert!(err.contains(spec.name), "{err}");
-        assert!(validate_change(&params, "no_such_parameter", &ParameterValue::Integer(1)).unwrap_err().contains("unknown"));
-        assert!(validate_change(&params, spec.name, &ParameterValue::ByteArray(vec![1])).unwrap_err().contains("unsupported"));
+        assert!(validate_change(&params, "no_such_parameter", &ParameterValue::Integer(1))
+            .unwrap_err()
+            .contains("unknown"));
+        assert!(validate_change(&params, spec.name, &ParameterValue::ByteArray(vec![1]))
+            .unwrap_err()
+            .contains("unsupported"));
         if let Some(ro) = param_specs().iter().find(|s| s.read_only) {
             assert!(validate_change(&params, ro.name, &to_ros(&ro.default)).is_ok());
         }

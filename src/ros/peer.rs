@@ -5,7 +5,9 @@
 
 use anyhow::{Context as _, Result};
 use ros2_client::dds::rustdds::mio1::{Events, Interest, Poll, Token};
-use ros2_client::rcl_interfaces::{GetParametersRequest, GetParametersResponse, SetParametersRequest, SetParametersResponse};
+use ros2_client::rcl_interfaces::{
+    GetParametersRequest, GetParametersResponse, SetParametersRequest, SetParametersResponse,
+};
 use ros2_client::{
     Client, Context, Message, Name, Node, NodeName, NodeOptions, Parameter, ParameterValue, Publisher, QosProfile,
     ServiceMapping, ServiceTypeName, Subscription,
@@ -161,8 +163,14 @@ impl CandidateListener {
         let mut subscription: Subscription<LoopCandidate> =
             node.create_subscription(&t, None).map_err(|e| anyhow::anyhow!("subscribing {topic}: {e:?}"))?;
         let poll = Poll::new().context("creating the poll")?;
-        poll.registry().register(&mut subscription, Token(0), Interest::READABLE).context("polling the subscription")?;
-        Ok(CandidateListener { _node: node, subscription, poll: std::sync::Mutex::new((poll, Events::with_capacity(4))) })
+        poll.registry()
+            .register(&mut subscription, Token(0), Interest::READABLE)
+            .context("polling the subscription")?;
+        Ok(CandidateListener {
+            _node: node,
+            subscription,
+            poll: std::sync::Mutex::new((poll, Events::with_capacity(4))),
+        })
     }
 
     /// The candidates that arrived, waiting at most `timeout` for the first (empty on timeout). Wakes on
@@ -245,11 +253,22 @@ impl ParamClient {
     ) -> Result<Client<Req, Resp>> {
         let qos = QosProfile::publisher_default().history(ros2_client::qos::History::KeepLast { depth: 1 });
         let name = topic_name(&format!("{target}/{service}"))?;
-        node.create_client(ServiceMapping::Enhanced, &name, &ServiceTypeName::new("rcl_interfaces", type_name), qos.clone(), qos)
-            .map_err(|e| anyhow::anyhow!("creating a client of {target}/{service}: {e:?}"))
+        node.create_client(
+            ServiceMapping::Enhanced,
+            &name,
+            &ServiceTypeName::new("rcl_interfaces", type_name),
+            qos.clone(),
+            qos,
+        )
+        .map_err(|e| anyhow::anyhow!("creating a client of {target}/{service}: {e:?}"))
     }
 
-    fn call<Req: Message + Clone + 'static, Resp: Message + Clone + 'static>(&self, client: &Client<Req, Resp>, service: &str, request: Req) -> Result<Resp> {
+    fn call<Req: Message + Clone + 'static, Resp: Message + Clone + 'static>(
+        &self,
+        client: &Client<Req, Resp>,
+        service: &str,
+        request: Req,
+    ) -> Result<Resp> {
         let call = async {
             client.wait_for_service(&self.node).await;
             client.async_call_service(request).await
@@ -269,14 +288,20 @@ impl ParamClient {
     pub fn set(&self, name: &str, value: ParameterValue) -> Result<std::result::Result<(), String>> {
         let request = SetParametersRequest { parameter: vec![Parameter { name: name.to_string(), value }.into()] };
         let response = self.call(&self.set, "set_parameters", request)?;
-        let result = response.results.first().with_context(|| format!("{} sent an empty set_parameters answer", self.target))?;
+        let result =
+            response.results.first().with_context(|| format!("{} sent an empty set_parameters answer", self.target))?;
         Ok(if result.successful { Ok(()) } else { Err(result.reason.clone()) })
     }
 
     /// The current value of one parameter (`ParameterValue::NotSet` when the node has no such parameter).
     pub fn get(&self, name: &str) -> Result<ParameterValue> {
-        let response = self.call(&self.get, "get_parameters", GetParametersRequest { names: vec![name.to_string()] })?;
-        let value = response.values.into_iter().next().with_context(|| format!("{} sent an empty get_parameters answer", self.target))?;
+        let response =
+            self.call(&self.get, "get_parameters", GetParametersRequest { names: vec![name.to_string()] })?;
+        let value = response
+            .values
+            .into_iter()
+            .next()
+            .with_context(|| format!("{} sent an empty get_parameters answer", self.target))?;
         Ok(value.into())
     }
 }

@@ -92,18 +92,36 @@ pub struct Difficulty {
 
 impl Default for Difficulty {
     fn default() -> Self {
-        Difficulty { aliasing: false, lap_offset_m: 0.0, lap_yaw_deg: 0.0, night_exposure: 1.0, grayscale: false, noise: 0.0, blur: 0.0 }
+        Difficulty {
+            aliasing: false,
+            lap_offset_m: 0.0,
+            lap_yaw_deg: 0.0,
+            night_exposure: 1.0,
+            grayscale: false,
+            noise: 0.0,
+            blur: 0.0,
+        }
     }
 }
 
 impl Difficulty {
     /// The `hard` preset: every difficulty at once.
     pub fn hard() -> Self {
-        Difficulty { aliasing: true, lap_offset_m: 0.35, lap_yaw_deg: 12.0, night_exposure: 0.3, grayscale: true, noise: 6.0, blur: 0.8 }
+        Difficulty {
+            aliasing: true,
+            lap_offset_m: 0.35,
+            lap_yaw_deg: 12.0,
+            night_exposure: 0.3,
+            grayscale: true,
+            noise: 6.0,
+            blur: 0.8,
+        }
     }
 
     fn check(&self) -> Result<()> {
-        let finite = [self.lap_offset_m, self.lap_yaw_deg, self.night_exposure, self.noise, self.blur].iter().all(|v| v.is_finite());
+        let finite = [self.lap_offset_m, self.lap_yaw_deg, self.night_exposure, self.noise, self.blur]
+            .iter()
+            .all(|v| v.is_finite());
         if !finite
             || self.lap_offset_m.abs() > 0.6
             || self.lap_yaw_deg.abs() > 45.0
@@ -159,7 +177,11 @@ pub struct Scene {
 impl Scene {
     pub fn new(config: SynthConfig) -> Result<Self> {
         if config.frames == 0 || config.laps == 0 {
-            bail!("synthetic sequence needs at least one frame and one lap (got {} frames, {} laps)", config.frames, config.laps);
+            bail!(
+                "synthetic sequence needs at least one frame and one lap (got {} frames, {} laps)",
+                config.frames,
+                config.laps
+            );
         }
         if config.width < 16 || config.height < 16 || config.width > 8192 || config.height > 8192 {
             bail!("synthetic image size {}x{} is outside 16..=8192 pixels per side", config.width, config.height);
@@ -232,8 +254,11 @@ impl Scene {
             .collect();
         // Every second lap dimmer and warmer (night), when asked for.
         let night = lap % 2 == 1 && self.config.difficulty.night_exposure < 1.0;
-        let (exposure, warmth) =
-            if night { (exposure * self.config.difficulty.night_exposure as f32, warmth + 0.25) } else { (exposure, warmth) };
+        let (exposure, warmth) = if night {
+            (exposure * self.config.difficulty.night_exposure as f32, warmth + 0.25)
+        } else {
+            (exposure, warmth)
+        };
         world::Lighting { exposure, tint: [1.0 + warmth, 1.0, 1.0 - warmth], lamps }
     }
 
@@ -369,8 +394,9 @@ mod tests {
         let mean_abs: f64 = a.as_raw().iter().zip(b.as_raw()).map(|(x, y)| (*x as f64 - *y as f64).abs()).sum::<f64>()
             / a.as_raw().len() as f64;
         let c = scene.render(25);
-        let mean_abs_away: f64 = a.as_raw().iter().zip(c.as_raw()).map(|(x, y)| (*x as f64 - *y as f64).abs()).sum::<f64>()
-            / a.as_raw().len() as f64;
+        let mean_abs_away: f64 =
+            a.as_raw().iter().zip(c.as_raw()).map(|(x, y)| (*x as f64 - *y as f64).abs()).sum::<f64>()
+                / a.as_raw().len() as f64;
         assert!(mean_abs < mean_abs_away, "revisit differs by {mean_abs}, elsewhere by {mean_abs_away}");
     }
 
@@ -396,7 +422,10 @@ mod tests {
             assert!((yaw - 10.0).abs() < 1e-6, "frame {frame} turned {yaw} degrees");
         }
         // Alternating sides: laps 2 and 3 are offset in opposite directions (in the camera's x).
-        let side = |f: usize| (plain.pose(f).rotation.inverse() * (offset.pose(f).translation.vector - plain.pose(f).translation.vector)).x;
+        let side = |f: usize| {
+            (plain.pose(f).rotation.inverse() * (offset.pose(f).translation.vector - plain.pose(f).translation.vector))
+                .x
+        };
         assert!(side(40) * side(70) < 0.0, "laps 2 and 3 lie on opposite sides: {} and {}", side(40), side(70));
 
         let night = with(Difficulty { night_exposure: 0.3, ..Difficulty::default() });
@@ -412,13 +441,15 @@ mod tests {
 
         let noisy = with(Difficulty { noise: 8.0, ..Difficulty::default() }).render(10);
         let clean = plain.render(10);
-        let deviation = (noisy.as_raw().iter().zip(clean.as_raw()).map(|(a, b)| (*a as f64 - *b as f64).powi(2)).sum::<f64>()
-            / clean.as_raw().len() as f64)
-            .sqrt();
+        let deviation =
+            (noisy.as_raw().iter().zip(clean.as_raw()).map(|(a, b)| (*a as f64 - *b as f64).powi(2)).sum::<f64>()
+                / clean.as_raw().len() as f64)
+                .sqrt();
         assert!((5.0..9.0).contains(&deviation), "noise of 8 grey levels measured as {deviation}");
 
         let blurred = with(Difficulty { blur: 1.5, ..Difficulty::default() }).render(10);
-        let sharpness = |image: &RgbImage| image.as_raw().windows(4).map(|w| (w[3] as f64 - w[0] as f64).abs()).sum::<f64>();
+        let sharpness =
+            |image: &RgbImage| image.as_raw().windows(4).map(|w| (w[3] as f64 - w[0] as f64).abs()).sum::<f64>();
         assert!(sharpness(&blurred) < 0.8 * sharpness(&clean), "blur must soften edges");
     }
 

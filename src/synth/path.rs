@@ -95,7 +95,15 @@ impl CameraPath {
     /// This lap's share of the lap offsets at `progress`: 0 on the first lap, then ±1 (eased).
     fn lap_sign(&self, progress: f64) -> f64 {
         let lap = progress.floor();
-        let sign = |lap: f64| if lap < 1.0 { 0.0 } else if (lap as i64) % 2 == 1 { 1.0 } else { -1.0 };
+        let sign = |lap: f64| {
+            if lap < 1.0 {
+                0.0
+            } else if (lap as i64) % 2 == 1 {
+                1.0
+            } else {
+                -1.0
+            }
+        };
         let (previous, current) = (sign(lap - 1.0), sign(lap));
         previous + (current - previous) * smoothstep((progress - lap) / 0.1)
     }
@@ -153,7 +161,8 @@ pub fn camera_rotation(yaw: f64, pitch: f64, roll: f64) -> UnitQuaternion<f64> {
     let right = down.cross(&forward);
     let level = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[right, down, forward]));
     // Pitch about the camera's x axis (a positive angle turns +z towards -y, i.e. up), then roll.
-    let tilt = Rotation3::from_axis_angle(&Vector3::x_axis(), pitch) * Rotation3::from_axis_angle(&Vector3::z_axis(), roll);
+    let tilt =
+        Rotation3::from_axis_angle(&Vector3::x_axis(), pitch) * Rotation3::from_axis_angle(&Vector3::z_axis(), roll);
     UnitQuaternion::from_rotation_matrix(&(level * tilt))
 }
 

@@ -15,15 +15,22 @@ use std::path::Path;
 pub fn write_tum_folder(scene: &Scene, dir: &Path) -> Result<()> {
     let mut writer = TumWriter::create(dir)?;
     let paths: Vec<_> = (0..scene.len()).map(|index| writer.add_frame(scene.stamp(index))).collect();
-    let depth_paths: Vec<_> =
-        if scene.config().depth { (0..scene.len()).map(|index| writer.add_depth(scene.stamp(index)).map(Some)).collect::<Result<_>>()? } else { vec![None; scene.len()] };
+    let depth_paths: Vec<_> = if scene.config().depth {
+        (0..scene.len()).map(|index| writer.add_depth(scene.stamp(index)).map(Some)).collect::<Result<_>>()?
+    } else {
+        vec![None; scene.len()]
+    };
     paths.par_iter().zip(&depth_paths).enumerate().try_for_each(|(index, (path, depth_path))| -> Result<()> {
         scene
             .render(index)
             .save_with_format(path, image::ImageFormat::Png)
             .with_context(|| format!("writing frame {index} to {}", path.display()))?;
         if let Some(depth_path) = depth_path {
-            scene.depth(index).to_tum().save_with_format(depth_path, image::ImageFormat::Png).with_context(|| format!("writing depth {index} to {}", depth_path.display()))?;
+            scene
+                .depth(index)
+                .to_tum()
+                .save_with_format(depth_path, image::ImageFormat::Png)
+                .with_context(|| format!("writing depth {index} to {}", depth_path.display()))?;
         }
         Ok(())
     })?;

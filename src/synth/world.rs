@@ -52,7 +52,8 @@ fn mix64(mut z: u64) -> u64 {
 
 /// Hash of integer coordinates to [0, 1).
 fn hash_unit(a: i64, b: i64, salt: u64) -> f32 {
-    let h = mix64((a as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (b as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ salt);
+    let h =
+        mix64((a as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ (b as u64).wrapping_mul(0xC2B2_AE3D_27D4_EB4F) ^ salt);
     (h >> 40) as f32 / (1u64 << 24) as f32
 }
 
@@ -443,7 +444,11 @@ fn random_furniture(rng: &mut SplitMix64, min: [f32; 3], max: [f32; 3]) -> Furni
         Material {
             base: hsv(rng.next_f32(), rng.range(0.3, 0.8), rng.range(0.3, 0.8)),
             alt: hsv(rng.next_f32(), rng.range(0.3, 0.8), rng.range(0.2, 0.6)),
-            pattern: if rng.pick(2) == 0 { Pattern::Plain } else { Pattern::Bands { period: rng.range(0.2, 0.5), duty: 0.15 } },
+            pattern: if rng.pick(2) == 0 {
+                Pattern::Plain
+            } else {
+                Pattern::Bands { period: rng.range(0.2, 0.5), duty: 0.15 }
+            },
             grain: 0.15,
             grain_scale: 5.0,
             salt: rng.next_u64(),
@@ -458,7 +463,9 @@ fn random_furniture(rng: &mut SplitMix64, min: [f32; 3], max: [f32; 3]) -> Furni
 
 fn random_poster(rng: &mut SplitMix64, face: Face, u0: f32, width: f32, bottom: f32, height: f32) -> Poster {
     let hue = rng.next_f32();
-    let colours = std::array::from_fn(|k| hsv(hue + 0.25 * k as f32 + rng.range(-0.05, 0.05), rng.range(0.4, 0.95), rng.range(0.35, 0.95)));
+    let colours = std::array::from_fn(|k| {
+        hsv(hue + 0.25 * k as f32 + rng.range(-0.05, 0.05), rng.range(0.4, 0.95), rng.range(0.35, 0.95))
+    });
     let kind = match rng.pick(5) {
         0 => PosterKind::Rings,
         1 => PosterKind::Blocks,
@@ -572,12 +579,8 @@ impl World {
 
     /// The room containing the floor-plan point, or the nearest one if it is in none.
     fn room_at(&self, p: [f32; 3]) -> usize {
-        let outside = |room: &Room| {
-            (0..2).map(|a| (room.min[a] - p[a]).max(p[a] - room.max[a]).max(0.0)).sum::<f32>()
-        };
-        (0..self.rooms.len())
-            .min_by(|&a, &b| outside(&self.rooms[a]).total_cmp(&outside(&self.rooms[b])))
-            .unwrap_or(0)
+        let outside = |room: &Room| (0..2).map(|a| (room.min[a] - p[a]).max(p[a] - room.max[a]).max(0.0)).sum::<f32>();
+        (0..self.rooms.len()).min_by(|&a, &b| outside(&self.rooms[a]).total_cmp(&outside(&self.rooms[b]))).unwrap_or(0)
     }
 
     fn trace(&self, origin: [f32; 3], dir: [f32; 3], start_room: usize) -> Option<Hit> {
@@ -619,7 +622,13 @@ impl World {
             if let Some((t, k, axis)) = best {
                 let mut normal = [0.0; 3];
                 normal[axis] = -dir[axis].signum();
-                return Some(Hit { t, point: at(origin, dir, t), normal, room: room_index, surface: Surface::Furniture(k) });
+                return Some(Hit {
+                    t,
+                    point: at(origin, dir, t),
+                    normal,
+                    room: room_index,
+                    surface: Surface::Furniture(k),
+                });
             }
             let point = at(origin, dir, t_exit);
             let face = Face::from_axis(exit_axis, dir[exit_axis] > 0.0);
@@ -725,13 +734,25 @@ impl World {
             (0.42 + 0.08 * n[2] + lamp) * occlusion
         };
         light *= lighting.exposure;
-        [albedo[0] * light * lighting.tint[0], albedo[1] * light * lighting.tint[1], albedo[2] * light * lighting.tint[2]]
+        [
+            albedo[0] * light * lighting.tint[0],
+            albedo[1] * light * lighting.tint[1],
+            albedo[2] * light * lighting.tint[2],
+        ]
     }
 
     /// Renders one image from a camera-to-world pose (TUM convention: camera x right, y down,
     /// z forward) with focal length `focal` pixels and the principal point at the centre.
     /// `noise_seed` varies the sensor noise so that no two frames are pixel-identical.
-    pub fn render(&self, pose: &Isometry3<f64>, width: u32, height: u32, focal: f64, lighting: &Lighting, noise_seed: u64) -> RgbImage {
+    pub fn render(
+        &self,
+        pose: &Isometry3<f64>,
+        width: u32,
+        height: u32,
+        focal: f64,
+        lighting: &Lighting,
+        noise_seed: u64,
+    ) -> RgbImage {
         let rotation = pose.rotation.to_rotation_matrix();
         let m = rotation.matrix();
         // Ray directions are computed in f64: in f32, LLVM packs the 3-vectors into SIMD lanes
@@ -787,7 +808,8 @@ impl World {
             for (x, out) in row.iter_mut().enumerate() {
                 let xc = (x as f64 + 0.5 - cx) / focal;
                 let norm = (xc * xc + yc * yc + 1.0).sqrt();
-                let dir: [f32; 3] = std::array::from_fn(|r| ((rot[r][0] * xc + rot[r][1] * yc + rot[r][2]) / norm) as f32);
+                let dir: [f32; 3] =
+                    std::array::from_fn(|r| ((rot[r][0] * xc + rot[r][1] * yc + rot[r][2]) / norm) as f32);
                 // The ray is a unit vector whose optical-axis component is 1 / norm.
                 *out = self.trace(origin, dir, start_room).map_or(0.0, |hit| (hit.t as f64 / norm) as f32);
             }

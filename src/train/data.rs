@@ -23,7 +23,9 @@ use crate::preprocess::{read_image, Preprocessor};
 const IMAGE_EXTENSIONS: [&str; 4] = ["png", "jpg", "jpeg", "bmp"];
 
 fn is_image(path: &Path) -> bool {
-    path.extension().and_then(|e| e.to_str()).is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| IMAGE_EXTENSIONS.contains(&e.to_ascii_lowercase().as_str()))
 }
 
 /// Image files directly inside `dir`, sorted by name.
@@ -75,14 +77,32 @@ impl ImageFolder {
             let label = classes.len();
             classes.push(class_dir.file_name().unwrap_or_default().to_string_lossy().into_owned());
             files.shuffle(&mut rng);
-            let held_out = if val_fraction > 0.0 { ((files.len() as f64 * val_fraction).round() as usize).clamp(1, files.len() - 1) } else { 0 };
+            let held_out = if val_fraction > 0.0 {
+                ((files.len() as f64 * val_fraction).round() as usize).clamp(1, files.len() - 1)
+            } else {
+                0
+            };
             ensure!(files.len() > held_out, "class folder {} has too few images to split", class_dir.display());
             for (i, f) in files.into_iter().enumerate() {
-                if i < held_out { val.push((f, label)) } else { train.push((f, label)) }
+                if i < held_out {
+                    val.push((f, label))
+                } else {
+                    train.push((f, label))
+                }
             }
         }
-        ensure!(classes.len() >= 2, "{} has {} class sub-folders with images; training needs at least 2", dir.display(), classes.len());
-        Ok(ImageFolder { classes, train, val, split: format!("random, seed {seed}, validation fraction {val_fraction}") })
+        ensure!(
+            classes.len() >= 2,
+            "{} has {} class sub-folders with images; training needs at least 2",
+            dir.display(),
+            classes.len()
+        );
+        Ok(ImageFolder {
+            classes,
+            train,
+            val,
+            split: format!("random, seed {seed}, validation fraction {val_fraction}"),
+        })
     }
 
     fn from_lists(dir: &Path, train_list: &Path, test_list: &Path) -> Result<Self> {
@@ -95,9 +115,12 @@ impl ImageFolder {
                     continue;
                 }
                 let class = Path::new(rel).components().next().filter(|_| Path::new(rel).components().count() >= 2);
-                let class = class.with_context(|| format!("{} line {}: '{rel}' is not class/file", list.display(), line_no + 1))?;
+                let class = class
+                    .with_context(|| format!("{} line {}: '{rel}' is not class/file", list.display(), line_no + 1))?;
                 let path = [dir.join(rel), dir.join("Images").join(rel)].into_iter().find(|p| p.is_file());
-                let path = path.with_context(|| format!("{} line {}: no file {rel} under {}", list.display(), line_no + 1, dir.display()))?;
+                let path = path.with_context(|| {
+                    format!("{} line {}: no file {rel} under {}", list.display(), line_no + 1, dir.display())
+                })?;
                 out.push((class.as_os_str().to_string_lossy().into_owned(), path));
             }
             Ok(out)
@@ -106,12 +129,19 @@ impl ImageFolder {
         let mut classes: Vec<String> = train.iter().map(|(c, _)| c.clone()).collect();
         classes.sort();
         classes.dedup();
-        ensure!(classes.len() >= 2, "{} lists {} classes; training needs at least 2", train_list.display(), classes.len());
+        ensure!(
+            classes.len() >= 2,
+            "{} lists {} classes; training needs at least 2",
+            train_list.display(),
+            classes.len()
+        );
         let label = |c: &str| classes.binary_search_by(|x| x.as_str().cmp(c)).ok();
         let train = train.iter().map(|(c, p)| (p.clone(), label(c).expect("listed class"))).collect();
         let mut labelled_val = Vec::new();
         for (c, p) in &val {
-            let l = label(c).with_context(|| format!("{}: class {c} of {} has no training images", test_list.display(), p.display()))?;
+            let l = label(c).with_context(|| {
+                format!("{}: class {c} of {} has no training images", test_list.display(), p.display())
+            })?;
             labelled_val.push((p.clone(), l));
         }
         Ok(ImageFolder { classes, train, val: labelled_val, split: "TrainImages.txt / TestImages.txt".into() })
@@ -135,7 +165,12 @@ impl Augment {
 /// Random resized crop (area fraction and aspect ratio 3/4..4/3, as Inception training does),
 /// then the project's preprocessing at `size`, a random horizontal flip and colour jitter.
 /// Output: `[3, size, size]` values in [-1, 1], channel-major.
-pub fn augmented_chw(image: &RgbImage, augment: &Augment, pre: &mut Preprocessor, rng: &mut StdRng) -> Result<Vec<f32>> {
+pub fn augmented_chw(
+    image: &RgbImage,
+    augment: &Augment,
+    pre: &mut Preprocessor,
+    rng: &mut StdRng,
+) -> Result<Vec<f32>> {
     let (w, h) = (image.width() as f64, image.height() as f64);
     let cropped;
     let image = if augment.min_crop_area < 1.0 {
@@ -165,7 +200,9 @@ pub fn augmented_chw(image: &RgbImage, augment: &Augment, pre: &mut Preprocessor
         // In [0, 1] units: brightness scales, contrast blends with the image's mean grey,
         // saturation blends each pixel with its own grey.
         let to01 = |v: f32| (v + 1.0) * 0.5;
-        let grey: Vec<f32> = (0..plane).map(|i| 0.299 * to01(chw[i]) + 0.587 * to01(chw[plane + i]) + 0.114 * to01(chw[2 * plane + i])).collect();
+        let grey: Vec<f32> = (0..plane)
+            .map(|i| 0.299 * to01(chw[i]) + 0.587 * to01(chw[plane + i]) + 0.114 * to01(chw[2 * plane + i]))
+            .collect();
         let mean_grey = grey.iter().sum::<f32>() / plane as f32 * brightness;
         for c in 0..3 {
             for i in 0..plane {
@@ -247,7 +284,14 @@ pub struct Loader {
 }
 
 impl Loader {
-    pub fn spawn(set: Arc<dyn ImageSet>, batch: usize, size: usize, augment: Augment, shuffle: bool, seed: u64) -> Loader {
+    pub fn spawn(
+        set: Arc<dyn ImageSet>,
+        batch: usize,
+        size: usize,
+        augment: Augment,
+        shuffle: bool,
+        seed: u64,
+    ) -> Loader {
         let (tx, rx) = sync_channel(3);
         let thread = std::thread::spawn(move || {
             let mut rng = StdRng::seed_from_u64(seed);
@@ -260,7 +304,10 @@ impl Loader {
                 if chunk.len() < 2 && shuffle {
                     break;
                 }
-                let mut out = Batch { data: Vec::with_capacity(chunk.len() * 3 * size * size), labels: Vec::with_capacity(chunk.len()) };
+                let mut out = Batch {
+                    data: Vec::with_capacity(chunk.len() * 3 * size * size),
+                    labels: Vec::with_capacity(chunk.len()),
+                };
                 let result = chunk.iter().try_for_each(|&i| {
                     let image = set.image(i)?;
                     out.data.extend(augmented_chw(&image, &augment, &mut pre, &mut rng)?);
@@ -297,10 +344,17 @@ pub fn load_unlabelled(source: &Path, keep_side: u32, max_images: usize) -> Resu
         if short <= keep_side {
             return img;
         }
-        let (w, h) = ((img.width() as u64 * keep_side as u64 / short as u64) as u32, (img.height() as u64 * keep_side as u64 / short as u64) as u32);
+        let (w, h) = (
+            (img.width() as u64 * keep_side as u64 / short as u64) as u32,
+            (img.height() as u64 * keep_side as u64 / short as u64) as u32,
+        );
         image::imageops::resize(&img, w.max(1), h.max(1), image::imageops::FilterType::Triangle)
     };
-    let subfolders: Vec<PathBuf> = if source.is_dir() && !source.join("rgb.txt").exists() && !source.join("metadata.yaml").exists() && image_files(source)?.is_empty() {
+    let subfolders: Vec<PathBuf> = if source.is_dir()
+        && !source.join("rgb.txt").exists()
+        && !source.join("metadata.yaml").exists()
+        && image_files(source)?.is_empty()
+    {
         let mut dirs: Vec<PathBuf> = std::fs::read_dir(source)
             .with_context(|| format!("cannot list {}", source.display()))?
             .filter_map(|e| e.ok().map(|e| e.path()))

@@ -27,7 +27,7 @@ use rand::SeedableRng;
 use serde::{Deserialize, Serialize};
 
 use super::data::{load_unlabelled, Augment, ImageSet, Loader, MemorySet};
-use super::{learning_rate, progress_bar, training_form, trainable_params, write_json, Optimisation, Trainable};
+use super::{learning_rate, progress_bar, trainable_params, training_form, write_json, Optimisation, Trainable};
 use crate::model::layers::Mode;
 use crate::model::weights::Weights;
 use crate::model::{check_input_size, Arch, Network};
@@ -86,13 +86,20 @@ fn loss_of(student: &Tensor, teacher: &Tensor, loss: DistillLoss) -> Result<Tens
 }
 
 /// Mean `|s - t|²` over `set` (no augmentation), `student` in inference form.
-pub fn descriptor_error(student: &Network, teacher: &Network, set: Arc<dyn ImageSet>, size: usize, batch: usize) -> Result<f64> {
+pub fn descriptor_error(
+    student: &Network,
+    teacher: &Network,
+    set: Arc<dyn ImageSet>,
+    size: usize,
+    batch: usize,
+) -> Result<f64> {
     let (mut sum, mut n) = (0.0, 0usize);
     let loader = Loader::spawn(set, batch, size, Augment::NONE, false, 0);
     for b in loader.batches.iter() {
         let b = b?;
         let x = b.tensor(size)?;
-        let e = (descriptors(student, &x, Mode::Inference)? - descriptors(teacher, &x, Mode::Inference)?)?.sqr()?.sum(1)?;
+        let e =
+            (descriptors(student, &x, Mode::Inference)? - descriptors(teacher, &x, Mode::Inference)?)?.sqr()?.sum(1)?;
         sum += e.sum_all()?.to_scalar::<f32>()? as f64;
         n += b.len();
     }
@@ -106,7 +113,11 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
     let started = Instant::now();
     check_input_size(config.size)?;
     ensure!(config.opt.batch >= 2, "batch size {} is below 2", config.opt.batch);
-    ensure!((0.0..1.0).contains(&config.val_fraction) && config.val_fraction > 0.0, "--val-fraction {} is not in (0, 1)", config.val_fraction);
+    ensure!(
+        (0.0..1.0).contains(&config.val_fraction) && config.val_fraction > 0.0,
+        "--val-fraction {} is not in (0, 1)",
+        config.val_fraction
+    );
     let teacher_net = teacher.network(false)?;
     let student_init = teacher.for_arch(Arch::EcMobileNet)?;
     let mut init = training_form(&student_init.tensors)?;
@@ -117,9 +128,16 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
     images.shuffle(&mut StdRng::seed_from_u64(config.opt.seed));
     let heldout = ((images.len() as f64 * config.val_fraction).round() as usize).clamp(1, images.len() - 2);
     let train_images = images.split_off(heldout);
-    let (train_set, heldout_set): (Arc<dyn ImageSet>, Arc<dyn ImageSet>) = (Arc::new(MemorySet(train_images)), Arc::new(MemorySet(images)));
+    let (train_set, heldout_set): (Arc<dyn ImageSet>, Arc<dyn ImageSet>) =
+        (Arc::new(MemorySet(train_images)), Arc::new(MemorySet(images)));
 
-    let before = descriptor_error(&student_init.network(false)?, &teacher_net, heldout_set.clone(), config.size, config.opt.batch)?;
+    let before = descriptor_error(
+        &student_init.network(false)?,
+        &teacher_net,
+        heldout_set.clone(),
+        config.size,
+        config.opt.batch,
+    )?;
     let mut optimizer = config.opt.optimizer(trainable_params(&student.varmap))?;
     let steps_per_epoch = config.opt.steps_per_epoch(train_set.len());
     let total = steps_per_epoch * config.opt.epochs;
@@ -127,7 +145,11 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
     let mut step = 0;
     let mut epoch_train_loss = Vec::new();
     for epoch in 0..config.opt.epochs {
-        let bar = progress_bar(config.progress, steps_per_epoch as u64, &format!("epoch {}/{}", epoch + 1, config.opt.epochs));
+        let bar = progress_bar(
+            config.progress,
+            steps_per_epoch as u64,
+            &format!("epoch {}/{}", epoch + 1, config.opt.epochs),
+        );
         let loader = config.opt.epoch_loader(train_set.clone(), config.size, epoch);
         let (mut sum, mut seen) = (0.0, 0usize);
         let epoch_start = Instant::now();
@@ -144,14 +166,20 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
             ensure!(l.is_finite(), "the distillation loss diverged at step {step}");
             sum += l * b.len() as f64;
             seen += b.len();
-            bar.set_message(format!("loss {:.4} {:.1} img/s lr {lr:.2e}", sum / seen as f64, seen as f64 / epoch_start.elapsed().as_secs_f64()));
+            bar.set_message(format!(
+                "loss {:.4} {:.1} img/s lr {lr:.2e}",
+                sum / seen as f64,
+                seen as f64 / epoch_start.elapsed().as_secs_f64()
+            ));
             bar.inc(1);
         }
         bar.finish();
         epoch_train_loss.push(sum / seen.max(1) as f64);
     }
-    let weights = student.inference_weights(&format!("ecm-lcd distill of {teacher_name} on {}", config.data.display()))?;
-    let after = descriptor_error(&weights.network(false)?, &teacher_net, heldout_set.clone(), config.size, config.opt.batch)?;
+    let weights =
+        student.inference_weights(&format!("ecm-lcd distill of {teacher_name} on {}", config.data.display()))?;
+    let after =
+        descriptor_error(&weights.network(false)?, &teacher_net, heldout_set.clone(), config.size, config.opt.batch)?;
     weights.save(&config.out)?;
     let report = DistillReport {
         command: "distill".into(),

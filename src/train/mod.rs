@@ -143,7 +143,11 @@ pub fn trainable_params(varmap: &VarMap) -> Vec<Param> {
     let mut params: Vec<Param> = data
         .iter()
         .filter(|(n, _)| !n.ends_with("running_mean") && !n.ends_with("running_var"))
-        .map(|(n, v)| Param { name: n.clone(), var: v.clone(), decay: n.ends_with(".weight") && !n.ends_with("bn.weight") })
+        .map(|(n, v)| Param {
+            name: n.clone(),
+            var: v.clone(),
+            decay: n.ends_with(".weight") && !n.ends_with("bn.weight"),
+        })
         .collect();
     params.sort_by(|a, b| a.name.cmp(&b.name));
     params
@@ -165,7 +169,8 @@ const ADAM_EPS: f64 = 1e-8;
 
 impl Optimizer {
     pub fn new(kind: OptimizerKind, params: Vec<Param>, momentum: f64, weight_decay: f64) -> Result<Self> {
-        let state = params.iter().map(|p| Ok((p.var.zeros_like()?, p.var.zeros_like()?))).collect::<Result<Vec<_>>>()?;
+        let state =
+            params.iter().map(|p| Ok((p.var.zeros_like()?, p.var.zeros_like()?))).collect::<Result<Vec<_>>>()?;
         Ok(Optimizer { kind, params, state, steps: 0, momentum, weight_decay })
     }
 
@@ -181,7 +186,11 @@ impl Optimizer {
             let wd = if p.decay { self.weight_decay } else { 0.0 };
             match self.kind {
                 OptimizerKind::Sgd => {
-                    m.inplace_op3(&g, w, &update::SgdMomentum { momentum: self.momentum as f32, weight_decay: wd as f32 })?;
+                    m.inplace_op3(
+                        &g,
+                        w,
+                        &update::SgdMomentum { momentum: self.momentum as f32, weight_decay: wd as f32 },
+                    )?;
                     w.inplace_op2(m, &update::SgdStep { lr: lr as f32 })?;
                 }
                 OptimizerKind::Adamw => {
@@ -218,7 +227,11 @@ impl Optimizer {
     /// Restores the state saved by [`Optimizer::state_tensors`].
     pub fn restore(&mut self, tensors: &HashMap<String, Tensor>, steps: usize) -> Result<()> {
         for (p, (m, v)) in self.params.iter().zip(self.state.iter_mut()) {
-            let get = |suffix: &str| tensors.get(&format!("optimizer.{}.{suffix}", p.name)).with_context(|| format!("the checkpoint has no optimizer state for {}", p.name));
+            let get = |suffix: &str| {
+                tensors
+                    .get(&format!("optimizer.{}.{suffix}", p.name))
+                    .with_context(|| format!("the checkpoint has no optimizer state for {}", p.name))
+            };
             *m = update::owned(get("m")?)?;
             if self.kind == OptimizerKind::Adamw {
                 *v = update::owned(get("v")?)?;
@@ -269,7 +282,8 @@ impl Trainable {
             }
         }
         let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
-        let network = Network::load(arch.spec(), vb, classes, true).with_context(|| format!("the initial weights do not fit {arch}"))?;
+        let network = Network::load(arch.spec(), vb, classes, true)
+            .with_context(|| format!("the initial weights do not fit {arch}"))?;
         Ok(Trainable { varmap, network })
     }
 
@@ -297,7 +311,10 @@ impl Trainable {
         }
         let stats: Vec<(String, Var)> = {
             let data = self.varmap.data().lock().expect("VarMap lock");
-            data.iter().filter(|(n, _)| n.ends_with("running_mean") || n.ends_with("running_var")).map(|(n, v)| (n.clone(), v.clone())).collect()
+            data.iter()
+                .filter(|(n, _)| n.ends_with("running_mean") || n.ends_with("running_var"))
+                .map(|(n, v)| (n.clone(), v.clone()))
+                .collect()
         };
         let mut sums: Vec<Tensor> = stats.iter().map(|(_, v)| v.zeros_like()).collect::<candle_core::Result<_>>()?;
         for x in batches {
@@ -331,7 +348,13 @@ pub fn accuracy(network: &Network, set: Arc<dyn ImageSet>, size: usize, batch: u
 }
 
 /// Up to `max_images` of `set` without augmentation, as batches (for [`Trainable::precise_batch_norm`]).
-pub fn calibration_batches(set: Arc<dyn ImageSet>, size: usize, batch: usize, max_images: usize, seed: u64) -> Result<Vec<Tensor>> {
+pub fn calibration_batches(
+    set: Arc<dyn ImageSet>,
+    size: usize,
+    batch: usize,
+    max_images: usize,
+    seed: u64,
+) -> Result<Vec<Tensor>> {
     let loader = Loader::spawn(set, batch, size, Augment::NONE, true, seed);
     let mut out = Vec::new();
     let mut seen = 0;
@@ -391,13 +414,22 @@ impl RunFiles {
     pub fn new(out: &Path) -> Self {
         let stem = out.with_extension("");
         let with = |suffix: &str| PathBuf::from(format!("{}{suffix}", stem.display()));
-        RunFiles { best: out.to_path_buf(), last: with(".last.safetensors"), training: with(".train.safetensors"), json: with(".json") }
+        RunFiles {
+            best: out.to_path_buf(),
+            last: with(".last.safetensors"),
+            training: with(".train.safetensors"),
+            json: with(".json"),
+        }
     }
 
     /// The files of the run that wrote `checkpoint` (any of its files, or `-o` of that run).
     pub fn of_checkpoint(checkpoint: &Path) -> Self {
         let s = checkpoint.display().to_string();
-        let base = [".train.safetensors", ".last.safetensors", ".safetensors", ".json"].iter().find_map(|suffix| s.strip_suffix(suffix)).unwrap_or(&s).to_string();
+        let base = [".train.safetensors", ".last.safetensors", ".safetensors", ".json"]
+            .iter()
+            .find_map(|suffix| s.strip_suffix(suffix))
+            .unwrap_or(&s)
+            .to_string();
         RunFiles::new(Path::new(&format!("{base}.safetensors")))
     }
 }
@@ -409,7 +441,8 @@ pub fn class_names_of(weights_path: &Path, classes: usize) -> Option<Vec<String>
     let json = RunFiles::of_checkpoint(weights_path).json;
     let text = std::fs::read_to_string(json).ok()?;
     let value: serde_json::Value = serde_json::from_str(&text).ok()?;
-    let names: Vec<String> = value.get("classes")?.as_array()?.iter().map(|v| v.as_str().map(str::to_string)).collect::<Option<_>>()?;
+    let names: Vec<String> =
+        value.get("classes")?.as_array()?.iter().map(|v| v.as_str().map(str::to_string)).collect::<Option<_>>()?;
     (names.len() == classes).then_some(names)
 }
 
@@ -437,8 +470,10 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
     let resumed: Option<(RunRecord, Weights)> = match &config.resume {
         Some(checkpoint) => {
             let from = RunFiles::of_checkpoint(checkpoint);
-            let text = std::fs::read_to_string(&from.json).with_context(|| format!("cannot read the run record {}", from.json.display()))?;
-            let record: RunRecord = serde_json::from_str(&text).with_context(|| format!("{} is not a run record", from.json.display()))?;
+            let text = std::fs::read_to_string(&from.json)
+                .with_context(|| format!("cannot read the run record {}", from.json.display()))?;
+            let record: RunRecord =
+                serde_json::from_str(&text).with_context(|| format!("{} is not a run record", from.json.display()))?;
             ensure!(record.arch == config.arch, "{} trained {}, not {}", from.json.display(), record.arch, config.arch);
             hyper = record.hyper.clone();
             Some((record, Weights::load(&from.training)?))
@@ -450,10 +485,19 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
     ensure!(hyper.opt.epochs >= 1, "--epochs must be at least 1");
     let folder = ImageFolder::open(&config.data, hyper.opt.seed, config.val_fraction)?;
     if let Some(k) = config.classes {
-        ensure!(k == folder.classes.len(), "--classes {k} but {} has {} classes", config.data.display(), folder.classes.len());
+        ensure!(
+            k == folder.classes.len(),
+            "--classes {k} but {} has {} classes",
+            config.data.display(),
+            folder.classes.len()
+        );
     }
     if let Some((record, _)) = &resumed {
-        ensure!(record.classes == folder.classes, "the classes of {} differ from those of the resumed run", config.data.display());
+        ensure!(
+            record.classes == folder.classes,
+            "the classes of {} differ from those of the resumed run",
+            config.data.display()
+        );
     }
     let classes = folder.classes.len();
     ensure!(!folder.val.is_empty(), "no validation images (use --val-fraction > 0 or TestImages.txt)");
@@ -463,7 +507,12 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
     let warmup = hyper.opt.warmup_steps(steps_per_epoch);
 
     let init_tensors: HashMap<String, Tensor> = match (&resumed, &config.init) {
-        (Some((_, w)), _) => w.tensors.iter().filter(|(n, _)| !n.starts_with("optimizer.")).map(|(n, t)| (n.clone(), t.clone())).collect(),
+        (Some((_, w)), _) => w
+            .tensors
+            .iter()
+            .filter(|(n, _)| !n.starts_with("optimizer."))
+            .map(|(n, t)| (n.clone(), t.clone()))
+            .collect(),
         (None, Some(path)) => {
             let w = crate::model::weights::resolve::load_file(path)?.weights.for_arch(config.arch)?;
             let mut t = training_form(&w.tensors)?;
@@ -499,15 +548,22 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             history: Vec::new(),
         },
     };
-    ensure!(record.steps_per_epoch == steps_per_epoch, "the resumed run had {} steps per epoch, the data now gives {steps_per_epoch}", record.steps_per_epoch);
+    ensure!(
+        record.steps_per_epoch == steps_per_epoch,
+        "the resumed run had {} steps per epoch, the data now gives {steps_per_epoch}",
+        record.steps_per_epoch
+    );
 
     let train_set: Arc<dyn ImageSet> = Arc::new(FileSet(folder.train.clone()));
     let val_set: Arc<dyn ImageSet> = Arc::new(FileSet(folder.val.clone()));
-    let calibration = calibration_batches(train_set.clone(), hyper.size, hyper.opt.batch, PRECISE_BN_IMAGES, hyper.opt.seed)?;
-    let last_epoch = config.stop_after.map(|n| (record.epochs_done + n).min(hyper.opt.epochs)).unwrap_or(hyper.opt.epochs);
+    let calibration =
+        calibration_batches(train_set.clone(), hyper.size, hyper.opt.batch, PRECISE_BN_IMAGES, hyper.opt.seed)?;
+    let last_epoch =
+        config.stop_after.map(|n| (record.epochs_done + n).min(hyper.opt.epochs)).unwrap_or(hyper.opt.epochs);
     for epoch in record.epochs_done..last_epoch {
         let started = Instant::now();
-        let bar = progress_bar(config.progress, steps_per_epoch as u64, &format!("epoch {}/{}", epoch + 1, hyper.opt.epochs));
+        let bar =
+            progress_bar(config.progress, steps_per_epoch as u64, &format!("epoch {}/{}", epoch + 1, hyper.opt.epochs));
         let loader = hyper.opt.epoch_loader(train_set.clone(), hyper.size, epoch);
         let (mut loss_sum, mut correct, mut seen, mut lr) = (0.0, 0usize, 0usize, 0.0);
         for batch in loader.batches.iter() {
@@ -525,14 +581,25 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             ensure!(loss.is_finite(), "the loss diverged at step {} (learning rate {lr})", record.steps_done);
             loss_sum += loss * batch.len() as f64;
             seen += batch.len();
-            bar.set_message(format!("loss {:.3} acc {:.1}% {:.1} img/s lr {lr:.2e}", loss_sum / seen as f64, 100.0 * correct as f64 / seen as f64, seen as f64 / started.elapsed().as_secs_f64()));
+            bar.set_message(format!(
+                "loss {:.3} acc {:.1}% {:.1} img/s lr {lr:.2e}",
+                loss_sum / seen as f64,
+                100.0 * correct as f64 / seen as f64,
+                seen as f64 / started.elapsed().as_secs_f64()
+            ));
             bar.inc(1);
         }
         drop(loader);
         model.precise_batch_norm(&calibration)?;
-        let weights = model.inference_weights(&format!("ecm-lcd train on {} (epoch {})", config.data.display(), epoch + 1))?;
+        let weights =
+            model.inference_weights(&format!("ecm-lcd train on {} (epoch {})", config.data.display(), epoch + 1))?;
         let val_accuracy = accuracy(&weights.network(true)?, val_set.clone(), hyper.size, hyper.opt.batch)?;
-        bar.finish_with_message(format!("loss {:.3} train acc {:.1}% val acc {:.1}%", loss_sum / seen.max(1) as f64, 100.0 * correct as f64 / seen.max(1) as f64, 100.0 * val_accuracy));
+        bar.finish_with_message(format!(
+            "loss {:.3} train acc {:.1}% val acc {:.1}%",
+            loss_sum / seen.max(1) as f64,
+            100.0 * correct as f64 / seen.max(1) as f64,
+            100.0 * val_accuracy
+        ));
         let seconds = started.elapsed().as_secs_f64();
         record.history.push(EpochResult {
             epoch: epoch + 1,
@@ -552,7 +619,13 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
         }
         let mut training = model.tensors();
         training.extend(optimizer.state_tensors()?);
-        Weights { arch: config.arch, classes: Some(classes), source: "ecm-lcd training form".into(), tensors: training }.save(&files.training)?;
+        Weights {
+            arch: config.arch,
+            classes: Some(classes),
+            source: "ecm-lcd training form".into(),
+            tensors: training,
+        }
+        .save(&files.training)?;
         write_json(&files.json, &record)?;
     }
     Ok(record)
@@ -570,7 +643,11 @@ pub fn progress_bar(show: bool, len: u64, prefix: &str) -> indicatif::ProgressBa
         return indicatif::ProgressBar::hidden();
     }
     let bar = indicatif::ProgressBar::new(len);
-    bar.set_style(indicatif::ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg}").expect("valid template").progress_chars("=> "));
+    bar.set_style(
+        indicatif::ProgressStyle::with_template("{prefix} [{bar:30}] {pos}/{len} {msg}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
     bar.set_prefix(prefix.to_string());
     bar
 }
@@ -579,7 +656,9 @@ pub fn progress_bar(show: bool, len: u64, prefix: &str) -> indicatif::ProgressBa
 pub fn check_device(name: &str) -> Result<()> {
     match name {
         "cpu" => Ok(()),
-        "cuda" | "metal" => bail!("device '{name}' is not built in: this ecm-lcd is built without candle's {name} feature (use --device cpu)"),
+        "cuda" | "metal" => bail!(
+            "device '{name}' is not built in: this ecm-lcd is built without candle's {name} feature (use --device cpu)"
+        ),
         other => bail!("unknown device '{other}' (expected cpu)"),
     }
 }

@@ -11,7 +11,8 @@ fn write_textures(dir: &Path, per_class: usize, seed: u64) {
     for class in ["checker", "dots", "noise", "stripes"] {
         std::fs::create_dir_all(dir.join(class)).unwrap();
         for i in 0..per_class {
-            let mut colour = || Rgb([rng.random_range(0..=255u8), rng.random_range(0..=255u8), rng.random_range(0..=255u8)]);
+            let mut colour =
+                || Rgb([rng.random_range(0..=255u8), rng.random_range(0..=255u8), rng.random_range(0..=255u8)]);
             let (a, mut b) = (colour(), colour());
             // Keep the two colours apart so every texture is visible.
             if a.0.iter().zip(b.0).map(|(x, y)| (*x as i32 - y as i32).abs()).sum::<i32>() < 150 {
@@ -29,12 +30,17 @@ fn write_textures(dir: &Path, per_class: usize, seed: u64) {
                     "stripes" => (if vertical { u } else { v } / half) % 2 == 0,
                     "checker" => ((u / half) + (v / half)) % 2 == 0,
                     "dots" => {
-                        let (dx, dy) = ((u % period) as i32 - period as i32 / 2, (v % period) as i32 - period as i32 / 2);
+                        let (dx, dy) =
+                            ((u % period) as i32 - period as i32 / 2, (v % period) as i32 - period as i32 / 2);
                         dx * dx + dy * dy <= (period as i32 / 3).pow(2)
                     }
                     _ => cells[(y / 6 * 12 + x / 6) as usize],
                 };
-                if on { a } else { b }
+                if on {
+                    a
+                } else {
+                    b
+                }
             });
             img.save(dir.join(class).join(format!("{i:03}.png"))).unwrap();
         }
@@ -149,13 +155,24 @@ fn textures_are_learned_from_scratch() -> Result<()> {
     h.opt.augment = Augment { min_crop_area: 0.6, flip: true, colour_jitter: 0.2 };
     let record = train(&config(&dir.path().join("data"), &out, Arch::EcMobileNet, h))?;
     let seconds = started.elapsed().as_secs_f64();
-    eprintln!("texture training: {:?}", record.history.iter().map(|e| (e.train_loss, e.val_accuracy)).collect::<Vec<_>>());
-    eprintln!("best validation accuracy {:.3} at epoch {} in {seconds:.1} s", record.best_val_accuracy, record.best_epoch);
+    eprintln!(
+        "texture training: {:?}",
+        record.history.iter().map(|e| (e.train_loss, e.val_accuracy)).collect::<Vec<_>>()
+    );
+    eprintln!(
+        "best validation accuracy {:.3} at epoch {} in {seconds:.1} s",
+        record.best_val_accuracy, record.best_epoch
+    );
     assert_eq!((record.train_images, record.val_images), (640, 160));
     assert!(record.best_val_accuracy >= 0.9, "validation accuracy {}", record.best_val_accuracy);
     // The best checkpoint is what the record says.
     let best = Weights::load(&out)?;
-    let acc = accuracy(&best.network(true)?, Arc::new(FileSet(ImageFolder::open(&dir.path().join("data"), 7, 0.2)?.val)), 64, 64)?;
+    let acc = accuracy(
+        &best.network(true)?,
+        Arc::new(FileSet(ImageFolder::open(&dir.path().join("data"), 7, 0.2)?.val)),
+        64,
+        64,
+    )?;
     assert_eq!(acc, record.best_val_accuracy);
     Ok(())
 }
@@ -199,7 +216,10 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     let total = full.steps_per_epoch * 2;
     let warmup = full.steps_per_epoch;
     assert_eq!(resumed.history[1].learning_rate, learning_rate(2 * full.steps_per_epoch - 1, total, warmup, h.opt.lr));
-    let (a, b) = (Weights::load(&RunFiles::new(&dir.path().join("full/run.safetensors")).last)?, Weights::load(&RunFiles::new(&part_out).last)?);
+    let (a, b) = (
+        Weights::load(&RunFiles::new(&dir.path().join("full/run.safetensors")).last)?,
+        Weights::load(&RunFiles::new(&part_out).last)?,
+    );
     // Same init, same data order, restored optimizer state: the resumed run is the same run.
     let drift = a.tensors.iter().map(|(n, t)| max_abs_diff(t, &b.tensors[n])).fold(0f32, f32::max);
     assert!(drift < 1e-5, "resumed and uninterrupted runs differ by {drift}");
@@ -209,7 +229,16 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     let x = Tensor::randn(0f32, 1.0, (2, 3, 32, 32), &Device::Cpu)?;
     let files = RunFiles::new(&part_out);
     let training = Weights::load(&files.training)?;
-    let model = Trainable::new(Arch::EcMobileNet, Some(4), &training.tensors.iter().filter(|(n, _)| !n.starts_with("optimizer.")).map(|(n, t)| (n.clone(), t.clone())).collect())?;
+    let model = Trainable::new(
+        Arch::EcMobileNet,
+        Some(4),
+        &training
+            .tensors
+            .iter()
+            .filter(|(n, _)| !n.starts_with("optimizer."))
+            .map(|(n, t)| (n.clone(), t.clone()))
+            .collect(),
+    )?;
     let in_memory = model.inference_weights("test")?.network(true)?.logits(&x, Mode::Inference)?;
     let from_last = b.network(true)?.logits(&x, Mode::Inference)?;
     let from_training = training.network(true)?.logits(&x, Mode::Inference)?;
@@ -225,11 +254,18 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
 /// training ops of `model::train_ops` 0.894 -> 0.419 in 22 s wall (load average 0.2).
 #[test]
 fn distillation_halves_the_heldout_descriptor_error() -> Result<()> {
-    let teacher = crate::model::weights::resolve::resolve(None).context("the default MobileNetV2 weights (../shared) are needed")?;
+    let teacher = crate::model::weights::resolve::resolve(None)
+        .context("the default MobileNetV2 weights (../shared) are needed")?;
     let dir = tempfile::tempdir()?;
     let frames = dir.path().join("frames");
     std::fs::create_dir_all(&frames)?;
-    let scene = crate::synth::Scene::new(crate::synth::SynthConfig { frames: 60, laps: 1, width: 80, height: 64, ..Default::default() })?;
+    let scene = crate::synth::Scene::new(crate::synth::SynthConfig {
+        frames: 60,
+        laps: 1,
+        width: 80,
+        height: 64,
+        ..Default::default()
+    })?;
     for i in 0..scene.len() {
         scene.render(i).save(frames.join(format!("{i:04}.png")))?;
     }
@@ -255,7 +291,12 @@ fn distillation_halves_the_heldout_descriptor_error() -> Result<()> {
     };
     let report = distill::distill(&teacher.weights, "default", &config)?;
     eprintln!("distillation: {report:?}");
-    assert!(report.heldout_error_after <= 0.5 * report.heldout_error_before, "{} -> {}", report.heldout_error_before, report.heldout_error_after);
+    assert!(
+        report.heldout_error_after <= 0.5 * report.heldout_error_before,
+        "{} -> {}",
+        report.heldout_error_before,
+        report.heldout_error_after
+    );
     let student = Weights::load(&config.out)?;
     assert_eq!(student.arch, Arch::EcMobileNet);
     Ok(())
@@ -289,7 +330,13 @@ fn profile_training_step() -> Result<()> {
             }
         }
         let ms = |s: f64| 1e3 * s / steps as f64;
-        eprintln!("{arch} {size}px batch {batch}: {:.0} ms/step (forward {:.0}, backward {:.0}, optimizer {:.0})", ms(fwd + bwd + opt), ms(fwd), ms(bwd), ms(opt));
+        eprintln!(
+            "{arch} {size}px batch {batch}: {:.0} ms/step (forward {:.0}, backward {:.0}, optimizer {:.0})",
+            ms(fwd + bwd + opt),
+            ms(fwd),
+            ms(bwd),
+            ms(opt)
+        );
     }
     Ok(())
 }

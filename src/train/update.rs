@@ -78,7 +78,15 @@ impl InplaceOp3 for AdamWStep {
         "adamw-step"
     }
 
-    fn cpu_fwd(&self, s_w: &mut CpuStorage, l_w: &Layout, s_m: &CpuStorage, l_m: &Layout, s_v: &CpuStorage, l_v: &Layout) -> Result<()> {
+    fn cpu_fwd(
+        &self,
+        s_w: &mut CpuStorage,
+        l_w: &Layout,
+        s_m: &CpuStorage,
+        l_m: &Layout,
+        s_v: &CpuStorage,
+        l_v: &Layout,
+    ) -> Result<()> {
         let w = destination(s_w, l_w, "parameter")?;
         let (m, v) = (source(s_m, l_m, w.len(), "first moment")?, source(s_v, l_v, w.len(), "second moment")?);
         let keep = 1.0 - self.lr * self.weight_decay;
@@ -103,7 +111,15 @@ impl InplaceOp3 for SgdMomentum {
         "sgd-momentum"
     }
 
-    fn cpu_fwd(&self, s_b: &mut CpuStorage, l_b: &Layout, s_g: &CpuStorage, l_g: &Layout, s_w: &CpuStorage, l_w: &Layout) -> Result<()> {
+    fn cpu_fwd(
+        &self,
+        s_b: &mut CpuStorage,
+        l_b: &Layout,
+        s_g: &CpuStorage,
+        l_g: &Layout,
+        s_w: &CpuStorage,
+        l_w: &Layout,
+    ) -> Result<()> {
         let b = destination(s_b, l_b, "momentum buffer")?;
         let (g, w) = (source(s_g, l_g, b.len(), "gradient")?, source(s_w, l_w, b.len(), "parameter")?);
         for_chunks(b, g, w, |b, g, w| {
@@ -168,7 +184,13 @@ mod tests {
             let (mi, vi, wi) = (owned(&m0)?, owned(&v0)?, owned(&w0)?);
             mi.inplace_op2(&g, &Moment { decay: b1 as f32, squared: false })?;
             vi.inplace_op2(&g, &Moment { decay: b2 as f32, squared: true })?;
-            let step = AdamWStep { lr: lr as f32, weight_decay: wd as f32, correction1: (1.0 - b1.powi(t)) as f32, correction2: (1.0 - b2.powi(t)) as f32, eps: eps as f32 };
+            let step = AdamWStep {
+                lr: lr as f32,
+                weight_decay: wd as f32,
+                correction1: (1.0 - b1.powi(t)) as f32,
+                correction2: (1.0 - b2.powi(t)) as f32,
+                eps: eps as f32,
+            };
             wi.inplace_op3(&mi, &vi, &step)?;
             assert!(max_abs_diff(&m, &mi) < 1e-6 && max_abs_diff(&v, &vi) < 1e-6, "moments, len {len}");
             assert!(max_abs_diff(&w, &wi) < 1e-5, "adamw weights, len {len}: {}", max_abs_diff(&w, &wi));
@@ -189,7 +211,9 @@ mod tests {
     fn mismatched_lengths_are_errors() -> Result<()> {
         let dev = Device::Cpu;
         let m = Tensor::zeros(4, candle_core::DType::F32, &dev)?;
-        assert!(m.inplace_op2(&Tensor::zeros(5, candle_core::DType::F32, &dev)?, &Moment { decay: 0.9, squared: false }).is_err());
+        assert!(m
+            .inplace_op2(&Tensor::zeros(5, candle_core::DType::F32, &dev)?, &Moment { decay: 0.9, squared: false })
+            .is_err());
         Ok(())
     }
 }

@@ -29,16 +29,18 @@ use std::collections::{HashMap, VecDeque};
 
 use anyhow::{ensure, Result};
 use image::RgbImage;
-use kornia_3d::pose::{
-    decompose_essential, decompose_homography, enforce_essential_constraints, essential_from_fundamental, ransac_fundamental,
-    ransac_homography, refine_pose_lm, triangulate_midpoint_known_pose, LmPoseConfig, RansacParams,
+use kornia_3d::pnp::{
+    refine_pose_lm as refine_pnp_lm, solve_pnp_ransac, LMRefineParams, PnPMethod, RansacParams as PnPRansacParams,
 };
-use kornia_3d::pnp::{refine_pose_lm as refine_pnp_lm, solve_pnp_ransac, LMRefineParams, PnPMethod, RansacParams as PnPRansacParams};
+use kornia_3d::pose::{
+    decompose_essential, decompose_homography, enforce_essential_constraints, essential_from_fundamental,
+    ransac_fundamental, ransac_homography, refine_pose_lm, triangulate_midpoint_known_pose, LmPoseConfig, RansacParams,
+};
 use kornia_algebra::{Mat3AF32, Mat3F64, Vec2F32, Vec2F64, Vec3AF32, Vec3F64};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
-pub use crate::types::RelativePose;
 use crate::types::DepthImage;
+pub use crate::types::RelativePose;
 
 /// PnP inliers a metric pose needs (below that, the pose stays up to scale).
 pub const MIN_METRIC_INLIERS: usize = 10;
@@ -90,7 +92,14 @@ pub struct VerificationParams {
 
 impl Default for VerificationParams {
     fn default() -> Self {
-        VerificationParams { max_features: 500, ratio: 0.8, pixel_threshold: 2.0, min_inliers: 15, keyframes: 5000, intrinsics: None }
+        VerificationParams {
+            max_features: 500,
+            ratio: 0.8,
+            pixel_threshold: 2.0,
+            min_inliers: 15,
+            keyframes: 5000,
+            intrinsics: None,
+        }
     }
 }
 
@@ -125,7 +134,8 @@ impl LocalFeatures {
 
     /// Memory the features take.
     pub fn bytes(&self) -> usize {
-        self.len() * (std::mem::size_of::<[f32; 2]>() + std::mem::size_of::<[u8; 32]>()) + self.depths.len() * std::mem::size_of::<f32>()
+        self.len() * (std::mem::size_of::<[f32; 2]>() + std::mem::size_of::<[u8; 32]>())
+            + self.depths.len() * std::mem::size_of::<f32>()
     }
 }
 
@@ -153,7 +163,8 @@ pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
     if size.width < 64 || size.height < 64 {
         return Ok(LocalFeatures::default());
     }
-    let image = Image::<u8, 1>::new(size, gray.into_raw()).map_err(|e| anyhow::anyhow!("grayscale image for ORB: {e}"))?;
+    let image =
+        Image::<u8, 1>::new(size, gray.into_raw()).map_err(|e| anyhow::anyhow!("grayscale image for ORB: {e}"))?;
     let features = orb.detect_and_extract_u8(&image).map_err(|e| anyhow::anyhow!("ORB extraction: {e}"))?;
     Ok(LocalFeatures { keypoints: features.keypoints_xy, descriptors: features.descriptors, depths: Vec::new() })
 }
@@ -199,7 +210,11 @@ pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &Verificat
 
 /// Step 5 of the module doc: from (query pixel, match pixel, match depth) triples, the query camera's
 /// metric pose in the match camera's frame; `None` when too few agree.
-fn metric_pose(points: &[(Vec2F64, Vec2F64, f32)], intrinsics: &Intrinsics, pixel_threshold: f64) -> Option<RelativePose> {
+fn metric_pose(
+    points: &[(Vec2F64, Vec2F64, f32)],
+    intrinsics: &Intrinsics,
+    pixel_threshold: f64,
+) -> Option<RelativePose> {
     if points.len() < MIN_METRIC_INLIERS {
         return None;
     }
@@ -217,16 +232,29 @@ fn metric_pose(points: &[(Vec2F64, Vec2F64, f32)], intrinsics: &Intrinsics, pixe
         Vec3AF32::new(0.0, fy as f32, 0.0),
         Vec3AF32::new(cx as f32, cy as f32, 1.0),
     );
-    let ransac = PnPRansacParams { reproj_threshold_px: pixel_threshold as f32, random_seed: Some(0), ..PnPRansacParams::default() };
+    let ransac = PnPRansacParams {
+        reproj_threshold_px: pixel_threshold as f32,
+        random_seed: Some(0),
+        ..PnPRansacParams::default()
+    };
     let found = solve_pnp_ransac(&world, &image, &k, None, PnPMethod::EPnPDefault, &ransac).ok()?;
     if found.inliers.len() < MIN_METRIC_INLIERS {
         return None;
     }
     // EPnP minimises an algebraic error; a Levenberg-Marquardt pass on the inliers' reprojection
     // errors (kornia's PnP refinement) makes the pose the least-squares one.
-    let (inlier_world, inlier_image): (Vec<Vec3AF32>, Vec<Vec2F32>) = found.inliers.iter().map(|&i| (world[i], image[i])).unzip();
-    let pose = refine_pnp_lm(&inlier_world, &inlier_image, &k, &found.pose.rotation, &found.pose.translation, None, &LMRefineParams::default())
-        .unwrap_or(found.pose);
+    let (inlier_world, inlier_image): (Vec<Vec3AF32>, Vec<Vec2F32>) =
+        found.inliers.iter().map(|&i| (world[i], image[i])).unzip();
+    let pose = refine_pnp_lm(
+        &inlier_world,
+        &inlier_image,
+        &k,
+        &found.pose.rotation,
+        &found.pose.translation,
+        None,
+        &LMRefineParams::default(),
+    )
+    .unwrap_or(found.pose);
     // PnP gives the match frame's points in the query camera: p_query = R p_match + t.
     let r = &pose.rotation;
     let columns = [r.x_axis, r.y_axis, r.z_axis].map(|c| Vector3::new(c.x as f64, c.y as f64, c.z as f64));
@@ -269,7 +297,9 @@ fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams) -> (Verifica
     let inliers = best.map_or(0, |(_, fit)| fit.inlier_count);
     let accepted = inliers >= params.min_inliers;
     let pose = match (best, &params.intrinsics) {
-        (Some((model, fit)), Some(intrinsics)) if accepted => relative_pose(model, &fit.model, &intrinsics.matrix(), x1, x2, &fit.inliers),
+        (Some((model, fit)), Some(intrinsics)) if accepted => {
+            relative_pose(model, &fit.model, &intrinsics.matrix(), x1, x2, &fit.inliers)
+        }
         _ => None,
     };
     let mask = best.map_or_else(|| vec![false; x1.len()], |(_, fit)| fit.inliers.clone());
@@ -278,7 +308,14 @@ fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams) -> (Verifica
 
 /// Step 4 of the module doc: the motion, among those `model` allows, that puts the most inliers in
 /// front of both cameras.
-fn relative_pose(model: GeometricModel, fit: &Mat3F64, k: &Mat3F64, x1: &[Vec2F64], x2: &[Vec2F64], inliers: &[bool]) -> Option<RelativePose> {
+fn relative_pose(
+    model: GeometricModel,
+    fit: &Mat3F64,
+    k: &Mat3F64,
+    x1: &[Vec2F64],
+    x2: &[Vec2F64],
+    inliers: &[bool],
+) -> Option<RelativePose> {
     let motions: Vec<(Mat3F64, Vec3F64)> = match model {
         GeometricModel::Fundamental => {
             let e = enforce_essential_constraints(&essential_from_fundamental(fit, k, k))?;
@@ -289,13 +326,16 @@ fn relative_pose(model: GeometricModel, fit: &Mat3F64, k: &Mat3F64, x1: &[Vec2F6
     let k_inv = k.inverse();
     let ray = |p: &Vec2F64| k_inv * Vec3F64::new(p.x, p.y, 1.0);
     let in_front = |(r, t): &(Mat3F64, Vec3F64)| {
-        (0..x1.len()).filter(|&i| inliers[i] && triangulate_midpoint_known_pose(&ray(&x1[i]), &ray(&x2[i]), r, t).is_some()).count()
+        (0..x1.len())
+            .filter(|&i| inliers[i] && triangulate_midpoint_known_pose(&ray(&x1[i]), &ray(&x2[i]), r, t).is_some())
+            .count()
     };
     let (mut r, mut t) = *motions.iter().max_by_key(|motion| in_front(motion))?;
     if model == GeometricModel::Fundamental {
         // The lift from F loses accuracy; a Levenberg-Marquardt pass on the inliers' Sampson errors
         // (kornia's two-view refinement) recovers it.
-        let (y1, y2): (Vec<Vec2F64>, Vec<Vec2F64>) = (0..x1.len()).filter(|&i| inliers[i]).map(|i| (x1[i], x2[i])).unzip();
+        let (y1, y2): (Vec<Vec2F64>, Vec<Vec2F64>) =
+            (0..x1.len()).filter(|&i| inliers[i]).map(|i| (x1[i], x2[i])).unzip();
         (r, t) = refine_pose_lm(r, t, &y1, &y2, k, k, &LmPoseConfig::default());
     }
     let columns: [f64; 9] = r.into();
@@ -321,7 +361,11 @@ pub struct Verifier {
 impl Verifier {
     pub fn new(params: VerificationParams) -> Result<Self> {
         ensure!(params.max_features > 0, "verification needs at least one feature per keyframe");
-        ensure!(params.ratio > 0.0 && params.ratio <= 1.0, "the ratio test's ratio must be in (0, 1], got {}", params.ratio);
+        ensure!(
+            params.ratio > 0.0 && params.ratio <= 1.0,
+            "the ratio test's ratio must be in (0, 1], got {}",
+            params.ratio
+        );
         Ok(Verifier { params, features: HashMap::new(), order: VecDeque::new() })
     }
 
@@ -413,7 +457,13 @@ mod tests {
     }
 
     /// Projections of random points seen by two cameras `p2 = r p1 + t` (non-planar), plus outliers.
-    fn two_views(r: &Rotation3<f64>, t: &Vector3<f64>, k: &Intrinsics, points: usize, outliers: usize) -> (Vec<Vec2F64>, Vec<Vec2F64>) {
+    fn two_views(
+        r: &Rotation3<f64>,
+        t: &Vector3<f64>,
+        k: &Intrinsics,
+        points: usize,
+        outliers: usize,
+    ) -> (Vec<Vec2F64>, Vec<Vec2F64>) {
         let mut state = 7u64;
         let mut uniform = move |lo: f64, hi: f64| {
             state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);

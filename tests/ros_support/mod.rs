@@ -40,7 +40,10 @@ pub fn cyclone_python() -> PathBuf {
     let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join("target/test-venv-dds");
     let python = venv.join("bin/python");
     let has = |py: &Path| {
-        std::process::Command::new(py).args(["-c", "import cyclonedds.domain"]).output().is_ok_and(|o| o.status.success())
+        std::process::Command::new(py)
+            .args(["-c", "import cyclonedds.domain"])
+            .output()
+            .is_ok_and(|o| o.status.success())
     };
     if !has(&python) {
         let status = std::process::Command::new("python3").arg("-m").arg("venv").arg(&venv).status();
@@ -75,7 +78,11 @@ impl Listener {
         let mut stdout = BufReader::new(child.stdout.take().unwrap());
         let mut header = String::new();
         stdout.read_line(&mut header).unwrap();
-        assert_eq!(header.trim(), "query_id,query_stamp,match_id,match_stamp,distance,score,rank", "listener failed to start");
+        assert_eq!(
+            header.trim(),
+            "query_id,query_stamp,match_id,match_stamp,distance,score,rank",
+            "listener failed to start"
+        );
         // The writer side of the match may lag the reader side a little.
         std::thread::sleep(Duration::from_millis(500));
         Listener { child, stdout }
@@ -98,7 +105,11 @@ pub struct NodeProcess {
 
 impl NodeProcess {
     /// Starts `ecm-lcd node --queue 128 ARGS...`, with its weights cache under `dir` and its log at `log`.
-    pub fn start<S: AsRef<std::ffi::OsStr>>(dir: &Path, log: PathBuf, args: impl IntoIterator<Item = S>) -> NodeProcess {
+    pub fn start<S: AsRef<std::ffi::OsStr>>(
+        dir: &Path,
+        log: PathBuf,
+        args: impl IntoIterator<Item = S>,
+    ) -> NodeProcess {
         let child = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
             .args(["node", "--queue", "128"])
             .args(args)

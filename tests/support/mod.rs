@@ -15,10 +15,7 @@ pub fn shared_dir() -> PathBuf {
     }
     match std::env::var_os("ECM_LCD_SHARED") {
         Some(dir) if Path::new(&dir).is_dir() => PathBuf::from(dir),
-        _ => panic!(
-            "shared data not found: neither {} nor $ECM_LCD_SHARED is a directory",
-            beside.display()
-        ),
+        _ => panic!("shared data not found: neither {} nor $ECM_LCD_SHARED is a directory", beside.display()),
     }
 }
 

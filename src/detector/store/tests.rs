@@ -79,7 +79,10 @@ fn a_load_split_across_threads_keeps_every_keyframe_in_order() {
     check(&store, None);
     check(&store, Some(LOAD_ROWS_PER_THREAD_MIN * 2 + 5));
     // Gaps in seq: renumber every row (not something the store does itself).
-    store.connection.execute_batch("UPDATE keyframes SET seq = -seq; UPDATE keyframes SET seq = 100 - seq * 2;").unwrap();
+    store
+        .connection
+        .execute_batch("UPDATE keyframes SET seq = -seq; UPDATE keyframes SET seq = 100 - seq * 2;")
+        .unwrap();
     check(&store, None);
     check(&store, Some(LOAD_ROWS_PER_THREAD_MIN + 1));
 }
@@ -153,7 +156,8 @@ fn merge_keeps_ids_refuses_clashes_and_other_identities() {
     assert!(format!("{:#}", merge(&a, &b, &out, 100).unwrap_err()).contains("already exists"));
 
     let c = dir.path().join("c.db");
-    let mut other = KeyframeStore::open_or_create(&c, &StoreIdentity { weights_sha256: "ef".repeat(32), ..identity(8) }).unwrap();
+    let mut other =
+        KeyframeStore::open_or_create(&c, &StoreIdentity { weights_sha256: "ef".repeat(32), ..identity(8) }).unwrap();
     other.append(50, stamp(50), &descriptor(50, 8)).unwrap();
     drop(other);
     let out2 = dir.path().join("out2.db");
@@ -245,7 +249,10 @@ fn a_damaged_or_foreign_vector_file_is_rebuilt() {
         let mut bytes = pristine.clone();
         bytes[value_at(29, 3)..value_at(29, 4)].copy_from_slice(&f32::NAN.to_le_bytes());
         let rows = &bytes[vectors::ROWS_OFFSET as usize..];
-        let header = vectors::Header { crc: crc32fast::hash(rows), ..VectorFile::open(&vector_path).unwrap().unwrap().header().unwrap() };
+        let header = vectors::Header {
+            crc: crc32fast::hash(rows),
+            ..VectorFile::open(&vector_path).unwrap().unwrap().header().unwrap()
+        };
         let file = VectorFile::create_empty(&dir.path().join("scratch"), dim, header.uid).unwrap();
         file.append_after(dim, &header.uid, None, header.last_seq, bytemuck::cast_slice(rows)).unwrap();
         std::fs::read(dir.path().join("scratch")).unwrap()

@@ -134,7 +134,8 @@ impl VectorFile {
         let mut temporary = path.as_os_str().to_owned();
         temporary.push(format!(".{}.tmp", std::process::id()));
         let temporary = PathBuf::from(temporary);
-        let header = Header { dim: u32::try_from(dim).context("descriptor too long")?, uid, rows: 0, last_seq: 0, crc: 0 };
+        let header =
+            Header { dim: u32::try_from(dim).context("descriptor too long")?, uid, rows: 0, last_seq: 0, crc: 0 };
         let mut page = vec![0u8; ROWS_OFFSET as usize];
         page[..HEADER_BYTES].copy_from_slice(&header.encode());
         std::fs::write(&temporary, &page).with_context(context)?;
@@ -157,7 +158,14 @@ impl VectorFile {
     /// before them: its last row has `seq == prev_seq`, or it is empty and `prev_seq` is `None` (the
     /// rows are the store's first). Returns whether it appended (module doc: otherwise the next load
     /// catches up).
-    pub fn append_after(&self, dim: usize, uid: &[u8; 32], prev_seq: Option<i64>, last_seq: i64, values: &[f32]) -> Result<bool> {
+    pub fn append_after(
+        &self,
+        dim: usize,
+        uid: &[u8; 32],
+        prev_seq: Option<i64>,
+        last_seq: i64,
+        values: &[f32],
+    ) -> Result<bool> {
         let context = || format!("appending to {}", self.path.display());
         let _lock = Locked::exclusive(&self.file).with_context(context)?;
         let Ok(header) = self.header() else { return Ok(false) };
@@ -170,7 +178,8 @@ impl VectorFile {
         self.file.write_all_at(bytes, ROWS_OFFSET + header.rows * dim as u64 * 4).with_context(context)?;
         let mut crc = crc32fast::Hasher::new_with_initial_len(header.crc, header.rows * dim as u64 * 4);
         crc.update(bytes);
-        let header = Header { rows: header.rows + (values.len() / dim) as u64, last_seq, crc: crc.finalize(), ..header };
+        let header =
+            Header { rows: header.rows + (values.len() / dim) as u64, last_seq, crc: crc.finalize(), ..header };
         self.file.write_all_at(&header.encode(), 0).with_context(context)?;
         Ok(true)
     }
@@ -210,7 +219,9 @@ impl VectorFile {
     /// The row at `position` (for comparing with the database).
     pub fn row(&self, position: u64, dim: usize) -> Result<Vec<u8>> {
         let mut bytes = vec![0u8; dim * 4];
-        self.file.read_exact_at(&mut bytes, ROWS_OFFSET + position * dim as u64 * 4).context("it ends inside its rows")?;
+        self.file
+            .read_exact_at(&mut bytes, ROWS_OFFSET + position * dim as u64 * 4)
+            .context("it ends inside its rows")?;
         Ok(bytes)
     }
 }
@@ -221,7 +232,13 @@ mod tests {
 
     #[test]
     fn a_header_round_trips_and_any_changed_byte_is_caught() {
-        let header = Header { dim: 1280, uid: *b"0123456789abcdef0123456789abcdef", rows: 123_456, last_seq: -7, crc: 0xdead_beef };
+        let header = Header {
+            dim: 1280,
+            uid: *b"0123456789abcdef0123456789abcdef",
+            rows: 123_456,
+            last_seq: -7,
+            crc: 0xdead_beef,
+        };
         let bytes = header.encode();
         assert_eq!(Header::decode(&bytes).unwrap(), header);
         for at in 0..HEADER_BYTES {

@@ -54,11 +54,16 @@ pub fn import_tflite_bytes(bytes: &[u8]) -> Result<Weights> {
         let what = format!("convolution for {name}");
         ensure!(conv.depthwise == *depthwise, "{what}: depthwise is {}, expected {depthwise}", conv.depthwise);
         ensure!(conv.padding == Padding::Same, "{what}: padding is not SAME");
-        ensure!(conv.activation == *activation, "{what}: fused activation {:?}, expected {activation:?}", conv.activation);
+        ensure!(
+            conv.activation == *activation,
+            "{what}: fused activation {:?}, expected {activation:?}",
+            conv.activation
+        );
         let weight = model.tensors[conv.weight].clone();
         let values = weight.to_f32().with_context(|| what.clone())?;
         // OHWI -> OIHW; depthwise [1, H, W, C] -> [C, 1, H, W].
-        let dims: [usize; 4] = weight.shape.clone().try_into().map_err(|_| anyhow::anyhow!("{what}: weight is not 4-D"))?;
+        let dims: [usize; 4] =
+            weight.shape.clone().try_into().map_err(|_| anyhow::anyhow!("{what}: weight is not 4-D"))?;
         let t = Tensor::from_vec(values, dims.to_vec(), &Device::Cpu)?;
         let t = if *depthwise { t.permute((3, 0, 1, 2))? } else { t.permute((0, 3, 1, 2))? }.contiguous()?;
         ensure!(t.dims() == shape, "{what}: weight shape {:?} (OIHW), expected {shape:?}", t.dims());
@@ -71,7 +76,11 @@ pub fn import_tflite_bytes(bytes: &[u8]) -> Result<Weights> {
     ensure!(!classifier.depthwise && weight.shape.len() == 4, "classifier is not a 1x1 convolution");
     let classes = weight.shape[0];
     ensure!(weight.shape[1..] == [1, 1, MOBILENET_V2.head_channels], "classifier weight shape {:?}", weight.shape);
-    let w = Tensor::from_vec(weight.to_f32().context("classifier weight")?, (classes, MOBILENET_V2.head_channels), &Device::Cpu)?;
+    let w = Tensor::from_vec(
+        weight.to_f32().context("classifier weight")?,
+        (classes, MOBILENET_V2.head_channels),
+        &Device::Cpu,
+    )?;
     tensors.insert("classifier.weight".to_string(), w);
     tensors.insert("classifier.bias".to_string(), bias_tensor(&model, classifier.bias, classes, "classifier")?);
     Ok(Weights { arch: Arch::MobileNetV2, classes: Some(classes), source: "TFLite".to_string(), tensors })

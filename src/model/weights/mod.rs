@@ -68,7 +68,8 @@ impl Weights {
         // Write then rename, so a crash never leaves a half-written weights file behind; the
         // temporary name is this process's own, so that concurrent writers never share one.
         let tmp = path.with_extension(format!("safetensors.part{}", std::process::id()));
-        safetensors::serialize_to_file(data, Some(metadata), &tmp).with_context(|| format!("cannot write {}", tmp.display()))?;
+        safetensors::serialize_to_file(data, Some(metadata), &tmp)
+            .with_context(|| format!("cannot write {}", tmp.display()))?;
         std::fs::rename(&tmp, path).with_context(|| format!("cannot move {} to {}", tmp.display(), path.display()))?;
         Ok(())
     }
@@ -81,17 +82,19 @@ impl Weights {
     }
 
     pub fn from_bytes(bytes: &[u8]) -> Result<Self> {
-        let (_, header) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| anyhow::anyhow!("safetensors header: {e}"))?;
+        let (_, header) =
+            safetensors::SafeTensors::read_metadata(bytes).map_err(|e| anyhow::anyhow!("safetensors header: {e}"))?;
         let mut metadata = header.metadata().clone().unwrap_or_default();
         // Files from [`Weights::save`] hold their fields as JSON under one key; older ones (and
         // other writers) as separate entries.
         if let Some(json) = metadata.remove(METADATA_KEY) {
-            let fields: BTreeMap<String, String> =
-                serde_json::from_str(&json).with_context(|| format!("bad '{METADATA_KEY}' entry in the safetensors metadata"))?;
+            let fields: BTreeMap<String, String> = serde_json::from_str(&json)
+                .with_context(|| format!("bad '{METADATA_KEY}' entry in the safetensors metadata"))?;
             metadata.extend(fields);
         }
         let arch: Arch = metadata.get("arch").context("no 'arch' in the safetensors metadata")?.parse()?;
-        let classes = metadata.get("classes").map(|k| k.parse::<usize>()).transpose().context("bad 'classes' in metadata")?;
+        let classes =
+            metadata.get("classes").map(|k| k.parse::<usize>()).transpose().context("bad 'classes' in metadata")?;
         let source = metadata.get("source").cloned().unwrap_or_default();
         let tensors = candle_core::safetensors::load_buffer(bytes, &Device::Cpu)?;
         let tensors = tensors
@@ -111,7 +114,10 @@ impl Weights {
         for name in names {
             let values = self.tensors[name].flatten_all()?.to_vec1::<f32>()?;
             if let Some(bad) = values.iter().position(|v| !v.is_finite()) {
-                anyhow::bail!("tensor {name} holds a non-finite value ({} at index {bad}); the weights are unusable", values[bad]);
+                anyhow::bail!(
+                    "tensor {name} holds a non-finite value ({} at index {bad}); the weights are unusable",
+                    values[bad]
+                );
             }
         }
         Ok(())
@@ -133,11 +139,8 @@ impl Weights {
 
     /// Builds the network for inference (BatchNorm folded), with the classifier if wanted.
     pub fn network(&self, with_classifier: bool) -> Result<Network> {
-        let classes = if with_classifier {
-            Some(self.classes.context("these weights have no classifier")?)
-        } else {
-            None
-        };
+        let classes =
+            if with_classifier { Some(self.classes.context("these weights have no classifier")?) } else { None };
         let vb = VarBuilder::from_tensors(self.tensors.clone(), DType::F32, &Device::Cpu);
         Network::load(self.arch.spec(), vb, classes, false).with_context(|| format!("weights do not fit {}", self.arch))
     }

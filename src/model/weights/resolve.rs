@@ -37,7 +37,13 @@ pub struct Resolved {
 impl Resolved {
     /// One line for logs: file, hash, architecture.
     pub fn describe(&self) -> String {
-        format!("{} ({}, sha256 {}, {})", self.path.display(), self.weights.arch, &self.sha256[..16], self.weights.source)
+        format!(
+            "{} ({}, sha256 {}, {})",
+            self.path.display(),
+            self.weights.arch,
+            &self.sha256[..16],
+            self.weights.source
+        )
     }
 }
 
@@ -56,11 +62,13 @@ pub fn load_file(path: &Path) -> Result<Resolved> {
     let sha256 = sha256_hex(&bytes);
     let is_tflite = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("tflite"));
     let weights = if is_tflite {
-        let mut w = super::import::import_tflite_bytes(&bytes).with_context(|| format!("cannot import {}", path.display()))?;
+        let mut w =
+            super::import::import_tflite_bytes(&bytes).with_context(|| format!("cannot import {}", path.display()))?;
         w.source = format!("{} (TFLite)", path.file_name().unwrap_or_default().to_string_lossy());
         w
     } else {
-        Weights::from_bytes(&bytes).with_context(|| format!("{} is not a valid ecm-lcd weights file", path.display()))?
+        Weights::from_bytes(&bytes)
+            .with_context(|| format!("{} is not a valid ecm-lcd weights file", path.display()))?
     };
     Ok(Resolved { weights, path: path.to_path_buf(), sha256 })
 }
@@ -84,7 +92,8 @@ pub fn resolve(explicit: Option<&Path>) -> Result<Resolved> {
         }
         tried.push(cached.display().to_string());
     }
-    let mut tflites: Vec<PathBuf> = crate::runtime::shared_dirs().into_iter().map(|d| d.join("models").join(UPSTREAM_FILE)).collect();
+    let mut tflites: Vec<PathBuf> =
+        crate::runtime::shared_dirs().into_iter().map(|d| d.join("models").join(UPSTREAM_FILE)).collect();
     if let Some(dir) = &cache {
         tflites.push(dir.join(UPSTREAM_FILE));
     }

@@ -286,7 +286,8 @@ impl TfModel {
                 Ok(builtin.max(deprecated))
             })
             .collect::<Result<_>>()?;
-        let buffers: Vec<&[u8]> = model.tables(4).context("buffers")?.iter().map(|b| b.bytes(0)).collect::<Result<_>>()?;
+        let buffers: Vec<&[u8]> =
+            model.tables(4).context("buffers")?.iter().map(|b| b.bytes(0)).collect::<Result<_>>()?;
         let subgraphs = model.tables(2).context("subgraphs")?;
         let graph = subgraphs.first().context("model has no subgraph")?;
 
@@ -325,7 +326,8 @@ impl TfModel {
             .enumerate()
             .map(|(n, op)| {
                 let index = op.u32_or(0, 0)? as usize;
-                let code = *opcodes.get(index).with_context(|| format!("operator {n} has unknown opcode index {index}"))?;
+                let code =
+                    *opcodes.get(index).with_context(|| format!("operator {n} has unknown opcode index {index}"))?;
                 let inputs = op.i32s(1)?;
                 let outputs = op.i32s(2)?;
                 if code != CONV_2D && code != DEPTHWISE_CONV_2D {
@@ -333,7 +335,12 @@ impl TfModel {
                 }
                 let depthwise = code == DEPTHWISE_CONV_2D;
                 let what = format!("convolution operator {n}");
-                ensure!(inputs.len() >= 2 && outputs.len() == 1, "{what} has {} inputs and {} outputs", inputs.len(), outputs.len());
+                ensure!(
+                    inputs.len() >= 2 && outputs.len() == 1,
+                    "{what} has {} inputs and {} outputs",
+                    inputs.len(),
+                    outputs.len()
+                );
                 let options = op.table(4)?.with_context(|| format!("{what} has no options"))?;
                 // Conv2DOptions: padding, stride_w, stride_h, activation;
                 // DepthwiseConv2DOptions: padding, stride_w, stride_h, depth_multiplier, activation.
