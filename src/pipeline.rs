@@ -202,13 +202,13 @@ impl Pipeline {
 
     /// A keyframe whose id the tracker chose: no selection, always inserted.
     pub fn process_keyframe(&mut self, id: u64, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
-        self.next_id = self.next_id.max(id + 1);
+        self.next_id = self.next_id.max(id.saturating_add(1));
         self.run(id, false, stamp, image, None)
     }
 
     /// A plain frame: keyframe selection decides; accepted frames get `id`.
     pub fn process_frame(&mut self, id: u64, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
-        self.next_id = self.next_id.max(id + 1);
+        self.next_id = self.next_id.max(id.saturating_add(1));
         self.run(id, true, stamp, image, None)
     }
 
@@ -216,7 +216,7 @@ impl Pipeline {
     /// gives verification a metric pose.
     pub fn process_source_frame(&mut self, frame: &Frame) -> Result<Outcome> {
         let id = frame.index as u64;
-        self.next_id = self.next_id.max(id + 1);
+        self.next_id = self.next_id.max(id.saturating_add(1));
         self.run(id, true, frame.stamp, &frame.image, frame.depth.as_ref())
     }
 

@@ -12,7 +12,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::config::ParamValue;
@@ -231,6 +231,9 @@ fn replay_frames(
         bar.inc(1);
     }
     bar.finish_and_clear();
+    if run.frames == 0 && run.error.is_none() {
+        bail!("{} holds no images to replay (an empty bag or an image topic without messages)", source.display());
+    }
     if let (Some((id, _, _, db)), None) = (&newest, &run.error) {
         anyhow::ensure!(
             run.frames as u64 > *id,

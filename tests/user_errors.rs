@@ -218,3 +218,71 @@ fn endless_garbage_and_truth_outside_the_data_are_refused() {
         &["query 5", "only 3 queries"],
     );
 }
+
+#[test]
+fn plots_must_be_png_and_empty_sources_and_foreign_databases_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    std::fs::create_dir(d("seq")).unwrap();
+    let image = image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([x as u8 * 3, y as u8 * 5, 90]));
+    image.save(d("seq/0.png")).unwrap();
+    image.save(d("seq/1.png")).unwrap();
+    refused(&["eval", &d("seq"), "--plot", &d("pr.txt")], &["pr.txt", "PNG", ".png"]);
+    std::fs::write(d("odometry.txt"), "1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n").unwrap();
+    std::fs::write(d("c.csv"), "query_id,query_stamp,match_id,match_stamp,distance,score\n").unwrap();
+    refused(
+        &[
+            "pose-graph",
+            "--odometry",
+            &d("odometry.txt"),
+            "--candidates",
+            &d("c.csv"),
+            "-o",
+            &d("out.txt"),
+            "--plot",
+            &d("f.jpg"),
+        ],
+        &["f.jpg", "PNG"],
+    );
+    refused(
+        &["pose-graph", "--odometry", &d("odometry.txt"), "--candidates", &d("c.csv"), "-o", &d("c.csv")],
+        &["destroy"],
+    );
+
+    // A ROS 2 bag with its image topic and no message in it.
+    let bag = dir.path().join("empty_bag");
+    let written = ecm_lcd::io::ros2bag::write_ros2_bag(
+        &bag,
+        ecm_lcd::io::ros2bag::Ros2Storage::Sqlite3,
+        "/camera/rgb/image_color",
+        std::iter::empty(),
+        ecm_lcd::io::image_msg::WireEncoding::Rgb8,
+    )
+    .unwrap();
+    assert_eq!(written, 0);
+    refused(&["replay", bag.to_str().unwrap(), "--quiet"], &["empty_bag", "no images"]);
+
+    // A database whose newest keyframe has id i64::MAX cannot have come from a two-frame folder.
+    let weights = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/mobilenet_v2_1.0_224_quant.tflite");
+    let pipeline = ecm_lcd::pipeline::Pipeline::new(ecm_lcd::config::Params::default(), Some(&weights)).unwrap();
+    let identity = pipeline.store_identity();
+    let before = snapshot(dir.path());
+    let mut store = KeyframeStore::open_or_create(Path::new(&d("max.db")), &identity).unwrap();
+    store.append(i64::MAX as u64, Stamp::from_sec_nsec(5, 0), &vec![0.0; identity.dim]).unwrap();
+    drop(store);
+    let out = command()
+        .args(["replay", &d("seq"), "--db", &d("max.db"), "--quiet", "--weights", weights.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "a foreign database was continued:\n{err}");
+    assert!(err.contains("max.db") && err.contains(&i64::MAX.to_string()), "{err}");
+    assert!(store_ids_unchanged(&d("max.db")));
+    assert!(before.iter().all(|f| snapshot(dir.path()).contains(f)), "an input changed");
+}
+
+/// The one keyframe of the i64::MAX store is all it holds.
+fn store_ids_unchanged(path: &str) -> bool {
+    let store = KeyframeStore::open_read_only(Path::new(path)).unwrap();
+    store.len() == 1
+}

@@ -1,10 +1,9 @@
 //! `ecm-lcd db info|export|merge`: inspect, export and merge the persistent keyframe databases that
 //! `replay --db` and `node --db` write ([`crate::detector::store`]).
 
-use std::io::Write;
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 
 use crate::detector::store::{self, decode_descriptor, KeyframeStore};
 
@@ -65,24 +64,22 @@ pub fn run(args: Args) -> Result<()> {
         DbCommand::Export { path, output } => {
             crate::io::output::ensure_not_an_input(&output, &[&path])?;
             let store = KeyframeStore::open_read_only(&path)?;
-            let file = std::fs::File::create(&output).with_context(|| format!("cannot write {}", output.display()))?;
-            let mut out = csv::Writer::from_writer(std::io::BufWriter::new(file));
-            let mut header = vec!["id".to_string(), "stamp".to_string()];
-            header.extend((0..store.identity().dim).map(|i| format!("d{i}")));
-            out.write_record(&header)?;
-            let mut record = Vec::with_capacity(header.len());
-            store.for_each(0, |id, stamp, blob| {
-                record.clear();
-                record.push(id.to_string());
-                record.push(stamp.to_string());
-                // Shortest text that reads back to the same f32.
-                record.extend(decode_descriptor(blob).map(|v| v.to_string()));
-                out.write_record(&record).with_context(|| format!("writing {}", output.display()))
+            crate::io::output::replace_with(&output, |file| {
+                let mut out = csv::Writer::from_writer(file);
+                let mut header = vec!["id".to_string(), "stamp".to_string()];
+                header.extend((0..store.identity().dim).map(|i| format!("d{i}")));
+                out.write_record(&header)?;
+                let mut record = Vec::with_capacity(header.len());
+                store.for_each(0, |id, stamp, blob| {
+                    record.clear();
+                    record.push(id.to_string());
+                    record.push(stamp.to_string());
+                    // Shortest text that reads back to the same f32.
+                    record.extend(decode_descriptor(blob).map(|v| v.to_string()));
+                    Ok(out.write_record(&record)?)
+                })?;
+                Ok(out.flush()?)
             })?;
-            out.into_inner()
-                .map_err(|e| anyhow::anyhow!("{e}"))?
-                .flush()
-                .with_context(|| format!("writing {}", output.display()))?;
             eprintln!("{} keyframes written to {}", store.len(), output.display());
             Ok(())
         }

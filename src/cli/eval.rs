@@ -178,6 +178,9 @@ pub fn print_summary(metrics: &Metrics, timings_ms: &[(&str, f64)]) {
 
 /// `ecm-lcd eval`: replays the source (or embeds the database and query folders), then scores.
 pub fn run(args: Args) -> Result<()> {
+    if let Some(plot) = &args.plot {
+        crate::io::output::ensure_png(plot, "--plot")?;
+    }
     let mut pipeline = args.source_args.pipeline()?;
     if let Some((database, queries)) = args.database_and_queries()? {
         let truth = load_truth(&args, &[])?;

@@ -3,7 +3,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use serde::Serialize;
 
 use crate::model::embedder::Embedder;
@@ -210,12 +210,13 @@ pub fn embed(args: EmbedArgs) -> Result<()> {
         record.extend(pooled.iter().map(|v| v.to_string()));
         records.push(record);
     }
-    let mut writer =
-        csv::Writer::from_path(&args.output).with_context(|| format!("cannot write {}", args.output.display()))?;
-    for record in &records {
-        writer.write_record(record).with_context(|| format!("cannot write {}", args.output.display()))?;
-    }
-    writer.flush().with_context(|| format!("cannot write {}", args.output.display()))?;
+    crate::io::output::replace_with(&args.output, |file| {
+        let mut writer = csv::Writer::from_writer(file);
+        for record in &records {
+            writer.write_record(record)?;
+        }
+        Ok(writer.flush()?)
+    })?;
     println!("wrote {} descriptors of 1280 values to {}", args.images.len(), args.output.display());
     Ok(())
 }

@@ -52,9 +52,7 @@ pub fn run(args: Args) -> Result<()> {
     ensure_not_an_input(&args.output, &inputs)?;
     if let Some(plot) = &args.plot {
         ensure_not_an_input(plot, &inputs)?;
-        if !plot.extension().is_some_and(|e| e.eq_ignore_ascii_case("png")) {
-            bail!("--plot {}: the figure is written as PNG; give a file name ending in .png", plot.display());
-        }
+        crate::io::output::ensure_png(plot, "--plot")?;
     }
     for (name, value) in [("--robust-scale", args.robust_scale), ("--loop-weight", args.loop_weight)] {
         if !(value.is_finite() && value > 0.0 && value <= 1e6) {

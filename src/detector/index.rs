@@ -301,7 +301,7 @@ const KMEANS_ITERATIONS: usize = 6;
 /// Lists probed at least.
 const MIN_PROBE: usize = 8;
 /// Bound on `nlist * dim`: the centroids every query ranks and every keyframe is assigned by (5 MB:
-/// 1024 lists up to 1280-d). Until 2026-11-23 it was 262144 (204 lists at 1280-d): at 100k 1280-d
+/// 1024 lists up to 1280-d). It used to be 262144 (204 lists at 1280-d): at 100k 1280-d
 /// keyframes a query then scanned 4% of them, not 1.6% (1.4-1.9 ms now against 3.3-4.4 ms, same recall);
 /// retraining in slices ([`IvfTraining`]) made the larger training affordable.
 const MAX_ASSIGN_VALUES: usize = 1024 * 1280;

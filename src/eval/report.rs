@@ -10,15 +10,18 @@ use std::sync::OnceLock;
 
 /// Writes `threshold,precision,recall` rows, highest threshold first.
 pub fn write_curve_csv(metrics: &Metrics, path: &Path) -> Result<()> {
-    let mut writer = csv::Writer::from_path(path).with_context(|| format!("creating {}", path.display()))?;
-    writer.write_record(["threshold", "precision", "recall"]).with_context(|| format!("writing {}", path.display()))?;
-    for point in &metrics.curve {
-        writer
-            .write_record([point.threshold.to_string(), point.precision.to_string(), point.recall.to_string()])
-            .with_context(|| format!("writing {}", path.display()))?;
-    }
-    writer.flush().with_context(|| format!("writing {}", path.display()))?;
-    Ok(())
+    crate::io::output::replace_with(path, |file| {
+        let mut writer = csv::Writer::from_writer(file);
+        writer.write_record(["threshold", "precision", "recall"])?;
+        for point in &metrics.curve {
+            writer.write_record([
+                point.threshold.to_string(),
+                point.precision.to_string(),
+                point.recall.to_string(),
+            ])?;
+        }
+        Ok(writer.flush()?)
+    })
 }
 
 /// The JSON summary: `queries`, `positives`, `unknown`, `recall_at_1`,
@@ -40,6 +43,25 @@ const FONT_CANDIDATES: [&str; 3] = [
     "/usr/share/fonts/truetype/liberation/LiberationSans-Regular.ttf",
 ];
 
+/// Draws a `size` RGB image with `draw` and writes it to `path` as PNG, replacing a regular file only
+/// by rename ([`crate::io::output::replace_with`]).
+fn write_png(
+    path: &Path,
+    size: (u32, u32),
+    draw: impl FnOnce(&mut [u8], (u32, u32)) -> Result<(), Box<dyn std::error::Error>>,
+) -> Result<()> {
+    let png = (|| -> Result<Vec<u8>> {
+        let mut buffer = vec![255u8; size.0 as usize * size.1 as usize * 3];
+        draw(&mut buffer, size).map_err(|e| anyhow::anyhow!("{e}"))?;
+        let image = image::RgbImage::from_raw(size.0, size.1, buffer).expect("buffer of the image's size");
+        let mut png = std::io::Cursor::new(Vec::new());
+        image.write_to(&mut png, image::ImageFormat::Png)?;
+        Ok(png.into_inner())
+    })()
+    .with_context(|| format!("plotting {}", path.display()))?;
+    crate::io::output::write_replacing(path, &png)
+}
+
 /// Registers the first system font found as plotters' "sans-serif"; false if there is none.
 fn font_available() -> bool {
     static REGISTERED: OnceLock<bool> = OnceLock::new();
@@ -57,18 +79,17 @@ fn font_available() -> bool {
 /// a font is available.
 pub fn plot_pr_curve(metrics: &Metrics, title: &str, path: &Path) -> Result<()> {
     let with_text = font_available();
-    draw_pr_curve(metrics, title, path, with_text)
-        .map_err(|e| anyhow::anyhow!("{e}"))
-        .with_context(|| format!("plotting {}", path.display()))
+    write_png(path, (800, 600), |buffer, size| draw_pr_curve(metrics, title, buffer, size, with_text))
 }
 
 fn draw_pr_curve(
     metrics: &Metrics,
     title: &str,
-    path: &Path,
+    buffer: &mut [u8],
+    size: (u32, u32),
     with_text: bool,
 ) -> Result<(), Box<dyn std::error::Error>> {
-    let root = BitMapBackend::new(path, (800, 600)).into_drawing_area();
+    let root = BitMapBackend::with_buffer(buffer, size).into_drawing_area();
     root.fill(&WHITE)?;
     let mut builder = ChartBuilder::on(&root);
     builder.margin(20);
@@ -116,12 +137,15 @@ pub struct TrajectoryPlot<'a> {
 /// corrected blue, loop edges green.
 pub fn plot_trajectories(plot: &TrajectoryPlot, path: &Path) -> Result<()> {
     let with_text = font_available();
-    draw_trajectories(plot, path, with_text)
-        .map_err(|e| anyhow::anyhow!("{e}"))
-        .with_context(|| format!("plotting {}", path.display()))
+    write_png(path, (900, 900), |buffer, size| draw_trajectories(plot, buffer, size, with_text))
 }
 
-fn draw_trajectories(plot: &TrajectoryPlot, path: &Path, with_text: bool) -> Result<(), Box<dyn std::error::Error>> {
+fn draw_trajectories(
+    plot: &TrajectoryPlot,
+    buffer: &mut [u8],
+    size: (u32, u32),
+    with_text: bool,
+) -> Result<(), Box<dyn std::error::Error>> {
     let all = || plot.groundtruth.iter().chain(plot.odometry).chain(plot.corrected);
     let reference = if plot.groundtruth.is_empty() { plot.corrected } else { plot.groundtruth };
     let extent = |axis: usize| {
@@ -139,7 +163,7 @@ fn draw_trajectories(plot: &TrajectoryPlot, path: &Path, with_text: bool) -> Res
     // Equal scales on both axes, with a margin.
     let half = ((u1 - u0).max(v1 - v0) / 2.0).max(0.5) * 1.08;
     let (uc, vc) = ((u0 + u1) / 2.0, (v0 + v1) / 2.0);
-    let root = BitMapBackend::new(path, (900, 900)).into_drawing_area();
+    let root = BitMapBackend::with_buffer(buffer, size).into_drawing_area();
     root.fill(&WHITE)?;
     let mut builder = ChartBuilder::on(&root);
     builder.margin(20);

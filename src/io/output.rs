@@ -9,37 +9,53 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 
-/// Writes `bytes` as the whole of `path`. A missing path or a regular file is written under a
-/// temporary name beside it and renamed over it, so a crash leaves the old file or the new one, never
-/// half of one. A symlink, FIFO or device is written in place (through the link, into the pipe); a
-/// directory is refused.
+/// Writes `bytes` as the whole of `path` ([`replace_with`]).
 pub fn write_replacing(path: &Path, bytes: &[u8]) -> Result<()> {
+    replace_with(path, |out| Ok(out.write_all(bytes)?))
+}
+
+/// Writes the whole of `path` with `write`. A missing path or a regular file is written under a
+/// temporary name beside it and renamed over it, so a crash or an error leaves the old file or the new
+/// one, never half of one. A symlink, FIFO or device is written in place (through the link, into the
+/// pipe); a directory is refused.
+pub fn replace_with(path: &Path, write: impl FnOnce(&mut dyn std::io::Write) -> Result<()>) -> Result<()> {
     let in_place = match std::fs::symlink_metadata(path) {
         Err(_) => false,
         Ok(m) if m.is_dir() => bail!("cannot write {}: it is a directory", path.display()),
         Ok(m) => !m.file_type().is_file(),
     };
     if in_place {
-        let mut file = std::fs::OpenOptions::new()
+        let file = std::fs::OpenOptions::new()
             .write(true)
             .truncate(true)
             .open(path)
             .with_context(|| format!("cannot open {} for writing", path.display()))?;
-        return file
-            .write_all(bytes)
-            .and_then(|()| file.flush())
-            .with_context(|| format!("cannot write {}", path.display()));
+        let mut out = std::io::BufWriter::new(file);
+        write(&mut out).and_then(|()| Ok(out.flush()?)).with_context(|| format!("cannot write {}", path.display()))?;
+        return Ok(());
     }
     let name = path.file_name().with_context(|| format!("cannot write {}: not a file name", path.display()))?;
     let temporary = path.with_file_name(format!(".{}.{}.tmp", name.to_string_lossy(), std::process::id()));
-    let written = (|| -> std::io::Result<()> {
-        let mut file = std::fs::File::create(&temporary)?;
-        file.write_all(bytes)?;
-        file.sync_all()
+    let written = (|| -> Result<()> {
+        let file = std::fs::File::create(&temporary)?;
+        let mut out = std::io::BufWriter::new(file);
+        write(&mut out)?;
+        out.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        std::fs::rename(&temporary, path)?;
+        Ok(())
     })();
-    if let Err(e) = written.and_then(|()| std::fs::rename(&temporary, path)) {
+    if let Err(e) = written {
         let _ = std::fs::remove_file(&temporary);
         return Err(e).with_context(|| format!("cannot write {}", path.display()));
+    }
+    Ok(())
+}
+
+/// Refuses an image output whose name does not end in `.png` (the one format plots are written in),
+/// before any work is done.
+pub fn ensure_png(path: &Path, flag: &str) -> Result<()> {
+    if !path.extension().is_some_and(|e| e.eq_ignore_ascii_case("png")) {
+        bail!("{flag} {}: plots are written as PNG; give a file name ending in .png", path.display());
     }
     Ok(())
 }

@@ -634,7 +634,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
 /// Writes `value` as pretty JSON to `path`.
 pub fn write_json<T: Serialize>(path: &Path, value: &T) -> Result<()> {
     let text = serde_json::to_string_pretty(value)?;
-    std::fs::write(path, text + "\n").with_context(|| format!("cannot write {}", path.display()))
+    crate::io::output::write_replacing(path, (text + "\n").as_bytes())
 }
 
 /// A progress bar (hidden when `show` is false, e.g. in tests).
