@@ -183,6 +183,10 @@ pub struct RelativePose {
     /// Whether `translation` is in metres (else a unit direction).
     #[serde(default)]
     pub metric: bool,
+    /// Covariance of a metric pose (translation x, y, z in metres, then rotation about x, y, z in
+    /// radians, as ROS's `PoseWithCovariance`), where it was estimated.
+    #[serde(default)]
+    pub covariance: Option<nalgebra::Matrix6<f64>>,
 }
 
 #[cfg(test)]

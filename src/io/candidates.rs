@@ -186,6 +186,7 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
                         rotation: UnitQuaternion::from_quaternion(q),
                         translation: Vector3::new(v[4], v[5], v[6]),
                         metric,
+                        covariance: None,
                     })
                 };
                 Some(Verified { inliers, pose })
@@ -220,6 +221,7 @@ mod tests {
             rotation: UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
             translation: Vector3::new(0.5, -0.25, 1.0),
             metric: true,
+            covariance: None,
         };
         let candidate = |query: u64, matched: u64, verified: Option<Verified>, rank: u32| LoopCandidate {
             query_id: query,

@@ -106,7 +106,19 @@ pub struct LoopCandidate {
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Covariance(pub [f64; 36]);
 
+impl From<nalgebra::Matrix6<f64>> for Covariance {
+    /// Row-major, as ROS stores covariances.
+    fn from(matrix: nalgebra::Matrix6<f64>) -> Self {
+        Covariance(std::array::from_fn(|i| matrix[(i / 6, i % 6)]))
+    }
+}
+
 impl Covariance {
+    /// The matrix, unless this is [`Covariance::UNKNOWN`] (element 0 negative).
+    pub fn estimate(&self) -> Option<nalgebra::Matrix6<f64>> {
+        (self.0[0] >= 0.0).then(|| nalgebra::Matrix6::from_fn(|r, c| self.0[r * 6 + c]))
+    }
+
     /// The ROS convention for "no estimate": element 0 is -1.
     pub const UNKNOWN: Covariance = {
         let mut values = [0.0; 36];
@@ -189,7 +201,11 @@ impl LoopCandidate {
             descriptor_mode: descriptor_mode.to_string(),
             inliers: candidate.verified.map_or(0, |v| v.inliers),
             relative_pose: candidate.verified.and_then(|v| v.pose).map_or(Pose::IDENTITY, |pose| pose.into()),
-            covariance: Covariance::UNKNOWN,
+            covariance: candidate
+                .verified
+                .and_then(|v| v.pose)
+                .and_then(|p| p.covariance)
+                .map_or(Covariance::UNKNOWN, Covariance::from),
         }
     }
 
@@ -207,6 +223,7 @@ impl LoopCandidate {
                 inliers: self.inliers,
                 pose: (self.loop_type != Self::TYPE_VERIFIED).then(|| types::RelativePose {
                     metric: self.loop_type == Self::TYPE_VERIFIED_METRIC,
+                    covariance: self.covariance.estimate(),
                     ..self.relative_pose.into()
                 }),
             }),
@@ -234,6 +251,7 @@ impl From<Pose> for types::RelativePose {
             rotation: nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q.w, q.x, q.y, q.z)),
             translation: nalgebra::Vector3::new(p.x, p.y, p.z),
             metric: false,
+            covariance: None,
         }
     }
 }
@@ -454,8 +472,16 @@ mod tests {
             rotation: nalgebra::UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
             translation: nalgebra::Vector3::new(0.6, 0.0, 0.8),
             metric: false,
+            covariance: None,
         };
-        let metric = types::RelativePose { metric: true, translation: nalgebra::Vector3::new(1.2, 0.0, 1.6), ..pose };
+        let covariance =
+            nalgebra::Matrix6::from_fn(|r, c| if r == c { 0.01 * (r + 1) as f64 } else { 0.001 * (r + 2 * c) as f64 });
+        let metric = types::RelativePose {
+            metric: true,
+            translation: nalgebra::Vector3::new(1.2, 0.0, 1.6),
+            covariance: Some(covariance),
+            ..pose
+        };
         for verified in [
             types::Verified { inliers: 40, pose: Some(pose) },
             types::Verified { inliers: 17, pose: None },
@@ -478,7 +504,10 @@ mod tests {
                 None => LoopCandidate::TYPE_VERIFIED,
             };
             assert_eq!(msg.loop_type, expected_type);
-            assert_eq!(msg.covariance, Covariance::UNKNOWN);
+            match verified.pose.and_then(|p| p.covariance) {
+                Some(c) => assert_eq!(msg.covariance.0[1], c[(0, 1)], "row-major"),
+                None => assert_eq!(msg.covariance, Covariance::UNKNOWN),
+            }
             let bytes = cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&msg).unwrap();
             let back: LoopCandidate = cdr_encoding::from_bytes::<_, byteorder::LittleEndian>(&bytes).unwrap().0;
             assert_eq!(back, msg);
@@ -486,6 +515,7 @@ mod tests {
             assert_eq!(again.verified.map(|v| v.inliers), Some(verified.inliers));
             match (again.verified.and_then(|v| v.pose), verified.pose) {
                 (Some(a), Some(b)) => {
+                    assert_eq!((a.metric, a.covariance), (b.metric, b.covariance));
                     assert!(a.rotation.angle_to(&b.rotation) < 1e-12);
                     assert!((a.translation - b.translation).norm() < 1e-12);
                 }

@@ -262,11 +262,52 @@ fn metric_pose(
     let t = pose.translation;
     let t = Vector3::new(t.x as f64, t.y as f64, t.z as f64);
     let inverse = rotation.transpose();
-    Some(RelativePose {
-        rotation: UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&inverse)),
-        translation: -(inverse * t),
-        metric: true,
-    })
+    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&inverse));
+    let translation = -(inverse * t);
+    let inliers: Vec<(Vector3<f64>, [f64; 2])> = inlier_world
+        .iter()
+        .zip(&inlier_image)
+        .map(|(p, q)| (Vector3::new(p.x as f64, p.y as f64, p.z as f64), [q.x as f64, q.y as f64]))
+        .collect();
+    let covariance = pose_covariance(&rotation, &translation, &inliers, intrinsics);
+    Some(RelativePose { rotation, translation, metric: true, covariance })
+}
+
+/// The covariance of a metric relative pose from its PnP inliers (3-D points in the match camera,
+/// pixels in the query image): `s² (JᵀJ)⁻¹`, the Gauss-Newton estimate, with `J` the reprojection
+/// errors' Jacobian (central differences) and `s²` their variance per degree of freedom. The six
+/// parameters follow ROS's `PoseWithCovariance`: translation x, y, z in the match camera's frame, then
+/// rotations about its x, y and z axes (applied on the left of the rotation).
+fn pose_covariance(
+    rotation: &UnitQuaternion<f64>,
+    translation: &Vector3<f64>,
+    inliers: &[(Vector3<f64>, [f64; 2])],
+    intrinsics: &Intrinsics,
+) -> Option<nalgebra::Matrix6<f64>> {
+    if inliers.len() < 4 {
+        return None;
+    }
+    let residuals = |delta: &nalgebra::Vector6<f64>| -> nalgebra::DVector<f64> {
+        let r = UnitQuaternion::from_scaled_axis(Vector3::new(delta[3], delta[4], delta[5])) * rotation;
+        let t = translation + Vector3::new(delta[0], delta[1], delta[2]);
+        // p_match = r p_query + t, so p_query = rᵀ (p_match - t).
+        let errors = inliers.iter().flat_map(|(p, q)| {
+            let c = r.inverse() * (p - t);
+            [intrinsics.fx * c.x / c.z + intrinsics.cx - q[0], intrinsics.fy * c.y / c.z + intrinsics.cy - q[1]]
+        });
+        nalgebra::DVector::from_iterator(2 * inliers.len(), errors)
+    };
+    let at = residuals(&nalgebra::Vector6::zeros());
+    let mut jacobian = nalgebra::DMatrix::<f64>::zeros(at.len(), 6);
+    for k in 0..6 {
+        let mut step = nalgebra::Vector6::zeros();
+        step[k] = 1e-6;
+        jacobian.set_column(k, &((residuals(&step) - residuals(&-step)) / 2e-6));
+    }
+    let variance = at.norm_squared() / (at.len() - 6) as f64;
+    let information: nalgebra::Matrix6<f64> = (jacobian.transpose() * &jacobian).fixed_view::<6, 6>(0, 0).into();
+    let covariance = information.try_inverse()? * variance;
+    covariance.iter().all(|v| v.is_finite()).then_some(covariance)
 }
 
 /// Steps 3 and 4 of the module doc on matched pixel positions (`x1[i]` in the query, `x2[i]` in the
@@ -346,6 +387,7 @@ fn relative_pose(
         rotation: UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation)),
         translation: if norm > 1e-12 { translation / norm } else { Vector3::zeros() },
         metric: false,
+        covariance: None,
     })
 }
 
@@ -533,5 +575,48 @@ mod tests {
         assert!(flat.is_empty());
         let result = verify(&tiny, &flat, &params);
         assert_eq!((result.matches, result.inliers, result.accepted), (0, 0, false));
+    }
+
+    #[test]
+    fn a_metric_pose_from_depth_matches_the_truth_within_its_covariance() {
+        let intrinsics = Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0 };
+        // The query camera in the match camera's frame: 0.3 m right, 0.1 m forward, turned 5 degrees.
+        let truth = nalgebra::Isometry3::new(Vector3::new(0.3, 0.0, 0.1), Vector3::new(0.0, 5f64.to_radians(), 0.0));
+        let mut state = 7u64;
+        let mut uniform = move || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let sigma = 0.5;
+        let mut points = Vec::new();
+        for _ in 0..150 {
+            let p = Vector3::new(uniform() * 4.0 - 2.0, uniform() * 3.0 - 1.5, 2.0 + uniform() * 3.0);
+            let project = |c: Vector3<f64>| Vec2F64::new(500.0 * c.x / c.z + 320.0, 500.0 * c.y / c.z + 240.0);
+            let in_query = truth.inverse() * nalgebra::Point3::from(p);
+            // Gaussian pixel noise (Box-Muller) on the query keypoints.
+            let noise = |u: f64, v: f64| sigma * (-2.0 * u.max(1e-12).ln()).sqrt() * (std::f64::consts::TAU * v).cos();
+            let mut q = project(in_query.coords);
+            q.x += noise(uniform(), uniform());
+            q.y += noise(uniform(), uniform());
+            points.push((q, project(p), p.z as f32));
+        }
+        let pose = metric_pose(&points, &intrinsics, 2.0).expect("a metric pose");
+        assert!(pose.metric);
+        let rotation_error = pose.rotation.angle_to(&truth.rotation).to_degrees();
+        let translation_error = pose.translation - truth.translation.vector;
+        assert!(rotation_error < 0.2 && translation_error.norm() < 0.02, "{rotation_error} deg, {translation_error:?}");
+        let covariance = pose.covariance.expect("a covariance");
+        assert!(covariance.cholesky().is_some(), "positive definite: {covariance}");
+        for axis in 0..3 {
+            let sd = covariance[(axis, axis)].sqrt();
+            assert!(sd > 1e-5 && sd < 0.05, "axis {axis}: sd {sd}");
+            assert!(
+                translation_error[axis].abs() < 5.0 * sd,
+                "axis {axis}: error {} vs sd {sd}",
+                translation_error[axis]
+            );
+        }
+        // Too few points: no metric pose.
+        assert!(metric_pose(&points[..MIN_METRIC_INLIERS - 1], &intrinsics, 2.0).is_none());
     }
 }
