@@ -176,23 +176,34 @@ fn main() -> Result<()> {
             .map(|v| v.split(',').map(str::to_string).collect())
             .unwrap_or_else(|_| all.iter().map(|s| s.to_string()).collect())
     };
+    // Extra parameters on every row: ACCURACY_PARAMS=descriptor.projection=p.safetensors;detector.min_score=0.9
+    let extra: Vec<(String, String)> = std::env::var("ACCURACY_PARAMS")
+        .map(|v| {
+            v.split(';')
+                .filter_map(|a| a.split_once('='))
+                .map(|(n, v)| (n.trim().to_string(), v.trim().to_string()))
+                .collect()
+        })
+        .unwrap_or_default();
+    let centring = list("ACCURACY_CENTRED", &["false", "true"]);
     let arches = list("ACCURACY_ARCHES", ecm_lcd::config::ARCHES);
     let modes = list("ACCURACY_MODES", &ecm_lcd::descriptor::DescriptorMode::NAMES);
     println!("| data | network | descriptor | centred | policy | queries (with loop) | recall@1 | recall@100%P | AP | P / R at threshold | highest false score | bytes/keyframe | ms/keyframe |");
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|");
     for set in &sets {
         for (arch, mode) in arches.iter().flat_map(|a| modes.iter().map(move |m| (a.as_str(), m.as_str()))) {
-            for centred in ["false", "true"] {
+            for centred in centring.iter().map(String::as_str) {
                 if mode == "paper" && centred == "true" {
                     continue; // centring leaves the paper's descriptor alone
                 }
                 for (policy, length) in [("single", "1"), ("sequence", sequence_length)] {
-                    let overrides = [
+                    let mut overrides = vec![
                         ("arch", arch),
                         ("descriptor.mode", mode),
                         ("detector.centre_on_history", centred),
                         ("detector.sequence.length", length),
                     ];
+                    overrides.extend(extra.iter().map(|(n, v)| (n.as_str(), v.as_str())));
                     let (row, bytes) = measure(set, &overrides, &weights)?;
                     // Exploring a threshold: ACCURACY_THRESHOLDS=0.88,0.9 prints P / R at each to stderr.
                     if let Ok(list) = std::env::var("ACCURACY_THRESHOLDS") {

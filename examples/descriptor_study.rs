@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::{Context, Result};
-use ecm_lcd::descriptor::{grid_cell, l2_normalise, power_normalise};
+use ecm_lcd::descriptor::{grid_cell, l2_normalise, power_normalise, Projection};
 use ecm_lcd::eval::{
     evaluate, loop_truth_from_poses, read_loops, revisit::write_two_pass, LoopTruth, PoseLoopCriteria, QueryResult,
 };
@@ -207,57 +207,20 @@ fn learning_images() -> Result<Vec<RgbImage>> {
     Ok(images)
 }
 
-/// Mean and PCA whitening (to `dim` values) learned from `vs`.
-struct Whitening {
-    mean: Vec<f32>,
-    /// `dim` rows of the input length, each a principal axis divided by sqrt(eigenvalue + eps).
-    rows: Vec<Vec<f32>>,
-}
+/// Mean and PCA (whitened or not) learned from `vs`: the library's [`Projection`].
+type Whitening = Projection;
 
 fn learn_whitening(vs: &[Vec<f32>], dim: usize) -> Whitening {
     learn_projection(vs, dim, true)
 }
 
-/// PCA onto `dim` axes; with `whiten`, each axis scaled to unit variance (regularised).
+/// PCA onto `dim` axes (at most the sample count minus one); with `whiten`, unit variance per axis.
 fn learn_projection(vs: &[Vec<f32>], dim: usize, whiten: bool) -> Whitening {
-    let mean = mean_of(vs);
-    let n = mean.len();
-    let centred: Vec<Vec<f64>> =
-        vs.iter().map(|v| v.iter().zip(&mean).map(|(a, m)| (a - m) as f64).collect()).collect();
-    // Gram matrix trick: eigenvectors of X X^T (samples x samples), as n may exceed the sample count.
-    let s = centred.len();
-    let gram =
-        nalgebra::DMatrix::from_fn(s, s, |i, j| centred[i].iter().zip(&centred[j]).map(|(a, b)| a * b).sum::<f64>());
-    let eig = nalgebra::SymmetricEigen::new(gram);
-    let mut order: Vec<usize> = (0..s).collect();
-    order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
-    let total: f64 = eig.eigenvalues.iter().map(|e| e.max(0.0)).sum();
-    let eps = total / s as f64 * 0.1; // regularise small axes
-    let rows = order
-        .iter()
-        .take(dim.min(s - 1))
-        .map(|&k| {
-            let lambda = eig.eigenvalues[k].max(0.0);
-            // axis = X^T u / sqrt(lambda); whitened coordinate = axis . x / sqrt(lambda/(s) + eps')
-            let mut axis = vec![0.0f64; n];
-            for (i, row) in centred.iter().enumerate() {
-                let u = eig.eigenvectors[(i, k)];
-                axis.iter_mut().zip(row).for_each(|(a, x)| *a += u * x);
-            }
-            let norm = axis.iter().map(|a| a * a).sum::<f64>().sqrt().max(1e-12);
-            let variance = lambda / s as f64;
-            let scale = if whiten { 1.0 / (norm * (variance + eps / s as f64).sqrt()) } else { 1.0 / norm };
-            axis.iter().map(|a| (a * scale) as f32).collect()
-        })
-        .collect();
-    Whitening { mean, rows }
+    Projection::learn(vs, dim.min(vs.len() - 1), whiten, "study").expect("descriptors to learn from")
 }
 
 fn whiten(w: &Whitening, v: &[f32]) -> Vec<f32> {
-    let c: Vec<f32> = v.iter().zip(&w.mean).map(|(a, m)| a - m).collect();
-    let mut out: Vec<f32> = w.rows.iter().map(|r| r.iter().zip(&c).map(|(a, b)| a * b).sum()).collect();
-    l2_normalise(&mut out);
-    out
+    w.apply(v)
 }
 
 fn main() -> Result<()> {
@@ -295,8 +258,7 @@ fn main() -> Result<()> {
             let finished = finish(raw, "pl2", None);
             let mean = mean_of(&finished);
             let full = learn_projection(&finished, 256, false);
-            let cut =
-                |d: usize| Whitening { mean: full.mean.clone(), rows: full.rows.iter().take(d).cloned().collect() };
+            let cut = |d: usize| Whitening { rows: full.rows.iter().take(d).cloned().collect(), ..full.clone() };
             whitenings.insert((t, agg), (mean, cut(64), cut(128), full));
         }
     }

@@ -214,6 +214,14 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             ..integer("descriptor.grid", DEFAULT_GRID as i64, 1, 4, "Cells per side of the regional descriptor's grid.")
         },
         one_of("descriptor.pooling", Pooling::default().name(), &Pooling::NAMES, "How regional cells are pooled: gap (mean), gem (generalised mean, p = 3) or mac (max)."),
+        ParamSpec {
+            name: "descriptor.projection",
+            kind: ParamKind::String,
+            default: ParamValue::String(String::new()),
+            range: ParamRange::Any,
+            description: "A learned projection file (ecm-lcd learn-projection) applied to every descriptor: PCA to fewer dimensions; empty = none.",
+            read_only: true,
+        },
         double(
             "detector.min_score",
             0.91,
@@ -510,6 +518,11 @@ impl Params {
     }
 
     /// The descriptor, for the channel count of the tapped map ([`Params::tap`]).
+    /// The projection file named by `descriptor.projection`, if any.
+    pub fn projection(&self) -> Option<std::path::PathBuf> {
+        Some(self.string("descriptor.projection")).filter(|p| !p.is_empty()).map(std::path::PathBuf::from)
+    }
+
     pub fn descriptor(&self) -> anyhow::Result<Descriptor> {
         let arch: Arch = self.arch().parse()?;
         let spec = arch.spec();
@@ -518,7 +531,13 @@ impl Params {
             Tap::Block(i) => spec.blocks()[i].output,
         };
         let pooling = self.string("descriptor.pooling").parse().map_err(anyhow::Error::msg)?;
-        Ok(Descriptor { mode: self.descriptor_mode(), channels, grid: self.count("descriptor.grid"), pooling })
+        Ok(Descriptor {
+            mode: self.descriptor_mode(),
+            channels,
+            grid: self.count("descriptor.grid"),
+            pooling,
+            projected_dim: None,
+        })
     }
 
     pub fn detector(&self) -> DetectorParams {

@@ -18,14 +18,14 @@ use anyhow::{ensure, Context, Result};
 use image::RgbImage;
 
 use crate::config::{ParamValue, Params};
-use crate::descriptor::Descriptor;
+use crate::descriptor::{Descriptor, DescriptorMode, Projection};
 use crate::detector::selection::{KeyframeSelector, Verdict};
 use crate::detector::store::{KeyframeStore, StoreIdentity};
 use crate::detector::{Detector, Match};
 use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::{Arch, Tap};
-use crate::types::{DepthImage, Frame, LoopCandidate, Stamp, Verified};
+use crate::types::{DepthImage, FeatureMap, Frame, LoopCandidate, Stamp, Verified};
 use crate::verification::{Intrinsics, LocalFeatures, Verification, Verifier};
 
 /// Milliseconds spent per stage on one frame.
@@ -61,6 +61,8 @@ pub struct Pipeline {
     embedder: Embedder,
     params: Params,
     descriptor: Descriptor,
+    /// The learned projection applied after the descriptor (`descriptor.projection`).
+    projection: Option<Projection>,
     selector: KeyframeSelector,
     detector: Detector,
     next_id: u64,
@@ -72,6 +74,15 @@ pub struct Pipeline {
     /// Whether the best match is verified even when it is not a candidate (evaluation needs it; a
     /// node does not, and saves a check per keyframe).
     verify_best: bool,
+}
+
+/// The descriptor as one name, the tap included: the mode's name for the modes on the head (`power`;
+/// what stores made before taps existed hold), else e.g. `regional-3x3-mac@blocks.16`.
+fn descriptor_name(descriptor: &Descriptor, tap: Tap) -> String {
+    match tap {
+        Tap::Head => descriptor.name(),
+        tap => format!("{}@{tap}", descriptor.name()),
+    }
 }
 
 impl Pipeline {
@@ -86,7 +97,28 @@ impl Pipeline {
         log::info!("weights: {} -> {arch}, input {}²", weights.describe(), params.input_size());
         let mut embedder = Embedder::new(network, params.input_size()).context("network input size")?;
         embedder.set_tap(params.tap()?)?;
-        let descriptor = params.descriptor()?;
+        let mut descriptor = params.descriptor()?;
+        let raw_name = descriptor_name(&descriptor, embedder.tap());
+        let projection = match params.projection() {
+            Some(path) => {
+                let projection = Projection::load(&path)?;
+                ensure!(
+                    projection.descriptor == raw_name && projection.in_dim() == descriptor.dim(),
+                    "projection {} was learned on {} descriptors ({} values), but this pipeline computes {raw_name} ({} values)",
+                    path.display(),
+                    projection.descriptor,
+                    projection.in_dim(),
+                    descriptor.dim()
+                );
+                ensure!(
+                    descriptor.mode != DescriptorMode::Paper,
+                    "the paper descriptor is the reproduction: it takes no projection"
+                );
+                descriptor.projected_dim = Some(projection.out_dim());
+                Some(projection)
+            }
+            None => None,
+        };
         let verifier = params.verification(None).map(Verifier::new).transpose()?;
         if let Some(verifier) = &verifier {
             log::info!("geometric verification on: {:?}", verifier.params());
@@ -96,6 +128,7 @@ impl Pipeline {
             selector: KeyframeSelector::new(params.selection()),
             detector: Detector::new(descriptor, params.detector()),
             descriptor,
+            projection,
             params,
             next_id: 0,
             weights,
@@ -128,13 +161,23 @@ impl Pipeline {
         &mut self.detector
     }
 
-    /// The descriptor as one name, the tap included: the mode's name for the modes on the head
-    /// (`power`; what stores made before taps existed hold), else `regional-3x3-mac@blocks.16`.
+    /// The descriptor as one name, the tap and any projection included, e.g.
+    /// `regional-3x3-mac@blocks.16+pca256:1a2b3c4d5e6f` ([`Projection::identity`]).
     pub fn descriptor_name(&self) -> String {
-        match self.embedder.tap() {
-            Tap::Head => self.descriptor.name(),
-            tap => format!("{}@{tap}", self.descriptor.name()),
+        let name = descriptor_name(&self.descriptor, self.embedder.tap());
+        match &self.projection {
+            Some(projection) => name + &projection.identity(),
+            None => name,
         }
+    }
+
+    /// The descriptor of a feature map: the descriptor mode's, then the projection where one is set.
+    fn compute_descriptor(&self, feature_map: &FeatureMap) -> Result<Vec<f32>> {
+        let descriptor = self.descriptor.compute(feature_map)?;
+        Ok(match &self.projection {
+            Some(projection) => projection.apply(&descriptor),
+            None => descriptor,
+        })
     }
 
     /// What this pipeline's descriptors depend on (a store must match it).
@@ -192,7 +235,8 @@ impl Pipeline {
 
     /// The descriptor of one image, with no selection and no database.
     pub fn describe(&mut self, image: &RgbImage) -> Result<Vec<f32>> {
-        self.descriptor.compute(&self.embedder.feature_map(image)?)
+        let feature_map = self.embedder.feature_map(image)?;
+        self.compute_descriptor(&feature_map)
     }
 
     /// Use stock candle ops instead of the fast kernels (verification).
@@ -255,7 +299,7 @@ impl Pipeline {
         let start = Instant::now();
         let feature_map = self.embedder.feature_map(image)?;
         let after_network = Instant::now();
-        let descriptor = self.descriptor.compute(&feature_map)?;
+        let descriptor = self.compute_descriptor(&feature_map)?;
         let after_descriptor = Instant::now();
         outcome.timings.network_ms = (after_network - start).as_secs_f64() * 1e3;
         outcome.timings.descriptor_ms = (after_descriptor - after_network).as_secs_f64() * 1e3;

@@ -321,3 +321,49 @@ fn bad_sources_give_clear_errors_and_truncated_bags_report_what_was_read() {
     assert_clean_failure(&ecm_lcd(&["embed", bad_png.to_str().unwrap(), "-o", csv.to_str().unwrap()]), &["bad.png"]);
     assert_eq!(std::fs::read(&csv).unwrap(), b"earlier output\n");
 }
+
+/// `learn-projection` through the binary, then `descriptor.projection`: descriptors shrink to the
+/// projected length, the projection's hash joins the database identity, and a projection learned on
+/// another descriptor is refused.
+#[test]
+fn a_learned_projection_shrinks_descriptors_and_names_itself_in_the_store() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("learn");
+    let scene =
+        Scene::new(SynthConfig { frames: 40, laps: 1, width: 160, height: 120, ..SynthConfig::default() }).unwrap();
+    write_tum_folder(&scene, &seq).unwrap();
+    let projection = dir.path().join("pca.safetensors");
+    let weights_file = shared().join("models/mobilenet_v2_1.0_224_quant.tflite");
+    let out = ecm_lcd(&[
+        "learn-projection",
+        seq.to_str().unwrap(),
+        "--dims",
+        "16",
+        "--whiten",
+        "-o",
+        projection.to_str().unwrap(),
+        "--weights",
+        weights_file.to_str().unwrap(),
+        "--quiet",
+    ]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let with = |overrides: &[(&str, &str)]| Pipeline::with_weights(params(overrides), weights());
+    let path = projection.to_str().unwrap();
+    let mut pipeline = with(&[("descriptor.projection", path)]).unwrap();
+    let identity = pipeline.store_identity();
+    assert_eq!(identity.dim, 16);
+    assert!(identity.descriptor_mode.starts_with("regional-3x3-mac@blocks.16+pca16w:"), "{}", identity.descriptor_mode);
+    let descriptor = pipeline.describe(&scene.render(3)).unwrap();
+    assert_eq!(descriptor.len(), 16);
+    assert!((descriptor.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-4, "a unit vector");
+    // The same place seen twice scores higher than another place.
+    let (a, b, far) = (
+        pipeline.describe(&scene.render(3)).unwrap(),
+        pipeline.describe(&scene.render(4)).unwrap(),
+        pipeline.describe(&scene.render(25)).unwrap(),
+    );
+    let distance = ecm_lcd::descriptor::distance;
+    assert!(distance(&a, &b) < distance(&a, &far), "{} vs {}", distance(&a, &b), distance(&a, &far));
+    let err = format!("{:#}", with(&[("descriptor.projection", path), ("descriptor.tap", "blocks.13")]).err().unwrap());
+    assert!(err.contains("regional-3x3-mac@blocks.16") && err.contains("blocks.13"), "{err}");
+}

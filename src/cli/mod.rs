@@ -6,6 +6,7 @@ pub mod db;
 pub mod demo;
 pub mod distill;
 pub mod eval;
+pub mod learn_projection;
 pub mod listen;
 pub mod load_test;
 pub mod model;
@@ -73,6 +74,8 @@ pub enum Command {
     Synth(synth::Args),
     /// Correct an odometry trajectory with the loop candidates (SE(3) pose graph); ATE and a Fig. 11 plot.
     PoseGraph(pose_graph::Args),
+    /// Learn a PCA projection of the descriptor from images (no labels) for descriptor.projection.
+    LearnProjection(learn_projection::Args),
     /// Inspect, export and merge persistent keyframe databases (--db).
     Db(db::Args),
     /// Train ECMobileNet or MobileNetV2 on an image folder (the paper's classification recipe).
@@ -139,6 +142,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),
         Command::PoseGraph(args) => pose_graph::run(args),
+        Command::LearnProjection(args) => learn_projection::run(args),
         Command::Db(args) => db::run(args),
         Command::Train(args) => train::run(args),
         Command::Distill(args) => distill::run(args),

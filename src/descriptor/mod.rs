@@ -49,6 +49,10 @@
 //!
 //! A zero block (all features zero) stays zero rather than dividing by zero.
 
+pub mod projection;
+
+pub use projection::Projection;
+
 use crate::types::FeatureMap;
 use std::fmt;
 use std::str::FromStr;
@@ -211,6 +215,8 @@ pub struct Descriptor {
     /// Cells per side of the regional grid, at least 1.
     pub grid: usize,
     pub pooling: Pooling,
+    /// Length after a learned projection ([`Projection`], applied by the pipeline), where one is set.
+    pub projected_dim: Option<usize>,
 }
 
 impl Default for Descriptor {
@@ -221,12 +227,12 @@ impl Default for Descriptor {
 
 impl Descriptor {
     pub fn new(mode: DescriptorMode, channels: usize) -> Self {
-        Descriptor { mode, channels, grid: DEFAULT_GRID, pooling: Pooling::default() }
+        Descriptor { mode, channels, grid: DEFAULT_GRID, pooling: Pooling::default(), projected_dim: None }
     }
 
     /// The regional mode on a `channels`-channel map, `grid` x `grid` cells (at least 1) pooled by `pooling`.
     pub fn regional(channels: usize, grid: usize, pooling: Pooling) -> Self {
-        Descriptor { mode: DescriptorMode::Regional, channels, grid: grid.max(1), pooling }
+        Descriptor { mode: DescriptorMode::Regional, channels, grid: grid.max(1), pooling, projected_dim: None }
     }
 
     /// What the descriptor's values depend on besides the network, as one name: the mode's name,
@@ -238,8 +244,13 @@ impl Descriptor {
         }
     }
 
-    /// Length of the descriptor this mode computes from a `channels`-channel feature map.
+    /// Length of the descriptor stored and compared: the projected length where a projection is set.
     pub fn dim(&self) -> usize {
+        self.projected_dim.unwrap_or_else(|| self.computed_dim())
+    }
+
+    /// Length of the descriptor this mode computes from a `channels`-channel feature map.
+    pub fn computed_dim(&self) -> usize {
         match self.mode {
             DescriptorMode::Paper => self.channels.div_ceil(PAPER_GROUP),
             DescriptorMode::L2 | DescriptorMode::Power => self.channels,

@@ -1,0 +1,79 @@
+//! `ecm-lcd learn-projection`: learns a PCA projection (optionally whitened) of the configured
+//! descriptor from the frames of one or more sources, without labels, and saves it for
+//! `descriptor.projection` ([`crate::descriptor::Projection`]).
+
+use std::path::PathBuf;
+
+use anyhow::{ensure, Context, Result};
+
+use super::replay::SourceArgs;
+use crate::descriptor::Projection;
+use crate::io::open_source;
+
+#[derive(clap::Args, Debug)]
+pub struct Args {
+    /// Sources to learn from (TUM folders, image folders, bags): images of the kind the robot will
+    /// see, e.g. `synth` output or a recording of the building; no labels needed.
+    #[arg(required = true)]
+    pub sources: Vec<PathBuf>,
+    #[command(flatten)]
+    pub source_args: SourceArgs,
+    /// Output file (safetensors).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Dimensions to keep (at most the number of frames used minus one).
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u32).range(1..=8192))]
+    pub dims: u32,
+    /// Scale each axis to unit variance (PCA-whitening).
+    #[arg(long)]
+    pub whiten: bool,
+    /// Use every N-th frame of each source.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+    pub every: u32,
+    /// Use at most this many frames in all.
+    #[arg(long, default_value_t = 4000, value_parser = clap::value_parser!(u32).range(2..=20_000))]
+    pub max_frames: u32,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let inputs: Vec<&std::path::Path> = args.sources.iter().map(PathBuf::as_path).collect();
+    crate::io::output::ensure_not_an_input(&args.output, &inputs)?;
+    let mut params = args.source_args.params()?;
+    // Learned on the descriptor itself, never on a projection of it.
+    params.set_from_str("descriptor.projection", "").map_err(anyhow::Error::msg)?;
+    let mut pipeline = crate::pipeline::Pipeline::new(params, args.source_args.weights.as_deref())?;
+    let name = pipeline.descriptor_name();
+    let mut samples = Vec::new();
+    'sources: for source in &args.sources {
+        let frames = open_source(source, args.source_args.topic.as_deref())?;
+        log::info!("learning from {}", frames.describe());
+        for frame in frames.step_by(args.every as usize) {
+            let frame = frame.with_context(|| format!("reading {}", source.display()))?;
+            samples.push(pipeline.describe(&frame.image)?);
+            if samples.len() >= args.max_frames as usize {
+                break 'sources;
+            }
+        }
+    }
+    ensure!(
+        samples.len() > args.dims as usize,
+        "{} frames give at most {} dimensions; asked for {} (give more frames or fewer --dims)",
+        samples.len(),
+        samples.len().saturating_sub(1),
+        args.dims
+    );
+    let started = std::time::Instant::now();
+    let mut projection = Projection::learn(&samples, args.dims as usize, args.whiten, &name)?;
+    projection.save(&args.output)?;
+    println!(
+        "learned {} -> {} dimensions{} from {} frames in {:.1} s; wrote {} (use --param descriptor.projection={})",
+        projection.in_dim(),
+        projection.out_dim(),
+        if args.whiten { ", whitened" } else { "" },
+        samples.len(),
+        started.elapsed().as_secs_f64(),
+        args.output.display(),
+        args.output.display()
+    );
+    Ok(())
+}
