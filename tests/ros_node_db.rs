@@ -152,3 +152,123 @@ fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
     assert_eq!(stored, FRAMES);
     println!("INNER-DONE first lap {} candidates, after the restart {} candidates, all on the first run's keyframes; {counters}", before.len(), after.len());
 }
+
+/// A tiny xorshift so the test needs no extra crate; the seed is printed to reproduce a failure.
+struct Random(u64);
+
+impl Random {
+    fn below(&mut self, n: u64) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0 % n
+    }
+}
+
+/// The node on a database, SIGKILLed again and again at random moments while keyframes arrive; each
+/// new node is sent the keyframes its database does not hold yet. In the end the database holds
+/// exactly what an uninterrupted run stores: the same keyframes (ids, stamps, descriptors within 1e-4)
+/// and the same candidates (pairs identical, distances within 1e-4).
+#[test]
+fn node_with_a_database_killed_at_random_ends_with_an_uninterrupted_runs_database() {
+    if !ros_support::inside() {
+        return ros_support::check_inner_run(
+            "node_with_a_database_killed_at_random_ends_with_an_uninterrupted_runs_database",
+        );
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let config = SynthConfig {
+        frames: FRAMES,
+        laps: 2,
+        seed: 3,
+        width: 160,
+        height: 120,
+        rate_hz: 10.0,
+        ..SynthConfig::default()
+    };
+    let seq = dir.path().join("seq");
+    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    let frames: Vec<Frame> = open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+
+    // The uninterrupted run, offline, into its own database.
+    let reference_db = dir.path().join("reference.db");
+    let mut params = Params::default();
+    for (name, value) in PARAMS {
+        params.set_from_str(name, value).unwrap();
+    }
+    let mut pipeline = Pipeline::new(params, Some(&weights())).unwrap();
+    pipeline.open_store(&reference_db).unwrap();
+    for frame in &frames {
+        pipeline.process_keyframe(frame.index as u64, frame.stamp, &frame.image).unwrap();
+    }
+    drop(pipeline);
+    let reference = KeyframeStore::open_existing(&reference_db).unwrap();
+    let (reference_keyframes, reference_candidates) =
+        (reference.keyframes().unwrap(), reference.stored_candidates().unwrap().expect("all candidates stored"));
+    assert!(reference_candidates.len() >= 5, "the sequence closes loops: {}", reference_candidates.len());
+
+    let seed = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64 | 1;
+    println!("kill schedule seed {seed}");
+    let mut random = Random(seed);
+    let db = dir.path().join("keyframes.db");
+    let stored_ids = || -> Vec<u64> {
+        if !db.exists() {
+            return Vec::new();
+        }
+        KeyframeStore::open_existing(&db).unwrap().keyframes().unwrap().iter().map(|k| k.id).collect()
+    };
+    let (mut kills, mut run) = (0, 0);
+    loop {
+        let stored = stored_ids();
+        assert_eq!(stored, (0..stored.len() as u64).collect::<Vec<_>>(), "stored ids have a gap (seed {seed})");
+        let next = stored.len();
+        if next == FRAMES {
+            break;
+        }
+        run += 1;
+        assert!(run < 60, "no progress (seed {seed})");
+        let node = start_node(dir.path(), &db, run);
+        node.wait_for_log("keyframes stored", Duration::from_secs(60));
+        let tracker = ros2_client::Context::new().unwrap();
+        let publisher =
+            FramePublisher::new(&tracker, "/dbtest/keyframes", SendAs::Keyframe, InputQos::Reliable, "camera").unwrap();
+        assert!(publisher.wait_for_subscriber(Duration::from_secs(60)), "the node did not subscribe");
+        std::thread::sleep(Duration::from_millis(300));
+        // Up to 8 keyframes, then SIGKILL after 0-150 ms: mid-keyframe, mid-commit or idle.
+        let count = 1 + random.below(8) as usize;
+        let end = (next + count).min(FRAMES);
+        for frame in &frames[next..end] {
+            publisher.publish(frame).unwrap();
+            std::thread::sleep(Duration::from_millis(40));
+        }
+        let mut node = node;
+        if end == FRAMES && random.below(2) == 0 {
+            // Let the last run finish cleanly now and then.
+            node.wait_for_log(&format!(" id {} stamp", FRAMES - 1), Duration::from_secs(30));
+            Command::new("kill").args(["-TERM", &node.child.id().to_string()]).status().unwrap();
+            assert!(node.child.wait().unwrap().success(), "{}", node.log_text());
+        } else {
+            std::thread::sleep(Duration::from_millis(random.below(150)));
+            node.child.kill().unwrap(); // SIGKILL
+            node.child.wait().unwrap();
+            kills += 1;
+        }
+    }
+    println!("INNER-DONE {kills} SIGKILLs over {run} runs (seed {seed})");
+    assert!(kills >= 10, "only {kills} kills (seed {seed})");
+
+    let store = KeyframeStore::open_existing(&db).unwrap();
+    let keyframes = store.keyframes().unwrap();
+    assert_eq!(keyframes.len(), reference_keyframes.len());
+    for (got, want) in keyframes.iter().zip(&reference_keyframes) {
+        assert_eq!((got.id, got.stamp), (want.id, want.stamp), "seed {seed}");
+        let difference = ecm_lcd::descriptor::distance(&got.descriptor, &want.descriptor);
+        assert!(difference <= 1e-4, "keyframe {} descriptor differs by {difference} (seed {seed})", got.id);
+    }
+    let candidates = store.stored_candidates().unwrap().expect("all candidates stored");
+    let pairs = |c: &[ecm_lcd::types::LoopCandidate]| c.iter().map(|c| (c.query_id, c.match_id)).collect::<Vec<_>>();
+    assert_eq!(pairs(&candidates), pairs(&reference_candidates), "candidates differ (seed {seed})");
+    for (got, want) in candidates.iter().zip(&reference_candidates) {
+        assert!((got.distance - want.distance).abs() <= 1e-4, "{got:?} vs {want:?} (seed {seed})");
+    }
+}

@@ -1,7 +1,7 @@
 //! Commands a user mistypes: an output that names an input, a database path that is a device, a
 //! FIFO, a directory or a symlink, read-only inspection of files that are not keyframe databases,
-//! and numbers far out of range. Each must fail fast with an error that says what is wrong, and
-//! every file involved must keep its bytes (and its kind) afterwards.
+//! and numbers far out of range. Each must fail fast (within 2 s and 200 MB) with an error that says
+//! what is wrong, and every file involved must keep its bytes (and its kind) afterwards.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -28,7 +28,18 @@ fn refused(args: &[&str], expected: &[&str]) -> String {
         assert!(err.contains(piece), "{args:?}: {piece:?} not in:\n{err}");
     }
     assert!(elapsed < Duration::from_secs(2), "{args:?} took {elapsed:?}");
+    let peak = peak_child_rss_mb();
+    assert!(peak > 1.0 && peak < 200.0, "{args:?}: a command of this test binary peaked at {peak:.0} MB");
     err
+}
+
+/// The largest resident set any finished child of this process reached, in MB (Linux reports KiB).
+fn peak_child_rss_mb() -> f64 {
+    // SAFETY: getrusage only writes into the zeroed struct it is given.
+    let mut usage: libc::rusage = unsafe { std::mem::zeroed() };
+    let status = unsafe { libc::getrusage(libc::RUSAGE_CHILDREN, &mut usage) };
+    assert_eq!(status, 0, "getrusage failed");
+    usage.ru_maxrss as f64 / 1024.0
 }
 
 /// Every file in `dir` with its length and a hash of its bytes (compared, and printed on a mismatch).

@@ -30,6 +30,8 @@ pub fn check_inner_run(name: &str) {
     let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(out.status.success(), "inner run failed:\n{text}");
     assert!(text.contains("INNER-DONE"), "inner run did not complete:\n{text}");
+    // What the inner run measured, for the outer run's --nocapture.
+    text.lines().filter(|l| l.contains("INNER-DONE") || l.contains("seed")).for_each(|l| println!("{l}"));
 }
 
 /// The Python virtualenv with Cyclone DDS (created once under target/, reused afterwards). Call it
