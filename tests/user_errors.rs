@@ -174,6 +174,14 @@ fn numbers_far_out_of_range_are_refused_at_once() {
     refused(&["--threads", "0", "classify", image], &["--threads"]);
     #[cfg(unix)]
     refused(&["embed", image, "-o", "/dev/full"], &["cannot write /dev/full"]);
+    #[cfg(unix)]
+    {
+        // Weights are written into the device, which fails (it is full), and never replace it.
+        use std::os::unix::fs::FileTypeExt;
+        let tflite = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/mobilenet_v2_1.0_224_quant.tflite");
+        refused(&["import-weights", tflite.to_str().unwrap(), "-o", "/dev/full"], &["cannot write /dev/full"]);
+        assert!(std::fs::symlink_metadata("/dev/full").unwrap().file_type().is_char_device(), "/dev/full was replaced");
+    }
 }
 
 #[test]

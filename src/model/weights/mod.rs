@@ -65,12 +65,10 @@ impl Weights {
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         }
-        // Write then rename, so a crash never leaves a half-written weights file behind; the
-        // temporary name is this process's own, so that concurrent writers never share one.
-        let tmp = path.with_extension(format!("safetensors.part{}", std::process::id()));
-        safetensors::serialize_to_file(data, Some(metadata), &tmp)
-            .with_context(|| format!("cannot write {}", tmp.display()))?;
-        std::fs::rename(&tmp, path).with_context(|| format!("cannot move {} to {}", tmp.display(), path.display()))?;
+        // A regular file is replaced by rename (a crash never leaves half a weights file); a device,
+        // FIFO or symlink is written in place, never replaced.
+        let bytes = safetensors::serialize(data, Some(metadata)).context("serialising the weights")?;
+        crate::io::output::write_replacing(path, &bytes)?;
         Ok(())
     }
 
