@@ -10,11 +10,14 @@ mod support;
 use ecm_lcd::config::Params;
 use ecm_lcd::detector::store::KeyframeStore;
 use ecm_lcd::io::open_source;
+use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::pipeline::Pipeline;
+use ecm_lcd::ros::msgs::{Marker, Point, Pose, Quaternion};
 use ecm_lcd::ros::node::InputQos;
-use ecm_lcd::ros::peer::{CandidateListener, FramePublisher, SendAs};
+use ecm_lcd::ros::peer::{CandidateListener, FramePublisher, Listener, SendAs};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 use ecm_lcd::types::Frame;
+use nalgebra::Isometry3;
 use ros_support::NodeProcess;
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
@@ -67,20 +70,30 @@ fn offline(frames: &[Frame]) -> Vec<(u64, u64)> {
     rows
 }
 
-/// Publishes `frames` as keyframes from fresh participants (so that no match with a killed node
-/// lingers) and collects the candidates until `expected` arrived or nothing came for a while.
-fn publish_and_listen(frames: &[Frame], expected: usize) -> Vec<(u64, u64)> {
+/// Publishes `frames` as keyframes carrying their ground-truth poses, from fresh participants (so
+/// that no match with a killed node lingers), and collects the candidates until `expected` arrived or
+/// nothing came for a while, and the loop-edge markers.
+fn publish_and_listen(frames: &[Frame], poses: &[Isometry3<f64>], expected: usize) -> (Vec<(u64, u64)>, Vec<Marker>) {
     let tracker = ros2_client::Context::new().unwrap();
     let back_end = ros2_client::Context::new().unwrap();
     let publisher =
         FramePublisher::new(&tracker, "/dbtest/keyframes", SendAs::Keyframe, InputQos::Reliable, "camera").unwrap();
     let listener = CandidateListener::new(&back_end, "/dbtest/loop_candidates").unwrap();
+    let viewer = ros2_client::Context::new().unwrap();
+    let markers = Listener::markers(&viewer, "/dbtest/loop_markers").unwrap();
     assert!(publisher.wait_for_subscriber(Duration::from_secs(60)), "the node did not subscribe");
     assert!(listener.wait_for_publisher(Duration::from_secs(60)), "the node did not publish");
+    assert!(markers.wait_for_publisher(Duration::from_secs(60)), "the node did not publish markers");
     std::thread::sleep(Duration::from_millis(500));
     let mut got = Vec::new();
     for frame in frames {
-        publisher.publish(frame).unwrap();
+        let pose = poses[frame.index];
+        let (t, q) = (pose.translation.vector, pose.rotation);
+        let pose = Pose {
+            position: Point { x: t.x, y: t.y, z: t.z },
+            orientation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
+        };
+        publisher.publish_with_pose(frame, Some(pose)).unwrap();
         std::thread::sleep(Duration::from_millis(50));
         got.extend(listener.take_all().unwrap().iter().map(|c| (c.query_id, c.match_id)));
     }
@@ -95,7 +108,19 @@ fn publish_and_listen(frames: &[Frame], expected: usize) -> Vec<(u64, u64)> {
     // Anything late would show as a difference from the offline run.
     std::thread::sleep(Duration::from_millis(300));
     got.extend(listener.take_all().unwrap().iter().map(|c| (c.query_id, c.match_id)));
-    got
+    let edges = markers.take_all().unwrap().into_iter().flat_map(|array| array.markers).collect();
+    (got, edges)
+}
+
+/// Each candidate is one line from the match keyframe's position to the query's, in the map frame.
+fn check_markers(markers: &[Marker], candidates: &[(u64, u64)], poses: &[Isometry3<f64>]) {
+    assert_eq!(markers.len(), candidates.len(), "one loop-edge marker per candidate");
+    for (marker, &(query, matched)) in markers.iter().zip(candidates) {
+        assert_eq!((marker.marker_type, marker.header.frame_id.as_str()), (Marker::LINE_LIST, "map"));
+        let at = |p: &Point| nalgebra::Vector3::new(p.x, p.y, p.z);
+        assert!((at(&marker.points[0]) - poses[matched as usize].translation.vector).norm() < 1e-9);
+        assert!((at(&marker.points[1]) - poses[query as usize].translation.vector).norm() < 1e-9);
+    }
 }
 
 #[test]
@@ -124,8 +149,11 @@ fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
     // First run: the first lap, then SIGKILL once the last keyframe was processed.
     let db = dir.path().join("keyframes.db");
     let mut first = start_node(dir.path(), &db, 1);
-    let got = publish_and_listen(&frames[..FIRST_LAP], before.len());
+    let poses: Vec<Isometry3<f64>> =
+        read_groundtruth(&seq.join("groundtruth.txt")).unwrap().into_iter().map(|(_, p)| p).collect();
+    let (got, markers) = publish_and_listen(&frames[..FIRST_LAP], &poses, before.len());
     assert_eq!(got, before, "first lap over DDS vs offline");
+    check_markers(&markers, &got, &poses);
     first.wait_for_log(&format!(" id {} stamp", FIRST_LAP - 1), Duration::from_secs(30));
     first.child.kill().unwrap(); // SIGKILL
     first.child.wait().unwrap();
@@ -137,8 +165,10 @@ fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
     // Second run on the same database: the history is loaded and the revisit closes loops on it.
     let second = start_node(dir.path(), &db, 2);
     second.wait_for_log(&format!("{FIRST_LAP} keyframes stored, {FIRST_LAP} loaded"), Duration::from_secs(60));
-    let got = publish_and_listen(&frames[FIRST_LAP..], after.len());
+    let (got, markers) = publish_and_listen(&frames[FIRST_LAP..], &poses, after.len());
     assert_eq!(got, after, "second lap after the restart vs the offline run of the whole sequence");
+    // The matches are keyframes of the first run: the database keeps no poses, so no line is drawn.
+    assert!(markers.is_empty(), "{markers:?}");
     let mut second = second;
     Command::new("kill").args(["-TERM", &second.child.id().to_string()]).status().unwrap();
     assert!(second.child.wait().unwrap().success(), "{}", second.log_text());
@@ -271,4 +301,35 @@ fn node_with_a_database_killed_at_random_ends_with_an_uninterrupted_runs_databas
     for (got, want) in candidates.iter().zip(&reference_candidates) {
         assert!((got.distance - want.distance).abs() <= 1e-4, "{got:?} vs {want:?} (seed {seed})");
     }
+}
+
+/// Keyframes that carry their poses: every candidate is also drawn as a loop edge for RViz.
+#[test]
+fn loop_edges_are_published_as_markers_when_keyframes_carry_poses() {
+    if !ros_support::inside() {
+        return ros_support::check_inner_run("loop_edges_are_published_as_markers_when_keyframes_carry_poses");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let config = SynthConfig {
+        frames: FRAMES,
+        laps: 2,
+        seed: 3,
+        width: 160,
+        height: 120,
+        rate_hz: 10.0,
+        ..SynthConfig::default()
+    };
+    let seq = dir.path().join("seq");
+    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    let frames: Vec<Frame> = open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    let poses: Vec<Isometry3<f64>> =
+        read_groundtruth(&seq.join("groundtruth.txt")).unwrap().into_iter().map(|(_, p)| p).collect();
+    let expected = offline(&frames);
+    let node = start_node(dir.path(), &dir.path().join("keyframes.db"), 1);
+    let (got, markers) = publish_and_listen(&frames, &poses, expected.len());
+    assert_eq!(got, expected);
+    assert!(got.len() >= 5, "{got:?}");
+    check_markers(&markers, &got, &poses);
+    drop(node);
+    println!("INNER-DONE {} candidates, {} loop-edge markers", got.len(), markers.len());
 }

@@ -72,6 +72,119 @@ pub struct DiagnosticArray {
     pub status: Vec<DiagnosticStatus>,
 }
 
+/// `geometry_msgs/Vector3`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Vector3 {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+}
+
+/// `std_msgs/ColorRGBA`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ColorRgba {
+    pub r: f32,
+    pub g: f32,
+    pub b: f32,
+    pub a: f32,
+}
+
+/// `builtin_interfaces/Duration`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Duration {
+    pub sec: i32,
+    pub nanosec: u32,
+}
+
+/// `visualization_msgs/UVCoordinate`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct UvCoordinate {
+    pub u: f32,
+    pub v: f32,
+}
+
+/// `visualization_msgs/MeshFile`.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct MeshFile {
+    pub filename: String,
+    #[serde(with = "serde_bytes")]
+    pub data: Vec<u8>,
+}
+
+/// `visualization_msgs/Marker` in the layout of ROS 2 Humble and later (with the texture and mesh
+/// file fields); ecm-lcd fills only what a line list needs.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Marker {
+    pub header: Header,
+    pub ns: String,
+    pub id: i32,
+    #[serde(rename = "type")]
+    pub marker_type: i32,
+    pub action: i32,
+    pub pose: Pose,
+    pub scale: Vector3,
+    pub color: ColorRgba,
+    pub lifetime: Duration,
+    pub frame_locked: bool,
+    pub points: Vec<Point>,
+    pub colors: Vec<ColorRgba>,
+    pub texture_resource: String,
+    pub texture: CompressedImage,
+    pub uv_coordinates: Vec<UvCoordinate>,
+    pub text: String,
+    pub mesh_resource: String,
+    pub mesh_file: MeshFile,
+    pub mesh_use_embedded_materials: bool,
+}
+
+impl Marker {
+    /// `LINE_LIST`: each pair of points is one segment.
+    pub const LINE_LIST: i32 = 5;
+    pub const ADD: i32 = 0;
+}
+
+/// `visualization_msgs/MarkerArray`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct MarkerArray {
+    pub markers: Vec<Marker>,
+}
+
+/// The loop edges of `candidates` whose keyframes both have positions in the tracker's map frame
+/// (`position_of`), as one RViz line-list marker per candidate in frame `frame_id`, stamped `stamp`.
+/// Marker ids are the query id and rank folded into an `i32`, so a re-sent candidate replaces its line.
+pub fn loop_edge_markers(
+    candidates: &[types::LoopCandidate],
+    position_of: impl Fn(u64) -> Option<Point>,
+    frame_id: &str,
+    stamp: Time,
+) -> MarkerArray {
+    let markers = candidates
+        .iter()
+        .filter_map(|c| {
+            let (query, matched) = (position_of(c.query_id)?, position_of(c.match_id)?);
+            // Verified loops green, appearance-only ones orange.
+            let color = if c.verified.is_some() {
+                ColorRgba { r: 0.1, g: 0.8, b: 0.2, a: 1.0 }
+            } else {
+                ColorRgba { r: 1.0, g: 0.6, b: 0.0, a: 1.0 }
+            };
+            Some(Marker {
+                header: Header { stamp, frame_id: frame_id.to_string() },
+                ns: "loop_edges".into(),
+                id: ((c.query_id.wrapping_mul(16).wrapping_add(c.rank as u64)) & 0x7FFF_FFFF) as i32,
+                marker_type: Marker::LINE_LIST,
+                action: Marker::ADD,
+                pose: Pose { orientation: Quaternion { w: 1.0, ..Default::default() }, ..Default::default() },
+                scale: Vector3 { x: 0.02, ..Default::default() },
+                color,
+                points: vec![matched, query],
+                ..Default::default()
+            })
+        })
+        .collect();
+    MarkerArray { markers }
+}
+
 /// `ecm_lcd_msgs/Keyframe`: a tracker's keyframe (see `msg/Keyframe.msg`).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Keyframe {
@@ -262,6 +375,7 @@ impl Message for Image {}
 impl Message for CompressedImage {}
 impl Message for CameraInfo {}
 impl Message for DiagnosticArray {}
+impl Message for MarkerArray {}
 
 /// ROS type names of the messages on ecm-lcd's topics.
 pub fn keyframe_type() -> MessageTypeName {
@@ -272,6 +386,9 @@ pub fn loop_candidate_type() -> MessageTypeName {
 }
 pub fn image_type() -> MessageTypeName {
     MessageTypeName::new("sensor_msgs", "Image")
+}
+pub fn marker_array_type() -> MessageTypeName {
+    MessageTypeName::new("visualization_msgs", "MarkerArray")
 }
 pub fn diagnostic_array_type() -> MessageTypeName {
     MessageTypeName::new("diagnostic_msgs", "DiagnosticArray")
@@ -544,5 +661,32 @@ mod tests {
         assert_eq!(back.to_candidate(), candidate);
         assert_eq!(back.num_candidates, 3);
         assert_eq!(back.loop_type, LoopCandidate::TYPE_APPEARANCE);
+    }
+
+    #[test]
+    fn loop_edges_become_line_markers_that_round_trip_through_cdr() {
+        let candidate = |query: u64, matched: u64, verified: bool| types::LoopCandidate {
+            query_id: query,
+            query_stamp: Stamp::from_nanos(query as i64),
+            match_id: matched,
+            match_stamp: Stamp::from_nanos(matched as i64),
+            distance: 0.5,
+            score: 0.9,
+            rank: 0,
+            verified: verified.then_some(types::Verified { inliers: 30, pose: None }),
+        };
+        let position = |id: u64| (id != 7).then_some(Point { x: id as f64, y: 2.0 * id as f64, z: 0.5 });
+        let candidates = [candidate(10, 2, true), candidate(11, 7, false), candidate(12, 3, false)];
+        let array = loop_edge_markers(&candidates, position, "map", Time::default());
+        // The candidate whose match has no position draws nothing.
+        assert_eq!(array.markers.len(), 2);
+        let first = &array.markers[0];
+        assert_eq!((first.marker_type, first.header.frame_id.as_str()), (Marker::LINE_LIST, "map"));
+        assert_eq!(first.points, vec![position(2).unwrap(), position(10).unwrap()]);
+        assert_ne!(first.color, array.markers[1].color, "verified and appearance-only edges differ");
+        assert_ne!(first.id, array.markers[1].id);
+        let bytes = cdr_encoding::to_vec::<_, byteorder::LittleEndian>(&array).unwrap();
+        let back: MarkerArray = cdr_encoding::from_bytes::<_, byteorder::LittleEndian>(&bytes).unwrap().0;
+        assert_eq!(back, array);
     }
 }

@@ -32,7 +32,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use super::args::RosArgs;
-use super::msgs::{self, DiagnosticArray, DiagnosticStatus, KeyValue, Keyframe, LoopCandidate};
+use super::msgs::{self, DiagnosticArray, DiagnosticStatus, KeyValue, Keyframe, LoopCandidate, MarkerArray};
 use super::param_services::ParamServices;
 use super::params;
 use super::queue::{DropOldestQueue, Next};
@@ -53,6 +53,8 @@ pub const CANDIDATES_TOPIC: &str = "loop_candidates";
 pub const CAMERA_INFO_TOPIC: &str = "camera_info";
 /// Where ROS nodes publish their health (absolute, as the ROS tools expect).
 pub const DIAGNOSTICS_TOPIC: &str = "/diagnostics";
+/// Loop edges for RViz (`visualization_msgs/MarkerArray`), where keyframes carry poses.
+pub const MARKERS_TOPIC: &str = "loop_markers";
 
 /// What the node runs each keyframe through (the pipeline implements it).
 pub trait KeyframeProcessor: Send + 'static {
@@ -315,6 +317,7 @@ pub fn run_node(
     let (cmp_topic, cmp_name) = topic(&mut node, COMPRESSED_TOPIC, msgs::compressed_image_type(), &input_qos)?;
     let (out_topic, out_name) = topic(&mut node, CANDIDATES_TOPIC, msgs::loop_candidate_type(), &output_qos())?;
     let (info_topic, info_name) = topic(&mut node, CAMERA_INFO_TOPIC, msgs::camera_info_type(), &input_qos)?;
+    let (markers_topic, markers_name) = topic(&mut node, MARKERS_TOPIC, msgs::marker_array_type(), &output_qos())?;
     let (diag_topic, diag_name) =
         topic(&mut node, DIAGNOSTICS_TOPIC, msgs::diagnostic_array_type(), &diagnostics_qos())?;
     let sub_err = |what: &str| {
@@ -329,6 +332,13 @@ pub fn run_node(
         node.create_subscription(&info_topic, None).map_err(sub_err(&info_name))?;
     let publisher: Publisher<LoopCandidate> =
         node.create_publisher(&out_topic, None).map_err(|e| anyhow::anyhow!("creating publisher {out_name}: {e:?}"))?;
+    let markers: Publisher<MarkerArray> = node
+        .create_publisher(&markers_topic, None)
+        .map_err(|e| anyhow::anyhow!("creating publisher {markers_name}: {e:?}"))?;
+    let markers_frame = match live.lock().unwrap_or_else(|e| e.into_inner()).get("markers.frame_id") {
+        Some(ParamValue::String(frame)) => frame,
+        _ => "map".to_string(),
+    };
     let diagnostics: Publisher<DiagnosticArray> = node
         .create_publisher(&diag_topic, None)
         .map_err(|e| anyhow::anyhow!("creating publisher {diag_name}: {e:?}"))?;
@@ -354,7 +364,8 @@ pub fn run_node(
             .name("lcd-worker".into())
             // On a rayon worker for its whole life: see `runtime::on_worker`.
             .spawn(move || {
-                crate::runtime::on_worker(|| worker_loop(&fqn, processor, &queue, &publisher, &counters, &live))
+                let outputs = Outputs { candidates: &publisher, markers: &markers, markers_frame: &markers_frame };
+                crate::runtime::on_worker(|| worker_loop(&fqn, processor, &queue, outputs, &counters, &live))
             })
             .context("starting the worker thread")?
     };
@@ -530,13 +541,15 @@ fn drain<M: 'static + serde::de::DeserializeOwned>(
     }
 }
 
-/// The `frame_id` of each keyframe a candidate may match, for `LoopCandidate.match_frame_id`: bounded
-/// by the keyframes the processor keeps (the oldest go first), each distinct name stored once
+/// The `frame_id` of each keyframe a candidate may match, for `LoopCandidate.match_frame_id`, and its
+/// position in the tracker's map where the keyframe carried a pose (for the loop-edge markers):
+/// bounded by the keyframes the processor keeps (the oldest go first), each distinct name stored once
 /// (a tracker sends the same one with every keyframe).
 #[derive(Default)]
 struct FrameIds {
     order: std::collections::VecDeque<u64>,
     names: HashMap<u64, Arc<str>>,
+    positions: HashMap<u64, msgs::Point>,
 }
 
 impl FrameIds {
@@ -556,8 +569,20 @@ impl FrameIds {
         while self.order.len() > n.max(1) {
             if let Some(id) = self.order.pop_front() {
                 self.names.remove(&id);
+                self.positions.remove(&id);
             }
         }
+    }
+
+    /// Records where keyframe `id` (already inserted) was in the tracker's map.
+    fn set_position(&mut self, id: u64, position: msgs::Point) {
+        if self.names.contains_key(&id) {
+            self.positions.insert(id, position);
+        }
+    }
+
+    fn position(&self, id: u64) -> Option<msgs::Point> {
+        self.positions.get(&id).copied()
     }
 
     fn get(&self, id: u64) -> Option<&str> {
@@ -565,15 +590,24 @@ impl FrameIds {
     }
 }
 
+/// Where the worker publishes.
+struct Outputs<'a> {
+    candidates: &'a Publisher<LoopCandidate>,
+    markers: &'a Publisher<MarkerArray>,
+    /// The tracker's map frame, in which keyframe poses are given (`markers.frame_id`).
+    markers_frame: &'a str,
+}
+
 /// Decodes, processes and publishes queued messages until the queue closes.
 fn worker_loop(
     fqn: &str,
     mut processor: Box<dyn KeyframeProcessor>,
     queue: &DropOldestQueue<Queued, Control>,
-    publisher: &Publisher<LoopCandidate>,
+    outputs: Outputs,
     counters: &NodeCounters,
     live: &Mutex<Params>,
 ) {
+    let publisher = outputs.candidates;
     let mut frame_ids = FrameIds::default();
     // Read-only while running: read once.
     let mode = match live.lock().unwrap_or_else(|e| e.into_inner()).get("descriptor.mode") {
@@ -607,6 +641,10 @@ fn worker_loop(
             Next::Closed => return,
         };
         let started = Instant::now();
+        let position = match &queued.message {
+            Incoming::Keyframe(kf) if kf.has_pose => Some(kf.pose.position),
+            _ => None,
+        };
         let (topic, id, header, decoded) = match &queued.message {
             Incoming::Keyframe(kf) => {
                 let mut header = kf.header.clone();
@@ -647,6 +685,9 @@ fn worker_loop(
         }
         if let Some(id) = id.or(candidates.first().map(|c| c.query_id)) {
             frame_ids.insert(id, &header.frame_id);
+            if let Some(position) = position {
+                frame_ids.set_position(id, position);
+            }
         }
         // One entry per keyframe the processor keeps: a match can only be one of those.
         frame_ids.keep_newest(processor.keyframes().map_or(FrameIds::DEFAULT_CAPACITY, |n| n as usize));
@@ -663,6 +704,21 @@ fn worker_loop(
                     candidate.query_id, candidate.match_id
                 ),
             }
+        }
+        let markers =
+            msgs::loop_edge_markers(&candidates, |id| frame_ids.position(id), outputs.markers_frame, header.stamp);
+        if !markers.markers.is_empty() {
+            let count = markers.markers.len();
+            match outputs.markers.publish(markers) {
+                Ok(()) => debug!("[{fqn}] published {count} loop-edge marker(s)"),
+                Err(e) => warn!("[{fqn}] publishing loop-edge markers failed: {e:?}"),
+            }
+        } else if !candidates.is_empty() {
+            debug!(
+                "[{fqn}] no loop-edge markers: {} of {} keyframes have poses",
+                frame_ids.positions.len(),
+                frame_ids.order.len()
+            );
         }
         debug!(
             "[{fqn}] {topic} #{} id {} stamp {stamp}: waited {:.1} ms, decode {decode_ms:.1} ms, process {process_ms:.1} ms, \

@@ -121,6 +121,11 @@ impl FramePublisher {
 
     /// Publishes one frame (Keyframe id = `frame.index`).
     pub fn publish(&self, frame: &Frame) -> Result<()> {
+        self.publish_with_pose(frame, None)
+    }
+
+    /// Publishes one frame; a Keyframe carries `pose` (the camera in the tracker's map) where given.
+    pub fn publish_with_pose(&self, frame: &Frame, pose: Option<msgs::Pose>) -> Result<()> {
         let ctx = || format!("publishing frame {} on {}", frame.index, self.topic);
         match &self.publisher {
             AnyPublisher::Keyframe(p) => {
@@ -129,8 +134,8 @@ impl FramePublisher {
                     header: image.header.clone(),
                     id: frame.index as u64,
                     image,
-                    has_pose: false,
-                    pose: Default::default(),
+                    has_pose: pose.is_some(),
+                    pose: pose.unwrap_or_default(),
                 };
                 p.publish(msg).map_err(|e| anyhow::anyhow!("{e:?}")).with_context(ctx)
             }
@@ -147,35 +152,50 @@ impl FramePublisher {
 }
 
 /// Receives LoopCandidates.
-pub struct CandidateListener {
+pub type CandidateListener = Listener<LoopCandidate>;
+
+/// Receives the node's messages of one type on one topic (with the node's output QoS).
+pub struct Listener<M: Message + serde::de::DeserializeOwned + 'static> {
     _node: Node,
-    subscription: Subscription<LoopCandidate>,
-    /// Wakes [`CandidateListener::wait`] when data arrives (the subscription is registered with it).
+    subscription: Subscription<M>,
+    /// Wakes [`Listener::wait`] when data arrives (the subscription is registered with it).
     poll: std::sync::Mutex<(Poll, Events)>,
 }
 
-impl CandidateListener {
+impl Listener<LoopCandidate> {
     pub fn new(context: &Context, topic: &str) -> Result<Self> {
-        let mut node = spinning_node(context, &format!("ecm_lcd_listen_{}", std::process::id()))?;
+        Self::of_type(context, topic, msgs::loop_candidate_type())
+    }
+}
+
+impl Listener<msgs::MarkerArray> {
+    /// The loop-edge markers (`visualization_msgs/MarkerArray`).
+    pub fn markers(context: &Context, topic: &str) -> Result<Self> {
+        Self::of_type(context, topic, msgs::marker_array_type())
+    }
+}
+
+impl<M: Message + serde::de::DeserializeOwned + 'static> Listener<M> {
+    fn of_type(context: &Context, topic: &str, type_name: ros2_client::MessageTypeName) -> Result<Self> {
+        // Each listener is its own node: unique names, so several can share one context.
+        static LISTENERS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+        let n = LISTENERS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let mut node = spinning_node(context, &format!("ecm_lcd_listen_{}_{n}", std::process::id()))?;
         let t = node
-            .create_topic(&topic_name(topic)?, msgs::loop_candidate_type(), &output_qos())
+            .create_topic(&topic_name(topic)?, type_name, &output_qos())
             .map_err(|e| anyhow::anyhow!("topic {topic}: {e:?}"))?;
-        let mut subscription: Subscription<LoopCandidate> =
+        let mut subscription: Subscription<M> =
             node.create_subscription(&t, None).map_err(|e| anyhow::anyhow!("subscribing {topic}: {e:?}"))?;
         let poll = Poll::new().context("creating the poll")?;
         poll.registry()
             .register(&mut subscription, Token(0), Interest::READABLE)
             .context("polling the subscription")?;
-        Ok(CandidateListener {
-            _node: node,
-            subscription,
-            poll: std::sync::Mutex::new((poll, Events::with_capacity(4))),
-        })
+        Ok(Listener { _node: node, subscription, poll: std::sync::Mutex::new((poll, Events::with_capacity(4))) })
     }
 
-    /// The candidates that arrived, waiting at most `timeout` for the first (empty on timeout). Wakes on
+    /// The messages that arrived, waiting at most `timeout` for the first (empty on timeout). Wakes on
     /// arrival, so it adds no polling delay to a latency measurement.
-    pub fn wait(&self, timeout: Duration) -> Result<Vec<LoopCandidate>> {
+    pub fn wait(&self, timeout: Duration) -> Result<Vec<M>> {
         let got = self.take_all()?;
         if !got.is_empty() {
             return Ok(got);
@@ -184,7 +204,7 @@ impl CandidateListener {
         let (poll, events) = &mut *guard;
         if let Err(e) = poll.poll(events, Some(timeout)) {
             if e.kind() != std::io::ErrorKind::Interrupted {
-                return Err(e).context("waiting for candidates");
+                return Err(e).context("waiting for messages");
             }
         }
         self.take_all()
@@ -200,8 +220,8 @@ impl CandidateListener {
         wait_until(timeout, || self.publishers() > 0)
     }
 
-    /// Every candidate that has arrived, without waiting. Undecodable messages are an error.
-    pub fn take_all(&self) -> Result<Vec<LoopCandidate>> {
+    /// Every message that has arrived, without waiting. Undecodable messages are an error.
+    pub fn take_all(&self) -> Result<Vec<M>> {
         let mut out = Vec::new();
         while let Some((msg, _)) = self.subscription.take().map_err(|e| anyhow::anyhow!("receiving: {e:?}"))? {
             out.push(msg);
