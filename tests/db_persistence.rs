@@ -3,6 +3,8 @@
 //! that loads;
 //! a restarted pipeline continues ids and history; `db info|export|merge`; refusal of other descriptors.
 
+mod support;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
@@ -88,18 +90,6 @@ fn stored_ids(db: &Path) -> Vec<u64> {
     (0..history.len()).map(|p| history.id(p)).collect()
 }
 
-/// A tiny xorshift so the test needs no extra crate; the seed is printed to reproduce a failure.
-struct Random(u64);
-
-impl Random {
-    fn below(&mut self, n: u64) -> u64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        self.0 % n
-    }
-}
-
 #[test]
 fn replay_killed_at_random_moments_ends_as_an_uninterrupted_run() {
     let dir = tempfile::tempdir().unwrap();
@@ -133,7 +123,7 @@ fn replay_killed_at_random_moments_ends_as_an_uninterrupted_run() {
         std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64 | 1
     });
     println!("kill test seed {seed} (ECM_LCD_KILL_SEED to repeat)");
-    let mut random = Random(seed);
+    let mut random = support::Random(seed);
     let (db, csv) = (dir.path().join("kill.db"), dir.path().join("kill.csv"));
     let args = replay_args(seq_text, db.to_str().unwrap(), csv.to_str().unwrap());
     let started = Instant::now();

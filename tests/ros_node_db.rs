@@ -55,6 +55,23 @@ fn start_node(dir: &Path, db: &Path, run: usize) -> NodeProcess {
     NodeProcess::start(dir, dir.join(format!("node{run}.log")), args)
 }
 
+/// The test sequence: two laps of a synthetic scene, written to `dir/seq`, and its frames.
+fn looped_sequence(dir: &Path) -> (PathBuf, Vec<Frame>) {
+    let config = SynthConfig {
+        frames: FRAMES,
+        laps: 2,
+        seed: 3,
+        width: 160,
+        height: 120,
+        rate_hz: 10.0,
+        ..SynthConfig::default()
+    };
+    let seq = dir.join("seq");
+    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    let frames = open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    (seq, frames)
+}
+
 /// The candidates `(query, match)` of the offline run of the whole sequence.
 fn offline(frames: &[Frame]) -> Vec<(u64, u64)> {
     let mut params = Params::default();
@@ -129,18 +146,7 @@ fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
         return ros_support::check_inner_run("node_with_a_database_killed_and_restarted_detects_the_revisit");
     }
     let dir = tempfile::tempdir().unwrap();
-    let config = SynthConfig {
-        frames: FRAMES,
-        laps: 2,
-        seed: 3,
-        width: 160,
-        height: 120,
-        rate_hz: 10.0,
-        ..SynthConfig::default()
-    };
-    let seq = dir.path().join("seq");
-    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
-    let frames: Vec<Frame> = open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    let (seq, frames) = looped_sequence(dir.path());
     let expected = offline(&frames);
     let (before, after): (Vec<_>, Vec<_>) = expected.iter().partition(|(query, _)| (*query as usize) < FIRST_LAP);
     assert!(after.len() >= 5, "the second lap should close loops on the first offline: {expected:?}");
@@ -183,18 +189,6 @@ fn node_with_a_database_killed_and_restarted_detects_the_revisit() {
     println!("INNER-DONE first lap {} candidates, after the restart {} candidates, all on the first run's keyframes; {counters}", before.len(), after.len());
 }
 
-/// A tiny xorshift so the test needs no extra crate; the seed is printed to reproduce a failure.
-struct Random(u64);
-
-impl Random {
-    fn below(&mut self, n: u64) -> u64 {
-        self.0 ^= self.0 << 13;
-        self.0 ^= self.0 >> 7;
-        self.0 ^= self.0 << 17;
-        self.0 % n
-    }
-}
-
 /// The node on a database, SIGKILLed again and again at random moments while keyframes arrive; each
 /// new node is sent the keyframes its database does not hold yet. In the end the database holds
 /// exactly what an uninterrupted run stores: the same keyframes (ids, stamps, descriptors within 1e-4)
@@ -207,18 +201,7 @@ fn node_with_a_database_killed_at_random_ends_with_an_uninterrupted_runs_databas
         );
     }
     let dir = tempfile::tempdir().unwrap();
-    let config = SynthConfig {
-        frames: FRAMES,
-        laps: 2,
-        seed: 3,
-        width: 160,
-        height: 120,
-        rate_hz: 10.0,
-        ..SynthConfig::default()
-    };
-    let seq = dir.path().join("seq");
-    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
-    let frames: Vec<Frame> = open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    let (_, frames) = looped_sequence(dir.path());
 
     // The uninterrupted run, offline, into its own database.
     let reference_db = dir.path().join("reference.db");
@@ -239,7 +222,7 @@ fn node_with_a_database_killed_at_random_ends_with_an_uninterrupted_runs_databas
 
     let seed = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos() as u64 | 1;
     println!("kill schedule seed {seed}");
-    let mut random = Random(seed);
+    let mut random = support::Random(seed);
     let db = dir.path().join("keyframes.db");
     let stored_ids = || -> Vec<u64> {
         if !db.exists() {
@@ -310,18 +293,7 @@ fn loop_edges_are_published_as_markers_when_keyframes_carry_poses() {
         return ros_support::check_inner_run("loop_edges_are_published_as_markers_when_keyframes_carry_poses");
     }
     let dir = tempfile::tempdir().unwrap();
-    let config = SynthConfig {
-        frames: FRAMES,
-        laps: 2,
-        seed: 3,
-        width: 160,
-        height: 120,
-        rate_hz: 10.0,
-        ..SynthConfig::default()
-    };
-    let seq = dir.path().join("seq");
-    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
-    let frames: Vec<Frame> = open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    let (seq, frames) = looped_sequence(dir.path());
     let poses: Vec<Isometry3<f64>> =
         read_groundtruth(&seq.join("groundtruth.txt")).unwrap().into_iter().map(|(_, p)| p).collect();
     let expected = offline(&frames);

@@ -78,3 +78,17 @@ pub fn rosbags_fixtures(args: &[&std::ffi::OsStr]) -> String {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/support/rosbags_fixtures.py");
     run(Command::new(rosbags_python()).arg(script).args(args), "rosbags_fixtures.py")
 }
+
+/// A tiny xorshift for random test schedules, so the tests need no extra crate; tests print the seed
+/// to reproduce a failure.
+pub struct Random(pub u64);
+
+impl Random {
+    /// A value in `0..n`.
+    pub fn below(&mut self, n: u64) -> u64 {
+        self.0 ^= self.0 << 13;
+        self.0 ^= self.0 >> 7;
+        self.0 ^= self.0 << 17;
+        self.0 % n
+    }
+}
