@@ -213,6 +213,8 @@ fn endless_garbage_and_truth_outside_the_data_are_refused() {
     {
         refused(&["replay", &d("seq"), "--config", "/dev/zero"], &["params file", "/dev/zero", "MiB"]);
         refused(&["replay", &d("seq"), "--weights", "/dev/zero"], &["/dev/zero", "MiB"]);
+        refused(&["import-weights", "/dev/zero", "-o", &d("w.safetensors")], &["/dev/zero", "MiB"]);
+        assert!(!dir.path().join("w.safetensors").exists(), "nothing written");
     }
     // Brackets nested 100 000 deep in a params file.
     std::fs::write(d("deep.yaml"), format!("ecm_lcd:\n  ros__parameters:\n    x: {}\n", "[".repeat(100_000))).unwrap();
@@ -304,4 +306,26 @@ fn plots_must_be_png_and_empty_sources_and_foreign_databases_are_refused() {
 fn store_ids_unchanged(path: &str) -> bool {
     let store = KeyframeStore::open_read_only(Path::new(path)).unwrap();
     store.len() == 1
+}
+
+/// Stamps that repeat or go back are replayed in file order, and said with their counts.
+#[test]
+fn repeated_and_decreasing_stamps_are_warned_with_counts() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    std::fs::create_dir_all(seq.join("rgb")).unwrap();
+    for i in 0..4u8 {
+        let image = image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([x as u8 * 3 + i * 50, y as u8 * 5, 90]));
+        image.save(seq.join(format!("rgb/{i}.png"))).unwrap();
+    }
+    // 2.0 repeats 2.0; 1.5 goes back.
+    std::fs::write(seq.join("rgb.txt"), "1.0 rgb/0.png\n2.0 rgb/1.png\n2.0 rgb/2.png\n1.5 rgb/3.png\n").unwrap();
+    let weights = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/mobilenet_v2_1.0_224_quant.tflite");
+    let out = command()
+        .args(["replay", seq.to_str().unwrap(), "--quiet", "--weights", weights.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(err.contains("1 stamp(s) repeat") && err.contains("1 go back in time"), "{err}");
 }

@@ -105,7 +105,8 @@ pub fn run(args: Args) -> Result<()> {
         // Resuming a store that holds every emitted candidate: the CSV is rewritten from it, so a
         // line lost to a kill between a keyframe's commit and its write comes back.
         (Some(path), Some(stored)) => CandidateCsv::rewrite(path, &stored)?,
-        (Some(path), None) => CandidateCsv::to_file(path, resuming)?,
+        (Some(path), None) if resuming => CandidateCsv::to_file(path, true)?,
+        (Some(path), None) => CandidateCsv::rewrite(path, &[])?,
         (None, _) => CandidateCsv::to_stdout()?,
     };
     let run = run_source_with(

@@ -1,9 +1,11 @@
 //! Loop candidates as CSV: the replay's output, written incrementally, and read back (by the
-//! pose-graph back end and tools).
+//! pose-graph back end and tools). A replay's file is first replaced by rename (with what the keyframe
+//! database already holds, or just the header), then appended to and flushed keyframe by keyframe, so
+//! what a killed replay emitted is on disk.
 
 use std::fs::File;
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::{bail, ensure, Context, Result};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
@@ -51,29 +53,25 @@ impl CandidateCsv {
         Self::new(Box::new(file), path.display().to_string(), !continuing)
     }
 
-    /// The file at `path` holding exactly `candidates` (written beside it and renamed over it when
-    /// it is a regular file or missing, so a crash leaves the old file or the new one), open for
-    /// appending after them.
+    /// The file at `path` holding exactly `candidates`, open for appending after them. A regular file
+    /// or a missing path is written beside and renamed over ([`crate::io::output::replace_with`]), so
+    /// a crash leaves the old file or the new one; anything else (a device, a FIFO) is written in place.
     pub fn rewrite(path: &Path, candidates: &[LoopCandidate]) -> Result<Self> {
         let regular_or_missing = std::fs::symlink_metadata(path).map_or(true, |m| m.is_file());
-        if regular_or_missing {
-            let mut temporary = path.as_os_str().to_owned();
-            temporary.push(".partial");
-            let temporary = PathBuf::from(temporary);
-            let mut fresh = Self::to_file(&temporary, false)?;
-            fresh.write(candidates)?;
-            drop(fresh);
-            File::open(&temporary)
-                .and_then(|f| f.sync_all())
-                .with_context(|| format!("cannot write {}", temporary.display()))?;
-            std::fs::rename(&temporary, path)
-                .with_context(|| format!("cannot move {} to {}", temporary.display(), path.display()))?;
-            Self::to_file(path, true)
-        } else {
+        if !regular_or_missing {
             let mut csv = Self::to_file(path, false)?;
             csv.write(candidates)?;
-            Ok(csv)
+            return Ok(csv);
         }
+        crate::io::output::replace_with(path, |out| {
+            let mut csv = csv::WriterBuilder::new().has_headers(false).from_writer(out);
+            csv.write_record(CSV_HEADER)?;
+            for c in candidates {
+                csv.write_record(record(c))?;
+            }
+            Ok(csv.flush()?)
+        })?;
+        Self::to_file(path, true)
     }
 
     pub fn to_stdout() -> Result<Self> {
@@ -96,30 +94,35 @@ impl CandidateCsv {
     /// Writes `candidates` and flushes.
     pub fn write(&mut self, candidates: &[LoopCandidate]) -> Result<()> {
         for c in candidates {
-            let mut record = vec![
-                c.query_id.to_string(),
-                c.query_stamp.to_string(),
-                c.match_id.to_string(),
-                c.match_stamp.to_string(),
-                format!("{:.6}", c.distance),
-                format!("{:.6}", c.score),
-                c.verified.map(|v| v.inliers.to_string()).unwrap_or_default(),
-            ];
-            let pose = c.verified.and_then(|v| v.pose).map(|p| {
-                let (q, t) = (p.rotation, p.translation);
-                [q.i, q.j, q.k, q.w, t.x, t.y, t.z]
-            });
-            record.extend((0..7).map(|i| pose.map(|values| format!("{:.6}", values[i])).unwrap_or_default()));
-            record.push(c.verified.and_then(|v| v.pose).map(|p| u8::from(p.metric).to_string()).unwrap_or_default());
-            self.out.write_record(&record)?;
+            self.out.write_record(record(c))?;
         }
         self.flush()
     }
 }
 
-/// Writes candidates as a new CSV file ([`CandidateCsv`]).
+/// One candidate's CSV fields ([`CandidateCsv`]).
+fn record(c: &LoopCandidate) -> Vec<String> {
+    let mut record = vec![
+        c.query_id.to_string(),
+        c.query_stamp.to_string(),
+        c.match_id.to_string(),
+        c.match_stamp.to_string(),
+        format!("{:.6}", c.distance),
+        format!("{:.6}", c.score),
+        c.verified.map(|v| v.inliers.to_string()).unwrap_or_default(),
+    ];
+    let pose = c.verified.and_then(|v| v.pose).map(|p| {
+        let (q, t) = (p.rotation, p.translation);
+        [q.i, q.j, q.k, q.w, t.x, t.y, t.z]
+    });
+    record.extend((0..7).map(|i| pose.map(|values| format!("{:.6}", values[i])).unwrap_or_default()));
+    record.push(c.verified.and_then(|v| v.pose).map(|p| u8::from(p.metric).to_string()).unwrap_or_default());
+    record
+}
+
+/// Writes candidates as a new CSV file ([`CandidateCsv::rewrite`]).
 pub fn write_candidates_csv(candidates: &[LoopCandidate], path: &Path) -> Result<()> {
-    CandidateCsv::to_file(path, false)?.write(candidates)
+    CandidateCsv::rewrite(path, candidates).map(drop)
 }
 
 /// Reads a candidates CSV written by [`CandidateCsv`] (columns found by name; files from before the
