@@ -301,6 +301,11 @@ fn bad_sources_give_clear_errors_and_truncated_bags_report_what_was_read() {
     let junk = dir.path().join("junk.bag");
     std::fs::write(&junk, b"#ROSBAG V2.0\ngarbage").unwrap();
     assert_clean_failure(&ecm_lcd(&["replay", junk.to_str().unwrap(), "--quiet"]), &["junk.bag"]);
+    // ... and an earlier run's CSV named as the output is left as it was.
+    let earlier = std::fs::read(&csv).unwrap();
+    let out = ecm_lcd(&["replay", junk.to_str().unwrap(), "--quiet", "-o", csv.to_str().unwrap()]);
+    assert_clean_failure(&out, &["junk.bag"]);
+    assert!(std::fs::read(&csv).unwrap() == earlier, "a source that cannot be read replaced the earlier CSV");
 
     // A TUM folder whose rgb.txt names a missing image.
     let tum = dir.path().join("tum");

@@ -101,21 +101,35 @@ pub fn run(args: Args) -> Result<()> {
         Some(store) if resuming => store.stored_candidates()?,
         _ => None,
     };
-    let mut csv = match (&args.output, stored) {
+    // The CSV is opened at the first keyframe (or at the end of a source that yields none), so a
+    // source that cannot be opened or read from its first frame leaves an existing file as it was.
+    let open_csv = |stored: Option<Vec<_>>| match (&args.output, stored) {
         // Resuming a store that holds every emitted candidate: the CSV is rewritten from it, so a
         // line lost to a kill between a keyframe's commit and its write comes back.
-        (Some(path), Some(stored)) => CandidateCsv::rewrite(path, &stored)?,
-        (Some(path), None) if resuming => CandidateCsv::to_file(path, true)?,
-        (Some(path), None) => CandidateCsv::rewrite(path, &[])?,
-        (None, _) => CandidateCsv::to_stdout()?,
+        (Some(path), Some(stored)) => CandidateCsv::rewrite(path, &stored),
+        (Some(path), None) if resuming => CandidateCsv::to_file(path, true),
+        (Some(path), None) => CandidateCsv::rewrite(path, &[]),
+        (None, _) => CandidateCsv::to_stdout(),
     };
+    let mut stored = Some(stored);
+    let mut csv: Option<CandidateCsv> = None;
     let run = run_source_with(
         &mut pipeline,
         &args.source,
         args.source_args.topic.as_deref(),
         !args.source_args.quiet,
-        |_, candidates| csv.write(candidates),
+        |_, candidates| {
+            let out = match &mut csv {
+                Some(out) => out,
+                None => csv.insert(open_csv(stored.take().flatten())?),
+            };
+            out.write(candidates)
+        },
     )?;
+    let untouched = csv.is_none() && run.frames == 0 && run.error.is_some();
+    if csv.is_none() && !untouched {
+        open_csv(stored.take().flatten())?;
+    }
     let t = run.mean();
     let verification = if pipeline.verifies() {
         format!(", verification {:.2} ms; {} candidates failed verification", t.verification_ms, run.rejected)
@@ -136,9 +150,10 @@ pub fn run(args: Args) -> Result<()> {
     );
     if let Some(error) = run.error {
         anyhow::bail!(
-            "{} broke off after {} frames (results for those were written): {error}",
+            "{} broke off after {} frames ({}): {error}",
             args.source.display(),
-            run.frames
+            run.frames,
+            if untouched { "the output was left as it was" } else { "results for those were written" }
         );
     }
     Ok(())
