@@ -6,23 +6,10 @@
 
 mod support;
 
-use std::path::Path;
-use std::process::{Command, Output};
+use std::process::Command;
 
 use ecm_lcd::io::candidates::read_candidates_csv;
 use ecm_lcd::io::tum::read_groundtruth;
-
-fn ecm_lcd(args: &[&str]) -> Output {
-    let cache = Path::new(env!("CARGO_TARGET_TMPDIR")).join("weights-cache");
-    let output = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
-        .args(args)
-        .env("ECM_LCD_CACHE", cache)
-        .env("RUST_LOG", "warn")
-        .output()
-        .unwrap();
-    assert!(output.status.success(), "ecm-lcd {args:?} failed:\n{}", String::from_utf8_lossy(&output.stderr));
-    output
-}
 
 fn median(mut values: Vec<f64>) -> f64 {
     values.sort_by(f64::total_cmp);
@@ -50,7 +37,7 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
     let dir = tempfile::tempdir().unwrap();
     let seq = dir.path().join("seq");
     let seq_arg = seq.to_str().unwrap();
-    ecm_lcd(&["synth", "-o", seq_arg, "--frames", "400", "--laps", "2", "--rate", "5", "--depth"]);
+    support::ecm_lcd_ok(&["synth", "-o", seq_arg, "--frames", "400", "--laps", "2", "--rate", "5", "--depth"]);
     // The renderer's camera: focal 0.82 * width, principal point at the centre.
     let candidates = dir.path().join("candidates.csv");
     let camera = [
@@ -65,7 +52,7 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
     ];
     let mut replay = vec!["replay", seq_arg, "-o", candidates.to_str().unwrap()];
     replay.extend(camera);
-    ecm_lcd(&replay);
+    support::ecm_lcd_ok(&replay);
 
     // Every reported candidate is verified with a metric pose; the poses are close to the truth.
     let found = read_candidates_csv(&candidates).unwrap();
@@ -92,7 +79,7 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
     let plot = dir.path().join("fig11.png");
     let odometry = seq.join("odometry.txt");
     let groundtruth = seq.join("groundtruth.txt");
-    let output = ecm_lcd(&[
+    let output = support::ecm_lcd_ok(&[
         "pose-graph",
         "--odometry",
         odometry.to_str().unwrap(),

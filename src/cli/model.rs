@@ -17,8 +17,9 @@ pub struct NetworkArgs {
     /// Weights file (safetensors, or a .tflite to import); default: see README "Weights".
     #[arg(long)]
     pub weights: Option<PathBuf>,
-    /// Network architecture: ecmobilenet or mobilenetv2 (default: mobilenetv2 for `classify`,
-    /// whose classifier was trained with it; ecmobilenet otherwise).
+    /// Network architecture: ecmobilenet or mobilenetv2 (default: that of ECMobileNet weights, which
+    /// serve no other; otherwise mobilenetv2 for `classify`, whose ImageNet classifier was trained
+    /// with it, and ecmobilenet elsewhere).
     #[arg(long)]
     pub arch: Option<Arch>,
     /// Input size (a multiple of 32).
@@ -31,10 +32,11 @@ pub struct NetworkArgs {
 
 impl NetworkArgs {
     /// Resolves the weights, logs which ones run, and builds the embedder (`default_arch` unless
-    /// `--arch` says otherwise).
+    /// `--arch` or ECMobileNet weights say otherwise).
     pub fn embedder(&self, default_arch: Arch, with_classifier: bool) -> Result<(Embedder, resolve::Resolved)> {
-        let arch = self.arch.unwrap_or(default_arch);
         let resolved = resolve::resolve(self.weights.as_deref())?;
+        let own = resolved.weights.arch;
+        let arch = self.arch.unwrap_or(if own == Arch::EcMobileNet { own } else { default_arch });
         let weights = resolved.weights.for_arch(arch)?;
         log::info!("weights: {} -> {arch}", resolved.describe());
         let mut embedder = Embedder::new(weights.network(with_classifier)?, self.size)?;

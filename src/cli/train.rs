@@ -60,6 +60,17 @@ pub struct Args {
     pub val_fraction: f64,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Keep BatchNorm's loaded statistics while training (the default with --init: pretrained
+    /// weights are folded, and batch statistics would renormalise every pretrained layer).
+    #[arg(long, conflicts_with = "train_bn")]
+    pub freeze_bn: bool,
+    /// Normalise by each batch's statistics (the default without --init, training from scratch).
+    #[arg(long)]
+    pub train_bn: bool,
+    /// Learning rate of the body (everything but the classifier) as a multiple of --lr; default
+    /// 0.1 with --init (a new head on a pretrained body), 1 from scratch.
+    #[arg(long)]
+    pub body_lr_scale: Option<f64>,
     /// Compute device; only `cpu` is built in.
     #[arg(long, default_value = "cpu")]
     pub device: String,
@@ -92,6 +103,8 @@ pub fn run(args: Args) -> Result<()> {
             seed: args.seed,
         },
         label_smoothing: args.label_smoothing,
+        freeze_batch_norm: args.freeze_bn || (args.init.is_some() && !args.train_bn),
+        body_lr_scale: args.body_lr_scale.unwrap_or(if args.init.is_some() { 0.1 } else { 1.0 }),
     };
     let config = TrainConfig {
         data: args.data,

@@ -10,7 +10,16 @@
 //!   frozen). The inference kernels have no backward.
 //! - `--init` loads folded (inference-form) weights into the training form: convolution weight as
 //!   is, BatchNorm gamma = 1, beta = the folded bias, running mean 0, running variance 1 - eps, so
-//!   the initial network computes exactly the folded one ([`training_form`]).
+//!   the initial network computes exactly the folded one ([`training_form`]) in inference and in
+//!   [`Mode::FineTune`].
+//! - Fine-tuning from such weights freezes the BatchNorm statistics ([`Hyper::freeze_batch_norm`],
+//!   the CLI's default with `--init`). Folded weights carry no statistics: in [`Mode::Train`] every
+//!   layer would be renormalised by its batch's mean and variance, which are nowhere near the 0 and 1
+//!   the folding assumes, so the network at step 0 is no longer the pretrained one and the features
+//!   the weights know are gone before the first update (on two real indoor scenes the loss stayed at
+//!   ln 2 and the model predicted one class). Frozen, the network starts as the pretrained function
+//!   and gamma and beta still train as a per-channel affine map. Training from scratch keeps
+//!   training-mode BatchNorm.
 //! - Optimizers: SGD with (PyTorch-style) momentum and AdamW, written here (in-place updates,
 //!   [`update`]) rather than with candle's `Optimizer` trait because candle's SGD has no momentum
 //!   and candle's AdamW keeps its moments private; owning the state lets `--resume` restore it exactly. Weight decay applies to
@@ -108,6 +117,18 @@ pub struct Hyper {
     #[serde(flatten)]
     pub opt: Optimisation,
     pub label_smoothing: f64,
+    /// BatchNorm keeps the statistics it was loaded with ([`Mode::FineTune`]) instead of
+    /// normalising by each batch's: what fine-tuning from pretrained weights needs (module doc).
+    #[serde(default)]
+    pub freeze_batch_norm: bool,
+    /// The learning rate of everything but the classifier, as a multiple of the classifier's
+    /// (below 1 when fine-tuning: a new head learns fast, a pretrained body must move slowly).
+    #[serde(default = "full_rate")]
+    pub body_lr_scale: f64,
+}
+
+fn full_rate() -> f64 {
+    1.0
 }
 
 /// Learning rate at `step` (from 0) of `total` steps: linear warm-up over `warmup` steps to
@@ -135,6 +156,8 @@ pub struct Param {
     pub name: String,
     pub var: Var,
     pub decay: bool,
+    /// This parameter's learning rate as a multiple of the schedule's.
+    pub lr_scale: f64,
 }
 
 /// The trainable variables of a training-form `VarMap` (running statistics excluded), sorted by name.
@@ -147,6 +170,7 @@ pub fn trainable_params(varmap: &VarMap) -> Vec<Param> {
             name: n.clone(),
             var: v.clone(),
             decay: n.ends_with(".weight") && !n.ends_with("bn.weight"),
+            lr_scale: 1.0,
         })
         .collect();
     params.sort_by(|a, b| a.name.cmp(&b.name));
@@ -184,6 +208,7 @@ impl Optimizer {
             let g = g.contiguous()?;
             let w = p.var.as_tensor();
             let wd = if p.decay { self.weight_decay } else { 0.0 };
+            let lr = lr * p.lr_scale;
             match self.kind {
                 OptimizerKind::Sgd => {
                     m.inplace_op3(
@@ -517,14 +542,24 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             let w = crate::model::weights::resolve::load_file(path)?.weights.for_arch(config.arch)?;
             let mut t = training_form(&w.tensors)?;
             if w.classes != Some(classes) {
+                // A new head starts at zero: every class equally likely (loss ln K) and no
+                // gradient into the body until the head has learnt something, so the first
+                // steps cannot push random-head errors into the pretrained layers.
+                let features = config.arch.spec().head_channels;
                 t.retain(|n, _| !n.starts_with("classifier."));
+                t.insert("classifier.weight".into(), Tensor::zeros((classes, features), DType::F32, &Device::Cpu)?);
+                t.insert("classifier.bias".into(), Tensor::zeros(classes, DType::F32, &Device::Cpu)?);
             }
             t
         }
         (None, None) => HashMap::new(),
     };
     let model = Trainable::new(config.arch, Some(classes), &init_tensors)?;
-    let mut optimizer = hyper.opt.optimizer(trainable_params(&model.varmap))?;
+    let mut params = trainable_params(&model.varmap);
+    for p in params.iter_mut().filter(|p| !p.name.starts_with("classifier.")) {
+        p.lr_scale = hyper.body_lr_scale;
+    }
+    let mut optimizer = hyper.opt.optimizer(params)?;
     let mut record = match resumed {
         Some((record, w)) => {
             optimizer.restore(&w.tensors, record.steps_done)?;
@@ -556,10 +591,14 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
 
     let train_set: Arc<dyn ImageSet> = Arc::new(FileSet(folder.train.clone()));
     let val_set: Arc<dyn ImageSet> = Arc::new(FileSet(folder.val.clone()));
-    let calibration =
-        calibration_batches(train_set.clone(), hyper.size, hyper.opt.batch, PRECISE_BN_IMAGES, hyper.opt.seed)?;
+    let calibration = if hyper.freeze_batch_norm {
+        Vec::new()
+    } else {
+        calibration_batches(train_set.clone(), hyper.size, hyper.opt.batch, PRECISE_BN_IMAGES, hyper.opt.seed)?
+    };
     let last_epoch =
         config.stop_after.map(|n| (record.epochs_done + n).min(hyper.opt.epochs)).unwrap_or(hyper.opt.epochs);
+    let mode = if hyper.freeze_batch_norm { Mode::FineTune } else { Mode::Train };
     for epoch in record.epochs_done..last_epoch {
         let started = Instant::now();
         let bar =
@@ -570,7 +609,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             let batch = batch?;
             lr = learning_rate(record.steps_done, total_steps, warmup, hyper.opt.lr);
             let labels = Tensor::new(batch.labels.as_slice(), &Device::Cpu)?;
-            let logits = model.network.logits(&batch.tensor(hyper.size)?, Mode::Train)?;
+            let logits = model.network.logits(&batch.tensor(hyper.size)?, mode)?;
             let loss = smoothed_cross_entropy(&logits, &labels, hyper.label_smoothing)?;
             let grads = loss.backward()?;
             optimizer.step(&grads, lr)?;
@@ -590,7 +629,9 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             bar.inc(1);
         }
         drop(loader);
-        model.precise_batch_norm(&calibration)?;
+        if !hyper.freeze_batch_norm {
+            model.precise_batch_norm(&calibration)?;
+        }
         let weights =
             model.inference_weights(&format!("ecm-lcd train on {} (epoch {})", config.data.display(), epoch + 1))?;
         let val_accuracy = accuracy(&weights.network(true)?, val_set.clone(), hyper.size, hyper.opt.batch)?;

@@ -62,6 +62,8 @@ fn hyper(size: usize, epochs: usize, batch: usize) -> Hyper {
             seed: 7,
         },
         label_smoothing: 0.1,
+        freeze_batch_norm: false,
+        body_lr_scale: 1.0,
     }
 }
 

@@ -73,6 +73,20 @@ fn run(command: &mut Command, what: &str) -> String {
     String::from_utf8(output.stdout).expect("UTF-8 output")
 }
 
+/// Runs the `ecm-lcd` binary with `args` (weights cached under the target folder, logs at warn);
+/// panics with its stderr unless it succeeds.
+pub fn ecm_lcd_ok(args: &[&str]) -> std::process::Output {
+    let cache = Path::new(env!("CARGO_TARGET_TMPDIR")).join("weights-cache");
+    let output = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+        .args(args)
+        .env("ECM_LCD_CACHE", cache)
+        .env("RUST_LOG", "warn")
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "ecm-lcd {args:?} failed:\n{}", String::from_utf8_lossy(&output.stderr));
+    output
+}
+
 /// Runs `tests/support/rosbags_fixtures.py` with `args` in the venv; returns its stdout.
 pub fn rosbags_fixtures(args: &[&std::ffi::OsStr]) -> String {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/support/rosbags_fixtures.py");
