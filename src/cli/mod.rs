@@ -17,6 +17,7 @@ pub mod pose_graph;
 pub mod replay;
 pub mod synth;
 pub mod train;
+pub mod train_place;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -82,6 +83,8 @@ pub enum Command {
     Train(train::Args),
     /// Distil a MobileNetV2 teacher's descriptor into ECMobileNet on unlabelled images.
     Distill(distill::Args),
+    /// Train the network for loop closure: the detector's descriptor, triplets of revisits and other places.
+    TrainPlace(train_place::Args),
 }
 
 /// Parses the command line, runs the command and turns an error into one line on stderr.
@@ -146,6 +149,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Db(args) => db::run(args),
         Command::Train(args) => train::run(args),
         Command::Distill(args) => distill::run(args),
+        Command::TrainPlace(args) => train_place::run(args),
     }
 }
 

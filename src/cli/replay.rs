@@ -47,16 +47,7 @@ pub struct SourceArgs {
 
 impl SourceArgs {
     pub fn params(&self) -> Result<Params> {
-        let mut params = match &self.config {
-            Some(path) => Params::load(path, NODE_NAME)?,
-            None => Params::default(),
-        };
-        for assignment in &self.params {
-            let (name, value) =
-                assignment.split_once('=').with_context(|| format!("--param {assignment}: expected NAME=VALUE"))?;
-            params.set_from_str(name.trim(), value.trim()).map_err(|e| anyhow::anyhow!("--param {assignment}: {e}"))?;
-        }
-        Ok(params)
+        params_from(self.config.as_deref(), &self.params)
     }
 
     pub fn pipeline(&self) -> Result<Pipeline> {
@@ -67,6 +58,20 @@ impl SourceArgs {
         }
         Ok(pipeline)
     }
+}
+
+/// The parameters of `--config FILE` (or the defaults) with each `--param NAME=VALUE` applied.
+pub fn params_from(config: Option<&Path>, assignments: &[String]) -> Result<Params> {
+    let mut params = match config {
+        Some(path) => Params::load(path, NODE_NAME)?,
+        None => Params::default(),
+    };
+    for assignment in assignments {
+        let (name, value) =
+            assignment.split_once('=').with_context(|| format!("--param {assignment}: expected NAME=VALUE"))?;
+        params.set_from_str(name.trim(), value.trim()).map_err(|e| anyhow::anyhow!("--param {assignment}: {e}"))?;
+    }
+    Ok(params)
 }
 
 #[derive(clap::Args, Debug)]

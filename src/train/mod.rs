@@ -40,6 +40,7 @@
 
 pub mod data;
 pub mod distill;
+pub mod place;
 mod update;
 
 use std::collections::HashMap;
