@@ -393,6 +393,52 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
 }
 
 #[test]
+fn cyclone_dds_parameter_clients_of_both_rmw_framings_are_answered() {
+    if !ros_support::inside() {
+        ros_support::cyclone_python();
+        return ros_support::check_inner_run("cyclone_dds_parameter_clients_of_both_rmw_framings_are_answered");
+    }
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let processor = MeanColourProcessor { seen, history: Vec::new(), next_id: 0, min_score: 0.95 };
+    let counters = Arc::new(NodeCounters::default());
+    let stop = Arc::new(AtomicBool::new(false));
+    let node_thread = {
+        let (counters, stop) = (counters.clone(), stop.clone());
+        std::thread::spawn(move || {
+            run_node(&NodeSettings::default(), Params::default(), None, Box::new(processor), counters, stop)
+        })
+    };
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros_support/cyclone_params.py");
+    let mut outputs = Vec::new();
+    // rmw_fastrtps's bare requests and rmw_cyclonedds_cpp's header-framed ones, one client after the other.
+    for framing in ["bare", "cyclone"] {
+        let out = std::process::Command::new(ros_support::cyclone_python())
+            .arg(&script)
+            .args([framing, "ecm_lcd"])
+            .output()
+            .expect("running the Cyclone DDS parameter client");
+        let text = String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+        outputs.push((framing, out.status.success(), text));
+    }
+    stop.store(true, Ordering::Relaxed);
+    let final_counters = node_thread.join().unwrap().unwrap();
+    for (framing, success, text) in &outputs {
+        assert!(success, "{framing} client failed:\n{text}");
+        let lines: Vec<&str> = text.lines().filter(|l| !l.starts_with("PEER-DONE")).collect();
+        assert!(!lines.iter().any(|l| l.starts_with("PEER-ERROR")), "{framing}:\n{text}");
+        assert!(lines[0].starts_with("LIST ") && lines[0].ends_with(" yes"), "{framing}: {}", lines[0]);
+        assert!(lines[1].starts_with("DESCRIBE detector.min_score yes 0.0..1.0"), "{framing}: {}", lines[1]);
+        // The invalid value is refused with its reason, the valid one applied and read back.
+        assert!(lines[2].starts_with("SET 0 ") && lines[2].contains("min_score"), "{framing}: {}", lines[2]);
+        assert_eq!(lines[3], "SET 1 ", "{framing}");
+        assert_eq!(lines[4], "GET 3 0.85", "{framing}");
+        assert_eq!(lines.len(), 5, "{framing}:\n{text}");
+    }
+    assert!(final_counters.param_changes >= 1, "{final_counters}");
+    println!("INNER-DONE {final_counters}");
+}
+
+#[test]
 fn play_keyframes_and_listen_processes_talk_to_the_node() {
     if !ros_support::inside() {
         return ros_support::check_inner_run("play_keyframes_and_listen_processes_talk_to_the_node");

@@ -378,7 +378,7 @@ pub fn run_node(
     poll.registry().register(&mut info_sub, info_token, Interest::READABLE).context("polling camera_info")?;
     // The last intrinsics passed on, and whether an uncalibrated camera_info was reported.
     let mut camera_info: (Option<Intrinsics>, bool) = (None, false);
-    let mut services = ParamServices::create(&mut node, &fqn)?;
+    let mut services = ParamServices::create(&context, &fqn)?;
     services.register(poll.registry(), 10).context("polling the parameter services")?;
     let mut events = Events::with_capacity(16);
     let mut indices = [0u64; 3];

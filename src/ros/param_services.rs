@@ -11,46 +11,29 @@ use log::{debug, warn};
 use ros2_client::{
     dds::rustdds::mio1::{Interest, Registry, Token},
     parameters::raw,
-    qos::History,
     rcl_interfaces::{
         DescribeParametersRequest, DescribeParametersResponse, GetParameterTypesRequest, GetParameterTypesResponse,
         GetParametersRequest, GetParametersResponse, ListParametersRequest, ListParametersResponse,
         ListParametersResult, SetParametersAtomicallyResponse, SetParametersRequest, SetParametersResponse,
     },
-    Message, Name, Node, Parameter, ParameterValue, QosProfile, Server, ServiceMapping, ServiceTypeName,
+    Context, Node, Parameter, ParameterValue,
 };
 
 use super::params::{validate_change, USE_SIM_TIME};
+use super::service::FramedServer;
 use crate::config::{param_spec, ParamRange, Params};
 
-/// The servers; [`ParamServices::serve`] answers whatever requests are waiting.
+/// The servers ([`FramedServer`]: both RMW request framings); [`ParamServices::serve`] answers
+/// whatever requests are waiting.
 pub struct ParamServices {
-    get: Server<GetParametersRequest, GetParametersResponse>,
-    get_types: Server<GetParameterTypesRequest, GetParameterTypesResponse>,
-    set: Server<SetParametersRequest, SetParametersResponse>,
+    get: FramedServer<GetParametersRequest, GetParametersResponse>,
+    get_types: FramedServer<GetParameterTypesRequest, GetParameterTypesResponse>,
+    set: FramedServer<SetParametersRequest, SetParametersResponse>,
     // rcl_interfaces/SetParametersAtomically's request has the same layout as SetParameters'.
-    set_atomically: Server<SetParametersRequest, SetParametersAtomicallyResponse>,
-    list: Server<ListParametersRequest, ListParametersResponse>,
-    describe: Server<DescribeParametersRequest, DescribeParametersResponse>,
+    set_atomically: FramedServer<SetParametersRequest, SetParametersAtomicallyResponse>,
+    list: FramedServer<ListParametersRequest, ListParametersResponse>,
+    describe: FramedServer<DescribeParametersRequest, DescribeParametersResponse>,
     fqn: String,
-}
-
-fn server<Req: Message + Clone + 'static, Resp: Message + Clone + 'static>(
-    node: &mut Node,
-    fqn: &str,
-    service: &str,
-    type_name: &str,
-) -> Result<Server<Req, Resp>> {
-    let qos = QosProfile::publisher_default().history(History::KeepLast { depth: 1 });
-    let name = Name::parse(&format!("{fqn}/{service}")).map_err(|e| anyhow::anyhow!("service name: {e:?}"))?;
-    node.create_server(
-        ServiceMapping::Enhanced,
-        &name,
-        &ServiceTypeName::new("rcl_interfaces", type_name),
-        qos.clone(),
-        qos,
-    )
-    .map_err(|e| anyhow::anyhow!("creating service {fqn}/{service}: {e:?}"))
 }
 
 /// The descriptor of one parameter, from the table.
@@ -117,14 +100,21 @@ pub fn list(names: &[String], prefixes: &[String], depth: u64) -> ListParameters
 }
 
 impl ParamServices {
-    pub fn create(node: &mut Node, fqn: &str) -> Result<Self> {
+    pub fn create(context: &Context, fqn: &str) -> Result<Self> {
+        let name = |service: &str| format!("{fqn}/{service}");
+        const PACKAGE: &str = "rcl_interfaces";
         Ok(ParamServices {
-            get: server(node, fqn, "get_parameters", "GetParameters")?,
-            get_types: server(node, fqn, "get_parameter_types", "GetParameterTypes")?,
-            set: server(node, fqn, "set_parameters", "SetParameters")?,
-            set_atomically: server(node, fqn, "set_parameters_atomically", "SetParametersAtomically")?,
-            list: server(node, fqn, "list_parameters", "ListParameters")?,
-            describe: server(node, fqn, "describe_parameters", "DescribeParameters")?,
+            get: FramedServer::new(context, &name("get_parameters"), PACKAGE, "GetParameters")?,
+            get_types: FramedServer::new(context, &name("get_parameter_types"), PACKAGE, "GetParameterTypes")?,
+            set: FramedServer::new(context, &name("set_parameters"), PACKAGE, "SetParameters")?,
+            set_atomically: FramedServer::new(
+                context,
+                &name("set_parameters_atomically"),
+                PACKAGE,
+                "SetParametersAtomically",
+            )?,
+            list: FramedServer::new(context, &name("list_parameters"), PACKAGE, "ListParameters")?,
+            describe: FramedServer::new(context, &name("describe_parameters"), PACKAGE, "DescribeParameters")?,
             fqn: fqn.to_string(),
         })
     }
@@ -141,32 +131,32 @@ impl ParamServices {
 
     /// Answers every waiting request. `live` holds the current values for atomic validation.
     pub fn serve(&self, node: &Node, live: &std::sync::Mutex<Params>) {
-        while let Ok(Some((id, req))) = self.get.receive_request() {
+        while let Some((id, req)) = self.get.receive() {
             let values = req
                 .names
                 .iter()
                 .map(|n| raw::ParameterValue::from(node.get_parameter(n).unwrap_or(ParameterValue::NotSet)))
                 .collect();
-            self.reply(self.get.send_response(id, GetParametersResponse { values }), "get_parameters");
+            self.reply(self.get.reply(&id, &GetParametersResponse { values }), "get_parameters");
         }
-        while let Ok(Some((id, req))) = self.get_types.receive_request() {
+        while let Some((id, req)) = self.get_types.receive() {
             let values = req
                 .names
                 .iter()
                 .map(|n| raw::ParameterValue::from(node.get_parameter(n).unwrap_or(ParameterValue::NotSet)).ptype)
                 .collect();
-            self.reply(self.get_types.send_response(id, GetParameterTypesResponse { values }), "get_parameter_types");
+            self.reply(self.get_types.reply(&id, &GetParameterTypesResponse { values }), "get_parameter_types");
         }
-        while let Ok(Some((id, req))) = self.set.receive_request() {
+        while let Some((id, req)) = self.set.receive() {
             let results = req
                 .parameter
                 .into_iter()
                 .map(Parameter::from)
                 .map(|Parameter { name, value }| node.set_parameter(&name, value).into())
                 .collect();
-            self.reply(self.set.send_response(id, SetParametersResponse { results }), "set_parameters");
+            self.reply(self.set.reply(&id, &SetParametersResponse { results }), "set_parameters");
         }
-        while let Ok(Some((id, req))) = self.set_atomically.receive_request() {
+        while let Some((id, req)) = self.set_atomically.receive() {
             let params: Vec<Parameter> = req.parameter.into_iter().map(Parameter::from).collect();
             // All or nothing: check every change against one trial copy first.
             let mut trial = live.lock().unwrap_or_else(|e| e.into_inner()).clone();
@@ -181,24 +171,24 @@ impl ParamServices {
             });
             let result = check.and_then(|()| params.into_iter().try_for_each(|p| node.set_parameter(&p.name, p.value)));
             self.reply(
-                self.set_atomically.send_response(id, SetParametersAtomicallyResponse { result: result.into() }),
+                self.set_atomically.reply(&id, &SetParametersAtomicallyResponse { result: result.into() }),
                 "set_parameters_atomically",
             );
         }
-        while let Ok(Some((id, req))) = self.list.receive_request() {
+        while let Some((id, req)) = self.list.receive() {
             let result = list(&node.list_parameters(), &req.prefixes, req.depth);
-            self.reply(self.list.send_response(id, ListParametersResponse { result }), "list_parameters");
+            self.reply(self.list.reply(&id, &ListParametersResponse { result }), "list_parameters");
         }
-        while let Ok(Some((id, req))) = self.describe.receive_request() {
+        while let Some((id, req)) = self.describe.receive() {
             let values = req.names.iter().map(|n| describe(n, node.get_parameter(n).as_ref())).collect();
-            self.reply(self.describe.send_response(id, DescribeParametersResponse { values }), "describe_parameters");
+            self.reply(self.describe.reply(&id, &DescribeParametersResponse { values }), "describe_parameters");
         }
     }
 
-    fn reply<E: std::fmt::Debug>(&self, result: Result<(), E>, service: &str) {
+    fn reply(&self, result: Result<()>, service: &str) {
         match result {
             Ok(()) => debug!("[{}] answered {service}", self.fqn),
-            Err(e) => warn!("[{}] {service} response failed: {e:?}", self.fqn),
+            Err(e) => warn!("[{}] {service} response failed: {e:#}", self.fqn),
         }
     }
 }
