@@ -331,3 +331,56 @@ fn cyclone_dds_peer_images_with_malformed_ones_through_the_real_pipeline() {
     assert_eq!(final_counters.dropped, 0, "{final_counters}");
     println!("INNER-DONE {} candidates; node: {final_counters}", got.len());
 }
+
+#[test]
+fn the_default_log_level_keeps_a_cyclone_camera_run_to_the_nodes_own_lines() {
+    if !ros_support::inside() {
+        ros_support::cyclone_python();
+        return ros_support::check_inner_run("the_default_log_level_keeps_a_cyclone_camera_run_to_the_nodes_own_lines");
+    }
+    // The 17 real TUM frames and two malformed images from a Cyclone DDS camera, the node as users
+    // start it (no RUST_LOG), stopped with SIGTERM.
+    let dir = tempfile::tempdir().unwrap();
+    let mut list = String::new();
+    let tum = support::shared_dir().join("data/tum/fr3_long_office_household");
+    for frame in ecm_lcd::io::open_source(&tum, None).unwrap() {
+        let frame = frame.unwrap();
+        let name = format!("{:04}.rgb", frame.index);
+        std::fs::write(dir.path().join(&name), frame.image.as_raw()).unwrap();
+        let (w, h) = frame.image.dimensions();
+        list += &format!("{} {} {w} {h} {name}\n", frame.stamp.sec(), frame.stamp.nsec());
+        if frame.index == 8 {
+            list += "MALFORMED short\nMALFORMED encoding\n";
+        }
+    }
+    std::fs::write(dir.path().join("frames.txt"), list).unwrap();
+    let node = NodeProcess::start_logging(
+        dir.path(),
+        dir.path().join("node.log"),
+        [OsString::from("--weights"), weights().into()],
+        None,
+    );
+    let out = Command::new(ros_support::cyclone_python())
+        .arg(ros_support::cyclone_peer_script())
+        .args(["0", "--frames"])
+        .arg(dir.path().join("frames.txt"))
+        .output()
+        .expect("running the Cyclone DDS peer");
+    let text = String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "peer failed:\n{text}");
+    let counters = node.stop("TERM");
+    assert!(counters.starts_with("received 19 processed 17 "), "{counters}");
+    let log = std::fs::read_to_string(dir.path().join("node.log")).unwrap();
+    let lines: Vec<&str> = log.lines().collect();
+    assert!(lines.len() <= 30, "{} log lines at the default level:\n{log}", lines.len());
+    // RustDDS reports at exit that it cannot leave the multicast group it joined on the loopback
+    // interface: the only interface of the private namespace these tests must run in. That one line
+    // per socket is the only foreign line allowed, and the only error.
+    let namespace_artefact = |line: &str| line.contains("rustdds::network::udp_listener] leave_multicast_group");
+    for line in lines.iter().filter(|l| !namespace_artefact(l)) {
+        assert!(line.contains(" ecm_lcd"), "a dependency's line at the default level: {line}\n{log}");
+        assert!(!line.contains(" ERROR "), "an error in a clean run: {line}\n{log}");
+    }
+    assert!(lines.iter().filter(|l| namespace_artefact(l)).count() <= 2, "{log}");
+    println!("INNER-DONE {} log lines; node: {counters}", lines.len());
+}

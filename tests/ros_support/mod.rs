@@ -112,11 +112,25 @@ impl NodeProcess {
         log: PathBuf,
         args: impl IntoIterator<Item = S>,
     ) -> NodeProcess {
-        let child = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+        Self::start_logging(dir, log, args, Some("info,ecm_lcd::ros::node=debug,rustdds=error"))
+    }
+
+    /// As [`NodeProcess::start`], with `RUST_LOG` set to `filter`, or unset (the node's default) for `None`.
+    pub fn start_logging<S: AsRef<std::ffi::OsStr>>(
+        dir: &Path,
+        log: PathBuf,
+        args: impl IntoIterator<Item = S>,
+        filter: Option<&str>,
+    ) -> NodeProcess {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"));
+        match filter {
+            Some(filter) => command.env("RUST_LOG", filter),
+            None => command.env_remove("RUST_LOG"),
+        };
+        let child = command
             .args(["node", "--queue", "128"])
             .args(args)
             .env("ECM_LCD_CACHE", dir.join("cache"))
-            .env("RUST_LOG", "info,ecm_lcd::ros::node=debug,rustdds=error")
             .stdout(Stdio::null())
             .stderr(std::fs::File::create(&log).unwrap())
             .spawn()
