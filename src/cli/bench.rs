@@ -1,4 +1,4 @@
-//! `ecm-lcd bench`: a benchmark program (not a test) that prints, in one run, the figures of issue #5
+//! `ecm-lcd bench`: a benchmark program (not a test) that prints, in one run, the figures of the project's speed goals
 //! side by side: network forward (ECMobileNet and MobileNetV2, per thread count), the same networks in
 //! ONNX Runtime with the same weights, preprocessing, search at growing database sizes (exact and
 //! indexed, with the index's recall), one keyframe end to end with a large database, and peak memory
@@ -1153,7 +1153,7 @@ fn print_report(args: &BenchArgs, report: &Report) {
         }
     }
     if !report.goals.is_empty() {
-        println!("\ngoals (issue #5)");
+        println!("\ngoals");
         for g in &report.goals {
             println!("  [{}] {:<62} {}", if g.met { "met" } else { "NOT met" }, g.goal, g.measured);
         }
