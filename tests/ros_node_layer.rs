@@ -333,6 +333,29 @@ fn node_layer_over_dds() {
     println!("INNER-DONE {final_counters}");
 }
 
+/// `run_node` over a processor on a thread, with the default settings and parameters.
+struct DefaultNode {
+    thread: std::thread::JoinHandle<anyhow::Result<ecm_lcd::ros::CountersSnapshot>>,
+    stop: Arc<AtomicBool>,
+}
+
+impl DefaultNode {
+    fn start(processor: MeanColourProcessor) -> DefaultNode {
+        let (counters, stop) = (Arc::new(NodeCounters::default()), Arc::new(AtomicBool::new(false)));
+        let node_stop = stop.clone();
+        let thread = std::thread::spawn(move || {
+            run_node(&NodeSettings::default(), Params::default(), None, Box::new(processor), counters, node_stop)
+        });
+        DefaultNode { thread, stop }
+    }
+
+    /// Stops the node; its final counters.
+    fn stop(self) -> ecm_lcd::ros::CountersSnapshot {
+        self.stop.store(true, Ordering::Relaxed);
+        self.thread.join().unwrap().unwrap()
+    }
+}
+
 #[test]
 fn cyclone_dds_peer_sends_images_and_receives_candidates() {
     if !ros_support::inside() {
@@ -342,13 +365,7 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
     }
     let seen = Arc::new(Mutex::new(Seen::default()));
     let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.95 };
-    let counters = Arc::new(NodeCounters::default());
-    let stop = Arc::new(AtomicBool::new(false));
-    let settings = NodeSettings::default();
-    let node_thread = {
-        let (counters, stop) = (counters.clone(), stop.clone());
-        std::thread::spawn(move || run_node(&settings, Params::default(), None, Box::new(processor), counters, stop))
-    };
+    let node = DefaultNode::start(processor);
     let script = ros_support::cyclone_peer_script();
     let out = std::process::Command::new(ros_support::cyclone_python())
         .arg(&script)
@@ -356,8 +373,7 @@ fn cyclone_dds_peer_sends_images_and_receives_candidates() {
         .output()
         .expect("running the Cyclone DDS peer");
     let text = String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
-    stop.store(true, Ordering::Relaxed);
-    let final_counters = node_thread.join().unwrap().unwrap();
+    let final_counters = node.stop();
     assert!(out.status.success(), "peer failed:\n{text}");
     let candidates: Vec<&str> = text.lines().filter(|l| l.starts_with("CANDIDATE ")).collect();
     assert_eq!(
@@ -400,14 +416,7 @@ fn cyclone_dds_parameter_clients_of_both_rmw_framings_are_answered() {
     }
     let seen = Arc::new(Mutex::new(Seen::default()));
     let processor = MeanColourProcessor { seen, history: Vec::new(), next_id: 0, min_score: 0.95 };
-    let counters = Arc::new(NodeCounters::default());
-    let stop = Arc::new(AtomicBool::new(false));
-    let node_thread = {
-        let (counters, stop) = (counters.clone(), stop.clone());
-        std::thread::spawn(move || {
-            run_node(&NodeSettings::default(), Params::default(), None, Box::new(processor), counters, stop)
-        })
-    };
+    let node = DefaultNode::start(processor);
     let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/ros_support/cyclone_params.py");
     let mut outputs = Vec::new();
     // rmw_fastrtps's bare requests and rmw_cyclonedds_cpp's header-framed ones, one client after the other.
@@ -420,8 +429,7 @@ fn cyclone_dds_parameter_clients_of_both_rmw_framings_are_answered() {
         let text = String::from_utf8_lossy(&out.stdout).to_string() + &String::from_utf8_lossy(&out.stderr);
         outputs.push((framing, out.status.success(), text));
     }
-    stop.store(true, Ordering::Relaxed);
-    let final_counters = node_thread.join().unwrap().unwrap();
+    let final_counters = node.stop();
     for (framing, success, text) in &outputs {
         assert!(success, "{framing} client failed:\n{text}");
         let lines: Vec<&str> = text.lines().filter(|l| !l.starts_with("PEER-DONE")).collect();
@@ -454,14 +462,7 @@ fn play_keyframes_and_listen_processes_talk_to_the_node() {
 
     let seen = Arc::new(Mutex::new(Seen::default()));
     let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.95 };
-    let counters = Arc::new(NodeCounters::default());
-    let stop = Arc::new(AtomicBool::new(false));
-    let node_thread = {
-        let (counters, stop) = (counters.clone(), stop.clone());
-        std::thread::spawn(move || {
-            run_node(&NodeSettings::default(), Params::default(), None, Box::new(processor), counters, stop)
-        })
-    };
+    let node = DefaultNode::start(processor);
     let exe = env!("CARGO_BIN_EXE_ecm-lcd");
     // The two cross-keyframe pairs of the first loop and the three of the second: 2->0, 3->1, 4->2, 4->0.
     let listener = ros_support::Listener::start(4);
@@ -474,8 +475,7 @@ fn play_keyframes_and_listen_processes_talk_to_the_node() {
     assert!(player.status.success(), "{}", String::from_utf8_lossy(&player.stderr));
     assert!(String::from_utf8_lossy(&player.stderr).contains("published 5 frames"));
     let csv = listener.finish();
-    stop.store(true, Ordering::Relaxed);
-    let final_counters = node_thread.join().unwrap().unwrap();
+    let final_counters = node.stop();
     let rows: Vec<(u64, u64)> = csv
         .lines()
         .map(|l| {
