@@ -335,21 +335,21 @@ impl Drop for Loader {
     }
 }
 
+/// `image` scaled so its short side is `keep_side` (unchanged when already no longer than that).
+pub fn shrink_to_short_side(image: RgbImage, keep_side: u32) -> RgbImage {
+    let short = image.width().min(image.height());
+    if short <= keep_side {
+        return image;
+    }
+    let scale = |side: u32| ((side as u64 * keep_side as u64 / short as u64) as u32).max(1);
+    image::imageops::resize(&image, scale(image.width()), scale(image.height()), image::imageops::FilterType::Triangle)
+}
+
 /// Every image of `source` (an image folder with class sub-folders, or anything
 /// [`crate::io::open_source`] replays), each scaled so its shorter side is `keep_side` (memory
 /// stays small), at most `max_images` evenly spread over the source.
 pub fn load_unlabelled(source: &Path, keep_side: u32, max_images: usize) -> Result<Vec<RgbImage>> {
-    let shrink = |img: RgbImage| -> RgbImage {
-        let short = img.width().min(img.height());
-        if short <= keep_side {
-            return img;
-        }
-        let (w, h) = (
-            (img.width() as u64 * keep_side as u64 / short as u64) as u32,
-            (img.height() as u64 * keep_side as u64 / short as u64) as u32,
-        );
-        image::imageops::resize(&img, w.max(1), h.max(1), image::imageops::FilterType::Triangle)
-    };
+    let shrink = |img: RgbImage| shrink_to_short_side(img, keep_side);
     let subfolders: Vec<PathBuf> = if source.is_dir()
         && !source.join("rgb.txt").exists()
         && !source.join("metadata.yaml").exists()

@@ -34,7 +34,7 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use serde::{Deserialize, Serialize};
 
-use super::data::{augmented_chw, Augment};
+use super::data::{augmented_chw, shrink_to_short_side, Augment};
 use super::{learning_rate, progress_bar, trainable_params, training_form, write_json, Optimisation, Trainable};
 use crate::descriptor::{grid_cell, Descriptor, DescriptorMode, Pooling};
 use crate::eval::truth::{poses_at_stamps, PoseLoopCriteria};
@@ -135,7 +135,7 @@ fn load_posed(sources: &[PathBuf], keep_side: u32, max_offset_s: f64) -> Result<
         for (frame, pose) in frames.into_iter().zip(poses) {
             let Some(pose) = pose else { continue };
             out.push(PosedFrame {
-                image: shrink(frame.image, keep_side),
+                image: shrink_to_short_side(frame.image, keep_side),
                 sequence,
                 seconds: frame.stamp.nanos as f64 * 1e-9,
                 centre: pose.translation.vector,
@@ -144,15 +144,6 @@ fn load_posed(sources: &[PathBuf], keep_side: u32, max_offset_s: f64) -> Result<
         }
     }
     Ok(out)
-}
-
-fn shrink(image: RgbImage, keep_side: u32) -> RgbImage {
-    let short = image.width().min(image.height());
-    if short <= keep_side {
-        return image;
-    }
-    let scale = |side: u32| ((side as u64 * keep_side as u64 / short as u64) as u32).max(1);
-    image::imageops::resize(&image, scale(image.width()), scale(image.height()), image::imageops::FilterType::Triangle)
 }
 
 /// The signed square root `x / sqrt(|x| + ε)`.
