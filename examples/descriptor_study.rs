@@ -9,7 +9,10 @@
 //! precision of one threshold on the raw score and on per-query calibrated statistics (z-score,
 //! margin over the second-best place, ...). Post-processing: `l2`, `pl2` (power first), a trailing
 //! `c` centres on the database mean, `l2pN` projects on N principal axes learned from synthetic
-//! frames, `l2hN` on N axes learned from the database itself.
+//! frames, `l2hN` on N axes learned from the database itself, `l2qK` stores each value with K
+//! levels (`l2qsgn`: its sign); `STUDY_POSTS=l2,l2q8` picks them. `STUDY_PHOTO=equalise` (or
+//! `stretch`, `gamma`, `standardise`) normalises every image's brightness before the network, and
+//! `STUDY_DUMP=FILE` appends each calibrated query's scores and true matches as JSON lines.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -188,6 +191,22 @@ fn finish(mut raw: Vec<Vec<f32>>, post: &str, mean: Option<&[f32]>) -> Vec<Vec<f
     raw
 }
 
+/// `v` stored with `levels` uniform levels per value over +-2.5 RMS ("sgn": its signs), as the
+/// reconstruction, L2-normalised. 8 levels take 3 bits; 6 levels pack three values in a byte.
+fn quantised(v: &[f32], levels: &str) -> Vec<f32> {
+    let mut out: Vec<f32> = if levels == "sgn" {
+        v.iter().map(|x| if *x >= 0.0 { 1.0 } else { -1.0 }).collect()
+    } else {
+        let levels: f32 = levels.parse().unwrap();
+        let rms = (v.iter().map(|x| x * x).sum::<f32>() / v.len() as f32).sqrt();
+        let clip = 2.5 * rms;
+        let step = 2.0 * clip / levels;
+        v.iter().map(|x| ((x.clamp(-clip, clip - 1e-6) + clip) / step).floor() * step - clip + step / 2.0).collect()
+    };
+    l2_normalise(&mut out);
+    out
+}
+
 fn mean_of(vs: &[Vec<f32>]) -> Vec<f32> {
     let mut m = vec![0.0; vs[0].len()];
     for v in vs {
@@ -231,7 +250,14 @@ fn main() -> Result<()> {
     let size: usize = args.get(2).map(|s| s.parse()).transpose()?.unwrap_or(224);
     let shared = ecm_lcd::runtime::shared_dirs().into_iter().next().context("../shared is needed")?;
     let tmp = tempfile::tempdir()?;
-    let sets = sets(&shared, tmp.path())?;
+    let mut sets = sets(&shared, tmp.path())?;
+    if let Ok(how) = std::env::var("STUDY_PHOTO") {
+        for set in &mut sets {
+            for image in set.database.iter_mut().chain(set.queries.iter_mut()) {
+                *image = photometric(image, &how);
+            }
+        }
+    }
     let weights = resolve::resolve(None)?;
     let mut embedder = Embedder::new(weights.weights.for_arch(arch)?.network(false)?, size)?;
     let blocks = arch.spec().blocks().len();
@@ -247,7 +273,8 @@ fn main() -> Result<()> {
         .map(str::to_string)
         .collect();
     let aggs: Vec<&str> = aggs.iter().map(String::as_str).collect();
-    let posts = ["l2", "l2c", "l2p128", "l2p256", "l2h64", "l2h128"];
+    let posts_env = std::env::var("STUDY_POSTS").unwrap_or_else(|_| "l2,l2c,l2p128,l2p256,l2h64,l2h128".into());
+    let posts: Vec<&str> = posts_env.split(',').collect();
     let learning = learning_images()?;
     let learning_maps: Vec<Vec<FeatureMap>> =
         learning.iter().map(|i| embedder.tapped_maps(i, &taps)).collect::<Result<_>>()?;
@@ -276,7 +303,7 @@ fn main() -> Result<()> {
                 let db_raw: Vec<Vec<f32>> = db_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
                 let q_raw: Vec<Vec<f32>> = q_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
                 let learned = &whitenings[&(t, agg)];
-                for post in posts {
+                for &post in &posts {
                     let (db, q) = if let Some(dim) = post.strip_prefix("l2p") {
                         // PCA learned from synthetic frames (no whitening).
                         let w = match dim {
@@ -312,6 +339,10 @@ fn main() -> Result<()> {
                             dbf.iter().map(|v| whiten(&w, v)).collect(),
                             finish(q_raw.clone(), "pl2", None).iter().map(|v| whiten(&w, v)).collect(),
                         )
+                    } else if let Some(levels) = post.strip_prefix("l2q") {
+                        let quantise =
+                            |vs: Vec<Vec<f32>>| -> Vec<Vec<f32>> { vs.iter().map(|v| quantised(v, levels)).collect() };
+                        (quantise(finish(db_raw.clone(), "l2", None)), quantise(finish(q_raw.clone(), "l2", None)))
                     } else if post == "pl2s" {
                         (
                             finish(db_raw.clone(), "pl2", Some(&learned.0)),
@@ -337,6 +368,9 @@ fn main() -> Result<()> {
                             .fold((0, f32::NEG_INFINITY), |b, (i, s)| if s > b.1 { (i, s) } else { b });
                         if post == "l2" && Some(format!("{tap} {agg}")) == std::env::var("STUDY_CALIBRATE").ok() {
                             if let Some(matches) = set.truth.matches(qi) {
+                                if let Ok(path) = std::env::var("STUDY_DUMP") {
+                                    dump_scores(&path, &set.name, qi, matches, &scores)?;
+                                }
                                 let n = scores.len() as f32;
                                 let mean = scores.iter().sum::<f32>() / n;
                                 let sd =
@@ -381,6 +415,83 @@ fn main() -> Result<()> {
         let cells: Vec<String> = figures.iter().map(|(a, b)| format!("{a:.2}/{b:.2}")).collect();
         println!("{tap:10} {agg:11} {post:5} {}", cells.join("  "));
     }
+    Ok(())
+}
+
+/// A photometric normalisation of the whole image before the network (study only).
+fn photometric(image: &RgbImage, how: &str) -> RgbImage {
+    let luma = |p: &image::Rgb<u8>| 0.299 * p[0] as f32 + 0.587 * p[1] as f32 + 0.114 * p[2] as f32;
+    let mut out = image.clone();
+    match how {
+        "equalise" => {
+            let mut hist = [0usize; 256];
+            for p in image.pixels() {
+                hist[luma(p).round().clamp(0.0, 255.0) as usize] += 1;
+            }
+            let total = image.pixels().len() as f32;
+            let mut cdf = [0f32; 256];
+            let mut acc = 0usize;
+            for (i, h) in hist.iter().enumerate() {
+                acc += h;
+                cdf[i] = acc as f32 / total * 255.0;
+            }
+            for p in out.pixels_mut() {
+                let y = luma(p);
+                let target = cdf[y.round().clamp(0.0, 255.0) as usize];
+                let gain = target / y.max(1.0);
+                for c in 0..3 {
+                    p[c] = (p[c] as f32 * gain).round().clamp(0.0, 255.0) as u8;
+                }
+            }
+        }
+        "stretch" => {
+            for c in 0..3 {
+                let mut v: Vec<u8> = image.pixels().map(|p| p[c]).collect();
+                v.sort_unstable();
+                let lo = v[v.len() / 100] as f32;
+                let hi = (v[v.len() * 99 / 100] as f32).max(lo + 1.0);
+                for p in out.pixels_mut() {
+                    p[c] = ((p[c] as f32 - lo) / (hi - lo) * 255.0).round().clamp(0.0, 255.0) as u8;
+                }
+            }
+        }
+        "gamma" => {
+            let mean = image.pixels().map(luma).sum::<f32>() / image.pixels().len() as f32 / 255.0;
+            let gamma = 0.45f32.ln() / mean.clamp(0.01, 0.99).ln();
+            for p in out.pixels_mut() {
+                for c in 0..3 {
+                    p[c] = ((p[c] as f32 / 255.0).powf(gamma) * 255.0).round() as u8;
+                }
+            }
+        }
+        "standardise" => {
+            for c in 0..3 {
+                let n = image.pixels().len() as f32;
+                let mean = image.pixels().map(|p| p[c] as f32).sum::<f32>() / n;
+                let sd = (image.pixels().map(|p| (p[c] as f32 - mean).powi(2)).sum::<f32>() / n).sqrt().max(1.0);
+                for p in out.pixels_mut() {
+                    p[c] = (115.0 + (p[c] as f32 - mean) / sd * 60.0).round().clamp(0.0, 255.0) as u8;
+                }
+            }
+        }
+        _ => {}
+    }
+    out
+}
+
+/// Appends one query's scores against its eligible references and the true ones among them, as a
+/// JSON line, for studying calibrations outside this program.
+fn dump_scores(
+    path: &str,
+    set: &str,
+    query: usize,
+    matches: &std::collections::BTreeSet<usize>,
+    scores: &[f32],
+) -> Result<()> {
+    use std::io::Write;
+    let line = serde_json::json!({"set": set, "query": query, "matches": matches, "scores": scores});
+    let mut file = std::fs::OpenOptions::new().create(true).append(true).open(path).context(path.to_string())?;
+    writeln!(file, "{line}")?;
     Ok(())
 }
 
