@@ -133,7 +133,7 @@ fn measure(set: &DevSet, overrides: &[(&str, &str)], weights: &Resolved) -> Resu
             (results, read_loops(loops)?)
         }
         Data::Sequence(s, loops) => {
-            let run = run_source(&mut pipeline, &s.path, None, false)?;
+            let run = run_source(&mut pipeline, &s.path, &Default::default(), false)?;
             let truth = match loops {
                 Some(loops) => read_loops(loops)?,
                 None => {

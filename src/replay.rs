@@ -18,7 +18,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use crate::config::ParamValue;
 use crate::detector::Match;
 use crate::eval::QueryResult;
-use crate::io::open_source;
+use crate::io::{open_source_topics, Topics};
 use crate::pipeline::{Pipeline, Timings};
 use crate::preprocess::read_image;
 use crate::types::{LoopCandidate, Stamp};
@@ -126,10 +126,11 @@ pub fn run_database_queries(
     Ok((results, vec![("per_image_ms", per_image)]))
 }
 
-/// Replays `source` through `pipeline`: keyframe selection applies, keyframe ids are frame
-/// indexes. A source that breaks off ends the replay with what was read (see [`ReplayRun::error`]).
-pub fn run_source(pipeline: &mut Pipeline, source: &Path, topic: Option<&str>, progress: bool) -> Result<ReplayRun> {
-    run_source_with(pipeline, source, topic, progress, |_, _| Ok(()))
+/// Replays `source` (its `topics`, for a bag) through `pipeline`: keyframe selection applies,
+/// keyframe ids are frame indexes. A source that breaks off ends the replay with what was read (see
+/// [`ReplayRun::error`]).
+pub fn run_source(pipeline: &mut Pipeline, source: &Path, topics: &Topics, progress: bool) -> Result<ReplayRun> {
+    run_source_with(pipeline, source, topics, progress, |_, _| Ok(()))
 }
 
 /// As [`run_source`], calling `on_keyframe` with each keyframe and its candidates as soon as the
@@ -137,18 +138,18 @@ pub fn run_source(pipeline: &mut Pipeline, source: &Path, topic: Option<&str>, p
 pub fn run_source_with(
     pipeline: &mut Pipeline,
     source: &Path,
-    topic: Option<&str>,
+    topics: &Topics,
     progress: bool,
     on_keyframe: impl FnMut(&ReplayedKeyframe, &[LoopCandidate]) -> Result<()> + Send,
 ) -> Result<ReplayRun> {
     // The whole replay on a rayon worker: see `runtime::on_worker`.
-    crate::runtime::on_worker(|| replay_frames(pipeline, source, topic, progress, on_keyframe))
+    crate::runtime::on_worker(|| replay_frames(pipeline, source, topics, progress, on_keyframe))
 }
 
 fn replay_frames(
     pipeline: &mut Pipeline,
     source: &Path,
-    topic: Option<&str>,
+    topics: &Topics,
     progress: bool,
     mut on_keyframe: impl FnMut(&ReplayedKeyframe, &[LoopCandidate]) -> Result<()>,
 ) -> Result<ReplayRun> {
@@ -161,7 +162,7 @@ fn replay_frames(
         }
         None => None,
     };
-    let frames = open_source(source, topic)?;
+    let frames = open_source_topics(source, topics)?;
     log::info!("replaying {}", frames.describe());
     let bar = if progress { ProgressBar::new(frames.len_hint().unwrap_or(0) as u64) } else { ProgressBar::hidden() };
     bar.set_style(

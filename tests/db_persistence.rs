@@ -352,7 +352,7 @@ fn a_restarted_replay_selects_the_keyframes_of_an_uninterrupted_one() {
         p
     };
     let reference_db = dir.path().join("reference.db");
-    ecm_lcd::replay::run_source(&mut pipeline(&reference_db), &seq, None, false).unwrap();
+    ecm_lcd::replay::run_source(&mut pipeline(&reference_db), &seq, &Default::default(), false).unwrap();
     let reference = stored_ids(&reference_db);
     assert!(reference.len() >= 5 && reference.len() < frames.len() / 2, "selection kept {reference:?}");
     for stop_after in [0, 3, 5, 6, 12, 17] {
@@ -363,7 +363,7 @@ fn a_restarted_replay_selects_the_keyframes_of_an_uninterrupted_one() {
                 first.process_frame(frame.index as u64, frame.stamp, &frame.image).unwrap();
             }
         }
-        let run = ecm_lcd::replay::run_source(&mut pipeline(&db), &seq, None, false).unwrap();
+        let run = ecm_lcd::replay::run_source(&mut pipeline(&db), &seq, &Default::default(), false).unwrap();
         assert!(run.skipped > 0);
         assert_eq!(stored_ids(&db), reference, "stopped after frame {stop_after}");
     }

@@ -61,7 +61,7 @@ fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
         ("detector.exclude_recent.seconds", "2"),
     ];
     let mut pipeline = Pipeline::with_weights(params(&overrides), weights()).unwrap();
-    let run = run_source(&mut pipeline, &seq, None, false).unwrap();
+    let run = run_source(&mut pipeline, &seq, &Default::default(), false).unwrap();
     assert_eq!((run.frames, run.keyframes.len()), (17, 17));
     let poses = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
     let truth = loop_truth_from_poses(
@@ -110,7 +110,7 @@ fn synthetic_loops_are_detected() {
     let dir = tempfile::tempdir().unwrap();
     let seq = synthetic(dir.path(), 240, 2, 4.0);
     let mut pipeline = Pipeline::with_weights(Params::default(), weights()).unwrap();
-    let run = run_source(&mut pipeline, &seq, None, false).unwrap();
+    let run = run_source(&mut pipeline, &seq, &Default::default(), false).unwrap();
     let poses = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
     let truth = loop_truth_from_poses(&run.frame_stamps, &poses, &PoseLoopCriteria::default());
     let metrics = evaluate(&run.query_results(), &truth).unwrap();

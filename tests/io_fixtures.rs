@@ -5,9 +5,9 @@
 mod support;
 
 use ecm_lcd::io::image_msg::{encode_image, mono16_to_8, WireEncoding};
-use ecm_lcd::io::open_source;
 use ecm_lcd::io::ros1bag::{write_ros1_bag, Ros1Compression};
 use ecm_lcd::io::ros2bag::{write_ros2_bag, Ros2Storage};
+use ecm_lcd::io::{open_source, open_source_topics, Topics};
 use ecm_lcd::types::{Frame, Stamp};
 use image::{Rgb, RgbImage};
 use sha2::{Digest, Sha256};
@@ -73,12 +73,60 @@ fn rosbags_written_bags_read_with_every_encoding() {
             check_frames(bag, topic, &frames);
         }
         let err = open_source(&path, None).err().unwrap().to_string();
-        assert!(err.contains("9 image topics") && err.contains("/mono16_be (sensor_msgs"), "{bag}: {err}");
+        assert!(err.contains("11 image topics") && err.contains("/mono16_be (sensor_msgs"), "{bag}: {err}");
+        check_depth_pairing(bag, &path);
     }
     // The storage file of a ROS 2 bag folder opens directly too.
     let db3 = dir.path().join("ros2_sqlite3/ros2_sqlite3.db3");
     let frames: Vec<Frame> = open_source(&db3, Some("/png")).unwrap().map(|f| f.unwrap()).collect();
     check_frames("db3 file", "png", &frames);
+}
+
+/// Frame `i`'s depth in metres, mirroring the fixture's `depth_mm_pattern` (0 where unknown).
+fn expected_depth(i: usize) -> Vec<f32> {
+    let mut metres = Vec::new();
+    for y in 0..HEIGHT as usize {
+        for x in 0..WIDTH as usize {
+            let mm = 500 + x * 10 + y * 20 + i;
+            metres.push(if (x, y) == (0, 0) { 0.0 } else { mm as f32 / 1000.0 });
+        }
+    }
+    metres
+}
+
+/// Each bag's depth topics paired with a colour topic: every frame but the fixture's frame 3 gets
+/// its own depth image (stamped 7 ms later), in metres from both encodings.
+fn check_depth_pairing(bag: &str, path: &Path) {
+    for depth_topic in ["/depth16", "/depth32"] {
+        let topics = Topics { image: Some("/rgb8".into()), depth: Some(depth_topic.into()) };
+        let source = open_source_topics(path, &topics).unwrap_or_else(|e| panic!("{bag}: {e:#}"));
+        assert_eq!(source.len_hint(), Some(FRAMES), "{bag} {depth_topic}");
+        assert!(source.describe().contains(&format!("depth {depth_topic} (4 messages)")), "{}", source.describe());
+        let frames: Vec<Frame> = source.map(|f| f.unwrap_or_else(|e| panic!("{bag} {depth_topic}: {e:#}"))).collect();
+        check_frames(bag, "rgb8", &frames);
+        for (i, frame) in frames.iter().enumerate() {
+            match (&frame.depth, i) {
+                (None, 3) => {}
+                (Some(depth), i) if i != 3 => {
+                    assert_eq!((depth.width, depth.height), (WIDTH, HEIGHT));
+                    let expected = expected_depth(i);
+                    let worst = depth.metres.iter().zip(&expected).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+                    assert!(worst < 1e-6, "{bag} {depth_topic} frame {i}: depth off by {worst} m");
+                }
+                (depth, i) => panic!("{bag} {depth_topic} frame {i}: depth present {}", depth.is_some()),
+            }
+        }
+    }
+    let wrong = Topics { image: Some("/rgb8".into()), depth: Some("/jpeg".into()) };
+    let err = open_source_topics(path, &wrong).err().unwrap().to_string();
+    assert!(err.contains("depth topic /jpeg") && err.contains("not sensor_msgs Image"), "{bag}: {err}");
+    let colour = Topics { image: Some("/rgb8".into()), depth: Some("/rgb8".into()) };
+    let err = open_source_topics(path, &colour).err().unwrap().to_string();
+    assert!(err.contains("is the colour topic"), "{bag}: {err}");
+    // A colour topic as depth is refused by its encoding at the first message.
+    let mono = Topics { image: Some("/rgb8".into()), depth: Some("/rgba8".into()) };
+    let err = format!("{:#}", open_source_topics(path, &mono).unwrap().find_map(|f| f.err()).unwrap());
+    assert!(err.contains("unsupported depth encoding \"rgba8\""), "{bag}: {err}");
 }
 
 fn sha256_hex(bytes: &[u8]) -> String {
@@ -137,5 +185,47 @@ fn our_bags_read_by_rosbags_and_by_us() {
         if name == "png" || name == "bgr8" {
             assert!(ours.iter().zip(&frames).all(|(a, b)| a.image == b.1), "{name}");
         }
+    }
+}
+
+/// A synthetic sequence with depth, written by `rosbags` as a ROS 1 bag laid out like TUM's (rgb8
+/// colour, 32FC1 depth on its own topic), replays through the binary like the TUM folder it came from:
+/// the same candidates, each verified with a metric pose. Without `--depth-topic` the same bag gives
+/// poses up to scale only.
+#[test]
+fn a_tum_style_bag_with_depth_replays_like_its_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let bag = dir.path().join("seq.bag");
+    let arg = |p: &Path| p.to_str().unwrap().to_string();
+    support::ecm_lcd_ok(&["synth", "-o", &arg(&seq), "--frames", "240", "--laps", "2", "--rate", "5", "--depth"]);
+    support::rosbags_fixtures(&["tum-bag".as_ref(), seq.as_os_str(), bag.as_os_str()]);
+    // The renderer's camera: focal 0.82 * width, principal point at the centre.
+    let camera = ["camera.fx=262.4", "camera.fy=262.4", "camera.cx=160", "camera.cy=120"];
+    let replay = |source: &Path, extra: &[&str], name: &str| {
+        let out = dir.path().join(name);
+        let mut args = vec!["replay".to_string(), arg(source), "-o".into(), arg(&out), "--quiet".into()];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        for param in camera {
+            args.extend(["--param".to_string(), param.to_string()]);
+        }
+        support::ecm_lcd_ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
+        ecm_lcd::io::candidates::read_candidates_csv(&out).unwrap()
+    };
+    let from_folder = replay(&seq, &[], "folder.csv");
+    let from_bag =
+        replay(&bag, &["--topic", "/camera/rgb/image_color", "--depth-topic", "/camera/depth/image"], "bag.csv");
+    let without_depth = replay(&bag, &["--topic", "/camera/rgb/image_color"], "no_depth.csv");
+    println!("{} candidates from the folder, {} from the bag", from_folder.len(), from_bag.len());
+    assert!(from_folder.len() >= 10, "{} candidates from the folder", from_folder.len());
+    let pairs = |c: &[ecm_lcd::types::LoopCandidate]| c.iter().map(|c| (c.query_id, c.match_id)).collect::<Vec<_>>();
+    assert_eq!(pairs(&from_bag), pairs(&from_folder));
+    assert_eq!(pairs(&without_depth), pairs(&from_folder));
+    for ((bag, folder), plain) in from_bag.iter().zip(&from_folder).zip(&without_depth) {
+        let (bag_pose, folder_pose) = (bag.verified.unwrap().pose.unwrap(), folder.verified.unwrap().pose.unwrap());
+        assert!(bag_pose.metric && folder_pose.metric, "{} -> {}: metric from depth", bag.query_id, bag.match_id);
+        let apart = (bag_pose.translation - folder_pose.translation).norm();
+        assert!(apart < 1e-3, "{} -> {}: bag and folder poses {apart} m apart", bag.query_id, bag.match_id);
+        assert!(!plain.verified.unwrap().pose.unwrap().metric, "no depth topic: pose up to scale");
     }
 }

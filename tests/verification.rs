@@ -43,7 +43,7 @@ fn the_orbit_revisit_is_verified_and_the_wrong_matches_are_not() {
         ("detector.exclude_recent.seconds", "0"),
     ];
     let mut unverified = pipeline(&[recency[0], recency[1], recency[2], PERMISSIVE, ("verification.mode", "off")]);
-    let appearance = run_source(&mut unverified, &orbit.join("rgb"), None, false).unwrap();
+    let appearance = run_source(&mut unverified, &orbit.join("rgb"), &Default::default(), false).unwrap();
     assert!(appearance.candidates.len() >= 4, "{:?}", appearance.candidates);
     assert!(appearance.candidates.iter().all(|c| c.verified.is_none()));
     assert!(appearance.candidates.iter().any(|c| (c.query_id, c.match_id) == (9, 0)));
@@ -51,7 +51,7 @@ fn the_orbit_revisit_is_verified_and_the_wrong_matches_are_not() {
     // auto: on, because the preset gives the intrinsics.
     let mut verifying = pipeline(&[recency[0], recency[1], recency[2], PERMISSIVE, ("camera.preset", "tum_fr3")]);
     assert!(verifying.verifies());
-    let verified = run_source(&mut verifying, &orbit.join("rgb"), None, false).unwrap();
+    let verified = run_source(&mut verifying, &orbit.join("rgb"), &Default::default(), false).unwrap();
     let pairs: Vec<(u64, u64)> = verified.candidates.iter().map(|c| (c.query_id, c.match_id)).collect();
     assert_eq!(pairs, [(9, 0)], "only the true revisit survives");
     assert_eq!(verified.rejected, appearance.candidates.len() - 1);
@@ -76,7 +76,7 @@ fn verified_relative_poses_agree_with_the_ground_truth() {
         ("camera.preset", "tum_fr3"),
     ];
     let mut pipeline = pipeline(&overrides);
-    let run = run_source(&mut pipeline, &seq, None, false).unwrap();
+    let run = run_source(&mut pipeline, &seq, &Default::default(), false).unwrap();
     let groundtruth = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
     let pose_at = |stamp: Stamp| groundtruth.iter().find(|(s, _)| s.nanos == stamp.nanos).map(|(_, pose)| *pose);
     let (mut rotation, mut direction) = (Vec::new(), Vec::new());

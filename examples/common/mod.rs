@@ -108,7 +108,7 @@ pub fn replay_on(
     if let Some(db) = db {
         pipeline.open_store(db)?;
     }
-    let run = run_source(&mut pipeline, &set.path, None, false)?;
+    let run = run_source(&mut pipeline, &set.path, &Default::default(), false)?;
     let truth = loop_truth_from_poses(&run.frame_stamps, &groundtruth, &set.criteria);
     Ok(Replayed { pipeline, run, truth })
 }

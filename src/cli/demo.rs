@@ -44,7 +44,7 @@ fn bundled(path: &Path) -> PathBuf {
 pub fn run(args: Args) -> Result<()> {
     let (source, groundtruth) = (bundled(&args.source), bundled(&args.groundtruth));
     let mut pipeline = args.source_args.pipeline()?;
-    let run = run_source(&mut pipeline, &source, args.source_args.topic.as_deref(), !args.source_args.quiet)?;
+    let run = run_source(&mut pipeline, &source, &args.source_args.topics(), !args.source_args.quiet)?;
     if let Some(error) = &run.error {
         anyhow::bail!("{} broke off after {} frames: {error}", source.display(), run.frames);
     }

@@ -190,7 +190,7 @@ pub fn run(args: Args) -> Result<()> {
         return Ok(());
     }
     let Some(source) = &args.source else { bail!("give a SOURCE to replay, or --database and --queries") };
-    let run = run_source(&mut pipeline, source, args.source_args.topic.as_deref(), !args.source_args.quiet)?;
+    let run = run_source(&mut pipeline, source, &args.source_args.topics(), !args.source_args.quiet)?;
     if let Some(error) = &run.error {
         log::warn!("{} broke off after {} frames; evaluating those: {error}", source.display(), run.frames);
     }

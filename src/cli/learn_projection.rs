@@ -8,7 +8,7 @@ use anyhow::{ensure, Context, Result};
 
 use super::replay::SourceArgs;
 use crate::descriptor::Projection;
-use crate::io::open_source;
+use crate::io::open_source_topics;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -45,7 +45,7 @@ pub fn run(args: Args) -> Result<()> {
     let name = pipeline.descriptor_name();
     let mut samples = Vec::new();
     'sources: for source in &args.sources {
-        let frames = open_source(source, args.source_args.topic.as_deref())?;
+        let frames = open_source_topics(source, &args.source_args.topics())?;
         log::info!("learning from {}", frames.describe());
         for frame in frames.step_by(args.every as usize) {
             let frame = frame.with_context(|| format!("reading {}", source.display()))?;

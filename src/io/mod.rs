@@ -6,6 +6,7 @@
 //! naming the file and where it went wrong; after an `Err` a source yields nothing more.
 
 pub mod candidates;
+pub mod depth;
 pub mod image_msg;
 pub mod msgs;
 pub mod output;
@@ -27,6 +28,22 @@ pub trait FrameSource: Iterator<Item = Result<Frame>> + Send {
     fn len_hint(&self) -> Option<usize>;
 }
 
+/// The topics of a bag to replay: the colour image topic (default: the bag's one image topic) and,
+/// optionally, a depth image topic whose messages are paired with the colour frames ([`depth`]).
+/// Folders have no topics (a TUM folder's depth comes from its `depth.txt`).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Topics {
+    pub image: Option<String>,
+    pub depth: Option<String>,
+}
+
+impl Topics {
+    /// Only a colour topic (or the default one).
+    pub fn image(topic: Option<&str>) -> Topics {
+        Topics { image: topic.map(str::to_string), depth: None }
+    }
+}
+
 /// Opens any supported source; `topic` picks the image topic of a bag (default: the one image
 /// topic, else an error listing the candidates with their types and counts).
 ///
@@ -35,19 +52,28 @@ pub trait FrameSource: Iterator<Item = Result<Frame>> + Send {
 /// sqlite3 bag, `*.mcap` an MCAP file; any other directory with png/jpg/jpeg/bmp files is an
 /// image folder replayed in file-name order.
 pub fn open_source(path: &Path, topic: Option<&str>) -> Result<Box<dyn FrameSource>> {
+    open_source_topics(path, &Topics::image(topic))
+}
+
+/// [`open_source`] with a depth topic too, for bags.
+pub fn open_source_topics(path: &Path, topics: &Topics) -> Result<Box<dyn FrameSource>> {
+    let named = topics.image.as_deref().or(topics.depth.as_deref());
     if path.is_dir() {
         if path.join("rgb.txt").is_file() {
-            if let Some(topic) = topic {
-                bail!("{} is a TUM folder, which has no topics (asked for {topic})", path.display());
+            if let Some(topic) = named {
+                bail!(
+                    "{} is a TUM folder, which has no topics (asked for {topic}; its depth comes from depth.txt)",
+                    path.display()
+                );
             }
             return Ok(Box::new(tum::ImageFilesSource::open_tum(path)?));
         }
         if path.join("metadata.yaml").is_file() {
             let storage = ros2bag::storage_file_of_bag_dir(path)?;
-            return open_source(&storage, topic);
+            return open_source_topics(&storage, topics);
         }
-        if topic.is_some() {
-            bail!("{} is an image folder, which has no topics", path.display());
+        if let Some(topic) = named {
+            bail!("{} is an image folder, which has no topics (asked for {topic})", path.display());
         }
         return Ok(Box::new(tum::ImageFilesSource::open_image_folder(path)?));
     }
@@ -56,9 +82,9 @@ pub fn open_source(path: &Path, topic: Option<&str>) -> Result<Box<dyn FrameSour
     }
     let extension = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
     Ok(match extension.as_deref() {
-        Some("bag") => Box::new(ros1bag::Ros1BagSource::open(path, topic)?),
-        Some("db3") => Box::new(ros2bag::SqliteBagSource::open(path, topic)?),
-        Some("mcap") => Box::new(ros2bag::McapSource::open(path, topic)?),
+        Some("bag") => Box::new(depth::DepthPaired::new(ros1bag::Ros1BagSource::open(path, topics)?)),
+        Some("db3") => Box::new(depth::DepthPaired::new(ros2bag::SqliteBagSource::open(path, topics)?)),
+        Some("mcap") => Box::new(depth::DepthPaired::new(ros2bag::McapSource::open(path, topics)?)),
         _ => bail!(
             "{}: unsupported source (expected a TUM folder, image folder, ROS 2 bag folder, .bag, .db3 or .mcap)",
             path.display()
@@ -124,6 +150,27 @@ pub(crate) fn choose_image_topic(
     };
     let kind = ImageKind::from_type_name(&chosen.type_name).context("checked above")?;
     Ok((chosen.clone(), kind))
+}
+
+/// Picks the depth topic `wanted` of the bag described by `bag`: a raw `sensor_msgs/Image` topic other
+/// than the colour topic `colour`.
+pub(crate) fn choose_depth_topic(bag: &str, topics: &[TopicInfo], wanted: &str, colour: &str) -> Result<TopicInfo> {
+    let raw = |t: &&TopicInfo| ImageKind::from_type_name(&t.type_name) == Some(ImageKind::Raw);
+    let raw_topics: Vec<&TopicInfo> = topics.iter().filter(raw).collect();
+    let found = topics.iter().find(|t| t.name == wanted).with_context(|| {
+        format!("{bag} has no depth topic {wanted}; raw image topics: {}", TopicInfo::listing(&raw_topics))
+    })?;
+    if !raw(&found) {
+        bail!(
+            "depth topic {wanted} in {bag} has type {}, not sensor_msgs Image; raw image topics: {}",
+            found.type_name,
+            TopicInfo::listing(&raw_topics)
+        );
+    }
+    if found.name == colour {
+        bail!("{wanted} in {bag} is the colour topic; the depth topic must be another one");
+    }
+    Ok(found.clone())
 }
 
 /// Small distinct test frames one second apart from `first`.

@@ -20,8 +20,9 @@ use std::fs::File;
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
+use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
 use super::image_msg::{encode_image, ImageKind, ImageMessage, WireEncoding};
-use super::{choose_image_topic, FrameSource, TopicInfo};
+use super::{choose_depth_topic, choose_image_topic, TopicInfo, Topics};
 use crate::types::{Frame, Stamp};
 
 const MAGIC: &[u8] = b"#ROSBAG V2.0\n";
@@ -372,15 +373,19 @@ fn walk_chunk(data: &[u8], connections: &mut HashMap<u32, Connection>) -> Result
     Ok(messages)
 }
 
-/// Replays one image topic of a ROS 1 bag.
+/// Replays one image topic of a ROS 1 bag, and optionally a depth topic beside it.
 pub struct Ros1BagSource {
     path: PathBuf,
     file: File,
     description: String,
     kind: ImageKind,
     chunks: Vec<ChunkRef>,
-    messages: Vec<MessageRef>,
+    /// The replayed messages in record order, each marked whether it is a depth message.
+    messages: Vec<(bool, MessageRef)>,
+    colour_count: usize,
     next: usize,
+    /// Colour frames read so far (the next frame's index).
+    colour_read: usize,
     /// The last decompressed chunk, by index into `chunks`.
     cached: Option<(usize, Vec<u8>)>,
     damage: Option<String>,
@@ -389,7 +394,7 @@ pub struct Ros1BagSource {
 
 impl Ros1BagSource {
     /// Opens `path` and selects the image topic (see [`super::open_source`]).
-    pub fn open(path: &Path, topic: Option<&str>) -> Result<Ros1BagSource> {
+    pub fn open(path: &Path, wanted: &Topics) -> Result<Ros1BagSource> {
         let name = format!("ROS 1 bag {}", path.display());
         let mut file = File::open(path).with_context(|| format!("cannot open {name}"))?;
         let file_len = file.metadata().with_context(|| format!("cannot stat {name}"))?.len();
@@ -431,17 +436,26 @@ impl Ros1BagSource {
             }
         }
         let topics: Vec<TopicInfo> = topics.into_values().collect();
-        let (chosen, kind) = choose_image_topic(&name, &topics, topic).map_err(|err| match &damage {
+        let with_damage = |err: anyhow::Error| match &damage {
             Some(d) => err.context(format!("{name}: {d}")),
             None => err,
-        })?;
-        let mut messages: Vec<MessageRef> = per_conn
+        };
+        let (chosen, kind) = choose_image_topic(&name, &topics, wanted.image.as_deref()).map_err(with_damage)?;
+        let depth = match &wanted.depth {
+            Some(depth) => Some(choose_depth_topic(&name, &topics, depth, &chosen.name).map_err(with_damage)?),
+            None => None,
+        };
+        let mut messages: Vec<(bool, MessageRef)> = per_conn
             .into_iter()
-            .filter(|(conn, _)| connections.get(conn).is_some_and(|c| c.topic == chosen.name))
-            .map(|(_, m)| m)
+            .filter_map(|(conn, m)| {
+                let topic = &connections.get(&conn)?.topic;
+                let is_depth = depth.as_ref().is_some_and(|d| &d.name == topic);
+                (is_depth || *topic == chosen.name).then_some((is_depth, m))
+            })
             .collect();
-        messages.sort_by_key(|m| m.time);
-        let description = format!("{name}, topic {} ({} messages)", chosen.name, messages.len());
+        messages.sort_by_key(|(_, m)| m.time);
+        let colour_count = messages.iter().filter(|(is_depth, _)| !is_depth).count();
+        let description = describe_topics(&name, &chosen.name, colour_count, depth.as_ref());
         Ok(Ros1BagSource {
             path: path.to_path_buf(),
             file,
@@ -449,15 +463,18 @@ impl Ros1BagSource {
             kind,
             chunks,
             messages,
+            colour_count,
             next: 0,
+            colour_read: 0,
             cached: None,
             damage,
             done: false,
         })
     }
 
-    fn read_frame(&mut self, index: usize) -> Result<Frame> {
-        let message = self.messages[index];
+    /// The message at `position` of `messages`; a colour frame gets index `colour_index`.
+    fn read_message(&mut self, position: usize, colour_index: usize) -> Result<BagMessage> {
+        let (is_depth, message) = self.messages[position];
         let chunk = &self.chunks[message.chunk];
         if self.cached.as_ref().map(|(i, _)| *i) != Some(message.chunk) {
             let data = load_chunk(&mut self.file, chunk)
@@ -471,22 +488,27 @@ impl Ros1BagSource {
         let record = record_in(rest).with_context(at)?;
         let fields = Fields::parse(record.header).with_context(at)?;
         ensure!(fields.op().with_context(at)? == OP_MESSAGE, "{} is not a message record", at());
+        if is_depth {
+            return ImageMessage::from_ros1(ImageKind::Raw, record.data)
+                .and_then(|msg| depth_message(&msg))
+                .with_context(|| format!("{} (depth, sensor_msgs/Image)", at()));
+        }
         let decoded = ImageMessage::from_ros1(self.kind, record.data)
             .and_then(|msg| Ok((msg.stamp(), msg.to_rgb()?)))
             .with_context(|| format!("{} ({})", at(), self.kind.ros1_type()))?;
-        Ok(Frame { index, stamp: decoded.0, image: decoded.1, depth: None })
+        Ok(BagMessage::Colour(Frame { index: colour_index, stamp: decoded.0, image: decoded.1, depth: None }))
     }
 }
 
 impl Iterator for Ros1BagSource {
-    type Item = Result<Frame>;
+    type Item = Result<BagMessage>;
 
-    fn next(&mut self) -> Option<Result<Frame>> {
+    fn next(&mut self) -> Option<Result<BagMessage>> {
         if self.done {
             return None;
         }
-        let index = self.next;
-        if index >= self.messages.len() {
+        let (position, index) = (self.next, self.colour_read);
+        if position >= self.messages.len() {
             self.done = true;
             let damage = self.damage.take()?;
             return Some(Err(anyhow!(
@@ -495,11 +517,13 @@ impl Iterator for Ros1BagSource {
             )));
         }
         self.next += 1;
-        let frame = self.read_frame(index);
-        if frame.is_err() {
-            self.done = true;
+        let message = self.read_message(position, index);
+        match &message {
+            Ok(BagMessage::Colour(_)) => self.colour_read += 1,
+            Ok(BagMessage::Depth(..)) => {}
+            Err(_) => self.done = true,
         }
-        Some(frame.map_err(|err| {
+        Some(message.map_err(|err| {
             err.context(format!(
                 "ROS 1 bag {}: message {index}; read {index} messages before the damage",
                 self.path.display()
@@ -508,13 +532,13 @@ impl Iterator for Ros1BagSource {
     }
 }
 
-impl FrameSource for Ros1BagSource {
+impl MessageSource for Ros1BagSource {
     fn describe(&self) -> String {
         self.description.clone()
     }
 
     fn len_hint(&self) -> Option<usize> {
-        Some(self.messages.len())
+        Some(self.colour_count)
     }
 }
 
@@ -721,7 +745,7 @@ mod tests {
         for compression in [Ros1Compression::None, Ros1Compression::Bz2, Ros1Compression::Lz4] {
             let path = dir.path().join(format!("{}.bag", compression.name()));
             assert_eq!(write_ros1_bag(&path, "/cam/rgb", frames(5), WireEncoding::Bgr8, compression).unwrap(), 5);
-            let source = Ros1BagSource::open(&path, None).unwrap();
+            let source = crate::io::open_source(&path, None).unwrap();
             assert_eq!(source.len_hint(), Some(5));
             assert!(source.describe().ends_with("topic /cam/rgb (5 messages)"), "{}", source.describe());
             let read: Vec<Frame> = source.map(|f| f.unwrap()).collect();
@@ -744,7 +768,7 @@ mod tests {
         let bytes = std::fs::read(&path).unwrap();
         let cut = dir.path().join("cut.bag");
         std::fs::write(&cut, &bytes[..bytes.len() * 5 / 8]).unwrap();
-        let results: Vec<Result<Frame>> = Ros1BagSource::open(&cut, None).unwrap().collect();
+        let results: Vec<Result<Frame>> = crate::io::open_source(&cut, None).unwrap().collect();
         assert_eq!(results.len(), 3, "two whole chunks, then the error");
         assert_eq!(results[1].as_ref().unwrap().image.get_pixel(0, 0).0, [1; 3]);
         let err = format!("{:#}", results[2].as_ref().unwrap_err());
@@ -755,7 +779,7 @@ mod tests {
 
         for len in [0, 10, 13, 100, 4109] {
             std::fs::write(&cut, &bytes[..len]).unwrap();
-            let err = format!("{:#}", Ros1BagSource::open(&cut, None).err().unwrap());
+            let err = format!("{:#}", crate::io::open_source(&cut, None).err().unwrap());
             assert!(err.contains("cut.bag"), "{err}");
         }
     }
@@ -771,7 +795,7 @@ mod tests {
             *b ^= 0x5A;
         }
         std::fs::write(&path, &bytes).unwrap();
-        let results: Vec<Result<Frame>> = Ros1BagSource::open(&path, None).unwrap().collect();
+        let results: Vec<Result<Frame>> = crate::io::open_source(&path, None).unwrap().collect();
         assert_eq!(results.len(), 1);
         let err = format!("{:#}", results[0].as_ref().unwrap_err());
         assert!(err.contains("damaged chunk at byte offset 4109") && err.contains("read 0 messages"), "{err}");
@@ -796,7 +820,7 @@ mod tests {
                 bytes[at] = (state >> 24) as u8;
             }
             std::fs::write(&path, &bytes).unwrap();
-            if let Ok(source) = Ros1BagSource::open(&path, None) {
+            if let Ok(source) = crate::io::open_source(&path, None) {
                 for _ in source {}
             }
         }

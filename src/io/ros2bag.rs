@@ -15,15 +15,20 @@ use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
+use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
 use super::image_msg::{encode_image, ImageKind, ImageMessage, WireEncoding};
-use super::{choose_image_topic, FrameSource, TopicInfo};
+use super::{choose_depth_topic, choose_image_topic, TopicInfo, Topics};
 use crate::types::{Frame, Stamp};
 
 /// Decodes one CDR image payload into a frame.
-fn cdr_frame(kind: ImageKind, index: usize, payload: &[u8]) -> Result<Frame> {
+/// A CDR message of the colour topic (as frame `index`) or of the depth topic.
+fn cdr_message(kind: ImageKind, is_depth: bool, index: usize, payload: &[u8]) -> Result<BagMessage> {
+    if is_depth {
+        return ImageMessage::from_cdr(ImageKind::Raw, payload).and_then(|m| depth_message(&m)).context("depth topic");
+    }
     // from_cdr names the message type and size.
     let message = ImageMessage::from_cdr(kind, payload)?;
-    Ok(Frame { index, stamp: message.stamp(), image: message.to_rgb()?, depth: None })
+    Ok(BagMessage::Colour(Frame { index, stamp: message.stamp(), image: message.to_rgb()?, depth: None }))
 }
 
 /// Finds the storage file of a rosbag2 folder (one with `metadata.yaml`).
@@ -54,19 +59,23 @@ pub fn storage_file_of_bag_dir(dir: &Path) -> Result<PathBuf> {
     }
 }
 
-/// Replays one image topic of a rosbag2 sqlite3 file.
+/// Replays one image topic of a rosbag2 sqlite3 file, and optionally a depth topic beside it.
 pub struct SqliteBagSource {
     path: PathBuf,
     db: Connection,
     description: String,
     kind: ImageKind,
-    message_ids: Vec<i64>,
+    /// Row ids of the replayed messages in record order, each marked whether it is a depth message.
+    message_ids: Vec<(i64, bool)>,
+    colour_count: usize,
     next: usize,
+    /// Colour frames read so far (the next frame's index).
+    colour_read: usize,
     done: bool,
 }
 
 impl SqliteBagSource {
-    pub fn open(path: &Path, topic: Option<&str>) -> Result<SqliteBagSource> {
+    pub fn open(path: &Path, wanted: &Topics) -> Result<SqliteBagSource> {
         let name = format!("ROS 2 sqlite3 bag {}", path.display());
         ensure!(path.is_file(), "{name} does not exist");
         let db = Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)
@@ -74,21 +83,50 @@ impl SqliteBagSource {
         let topics =
             Self::topics(&db).with_context(|| format!("{name}: cannot read the topics and messages tables"))?;
         let infos: Vec<TopicInfo> = topics.values().map(|(info, _)| info.clone()).collect();
-        let (chosen, kind) = choose_image_topic(&name, &infos, topic)?;
-        let (topic_id, format) = topics
-            .iter()
-            .find(|(_, (info, _))| info.name == chosen.name)
-            .map(|(id, (_, format))| (*id, format.clone()))
-            .context("chosen topic is listed")?;
-        ensure!(format == "cdr", "{name}: topic {} is serialised as {format:?}, only cdr is supported", chosen.name);
-        let message_ids = (|| -> rusqlite::Result<Vec<i64>> {
-            let mut statement = db.prepare("SELECT id FROM messages WHERE topic_id = ?1 ORDER BY timestamp, id")?;
-            let ids = statement.query_map([topic_id], |row| row.get(0))?.collect();
+        let (chosen, kind) = choose_image_topic(&name, &infos, wanted.image.as_deref())?;
+        let depth = match &wanted.depth {
+            Some(depth) => Some(choose_depth_topic(&name, &infos, depth, &chosen.name)?),
+            None => None,
+        };
+        let topic_id = |wanted: &TopicInfo| -> Result<i64> {
+            let (id, format) = topics
+                .iter()
+                .find(|(_, (info, _))| info.name == wanted.name)
+                .map(|(id, (_, format))| (*id, format.clone()))
+                .context("chosen topic is listed")?;
+            ensure!(
+                format == "cdr",
+                "{name}: topic {} is serialised as {format:?}, only cdr is supported",
+                wanted.name
+            );
+            Ok(id)
+        };
+        let colour_id = topic_id(&chosen)?;
+        // -1 matches no topic: no depth topic.
+        let depth_id = depth.as_ref().map(&topic_id).transpose()?.unwrap_or(-1);
+        let message_ids = (|| -> rusqlite::Result<Vec<(i64, bool)>> {
+            let mut statement = db.prepare(
+                "SELECT id, topic_id FROM messages WHERE topic_id = ?1 OR topic_id = ?2 ORDER BY timestamp, id",
+            )?;
+            let ids = statement
+                .query_map([colour_id, depth_id], |row| Ok((row.get(0)?, row.get::<_, i64>(1)? == depth_id)))?
+                .collect();
             ids
         })()
         .with_context(|| format!("{name}: cannot list the messages of {}", chosen.name))?;
-        let description = format!("{name}, topic {} ({} messages)", chosen.name, message_ids.len());
-        Ok(SqliteBagSource { path: path.to_path_buf(), db, description, kind, message_ids, next: 0, done: false })
+        let colour_count = message_ids.iter().filter(|(_, is_depth)| !is_depth).count();
+        let description = describe_topics(&name, &chosen.name, colour_count, depth.as_ref());
+        Ok(SqliteBagSource {
+            path: path.to_path_buf(),
+            db,
+            description,
+            kind,
+            message_ids,
+            colour_count,
+            next: 0,
+            colour_read: 0,
+            done: false,
+        })
     }
 
     /// Topic id -> (info, serialization format).
@@ -113,53 +151,58 @@ impl SqliteBagSource {
         Ok(topics)
     }
 
-    fn read_frame(&self, index: usize) -> Result<Frame> {
-        let id = self.message_ids[index];
+    fn read_message(&self, position: usize, colour_index: usize) -> Result<BagMessage> {
+        let (id, is_depth) = self.message_ids[position];
         let payload: Vec<u8> = self
             .db
             .query_row("SELECT data FROM messages WHERE id = ?1", [id], |row| row.get(0))
             .optional()?
             .with_context(|| format!("row id {id} vanished"))?;
-        cdr_frame(self.kind, index, &payload).with_context(|| format!("row id {id}"))
+        cdr_message(self.kind, is_depth, colour_index, &payload).with_context(|| format!("row id {id}"))
     }
 }
 
 impl Iterator for SqliteBagSource {
-    type Item = Result<Frame>;
+    type Item = Result<BagMessage>;
 
-    fn next(&mut self) -> Option<Result<Frame>> {
+    fn next(&mut self) -> Option<Result<BagMessage>> {
         if self.done || self.next >= self.message_ids.len() {
             return None;
         }
-        let index = self.next;
+        let (position, index) = (self.next, self.colour_read);
         self.next += 1;
-        let frame = self.read_frame(index).with_context(|| {
+        let message = self.read_message(position, index).with_context(|| {
             format!(
                 "ROS 2 sqlite3 bag {}: message {index}; read {index} messages before the damage",
                 self.path.display()
             )
         });
-        self.done = frame.is_err();
-        Some(frame)
+        match &message {
+            Ok(BagMessage::Colour(_)) => self.colour_read += 1,
+            Ok(BagMessage::Depth(..)) => {}
+            Err(_) => self.done = true,
+        }
+        Some(message)
     }
 }
 
-impl FrameSource for SqliteBagSource {
+impl MessageSource for SqliteBagSource {
     fn describe(&self) -> String {
         self.description.clone()
     }
 
     fn len_hint(&self) -> Option<usize> {
-        Some(self.message_ids.len())
+        Some(self.colour_count)
     }
 }
 
-/// Replays one image topic of an MCAP file.
+/// Replays one image topic of an MCAP file, and optionally a depth topic beside it.
 pub struct McapSource {
     path: PathBuf,
     reader: mcap::io::MessageReader<BufReader<File>>,
     description: String,
     topic: String,
+    depth_topic: Option<String>,
     kind: ImageKind,
     count: usize,
     next: usize,
@@ -181,7 +224,7 @@ fn open_mcap_reader(path: &Path) -> Result<mcap::io::MessageReader<BufReader<Fil
 
 impl McapSource {
     /// Opens `path`; a first pass over the file counts the messages per topic.
-    pub fn open(path: &Path, topic: Option<&str>) -> Result<McapSource> {
+    pub fn open(path: &Path, wanted: &Topics) -> Result<McapSource> {
         let name = format!("MCAP file {}", path.display());
         let mut topics: BTreeMap<String, TopicInfo> = BTreeMap::new();
         let mut encodings: HashMap<String, String> = HashMap::new();
@@ -206,27 +249,30 @@ impl McapSource {
             }
         }
         let infos: Vec<TopicInfo> = topics.into_values().collect();
-        let (chosen, kind) = match choose_image_topic(&name, &infos, topic) {
-            Ok(chosen) => chosen,
-            Err(err) => {
-                return Err(match damage {
-                    Some(d) => err.context(format!("{d:#}")),
-                    None => err,
-                })
-            }
+        let with_damage = |err: anyhow::Error| match &damage {
+            Some(d) => err.context(format!("{d:#}")),
+            None => err,
         };
-        let encoding = encodings.get(&chosen.name).cloned().unwrap_or_default();
-        ensure!(
-            encoding == "cdr",
-            "{name}: topic {} has message encoding {encoding:?}, only cdr is supported",
-            chosen.name
-        );
-        let description = format!("{name}, topic {} ({} messages)", chosen.name, chosen.count);
+        let (chosen, kind) = choose_image_topic(&name, &infos, wanted.image.as_deref()).map_err(with_damage)?;
+        let depth = match &wanted.depth {
+            Some(depth) => Some(choose_depth_topic(&name, &infos, depth, &chosen.name).map_err(with_damage)?),
+            None => None,
+        };
+        for topic in std::iter::once(&chosen).chain(&depth) {
+            let encoding = encodings.get(&topic.name).cloned().unwrap_or_default();
+            ensure!(
+                encoding == "cdr",
+                "{name}: topic {} has message encoding {encoding:?}, only cdr is supported",
+                topic.name
+            );
+        }
+        let description = describe_topics(&name, &chosen.name, chosen.count, depth.as_ref());
         Ok(McapSource {
             path: path.to_path_buf(),
             reader: open_mcap_reader(path)?,
             description,
             topic: chosen.name,
+            depth_topic: depth.map(|d| d.name),
             kind,
             count: chosen.count,
             next: 0,
@@ -236,9 +282,9 @@ impl McapSource {
 }
 
 impl Iterator for McapSource {
-    type Item = Result<Frame>;
+    type Item = Result<BagMessage>;
 
-    fn next(&mut self) -> Option<Result<Frame>> {
+    fn next(&mut self) -> Option<Result<BagMessage>> {
         if self.done {
             return None;
         }
@@ -249,15 +295,19 @@ impl Iterator for McapSource {
                     self.done = true;
                     return None;
                 }
-                Some(Ok(message)) if message.channel.topic == self.topic => {
-                    break cdr_frame(self.kind, index, &message.data)
-                        .with_context(|| format!("message {index} (log time {} ns)", message.log_time));
+                Some(Ok(message)) => {
+                    let is_depth = self.depth_topic.as_ref() == Some(&message.channel.topic);
+                    if is_depth || message.channel.topic == self.topic {
+                        break cdr_message(self.kind, is_depth, index, &message.data)
+                            .with_context(|| format!("message {index} (log time {} ns)", message.log_time));
+                    }
                 }
-                Some(Ok(_)) => continue,
                 Some(Err(err)) => break Err(anyhow!(err)),
             }
         };
-        self.next += 1;
+        if let Ok(BagMessage::Colour(_)) = result {
+            self.next += 1;
+        }
         self.done = result.is_err();
         Some(result.with_context(|| {
             format!("MCAP file {}: read {index} messages of {} before the damage", self.path.display(), self.topic)
@@ -265,7 +315,7 @@ impl Iterator for McapSource {
     }
 }
 
-impl FrameSource for McapSource {
+impl MessageSource for McapSource {
     fn describe(&self) -> String {
         self.description.clone()
     }
@@ -446,9 +496,9 @@ mod tests {
             let bag = dir.path().join(format!("{storage:?}"));
             assert_eq!(write_ros2_bag(&bag, storage, "/cam", frames(4), WireEncoding::Rgba8).unwrap(), 4);
             let file = storage_file_of_bag_dir(&bag).unwrap();
-            let source: Box<dyn FrameSource> = match storage {
-                Ros2Storage::Sqlite3 => Box::new(SqliteBagSource::open(&file, None).unwrap()),
-                Ros2Storage::Mcap => Box::new(McapSource::open(&file, Some("/cam")).unwrap()),
+            let source: Box<dyn crate::io::FrameSource> = match storage {
+                Ros2Storage::Sqlite3 => crate::io::open_source(&file, None).unwrap(),
+                Ros2Storage::Mcap => crate::io::open_source(&file, Some("/cam")).unwrap(),
             };
             assert_eq!(source.len_hint(), Some(4));
             assert!(source.describe().ends_with("topic /cam (4 messages)"), "{}", source.describe());
@@ -477,7 +527,7 @@ mod tests {
                 bytes[at] = (state >> 24) as u8;
             }
             std::fs::write(&path, &bytes).unwrap();
-            if let Ok(source) = McapSource::open(&path, None) {
+            if let Ok(source) = crate::io::open_source(&path, None) {
                 for _ in source {}
             }
         }
@@ -494,7 +544,7 @@ mod tests {
         // Cut inside the summary: every message is still there, then the reader reports the cut.
         for len in [bytes.len() - 30, bytes.len() / 2, 20, 3] {
             std::fs::write(&cut, &bytes[..len]).unwrap();
-            match McapSource::open(&cut, None) {
+            match crate::io::open_source(&cut, None) {
                 Ok(source) => {
                     let results: Vec<Result<Frame>> = source.collect();
                     let err = format!("{:#}", results.last().unwrap().as_ref().unwrap_err());
@@ -510,12 +560,12 @@ mod tests {
         let db = Connection::open(&file).unwrap();
         db.execute("UPDATE messages SET data = x'00010000ffff' WHERE id = 2", []).unwrap();
         drop(db);
-        let results: Vec<Result<Frame>> = SqliteBagSource::open(&file, None).unwrap().collect();
+        let results: Vec<Result<Frame>> = crate::io::open_source(&file, None).unwrap().collect();
         assert_eq!(results.len(), 2);
         let err = format!("{:#}", results[1].as_ref().unwrap_err());
         assert!(err.contains("message 1; read 1 messages before the damage") && err.contains("row id 2"), "{err}");
         std::fs::write(&cut, b"not a database at all, just text that goes on for a while..............").unwrap();
-        let err = format!("{:#}", SqliteBagSource::open(&cut, None).err().unwrap());
+        let err = format!("{:#}", crate::io::open_source(&cut, None).err().unwrap());
         assert!(err.contains("cut.mcap"), "{err}");
     }
 }

@@ -111,19 +111,19 @@ fn drain<S: Iterator<Item = anyhow::Result<ecm_lcd::types::Frame>>>(source: anyh
 /// The bytes as a ROS 1 bag file, read with its only image topic.
 pub fn ros1_bag(data: &[u8]) {
     let path = write("input.bag", data);
-    drain(ecm_lcd::io::ros1bag::Ros1BagSource::open(&path, None));
+    drain(ecm_lcd::io::open_source(&path, None));
 }
 
 /// The bytes as a ROS 2 sqlite3 bag file (`.db3`).
 pub fn ros2_sqlite(data: &[u8]) {
     let path = write("input.db3", data);
-    drain(ecm_lcd::io::ros2bag::SqliteBagSource::open(&path, None));
+    drain(ecm_lcd::io::open_source(&path, None));
 }
 
 /// The bytes as an MCAP file.
 pub fn mcap(data: &[u8]) {
     let path = write("input.mcap", data);
-    drain(ecm_lcd::io::ros2bag::McapSource::open(&path, None));
+    drain(ecm_lcd::io::open_source(&path, None));
 }
 
 /// A TUM folder: the bytes up to the first NUL are `rgb.txt`, the rest `groundtruth.txt`; one real

@@ -2,7 +2,10 @@
 
   rosbags_fixtures.py write OUTDIR   writes ros1_none.bag, ros1_bz2.bag, ros1_lz4.bag,
                                      ros2_sqlite3/ and ros2_mcap/, each with one topic per
-                                     image encoding (see TOPICS), FRAMES frames per topic.
+                                     image encoding (see TOPICS), FRAMES frames per topic,
+                                     and two depth topics (see DEPTH_TOPICS).
+  rosbags_fixtures.py tum-bag DIR BAG  writes TUM folder DIR (with depth.txt) as a ROS 1 bag laid
+                                     out like TUM's bags (see tum_bag).
   rosbags_fixtures.py read BAG TOPIC prints one JSON line per message of TOPIC: header stamp,
                                      receive time, the message fields and sha256 of its data.
 
@@ -28,6 +31,10 @@ WIDTH, HEIGHT, FRAMES = 16, 12, 5
 PAD = 4
 WRITE_ORDER_SHUFFLED = [0, 2, 1, 4, 3]
 TOPICS = ["rgb8", "bgr8", "rgba8", "bgra8", "mono8", "mono16_le", "mono16_be", "jpeg", "png"]
+# Depth topics: every frame but DEPTH_MISSING has a depth image, stamped DEPTH_DELAY_NS after it.
+DEPTH_TOPICS = ["depth16", "depth32"]
+DEPTH_MISSING = 3
+DEPTH_DELAY_NS = 7_000_000
 
 
 def header_stamp(i):
@@ -114,6 +121,37 @@ def make_message(store, ros1, topic, i):
     return "sensor_msgs/msg/Image", msg
 
 
+def depth_mm_pattern(i):
+    y, x = np.mgrid[0:HEIGHT, 0:WIDTH]
+    mm = (500 + x * 10 + y * 20 + i).astype(np.uint16)
+    mm[0, 0] = 0  # unknown depth
+    return mm
+
+
+def make_depth_message(store, ros1, topic, i):
+    """Depth of frame i, stamped 7 ms after its colour frame: depth16 is 16UC1 millimetres,
+    big-endian; depth32 is 32FC1 metres, little-endian, with NaN as unknown."""
+    types = store.types
+    sec, nsec = header_stamp(i)
+    stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec + DEPTH_DELAY_NS)
+    if ros1:
+        header = types["std_msgs/msg/Header"](seq=i, stamp=stamp, frame_id="depth")
+    else:
+        header = types["std_msgs/msg/Header"](stamp=stamp, frame_id="depth")
+    mm = depth_mm_pattern(i)
+    if topic == "depth16":
+        encoding, big, rows = "16UC1", 1, mm.astype(">u2").view(np.uint8)
+    else:
+        metres = (mm / 1000.0).astype("<f4")
+        metres[0, 0] = np.nan
+        encoding, big, rows = "32FC1", 0, metres.view(np.uint8)
+    data, step = padded(np.ascontiguousarray(rows).reshape(HEIGHT, -1))
+    msg = types["sensor_msgs/msg/Image"](
+        header=header, height=HEIGHT, width=WIDTH, encoding=encoding, is_bigendian=big, step=step,
+        data=np.frombuffer(data, np.uint8))
+    return "sensor_msgs/msg/Image", msg
+
+
 def msgtype_of(topic):
     return "sensor_msgs/msg/CompressedImage" if topic in ("jpeg", "png") else "sensor_msgs/msg/Image"
 
@@ -124,21 +162,27 @@ def write_ros1(path, compression):
     if compression is not None:
         writer.set_compression(compression)
     with writer:
-        conns = {t: writer.add_connection("/" + t, msgtype_of(t), typestore=store) for t in TOPICS}
+        conns = {t: writer.add_connection("/" + t, msgtype_of(t), typestore=store) for t in TOPICS + DEPTH_TOPICS}
         for i in WRITE_ORDER_SHUFFLED:
             for t in TOPICS:
                 msgtype, msg = make_message(store, True, t, i)
                 writer.write(conns[t], receive_time(i), store.serialize_ros1(msg, msgtype))
+            for t in DEPTH_TOPICS if i != DEPTH_MISSING else []:
+                msgtype, msg = make_depth_message(store, True, t, i)
+                writer.write(conns[t], receive_time(i) + DEPTH_DELAY_NS, store.serialize_ros1(msg, msgtype))
 
 
 def write_ros2(path, plugin, order):
     store = get_typestore(Stores.ROS2_HUMBLE)
     with Ros2Writer(path, version=9, storage_plugin=plugin) as writer:
-        conns = {t: writer.add_connection("/" + t, msgtype_of(t), typestore=store) for t in TOPICS}
+        conns = {t: writer.add_connection("/" + t, msgtype_of(t), typestore=store) for t in TOPICS + DEPTH_TOPICS}
         for i in order:
             for t in TOPICS:
                 msgtype, msg = make_message(store, False, t, i)
                 writer.write(conns[t], receive_time(i), store.serialize_cdr(msg, msgtype))
+            for t in DEPTH_TOPICS if i != DEPTH_MISSING else []:
+                msgtype, msg = make_depth_message(store, False, t, i)
+                writer.write(conns[t], receive_time(i) + DEPTH_DELAY_NS, store.serialize_cdr(msg, msgtype))
 
 
 def write_all(out):
@@ -149,6 +193,48 @@ def write_all(out):
     write_ros1(out / "ros1_lz4.bag", Ros1Writer.CompressionFormat.LZ4)
     write_ros2(out / "ros2_sqlite3", StoragePlugin.SQLITE3, WRITE_ORDER_SHUFFLED)
     write_ros2(out / "ros2_mcap", StoragePlugin.MCAP, range(FRAMES))
+
+
+def tum_bag(tum_dir, out):
+    """A TUM folder with depth as a ROS 1 bag laid out like TUM's own: rgb8 colour on
+    /camera/rgb/image_color, 32FC1 metres on /camera/depth/image (NaN where unknown), header
+    stamps and receive times from rgb.txt and depth.txt."""
+    tum_dir = Path(tum_dir)
+    store = get_typestore(Stores.ROS1_NOETIC)
+    types = store.types
+
+    def listing(name):
+        lines = (tum_dir / name).read_text().splitlines()
+        return [line.split() for line in lines if line.strip() and not line.startswith("#")]
+
+    def message(stamp_text, frame_id, seq, encoding, step, data, height, width):
+        sec, _, frac = stamp_text.partition(".")
+        nsec = int((frac + "000000000")[:9])
+        stamp = types["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=nsec)
+        header = types["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame_id)
+        msg = types["sensor_msgs/msg/Image"](header=header, height=height, width=width, encoding=encoding,
+                                             is_bigendian=0, step=step, data=np.frombuffer(data, np.uint8))
+        return int(sec) * 10**9 + nsec, store.serialize_ros1(msg, "sensor_msgs/msg/Image")
+
+    items = []
+    for seq, (stamp, name) in enumerate(listing("rgb.txt")):
+        rgb = np.asarray(PilImage.open(tum_dir / name).convert("RGB"))
+        h, w, _ = rgb.shape
+        items.append(("rgb", message(stamp, "rgb", seq, "rgb8", w * 3, rgb.tobytes(), h, w)))
+    for seq, (stamp, name) in enumerate(listing("depth.txt")):
+        units = np.asarray(PilImage.open(tum_dir / name), dtype=np.uint16)
+        metres = (units / 5000.0).astype("<f4")
+        metres[units == 0] = np.nan
+        h, w = units.shape
+        items.append(("depth", message(stamp, "depth", seq, "32FC1", w * 4, metres.tobytes(), h, w)))
+    items.sort(key=lambda item: item[1][0])
+    with Ros1Writer(Path(out)) as writer:
+        conns = {
+            "rgb": writer.add_connection("/camera/rgb/image_color", "sensor_msgs/msg/Image", typestore=store),
+            "depth": writer.add_connection("/camera/depth/image", "sensor_msgs/msg/Image", typestore=store),
+        }
+        for kind, (time, raw) in items:
+            writer.write(conns[kind], time, raw)
 
 
 def read(bag, topic):
@@ -177,6 +263,8 @@ def read(bag, topic):
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "write":
         write_all(sys.argv[2])
+    elif len(sys.argv) == 4 and sys.argv[1] == "tum-bag":
+        tum_bag(sys.argv[2], sys.argv[3])
     elif len(sys.argv) == 4 and sys.argv[1] == "read":
         read(sys.argv[2], sys.argv[3])
     else:
