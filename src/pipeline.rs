@@ -246,8 +246,7 @@ impl Pipeline {
 
     /// A keyframe whose id the tracker chose: no selection, always inserted.
     pub fn process_keyframe(&mut self, id: u64, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
-        self.next_id = self.next_id.max(id.saturating_add(1));
-        self.run(id, false, stamp, image, None)
+        self.process_input(Some(id), stamp, image, None)
     }
 
     /// A plain frame: keyframe selection decides; accepted frames get `id`.
@@ -266,8 +265,35 @@ impl Pipeline {
 
     /// A plain frame with the id taken from the pipeline's counter.
     pub fn process_counted(&mut self, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
-        let id = self.next_id;
-        self.process_frame(id, stamp, image)
+        self.process_input(None, stamp, image, None)
+    }
+
+    /// What the node receives: a tracker's keyframe (`Some(id)`: no selection, always inserted) or a
+    /// plain frame (`None`: selection decides, the id comes from the pipeline's counter), with its
+    /// depth image where one arrived in time.
+    pub fn process_input(
+        &mut self,
+        id: Option<u64>,
+        stamp: Stamp,
+        image: &RgbImage,
+        depth: Option<&DepthImage>,
+    ) -> Result<Outcome> {
+        let (id, select) = match id {
+            Some(id) => (id, false),
+            None => (self.next_id, true),
+        };
+        self.next_id = self.next_id.max(id.saturating_add(1));
+        self.run(id, select, stamp, image, depth)
+    }
+
+    /// Gives keyframe `id` its depth image after the fact (it arrived after the keyframe was
+    /// processed), for verifying later queries against it; returns whether it was taken (false when
+    /// verification is off, the keyframe's features are not kept, or it already has depth).
+    pub fn attach_depth(&mut self, id: u64, depth: &DepthImage) -> Result<bool> {
+        match &mut self.verifier {
+            Some(verifier) => verifier.attach_depth(id, depth),
+            None => Ok(false),
+        }
     }
 
     fn run(

@@ -11,8 +11,9 @@ mod ros_support;
 use ecm_lcd::config::{ParamValue, Params};
 use ecm_lcd::io::msgs::{CameraInfo, CompressedImage, Header, Image};
 use ecm_lcd::ros::msgs::{self, Keyframe, LoopCandidate};
+use ecm_lcd::ros::node::Processed;
 use ecm_lcd::ros::{run_node, KeyframeProcessor, NodeCounters, NodeSettings};
-use ecm_lcd::types::{self, Stamp};
+use ecm_lcd::types::{self, DepthImage, Stamp};
 use ros2_client::rcl_interfaces::{
     DescribeParametersRequest, DescribeParametersResponse, SetParametersRequest, SetParametersResponse,
 };
@@ -29,6 +30,8 @@ struct Seen {
     calls: Vec<(Option<u64>, Stamp, u32, u32)>,
     params: Vec<(String, ParamValue)>,
     camera_info: Vec<ecm_lcd::verification::Intrinsics>,
+    /// (keyframe id, depth value in metres, whether it came with the image or was attached after).
+    depths: Vec<(u64, f32, &'static str)>,
 }
 
 /// A real, tiny place recogniser: a frame's "place" is its mean colour; a query matches every earlier
@@ -46,12 +49,16 @@ impl KeyframeProcessor for MeanColourProcessor {
         id: Option<u64>,
         stamp: Stamp,
         image: &image::RgbImage,
-    ) -> anyhow::Result<Vec<types::LoopCandidate>> {
+        depth: Option<&DepthImage>,
+    ) -> anyhow::Result<Processed> {
         self.seen.lock().unwrap().calls.push((id, stamp, image.width(), image.height()));
         let id = id.unwrap_or_else(|| {
             self.next_id += 1;
             1000 + self.next_id
         });
+        if let Some(depth) = depth {
+            self.seen.lock().unwrap().depths.push((id, depth.metres[0], "with"));
+        }
         let mean = image.as_raw().iter().map(|&v| v as f32).sum::<f32>() / image.as_raw().len() as f32;
         let mut found: Vec<types::LoopCandidate> = self
             .history
@@ -77,7 +84,12 @@ impl KeyframeProcessor for MeanColourProcessor {
             c.rank = rank as u32;
         }
         self.history.push((id, stamp, mean));
-        Ok(found)
+        Ok(Processed { keyframe: Some(id), candidates: found })
+    }
+
+    fn attach_depth(&mut self, keyframe: u64, depth: &DepthImage) -> anyhow::Result<bool> {
+        self.seen.lock().unwrap().depths.push((keyframe, depth.metres[0], "after"));
+        Ok(true)
     }
 
     fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String> {
@@ -354,6 +366,83 @@ impl DefaultNode {
         self.stop.store(true, Ordering::Relaxed);
         self.thread.join().unwrap().unwrap()
     }
+}
+
+/// A 32x24 `16UC1` depth image of `millimetres` everywhere, stamped `secs` + `nanos`.
+fn depth_message(secs: i32, nanos: u32, encoding: &str, millimetres: u16) -> Image {
+    Image {
+        header: Header { stamp: ecm_lcd::io::msgs::Time { sec: secs, nanosec: nanos }, frame_id: "depth".into() },
+        height: 24,
+        width: 32,
+        encoding: encoding.into(),
+        is_bigendian: 0,
+        step: 64,
+        data: millimetres.to_le_bytes().repeat(32 * 24),
+    }
+}
+
+/// The node pairs `depth` images with keyframes by stamp (within 20 ms), whichever arrives first: one
+/// sent before its keyframe goes with it to the processor, one sent after is attached to the processed
+/// keyframe; one 30 ms off pairs with nothing, and one of a colour encoding is counted as malformed.
+#[test]
+fn depth_images_reach_their_keyframes_whichever_comes_first() {
+    if !ros_support::inside() {
+        return ros_support::check_inner_run("depth_images_reach_their_keyframes_whichever_comes_first");
+    }
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    // Far-apart colours: no loop candidates, only depth pairing is under test.
+    let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.99 };
+    let node = DefaultNode::start(processor);
+    let context = Context::new().unwrap();
+    let peer = context.new_node(NodeName::new("/", "peer").unwrap(), NodeOptions::new().enable_rosout(false)).unwrap();
+    let reliable = ecm_lcd::ros::node::InputQos::Reliable.profile();
+    let mut peer = peer;
+    let kf_topic = peer.create_topic(&Name::parse("/keyframes").unwrap(), msgs::keyframe_type(), &reliable).unwrap();
+    let depth_topic = peer.create_topic(&Name::parse("/depth").unwrap(), msgs::image_type(), &reliable).unwrap();
+    let kf_pub = peer.create_publisher::<Keyframe>(&kf_topic, None).unwrap();
+    let depth_pub = peer.create_publisher::<Image>(&depth_topic, None).unwrap();
+    let spinner = peer.spinner().unwrap();
+    std::thread::spawn(move || futures::executor::block_on(spinner.spin()));
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while (kf_pub.get_subscription_count(&peer) == 0 || depth_pub.get_subscription_count(&peer) == 0)
+        && Instant::now() < deadline
+    {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(depth_pub.get_subscription_count(&peer) > 0, "node's depth subscription never matched");
+    std::thread::sleep(Duration::from_millis(500));
+    let calls = |n: usize| {
+        let end = Instant::now() + Duration::from_secs(10);
+        while seen.lock().unwrap().calls.len() < n && Instant::now() < end {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        std::thread::sleep(Duration::from_millis(300));
+    };
+
+    // Before its keyframe (5 ms after the keyframe's stamp).
+    depth_pub.publish(depth_message(10, 5_000_500, "16UC1", 1000)).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    kf_pub.publish(keyframe(1, 10, 10)).unwrap();
+    calls(1);
+    // After its keyframe (5 ms before the keyframe's stamp).
+    kf_pub.publish(keyframe(2, 11, 90)).unwrap();
+    calls(2);
+    depth_pub.publish(depth_message(10, 995_000_500, "16UC1", 2000)).unwrap();
+    // 30 ms off: no pair; a colour encoding on the depth topic: malformed.
+    depth_pub.publish(depth_message(12, 30_000_500, "16UC1", 3000)).unwrap();
+    depth_pub.publish(depth_message(13, 500, "rgb8", 4000)).unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    kf_pub.publish(keyframe(3, 12, 170)).unwrap();
+    calls(3);
+    // Whatever is left in the inbox reaches the worker within its next wait.
+    std::thread::sleep(Duration::from_millis(500));
+    let counters = node.stop();
+    let seen = seen.lock().unwrap();
+    assert_eq!(seen.depths, vec![(1, 1.0, "with"), (2, 2.0, "after")], "{counters}");
+    assert_eq!(seen.calls.len(), 3);
+    assert_eq!(counters.malformed, 1, "{counters}");
+    assert_eq!(counters.processed, 3, "{counters}");
+    println!("INNER-DONE {counters}");
 }
 
 #[test]

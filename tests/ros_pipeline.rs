@@ -159,7 +159,7 @@ fn play(seq: &Path, extra: &[&str]) -> String {
     let out = Command::new(EXE)
         .arg("play-keyframes")
         .arg(seq)
-        .args(["--rate", "40", "--linger", "1"])
+        .args(if extra.contains(&"--rate") { &["--linger", "1"][..] } else { &["--rate", "40", "--linger", "1"] })
         .args(extra)
         .env("RUST_LOG", "info,rustdds=error,ros2_client=warn")
         .output()
@@ -383,4 +383,48 @@ fn the_default_log_level_keeps_a_cyclone_camera_run_to_the_nodes_own_lines() {
     }
     assert!(lines.iter().filter(|l| namespace_artefact(l)).count() <= 2, "{log}");
     println!("INNER-DONE {} log lines; node: {counters}", lines.len());
+}
+
+/// Metric loops over DDS: a synthetic sequence with depth played as keyframes plus `depth` images
+/// (`play-keyframes --depth-topic`) into a node with the camera's intrinsics gives the offline run's
+/// candidates, each verified with a metric pose (`loop_type` 3).
+#[test]
+fn keyframes_with_depth_over_dds_give_the_offline_metric_loops() {
+    if !ros_support::inside() {
+        return ros_support::check_inner_run("keyframes_with_depth_over_dds_give_the_offline_metric_loops");
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let config = SynthConfig { frames: 240, laps: 2, seed: 5, rate_hz: 5.0, depth: true, ..SynthConfig::default() };
+    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    // The renderer's camera: focal 0.82 * width, principal point at the centre.
+    let camera = [("camera.fx", "262.4"), ("camera.fy", "262.4"), ("camera.cx", "160"), ("camera.cy", "120")];
+    let mut params = Params::default();
+    for (name, value) in camera {
+        params.set(name, parse_param_value(value).unwrap()).unwrap();
+    }
+    let mut pipeline = Pipeline::new(params, Some(&weights())).unwrap();
+    let mut expected = Vec::new();
+    for frame in ecm_lcd::io::open_source(&seq, None).unwrap() {
+        let frame = frame.unwrap();
+        let outcome =
+            pipeline.process_input(Some(frame.index as u64), frame.stamp, &frame.image, frame.depth.as_ref()).unwrap();
+        expected.extend(outcome.candidates.iter().map(|c| (c.query_id, c.match_id, c.score)));
+    }
+    assert!(expected.len() >= 10, "the sequence should close loops offline: {expected:?}");
+
+    let mut args = vec![OsString::from("--weights"), weights().into(), "--ros-args".into()];
+    for (name, value) in camera {
+        args.extend(["-p".into(), format!("{name}:={value}").into()]);
+    }
+    let node = NodeProcess::start(dir.path(), dir.path().join("node.log"), args);
+    let listener = ros_support::Listener::start(expected.len());
+    let played = play(&seq, &["--rate", "20", "--depth-topic", "/depth"]);
+    assert!(played.contains("published 240 frames"), "{played}");
+    let csv = listener.finish();
+    let counters = node.stop("TERM");
+    assert_rows_equal(&rows(&csv), &expected, &csv);
+    let types: Vec<&str> = csv.lines().map(|l| l.split(',').nth(7).unwrap()).collect();
+    assert!(types.iter().all(|t| *t == "3"), "every loop metric (loop_type 3): {csv}");
+    println!("INNER-DONE {} metric candidates; node: {counters}", expected.len());
 }

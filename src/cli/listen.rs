@@ -1,5 +1,7 @@
 //! `ecm-lcd listen`: prints the LoopCandidates published on a topic as CSV
-//! (`query_id,query_stamp,match_id,match_stamp,distance,score,rank`), for checks and demos.
+//! (`query_id,query_stamp,match_id,match_stamp,distance,score,rank,loop_type,inliers`; `loop_type` as
+//! in LoopCandidate.msg: 0 appearance only, 1 verified, 2 with a pose up to scale, 3 metric), for checks
+//! and demos.
 
 use anyhow::{Context as _, Result};
 use std::io::Write;
@@ -36,7 +38,7 @@ pub fn run(args: Args) -> Result<()> {
     }
     let stdout = std::io::stdout();
     let mut out = stdout.lock();
-    writeln!(out, "query_id,query_stamp,match_id,match_stamp,distance,score,rank")?;
+    writeln!(out, "query_id,query_stamp,match_id,match_stamp,distance,score,rank,loop_type,inliers")?;
     out.flush()?;
     let mut received = 0usize;
     let mut last = Instant::now();
@@ -44,14 +46,16 @@ pub fn run(args: Args) -> Result<()> {
         for c in listener.wait(Duration::from_millis(100))? {
             writeln!(
                 out,
-                "{},{},{},{},{},{},{}",
+                "{},{},{},{},{},{},{},{},{}",
                 c.query_id,
                 Stamp::from(c.header.stamp),
                 c.match_id,
                 Stamp::from(c.match_stamp),
                 c.distance,
                 c.score,
-                c.rank
+                c.rank,
+                c.loop_type,
+                c.inliers
             )?;
             out.flush()?;
             received += 1;

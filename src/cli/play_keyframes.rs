@@ -1,6 +1,7 @@
 //! `ecm-lcd play-keyframes`: a tracker stand-in. Publishes the frames of any replay source (TUM folder,
 //! image folder, ROS 1/2 bag) as ecm_lcd_msgs/Keyframe (id = frame index), sensor_msgs/Image or
-//! sensor_msgs/CompressedImage at a fixed rate, after waiting for a subscriber.
+//! sensor_msgs/CompressedImage at a fixed rate, after waiting for a subscriber; with `--depth-topic`,
+//! each frame's depth image (a TUM folder's `depth.txt`, a bag's `--bag-depth-topic`) too.
 
 use anyhow::{Context as _, Result};
 use std::path::PathBuf;
@@ -25,6 +26,13 @@ pub struct Args {
     /// Image topic inside a bag source (default: its only image topic).
     #[arg(long)]
     pub bag_topic: Option<String>,
+    /// Depth topic inside a bag source, paired with its images (as `replay --depth-topic`).
+    #[arg(long)]
+    pub bag_depth_topic: Option<String>,
+    /// Also publish each frame's depth image (32FC1 metres) on this topic, just before the frame (the
+    /// node listens on /depth).
+    #[arg(long)]
+    pub depth_topic: Option<String>,
     /// QoS of the publisher (match the node's --input-qos).
     #[arg(long, value_enum, default_value_t = InputQos::Reliable)]
     pub qos: InputQos,
@@ -47,11 +55,15 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     anyhow::ensure!(args.rate > 0.0 && args.rate.is_finite(), "--rate must be a positive number, got {}", args.rate);
-    let source = crate::io::open_source(&args.source, args.bag_topic.as_deref())
+    let topics = crate::io::Topics { image: args.bag_topic.clone(), depth: args.bag_depth_topic.clone() };
+    let source = crate::io::open_source_topics(&args.source, &topics)
         .with_context(|| format!("opening {}", args.source.display()))?;
     let topic = args.topic.clone().unwrap_or_else(|| args.send_as.default_topic().to_string());
     let context = ros2_client::Context::new().context("creating the DDS participant")?;
-    let publisher = FramePublisher::new(&context, &topic, args.send_as, args.qos, &args.frame_id)?;
+    let mut publisher = FramePublisher::new(&context, &topic, args.send_as, args.qos, &args.frame_id)?;
+    if let Some(depth_topic) = &args.depth_topic {
+        publisher.add_depth_topic(depth_topic, args.qos)?;
+    }
     log::info!("publishing {} on {topic} as {:?} at {} Hz", source.describe(), args.send_as, args.rate);
     if !publisher.wait_for_subscriber(Duration::from_secs_f64(args.wait.max(0.0))) {
         log::warn!("no subscriber on {topic} after {} s; publishing anyway", args.wait);

@@ -70,6 +70,21 @@ pub fn depth_from_image(msg: &Image) -> Result<DepthImage> {
     Ok(DepthImage { width: msg.width, height: msg.height, metres })
 }
 
+/// `depth` as a `32FC1` `sensor_msgs/Image` in metres, NaN where unknown (as TUM's bags carry it).
+pub fn depth_image_message(stamp: Stamp, frame_id: &str, depth: &DepthImage) -> Image {
+    let data =
+        depth.metres.iter().flat_map(|&m| if m.is_finite() && m > 0.0 { m } else { f32::NAN }.to_le_bytes()).collect();
+    Image {
+        header: super::msgs::Header { stamp: stamp.into(), frame_id: frame_id.to_string() },
+        height: depth.height,
+        width: depth.width,
+        encoding: "32FC1".into(),
+        is_bigendian: 0,
+        step: depth.width * 4,
+        data,
+    }
+}
+
 /// A depth message read from a bag as a [`BagMessage`].
 pub(crate) fn depth_message(msg: &ImageMessage) -> Result<BagMessage> {
     match msg {
@@ -85,6 +100,16 @@ pub(crate) fn describe_topics(bag: &str, colour: &str, colour_count: usize, dept
         out.push_str(&format!(", depth {} ({} messages)", depth.name, depth.count));
     }
     out
+}
+
+/// The item of `stamped` whose stamp is nearest `stamp`, within [`DEPTH_ASSOCIATION`] (the earlier
+/// one on a tie).
+pub fn nearest_within_window<T>(stamped: &VecDeque<(Stamp, T)>, stamp: Stamp) -> Option<&(Stamp, T)> {
+    let offset = |other: &Stamp| other.nanos.abs_diff(stamp.nanos);
+    stamped
+        .iter()
+        .filter(|(other, _)| offset(other) <= DEPTH_ASSOCIATION.nanos.unsigned_abs())
+        .min_by_key(|(other, _)| offset(other))
 }
 
 /// One message of a bag's replayed topics, in record order.
@@ -139,13 +164,7 @@ impl<S: MessageSource> DepthPaired<S> {
     /// The oldest held frame with the nearest depth message within the window, if any.
     fn release_front(&mut self) -> Option<Frame> {
         let mut frame = self.pending.pop_front()?;
-        let offset = |stamp: &Stamp| stamp.nanos.abs_diff(frame.stamp.nanos);
-        frame.depth = self
-            .depths
-            .iter()
-            .filter(|(stamp, _)| offset(stamp) <= DEPTH_ASSOCIATION.nanos as u64)
-            .min_by_key(|(stamp, _)| offset(stamp))
-            .map(|(_, depth)| depth.clone());
+        frame.depth = nearest_within_window(&self.depths, frame.stamp).map(|(_, depth)| depth.clone());
         self.forget_old_depths();
         Some(frame)
     }

@@ -14,6 +14,11 @@
 //! `camera_info` (sensor_msgs/CameraInfo) gives the intrinsics for geometric verification when the
 //! `camera.*` parameters give none; the first calibrated one, and any change, reaches the processor
 //! through the same lane (a 30 Hz camera_info is not queued 30 times a second).
+//! `depth` (sensor_msgs/Image, `16UC1` millimetres or `32FC1` metres, registered to the colour image)
+//! gives verification metric poses. A depth image pairs with the keyframe stamped nearest to it within
+//! [`crate::io::depth::DEPTH_ASSOCIATION`], whichever arrives first ([`DepthMatcher`]): a keyframe waits for nothing,
+//! and a depth image that comes after its keyframe is attached to the keyframe's kept features, which
+//! is where verification uses depth (on the match side, later).
 //! `/diagnostics` (diagnostic_msgs/DiagnosticArray) carries the node's health every second: OK, or WARN
 //! while messages are dropped or fail, with the queue, the counters and the mean worker times.
 //! QoS: inputs reliable, keep last 10 (default) or sensor data (best effort, keep last 5) with
@@ -37,9 +42,10 @@ use super::param_services::ParamServices;
 use super::params;
 use super::queue::{DropOldestQueue, Next};
 use crate::config::{ParamValue, Params};
+use crate::io::depth::{depth_from_image, nearest_within_window};
 use crate::io::image_msg::{decode_compressed_image, decode_image};
 use crate::io::msgs::{CameraInfo, CompressedImage, Header, Image};
-use crate::types::{self, Stamp};
+use crate::types::{self, DepthImage, Stamp};
 use crate::verification::Intrinsics;
 
 /// The node's name unless `-r __node:=...` says otherwise.
@@ -51,16 +57,36 @@ pub const COMPRESSED_TOPIC: &str = "image/compressed";
 pub const CANDIDATES_TOPIC: &str = "loop_candidates";
 /// The camera driver's calibration (`sensor_msgs/CameraInfo`): intrinsics for geometric verification.
 pub const CAMERA_INFO_TOPIC: &str = "camera_info";
+pub const DEPTH_TOPIC: &str = "depth";
 /// Where ROS nodes publish their health (absolute, as the ROS tools expect).
 pub const DIAGNOSTICS_TOPIC: &str = "/diagnostics";
 /// Loop edges for RViz (`visualization_msgs/MarkerArray`), where keyframes carry poses.
 pub const MARKERS_TOPIC: &str = "loop_markers";
 
+/// What became of one image in a [`KeyframeProcessor`].
+#[derive(Clone, Debug, Default)]
+pub struct Processed {
+    /// The keyframe id, when the image was taken as a keyframe.
+    pub keyframe: Option<u64>,
+    pub candidates: Vec<types::LoopCandidate>,
+}
+
 /// What the node runs each keyframe through (the pipeline implements it).
 pub trait KeyframeProcessor: Send + 'static {
     /// `id`: Some(tracker's keyframe id) for Keyframe messages (selection bypassed); None for plain images
-    /// (the processor assigns ids from a counter and applies keyframe selection).
-    fn process(&mut self, id: Option<u64>, stamp: Stamp, image: &image::RgbImage) -> Result<Vec<types::LoopCandidate>>;
+    /// (the processor assigns ids from a counter and applies keyframe selection). `depth`: the image's
+    /// depth, where it arrived first.
+    fn process(
+        &mut self,
+        id: Option<u64>,
+        stamp: Stamp,
+        image: &image::RgbImage,
+        depth: Option<&DepthImage>,
+    ) -> Result<Processed>;
+    /// A depth image that arrived after its keyframe was processed; returns whether it was taken.
+    fn attach_depth(&mut self, _keyframe: u64, _depth: &DepthImage) -> Result<bool> {
+        Ok(false)
+    }
     /// Apply a validated runtime parameter change.
     fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String>;
     /// Camera intrinsics from `camera_info`; returns whether geometric verification is on afterwards.
@@ -75,11 +101,14 @@ pub trait KeyframeProcessor: Send + 'static {
 }
 
 impl KeyframeProcessor for crate::pipeline::Pipeline {
-    fn process(&mut self, id: Option<u64>, stamp: Stamp, image: &image::RgbImage) -> Result<Vec<types::LoopCandidate>> {
-        let outcome = match id {
-            Some(id) => self.process_keyframe(id, stamp, image)?,
-            None => self.process_counted(stamp, image)?,
-        };
+    fn process(
+        &mut self,
+        id: Option<u64>,
+        stamp: Stamp,
+        image: &image::RgbImage,
+        depth: Option<&DepthImage>,
+    ) -> Result<Processed> {
+        let outcome = self.process_input(id, stamp, image, depth)?;
         if let Some(id) = outcome.keyframe {
             let t = outcome.timings;
             log::debug!(
@@ -90,7 +119,11 @@ impl KeyframeProcessor for crate::pipeline::Pipeline {
                 outcome.candidates.len()
             );
         }
-        Ok(outcome.candidates)
+        Ok(Processed { keyframe: outcome.keyframe, candidates: outcome.candidates })
+    }
+
+    fn attach_depth(&mut self, keyframe: u64, depth: &DepthImage) -> Result<bool> {
+        crate::pipeline::Pipeline::attach_depth(self, keyframe, depth)
     }
 
     fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String> {
@@ -317,6 +350,7 @@ pub fn run_node(
     let (cmp_topic, cmp_name) = topic(&mut node, COMPRESSED_TOPIC, msgs::compressed_image_type(), &input_qos)?;
     let (out_topic, out_name) = topic(&mut node, CANDIDATES_TOPIC, msgs::loop_candidate_type(), &output_qos())?;
     let (info_topic, info_name) = topic(&mut node, CAMERA_INFO_TOPIC, msgs::camera_info_type(), &input_qos)?;
+    let (depth_topic, depth_name) = topic(&mut node, DEPTH_TOPIC, msgs::image_type(), &input_qos)?;
     let (markers_topic, markers_name) = topic(&mut node, MARKERS_TOPIC, msgs::marker_array_type(), &output_qos())?;
     let (diag_topic, diag_name) =
         topic(&mut node, DIAGNOSTICS_TOPIC, msgs::diagnostic_array_type(), &diagnostics_qos())?;
@@ -330,6 +364,9 @@ pub fn run_node(
         node.create_subscription(&cmp_topic, None).map_err(sub_err(&cmp_name))?;
     let mut info_sub: Subscription<CameraInfo> =
         node.create_subscription(&info_topic, None).map_err(sub_err(&info_name))?;
+    let mut depth_sub: Subscription<Image> =
+        node.create_subscription(&depth_topic, None).map_err(sub_err(&depth_name))?;
+    let depth_inbox = Arc::new(DepthInbox::default());
     let publisher: Publisher<LoopCandidate> =
         node.create_publisher(&out_topic, None).map_err(|e| anyhow::anyhow!("creating publisher {out_name}: {e:?}"))?;
     let markers: Publisher<MarkerArray> = node
@@ -351,7 +388,7 @@ pub fn run_node(
 
     info!(
         "[{fqn}] listening on {kf_name} (Keyframe), {img_name} (Image), {cmp_name} (CompressedImage), \
-         {info_name} (CameraInfo) with {:?} QoS; publishing {out_name}; queue capacity {}",
+         {info_name} (CameraInfo), {depth_name} (Image, depth) with {:?} QoS; publishing {out_name}; queue capacity {}",
         settings.input_qos, settings.queue_capacity
     );
 
@@ -360,28 +397,31 @@ pub fn run_node(
         let counters = counters.clone();
         let fqn = fqn.clone();
         let live = live.clone();
+        let depths = depth_inbox.clone();
         std::thread::Builder::new()
             .name("lcd-worker".into())
             // On a rayon worker for its whole life: see `runtime::on_worker`.
             .spawn(move || {
                 let outputs = Outputs { candidates: &publisher, markers: &markers, markers_frame: &markers_frame };
-                crate::runtime::on_worker(|| worker_loop(&fqn, processor, &queue, outputs, &counters, &live))
+                let inputs = Inputs { queue: &queue, depths: &depths };
+                crate::runtime::on_worker(|| worker_loop(&fqn, processor, inputs, outputs, &counters, &live))
             })
             .context("starting the worker thread")?
     };
 
     let mut poll = Poll::new().context("creating the poll")?;
-    let (kf_token, img_token, cmp_token, info_token) = (Token(1), Token(2), Token(3), Token(4));
+    let (kf_token, img_token, cmp_token, info_token, depth_token) = (Token(1), Token(2), Token(3), Token(4), Token(5));
     poll.registry().register(&mut kf_sub, kf_token, Interest::READABLE).context("polling keyframes")?;
     poll.registry().register(&mut img_sub, img_token, Interest::READABLE).context("polling images")?;
     poll.registry().register(&mut cmp_sub, cmp_token, Interest::READABLE).context("polling compressed images")?;
     poll.registry().register(&mut info_sub, info_token, Interest::READABLE).context("polling camera_info")?;
+    poll.registry().register(&mut depth_sub, depth_token, Interest::READABLE).context("polling depth")?;
     // The last intrinsics passed on, and whether an uncalibrated camera_info was reported.
     let mut camera_info: (Option<Intrinsics>, bool) = (None, false);
     let mut services = ParamServices::create(&context, &fqn)?;
     services.register(poll.registry(), 10).context("polling the parameter services")?;
     let mut events = Events::with_capacity(16);
-    let mut indices = [0u64; 3];
+    let mut indices = [0u64; 4];
     let mut last_status = (Instant::now(), counters.snapshot());
     let mut last_diagnostics = (Instant::now(), counters.snapshot());
     let enqueue = |message: Incoming, index: u64| {
@@ -410,6 +450,18 @@ pub fn run_node(
         drain(&kf_sub, &mut indices[0], Incoming::Keyframe, &enqueue, |i, r| malformed(&kf_name, i, r));
         drain(&img_sub, &mut indices[1], Incoming::Image, &enqueue, |i, r| malformed(&img_name, i, r));
         drain(&cmp_sub, &mut indices[2], Incoming::Compressed, &enqueue, |i, r| malformed(&cmp_name, i, r));
+        loop {
+            let index = indices[3];
+            match depth_sub.take() {
+                Ok(Some((msg, _))) => match depth_from_image(&msg) {
+                    Ok(depth) => depth_inbox.push(Stamp::from(msg.header.stamp), depth),
+                    Err(e) => malformed(&depth_name, index, format!("{e:#}")),
+                },
+                Ok(None) => break,
+                Err(e) => malformed(&depth_name, index, format!("{e:?}")),
+            }
+            indices[3] += 1;
+        }
         loop {
             match info_sub.take() {
                 Ok(Some((info, _))) => match info.intrinsics() {
@@ -598,15 +650,87 @@ struct Outputs<'a> {
     markers_frame: &'a str,
 }
 
+/// Depth images received on `depth`, decoded, waiting for the worker: the newest
+/// [`DepthInbox::CAPACITY`] (a keyframe older than that many depth frames has been processed already).
+#[derive(Default)]
+struct DepthInbox {
+    images: Mutex<std::collections::VecDeque<(Stamp, DepthImage)>>,
+}
+
+impl DepthInbox {
+    const CAPACITY: usize = 16;
+
+    fn push(&self, stamp: Stamp, depth: DepthImage) {
+        let mut images = self.images.lock().unwrap_or_else(|e| e.into_inner());
+        push_bounded(&mut images, (stamp, depth), Self::CAPACITY);
+    }
+
+    fn take(&self) -> std::collections::VecDeque<(Stamp, DepthImage)> {
+        std::mem::take(&mut *self.images.lock().unwrap_or_else(|e| e.into_inner()))
+    }
+}
+
+/// Appends `item`, dropping the oldest beyond `capacity`.
+fn push_bounded<T>(items: &mut std::collections::VecDeque<T>, item: T, capacity: usize) {
+    items.push_back(item);
+    while items.len() > capacity {
+        items.pop_front();
+    }
+}
+
+/// Pairs depth images with keyframes by stamp, whichever arrives first (module doc).
+#[derive(Default)]
+struct DepthMatcher {
+    /// Depth images no keyframe has taken yet, newest last.
+    unclaimed: std::collections::VecDeque<(Stamp, DepthImage)>,
+    /// Keyframes processed without depth, newest last.
+    waiting: std::collections::VecDeque<(Stamp, u64)>,
+}
+
+impl DepthMatcher {
+    const CAPACITY: usize = 16;
+
+    /// A new depth image: attached to the keyframe waiting for it, else kept for one to come.
+    fn offer(&mut self, fqn: &str, stamp: Stamp, depth: DepthImage, processor: &mut dyn KeyframeProcessor) {
+        let Some(&(_, keyframe)) = nearest_within_window(&self.waiting, stamp) else {
+            push_bounded(&mut self.unclaimed, (stamp, depth), Self::CAPACITY);
+            return;
+        };
+        self.waiting.retain(|&(_, id)| id != keyframe);
+        match processor.attach_depth(keyframe, &depth) {
+            Ok(taken) => debug!("[{fqn}] depth stamped {stamp} for keyframe {keyframe} after it: taken {taken}"),
+            Err(e) => warn!("[{fqn}] depth stamped {stamp} refused for keyframe {keyframe}: {e:#}"),
+        }
+    }
+
+    /// The depth image for a keyframe stamped `stamp`, if it came first.
+    fn depth_for(&self, stamp: Stamp) -> Option<&DepthImage> {
+        nearest_within_window(&self.unclaimed, stamp).map(|(_, depth)| depth)
+    }
+
+    /// A keyframe processed without depth waits for its depth image.
+    fn wait(&mut self, stamp: Stamp, keyframe: u64) {
+        push_bounded(&mut self.waiting, (stamp, keyframe), Self::CAPACITY);
+    }
+}
+
+/// What the worker takes in: queued messages and controls, and depth images.
+struct Inputs<'a> {
+    queue: &'a DropOldestQueue<Queued, Control>,
+    depths: &'a DepthInbox,
+}
+
 /// Decodes, processes and publishes queued messages until the queue closes.
 fn worker_loop(
     fqn: &str,
     mut processor: Box<dyn KeyframeProcessor>,
-    queue: &DropOldestQueue<Queued, Control>,
+    inputs: Inputs,
     outputs: Outputs,
     counters: &NodeCounters,
     live: &Mutex<Params>,
 ) {
+    let queue = inputs.queue;
+    let mut depths = DepthMatcher::default();
     let publisher = outputs.candidates;
     let mut frame_ids = FrameIds::default();
     // Read-only while running: read once.
@@ -615,7 +739,11 @@ fn worker_loop(
         _ => String::new(),
     };
     loop {
-        let queued = match queue.pop(Duration::from_millis(200)) {
+        let next = queue.pop(Duration::from_millis(200));
+        for (stamp, depth) in inputs.depths.take() {
+            depths.offer(fqn, stamp, depth, processor.as_mut());
+        }
+        let queued = match next {
             Next::Control(Control::Param(name, value)) => {
                 if let Err(reason) = processor.set_param(&name, &value) {
                     error!("[{fqn}] the processor refused {name} = {value}: {reason}");
@@ -668,11 +796,18 @@ fn worker_loop(
         counters.decode_us.fetch_add((decode_ms * 1e3) as u64, Ordering::Relaxed);
         let stamp = Stamp::from(header.stamp);
         let process_start = Instant::now();
-        let result = processor.process(id, stamp, &image);
+        let depth = depths.depth_for(stamp);
+        let had_depth = depth.is_some();
+        let result = processor.process(id, stamp, &image, depth);
         let process_ms = process_start.elapsed().as_secs_f64() * 1e3;
         counters.process_us.fetch_add((process_ms * 1e3) as u64, Ordering::Relaxed);
         let candidates = match result {
-            Ok(c) => c,
+            Ok(Processed { keyframe, candidates }) => {
+                if let (Some(keyframe), false) = (keyframe, had_depth) {
+                    depths.wait(stamp, keyframe);
+                }
+                candidates
+            }
             Err(e) => {
                 counters.failed.fetch_add(1, Ordering::Relaxed);
                 error!("[{fqn}] processing message #{} on {topic} (stamp {stamp}) failed: {e:#}", queued.index);

@@ -49,10 +49,12 @@ enum AnyPublisher {
     Compressed(Publisher<CompressedImage>),
 }
 
-/// Publishes frames on one topic.
+/// Publishes frames on one topic, and their depth images on another where asked.
 pub struct FramePublisher {
     node: Node,
     publisher: AnyPublisher,
+    /// Depth images (`32FC1`) and their topic.
+    depth: Option<(Publisher<Image>, String)>,
     frame_id: String,
     topic: String,
 }
@@ -102,7 +104,20 @@ impl FramePublisher {
             SendAs::Image => AnyPublisher::Image(node.create_publisher(&t, None).map_err(err)?),
             SendAs::Compressed => AnyPublisher::Compressed(node.create_publisher(&t, None).map_err(err)?),
         };
-        Ok(FramePublisher { node, publisher, frame_id: frame_id.to_string(), topic: topic.to_string() })
+        Ok(FramePublisher { node, publisher, depth: None, frame_id: frame_id.to_string(), topic: topic.to_string() })
+    }
+
+    /// Also publishes each frame's depth image, where it has one, on `topic` (just before the frame).
+    pub fn add_depth_topic(&mut self, topic: &str, qos: InputQos) -> Result<()> {
+        let name = topic_name(topic)?;
+        let t = self
+            .node
+            .create_topic(&name, msgs::image_type(), &qos.profile())
+            .map_err(|e| anyhow::anyhow!("topic {topic}: {e:?}"))?;
+        let publisher =
+            self.node.create_publisher(&t, None).map_err(|e| anyhow::anyhow!("publisher on {topic}: {e:?}"))?;
+        self.depth = Some((publisher, topic.to_string()));
+        Ok(())
     }
 
     /// Number of matched subscriptions.
@@ -114,9 +129,11 @@ impl FramePublisher {
         }
     }
 
-    /// Waits until at least one subscriber matched; false on timeout.
+    /// Waits until at least one subscriber matched (on the depth topic too, where there is one); false
+    /// on timeout.
     pub fn wait_for_subscriber(&self, timeout: Duration) -> bool {
-        wait_until(timeout, || self.subscribers() > 0)
+        let depth_matched = || self.depth.as_ref().is_none_or(|(p, _)| p.get_subscription_count(&self.node) > 0);
+        wait_until(timeout, || self.subscribers() > 0 && depth_matched())
     }
 
     /// Publishes one frame (Keyframe id = `frame.index`).
@@ -127,6 +144,12 @@ impl FramePublisher {
     /// Publishes one frame; a Keyframe carries `pose` (the camera in the tracker's map) where given.
     pub fn publish_with_pose(&self, frame: &Frame, pose: Option<msgs::Pose>) -> Result<()> {
         let ctx = || format!("publishing frame {} on {}", frame.index, self.topic);
+        if let (Some((publisher, topic)), Some(depth)) = (&self.depth, &frame.depth) {
+            publisher
+                .publish(crate::io::depth::depth_image_message(frame.stamp, &self.frame_id, depth))
+                .map_err(|e| anyhow::anyhow!("{e:?}"))
+                .with_context(|| format!("publishing the depth of frame {} on {topic}", frame.index))?;
+        }
         match &self.publisher {
             AnyPublisher::Keyframe(p) => {
                 let image = rgb8_message(frame.stamp, &self.frame_id, &frame.image);

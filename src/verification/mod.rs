@@ -121,6 +121,8 @@ pub struct LocalFeatures {
     pub descriptors: Vec<[u8; 32]>,
     /// Depth in metres of each keypoint (0: unknown), or empty when the keyframe has no depth image.
     pub depths: Vec<f32>,
+    /// Width and height of the image the keypoints were found in.
+    pub image_size: [u32; 2],
 }
 
 impl LocalFeatures {
@@ -130,6 +132,19 @@ impl LocalFeatures {
 
     pub fn is_empty(&self) -> bool {
         self.keypoints.is_empty()
+    }
+
+    /// Reads each keypoint's depth from `depth`, which must have the image's size.
+    pub fn set_depth(&mut self, depth: &DepthImage) -> Result<()> {
+        let [width, height] = self.image_size;
+        ensure!(
+            (depth.width, depth.height) == (width, height),
+            "depth image is {}x{}, its colour image {width}x{height}",
+            depth.width,
+            depth.height,
+        );
+        self.depths = self.keypoints.iter().map(|&[x, y]| depth.at(x, y).unwrap_or(0.0)).collect();
+        Ok(())
     }
 
     /// Memory the features take.
@@ -159,29 +174,27 @@ pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
     let gray = image::imageops::grayscale(image);
     let size = ImageSize { width: gray.width() as usize, height: gray.height() as usize };
     let orb = OrbDetector { n_keypoints: max_features, ..OrbDetector::default() };
+    let image_size = [image.width(), image.height()];
     // The extractor needs room for its pyramid and patch; a tiny image simply has no features.
     if size.width < 64 || size.height < 64 {
-        return Ok(LocalFeatures::default());
+        return Ok(LocalFeatures { image_size, ..LocalFeatures::default() });
     }
     let image =
         Image::<u8, 1>::new(size, gray.into_raw()).map_err(|e| anyhow::anyhow!("grayscale image for ORB: {e}"))?;
     let features = orb.detect_and_extract_u8(&image).map_err(|e| anyhow::anyhow!("ORB extraction: {e}"))?;
-    Ok(LocalFeatures { keypoints: features.keypoints_xy, descriptors: features.descriptors, depths: Vec::new() })
+    Ok(LocalFeatures {
+        keypoints: features.keypoints_xy,
+        descriptors: features.descriptors,
+        depths: Vec::new(),
+        image_size,
+    })
 }
 
 /// [`extract`], with each keypoint's depth read from `depth` where given.
 pub fn extract_with_depth(image: &RgbImage, depth: Option<&DepthImage>, max_features: usize) -> Result<LocalFeatures> {
     let mut features = extract(image, max_features)?;
     if let Some(depth) = depth {
-        ensure!(
-            (depth.width, depth.height) == image.dimensions(),
-            "depth image is {}x{}, its colour image {}x{}",
-            depth.width,
-            depth.height,
-            image.width(),
-            image.height()
-        );
-        features.depths = features.keypoints.iter().map(|&[x, y]| depth.at(x, y).unwrap_or(0.0)).collect();
+        features.set_depth(depth)?;
     }
     Ok(features)
 }
@@ -439,6 +452,15 @@ impl Verifier {
         }
     }
 
+    /// Gives keyframe `id`'s kept features their depths from `depth` (a depth image that arrived after
+    /// its keyframe); returns whether they were kept and had none yet.
+    pub fn attach_depth(&mut self, id: u64, depth: &DepthImage) -> Result<bool> {
+        match self.features.get_mut(&id) {
+            Some(features) if features.depths.is_empty() => features.set_depth(depth).map(|()| true),
+            _ => Ok(false),
+        }
+    }
+
     /// Number of keyframes whose features are kept.
     pub fn kept(&self) -> usize {
         self.order.len()
@@ -618,5 +640,27 @@ mod tests {
         }
         // Too few points: no metric pose.
         assert!(metric_pose(&points[..MIN_METRIC_INLIERS - 1], &intrinsics, 2.0).is_none());
+    }
+
+    #[test]
+    fn depth_attached_after_the_fact_fills_the_kept_features_once() {
+        let params = VerificationParams { keyframes: 2, ..VerificationParams::default() };
+        let mut verifier = Verifier::new(params).unwrap();
+        let features = LocalFeatures {
+            keypoints: vec![[1.5, 0.5], [3.0, 1.0]],
+            descriptors: vec![[0; 32]; 2],
+            depths: Vec::new(),
+            image_size: [4, 2],
+        };
+        verifier.remember(7, features);
+        let depth = DepthImage { width: 4, height: 2, metres: vec![0.5, 1.5, 2.5, 3.5, 4.5, 5.5, 6.5, 0.0] };
+        let small = DepthImage { width: 2, height: 2, metres: vec![1.0; 4] };
+        let err = verifier.attach_depth(7, &small).unwrap_err().to_string();
+        assert!(err.contains("depth image is 2x2, its colour image 4x2"), "{err}");
+        assert!(verifier.attach_depth(7, &depth).unwrap());
+        assert_eq!(verifier.features[&7].depths, vec![1.5, 0.0]);
+        // Once only, and only for kept keyframes.
+        assert!(!verifier.attach_depth(7, &depth).unwrap());
+        assert!(!verifier.attach_depth(8, &depth).unwrap());
     }
 }

@@ -82,7 +82,7 @@ impl Listener {
         stdout.read_line(&mut header).unwrap();
         assert_eq!(
             header.trim(),
-            "query_id,query_stamp,match_id,match_stamp,distance,score,rank",
+            "query_id,query_stamp,match_id,match_stamp,distance,score,rank,loop_type,inliers",
             "listener failed to start"
         );
         // The writer side of the match may lag the reader side a little.
