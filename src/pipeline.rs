@@ -226,7 +226,7 @@ impl Pipeline {
             self.next_id
         );
         self.store = Some(store);
-        Ok(())
+        self.restore_local_features()
     }
 
     pub fn store(&self) -> Option<&KeyframeStore> {
@@ -290,10 +290,27 @@ impl Pipeline {
     /// processed), for verifying later queries against it; returns whether it was taken (false when
     /// verification is off, the keyframe's features are not kept, or it already has depth).
     pub fn attach_depth(&mut self, id: u64, depth: &DepthImage) -> Result<bool> {
-        match &mut self.verifier {
-            Some(verifier) => verifier.attach_depth(id, depth),
-            None => Ok(false),
+        let Some(verifier) = &mut self.verifier else { return Ok(false) };
+        let taken = verifier.attach_depth(id, depth)?;
+        if let (true, Some(store), Some(features)) = (taken, &mut self.store, verifier.features(id)) {
+            store.update_local_features(id, &features.to_bytes())?;
         }
+        Ok(taken)
+    }
+
+    /// Gives verification the stored local features of the newest keyframes it keeps, so loops to
+    /// keyframes stored before a restart are verified as before it.
+    fn restore_local_features(&mut self) -> Result<()> {
+        let (Some(store), Some(verifier)) = (&self.store, &mut self.verifier) else { return Ok(()) };
+        let stored = store.local_features(verifier.params().keyframes)?;
+        let count = stored.len();
+        for (id, bytes) in stored {
+            let features = LocalFeatures::from_bytes(&bytes)
+                .with_context(|| format!("keyframe {id}'s local features in {}", store.path().display()))?;
+            verifier.remember(id, features);
+        }
+        log::info!("keyframe database {}: local features of {count} keyframes restored", store.path().display());
+        Ok(())
     }
 
     fn run(
@@ -340,16 +357,20 @@ impl Pipeline {
         outcome.keyframe = Some(id);
         let after_detector = Instant::now();
         outcome.timings.detector_ms = (after_detector - after_descriptor).as_secs_f64() * 1e3;
+        let mut stored_features = None;
         if self.verifier.is_some() {
             let features = self.local_features(image, depth)?;
             self.verify_outcome(&features, &mut outcome);
+            if self.store.is_some() {
+                stored_features = Some(features.to_bytes());
+            }
             self.remember_features(id, features);
             outcome.timings.verification_ms = after_detector.elapsed().as_secs_f64() * 1e3;
         }
-        // The keyframe and its final candidates in one transaction, before any caller writes them
-        // out: a restart finds both or neither.
+        // The keyframe, its final candidates and its local features in one transaction, before any
+        // caller writes the candidates out: a restart finds all or none.
         if let Some(store) = &mut self.store {
-            store.append_keyframe(id, stamp, &descriptor, &outcome.candidates)?;
+            store.append_keyframe(id, stamp, &descriptor, &outcome.candidates, stored_features.as_deref())?;
         }
         Ok(outcome)
     }
@@ -459,6 +480,7 @@ impl Pipeline {
                 None => {
                     log::info!("geometric verification on from camera_info: {params:?}");
                     self.verifier = Some(Verifier::new(params)?);
+                    self.restore_local_features()?;
                 }
             }
         }

@@ -399,3 +399,57 @@ fn a_database_refuses_to_continue_another_source() {
     // The same source again is fine.
     assert!(run(&a).status.success());
 }
+
+/// With verification on, a pipeline restarted on its database verifies loops to keyframes stored
+/// before the restart as an uninterrupted one does: their local features (with depth) come back from
+/// the database. The candidates after the restart, their inliers and metric poses, equal the
+/// uninterrupted run's.
+#[test]
+fn a_restart_keeps_verifying_loops_to_keyframes_stored_before_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let config = SynthConfig { frames: 240, laps: 2, seed: 5, rate_hz: 5.0, depth: true, ..SynthConfig::default() };
+    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    let frames: Vec<_> = ecm_lcd::io::open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    let mut params = Params::default();
+    // The renderer's camera: focal 0.82 * width, principal point at the centre.
+    for (name, value) in [("camera.fx", "262.4"), ("camera.fy", "262.4"), ("camera.cx", "160"), ("camera.cy", "120")] {
+        params.set_from_str(name, value).unwrap();
+    }
+    let weights = resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
+    let pipeline = |db: &Path| {
+        let mut p = Pipeline::with_weights(params.clone(), weights.clone()).unwrap();
+        p.open_store(db).unwrap();
+        p
+    };
+    // (query, match, inliers, metric, translation) of every candidate from frame `from` on.
+    type Row = (u64, u64, u32, bool, [f64; 3]);
+    let run = |p: &mut Pipeline, frames: &[ecm_lcd::types::Frame]| -> Vec<Row> {
+        let mut rows = Vec::new();
+        for frame in frames {
+            for c in p.process_source_frame(frame).unwrap().candidates {
+                let verified = c.verified.expect("verification is on");
+                let pose = verified.pose.expect("intrinsics given: a pose");
+                let t = pose.translation;
+                rows.push((c.query_id, c.match_id, verified.inliers, pose.metric, [t.x, t.y, t.z]));
+            }
+        }
+        rows
+    };
+    let restart_at = 150; // in the second lap: loops to the first lap from before and after the restart
+    let uninterrupted = run(&mut pipeline(&dir.path().join("whole.db")), &frames);
+    let db = dir.path().join("restarted.db");
+    let before = run(&mut pipeline(&db), &frames[..restart_at]);
+    let after = run(&mut pipeline(&db), &frames[restart_at..]);
+    let expected_after: Vec<Row> = uninterrupted.iter().filter(|r| r.0 >= restart_at as u64).cloned().collect();
+    assert!(expected_after.len() >= 20, "{} loops after the restart point", expected_after.len());
+    assert!(expected_after.iter().all(|r| r.3), "every loop metric (depth)");
+    assert_eq!(before.len() + after.len(), uninterrupted.len());
+    let key = |rows: &[Row]| rows.iter().map(|r| (r.0, r.1, r.2, r.3)).collect::<Vec<_>>();
+    assert_eq!(key(&after), key(&expected_after), "candidates, inliers and metric flags after the restart");
+    for (got, want) in after.iter().zip(&expected_after) {
+        let apart = (0..3).map(|i| (got.4[i] - want.4[i]).powi(2)).sum::<f64>().sqrt();
+        assert!(apart < 1e-9, "{} -> {}: translation {apart} m from the uninterrupted run's", got.0, got.1);
+    }
+    println!("{} candidates after the restart, all verified and metric as without it", after.len());
+}

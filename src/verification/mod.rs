@@ -147,6 +147,44 @@ impl LocalFeatures {
         Ok(())
     }
 
+    /// The features as bytes (for the keyframe store): version 1, image width and height and the
+    /// keypoint count (`u32`), whether depths follow (`u8`), then keypoints as `f32` pairs, the
+    /// 32-byte descriptors and the depths, all little-endian.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(14 + self.bytes());
+        out.push(1u8);
+        for v in [self.image_size[0], self.image_size[1], self.keypoints.len() as u32] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.push(u8::from(!self.depths.is_empty()));
+        out.extend(self.keypoints.iter().flatten().flat_map(|v| v.to_le_bytes()));
+        out.extend(self.descriptors.iter().flatten());
+        out.extend(self.depths.iter().flat_map(|v| v.to_le_bytes()));
+        out
+    }
+
+    /// Features written by [`LocalFeatures::to_bytes`]; an error says what does not fit.
+    pub fn from_bytes(bytes: &[u8]) -> Result<LocalFeatures> {
+        ensure!(bytes.len() >= 14 && bytes[0] == 1, "not version-1 local features ({} bytes)", bytes.len());
+        let word = |at: usize| u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]);
+        let (width, height, n) = (word(1), word(5), word(9) as usize);
+        let with_depth = bytes[13] == 1;
+        let expected = 14 + n * (8 + 32 + if with_depth { 4 } else { 0 });
+        ensure!(bytes.len() == expected, "local features of {n} keypoints take {expected} bytes, not {}", bytes.len());
+        let floats = |from: usize, count: usize| -> Vec<f32> {
+            bytes[from..from + 4 * count]
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                .collect()
+        };
+        let keypoints = floats(14, 2 * n).chunks_exact(2).map(|p| [p[0], p[1]]).collect();
+        let start = 14 + 8 * n;
+        let descriptors =
+            bytes[start..start + 32 * n].chunks_exact(32).map(|d| <[u8; 32]>::try_from(d).expect("32 bytes")).collect();
+        let depths = if with_depth { floats(start + 32 * n, n) } else { Vec::new() };
+        Ok(LocalFeatures { keypoints, descriptors, depths, image_size: [width, height] })
+    }
+
     /// Memory the features take.
     pub fn bytes(&self) -> usize {
         self.len() * (std::mem::size_of::<[f32; 2]>() + std::mem::size_of::<[u8; 32]>())
@@ -461,6 +499,11 @@ impl Verifier {
         }
     }
 
+    /// The features kept for keyframe `id`.
+    pub fn features(&self, id: u64) -> Option<&LocalFeatures> {
+        self.features.get(&id)
+    }
+
     /// Number of keyframes whose features are kept.
     pub fn kept(&self) -> usize {
         self.order.len()
@@ -662,5 +705,20 @@ mod tests {
         // Once only, and only for kept keyframes.
         assert!(!verifier.attach_depth(7, &depth).unwrap());
         assert!(!verifier.attach_depth(8, &depth).unwrap());
+    }
+
+    #[test]
+    fn local_features_round_trip_through_bytes_and_refuse_damage() {
+        let mut features = extract(&blocks(3, 128, 96), 200).unwrap();
+        assert!(features.len() > 50, "{} features", features.len());
+        assert_eq!(LocalFeatures::from_bytes(&features.to_bytes()).unwrap(), features);
+        features.depths = (0..features.len()).map(|i| i as f32 * 0.25).collect();
+        let bytes = features.to_bytes();
+        assert_eq!(LocalFeatures::from_bytes(&bytes).unwrap(), features);
+        let err = LocalFeatures::from_bytes(&bytes[..bytes.len() - 1]).unwrap_err().to_string();
+        assert!(err.contains("take"), "{err}");
+        assert!(LocalFeatures::from_bytes(&[2, 0, 0]).is_err());
+        let empty = LocalFeatures { image_size: [10, 20], ..LocalFeatures::default() };
+        assert_eq!(LocalFeatures::from_bytes(&empty.to_bytes()).unwrap(), empty);
     }
 }

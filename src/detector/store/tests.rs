@@ -304,14 +304,14 @@ fn candidates_are_stored_with_their_keyframe_and_read_back_in_order() {
         rank: 0,
         verified: None,
     };
-    store.append_keyframe(5, stamp(5), &descriptor(5, 4), &[candidate(5, 0), candidate(5, 1)]).unwrap();
-    store.append_keyframe(3, stamp(3), &descriptor(3, 4), &[candidate(3, 1)]).unwrap();
+    store.append_keyframe(5, stamp(5), &descriptor(5, 4), &[candidate(5, 0), candidate(5, 1)], None).unwrap();
+    store.append_keyframe(3, stamp(3), &descriptor(3, 4), &[candidate(3, 1)], None).unwrap();
     // Insertion order (5 before 3), not id order; keyframes without candidates add nothing.
     let stored = store.stored_candidates().unwrap().unwrap();
     assert_eq!(stored.iter().map(|c| (c.query_id, c.match_id)).collect::<Vec<_>>(), [(5, 0), (5, 1), (3, 1)]);
     assert_eq!(stored[0], candidate(5, 0));
     // A refused keyframe stores neither it nor its candidates.
-    assert!(store.append_keyframe(5, stamp(5), &descriptor(5, 4), &[candidate(5, 1)]).is_err());
+    assert!(store.append_keyframe(5, stamp(5), &descriptor(5, 4), &[candidate(5, 1)], None).is_err());
     assert_eq!(store.stored_candidates().unwrap().unwrap().len(), 3);
     assert!(store.contains(3).unwrap() && !store.contains(4).unwrap());
     drop(store);
@@ -322,4 +322,25 @@ fn candidates_are_stored_with_their_keyframe_and_read_back_in_order() {
     let merged = dir.path().join("m.db");
     merge(&path, &other, &merged, 0).unwrap();
     assert!(KeyframeStore::open_read_only(&merged).unwrap().stored_candidates().unwrap().is_none());
+}
+
+#[test]
+fn local_features_are_stored_with_their_keyframe_updated_and_read_newest_first_limited() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("f.db");
+    let mut store = store_with(&path, [0], 4);
+    for id in [1u64, 2, 3] {
+        store.append_keyframe(id, stamp(id), &descriptor(id, 4), &[], Some(&[id as u8; 3])).unwrap();
+    }
+    // Keyframe 0 has none; the newest two come oldest first.
+    assert_eq!(store.local_features(0).unwrap(), vec![(1, vec![1; 3]), (2, vec![2; 3]), (3, vec![3; 3])]);
+    assert_eq!(store.local_features(2).unwrap(), vec![(2, vec![2; 3]), (3, vec![3; 3])]);
+    store.update_local_features(2, &[9, 9]).unwrap();
+    let err = store.update_local_features(0, &[1]).unwrap_err().to_string();
+    assert!(err.contains("keyframe 0 has no stored local features"), "{err}");
+    // A duplicate id stores nothing: the keyframe's transaction is refused whole.
+    assert!(store.append_keyframe(3, stamp(3), &descriptor(3, 4), &[], Some(&[7])).is_err());
+    drop(store);
+    let reopened = KeyframeStore::open_read_only(&path).unwrap();
+    assert_eq!(reopened.local_features(0).unwrap(), vec![(1, vec![1; 3]), (2, vec![9, 9]), (3, vec![3; 3])]);
 }
