@@ -20,7 +20,7 @@ use image::RgbImage;
 use crate::config::{ParamValue, Params};
 use crate::descriptor::{Descriptor, DescriptorMode, Projection};
 use crate::detector::selection::{KeyframeSelector, Verdict};
-use crate::detector::store::{KeyframeStore, StoreIdentity};
+use crate::detector::store::{KeyframeRecord, KeyframeStore, StoreIdentity};
 use crate::detector::{Detector, Match};
 use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
@@ -38,6 +38,35 @@ pub struct Timings {
     pub detector_ms: f64,
     /// Local features and geometric verification (0 when verification is off).
     pub verification_ms: f64,
+}
+
+/// One image handed to the pipeline, with what came with it.
+#[derive(Clone, Copy, Debug)]
+pub struct Input<'a> {
+    /// `Some`: a tracker's keyframe id (no selection, always inserted); `None`: a plain frame
+    /// (selection decides, the id comes from the pipeline's counter).
+    pub id: Option<u64>,
+    pub stamp: Stamp,
+    pub image: &'a RgbImage,
+    /// Its depth image, where one came with it (metric poses).
+    pub depth: Option<&'a DepthImage>,
+    /// The camera frame it came in (stored with the keyframe; empty: unknown).
+    pub frame_id: &'a str,
+    /// The camera's pose in the tracker's map (world_T_camera), where the tracker gave one (stored
+    /// with the keyframe).
+    pub tracker_pose: Option<nalgebra::Isometry3<f64>>,
+}
+
+impl<'a> Input<'a> {
+    /// A tracker's keyframe with nothing beside its image.
+    pub fn keyframe(id: u64, stamp: Stamp, image: &'a RgbImage) -> Self {
+        Input { id: Some(id), ..Input::frame(stamp, image) }
+    }
+
+    /// A plain frame with nothing beside its image.
+    pub fn frame(stamp: Stamp, image: &'a RgbImage) -> Self {
+        Input { id: None, stamp, image, depth: None, frame_id: "", tracker_pose: None }
+    }
 }
 
 /// What became of one frame.
@@ -246,13 +275,13 @@ impl Pipeline {
 
     /// A keyframe whose id the tracker chose: no selection, always inserted.
     pub fn process_keyframe(&mut self, id: u64, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
-        self.process_input(Some(id), stamp, image, None)
+        self.process_input(&Input::keyframe(id, stamp, image))
     }
 
     /// A plain frame: keyframe selection decides; accepted frames get `id`.
     pub fn process_frame(&mut self, id: u64, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
         self.next_id = self.next_id.max(id.saturating_add(1));
-        self.run(id, true, stamp, image, None)
+        self.run(id, true, &Input::frame(stamp, image))
     }
 
     /// A frame from a source: selection decides, its index is the id, and its depth image (if any)
@@ -260,30 +289,32 @@ impl Pipeline {
     pub fn process_source_frame(&mut self, frame: &Frame) -> Result<Outcome> {
         let id = frame.index as u64;
         self.next_id = self.next_id.max(id.saturating_add(1));
-        self.run(id, true, frame.stamp, &frame.image, frame.depth.as_ref())
+        self.run(id, true, &Input { depth: frame.depth.as_ref(), ..Input::frame(frame.stamp, &frame.image) })
     }
 
     /// A plain frame with the id taken from the pipeline's counter.
     pub fn process_counted(&mut self, stamp: Stamp, image: &RgbImage) -> Result<Outcome> {
-        self.process_input(None, stamp, image, None)
+        self.process_input(&Input::frame(stamp, image))
     }
 
-    /// What the node receives: a tracker's keyframe (`Some(id)`: no selection, always inserted) or a
-    /// plain frame (`None`: selection decides, the id comes from the pipeline's counter), with its
-    /// depth image where one arrived in time.
-    pub fn process_input(
-        &mut self,
-        id: Option<u64>,
-        stamp: Stamp,
-        image: &RgbImage,
-        depth: Option<&DepthImage>,
-    ) -> Result<Outcome> {
-        let (id, select) = match id {
+    /// What the node receives ([`Input`]): a tracker's keyframe or a plain frame, whose id then comes
+    /// from the pipeline's counter.
+    pub fn process_input(&mut self, input: &Input) -> Result<Outcome> {
+        let (id, select) = match input.id {
             Some(id) => (id, false),
             None => (self.next_id, true),
         };
         self.next_id = self.next_id.max(id.saturating_add(1));
-        self.run(id, select, stamp, image, depth)
+        self.run(id, select, input)
+    }
+
+    /// The camera frame and tracker pose stored with the keyframes of the history (those the
+    /// detector searches), oldest first; empty without a store.
+    pub fn stored_frames(&self) -> Result<Vec<(u64, (String, Option<nalgebra::Isometry3<f64>>))>> {
+        match &self.store {
+            Some(store) => store.frames(self.detector.db().len()),
+            None => Ok(Vec::new()),
+        }
     }
 
     /// Gives keyframe `id` its depth image after the fact (it arrived after the keyframe was
@@ -313,31 +344,18 @@ impl Pipeline {
         Ok(())
     }
 
-    fn run(
-        &mut self,
-        id: u64,
-        select: bool,
-        stamp: Stamp,
-        image: &RgbImage,
-        depth: Option<&DepthImage>,
-    ) -> Result<Outcome> {
-        if select && self.selector.offer(stamp) == Verdict::Reject {
+    fn run(&mut self, id: u64, select: bool, input: &Input) -> Result<Outcome> {
+        if select && self.selector.offer(input.stamp) == Verdict::Reject {
             return Ok(Outcome::default());
         }
         // The workers stay hot from the forward pass through the search (its probed lists are
         // scanned in parallel). During a `--db` append (an fsynced transaction) a poller gives up
         // after `runtime::HOT_WORKER_PATIENCE`.
-        crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, stamp, image, depth))
+        crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, input))
     }
 
-    fn describe_and_detect(
-        &mut self,
-        id: u64,
-        select: bool,
-        stamp: Stamp,
-        image: &RgbImage,
-        depth: Option<&DepthImage>,
-    ) -> Result<Outcome> {
+    fn describe_and_detect(&mut self, id: u64, select: bool, input: &Input) -> Result<Outcome> {
+        let Input { stamp, image, depth, .. } = *input;
         let mut outcome = Outcome::default();
         let start = Instant::now();
         let feature_map = self.embedder.feature_map(image)?;
@@ -370,7 +388,15 @@ impl Pipeline {
         // The keyframe, its final candidates and its local features in one transaction, before any
         // caller writes the candidates out: a restart finds all or none.
         if let Some(store) = &mut self.store {
-            store.append_keyframe(id, stamp, &descriptor, &outcome.candidates, stored_features.as_deref())?;
+            store.append_keyframe(&KeyframeRecord {
+                id,
+                stamp,
+                descriptor: &descriptor,
+                candidates: &outcome.candidates,
+                local_features: stored_features.as_deref(),
+                frame_id: input.frame_id,
+                tracker_pose: input.tracker_pose,
+            })?;
         }
         Ok(outcome)
     }

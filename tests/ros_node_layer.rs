@@ -10,6 +10,7 @@ mod ros_support;
 
 use ecm_lcd::config::{ParamValue, Params};
 use ecm_lcd::io::msgs::{CameraInfo, CompressedImage, Header, Image};
+use ecm_lcd::pipeline::Input;
 use ecm_lcd::ros::msgs::{self, Keyframe, LoopCandidate};
 use ecm_lcd::ros::node::Processed;
 use ecm_lcd::ros::{run_node, KeyframeProcessor, NodeCounters, NodeSettings};
@@ -44,13 +45,8 @@ struct MeanColourProcessor {
 }
 
 impl KeyframeProcessor for MeanColourProcessor {
-    fn process(
-        &mut self,
-        id: Option<u64>,
-        stamp: Stamp,
-        image: &image::RgbImage,
-        depth: Option<&DepthImage>,
-    ) -> anyhow::Result<Processed> {
+    fn process(&mut self, input: &Input) -> anyhow::Result<Processed> {
+        let Input { id, stamp, image, depth, .. } = *input;
         self.seen.lock().unwrap().calls.push((id, stamp, image.width(), image.height()));
         let id = id.unwrap_or_else(|| {
             self.next_id += 1;

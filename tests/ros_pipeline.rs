@@ -17,7 +17,7 @@ mod ros_support;
 mod support;
 
 use ecm_lcd::config::Params;
-use ecm_lcd::pipeline::Pipeline;
+use ecm_lcd::pipeline::{Input, Pipeline};
 use ecm_lcd::ros::args::parse_param_value;
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 use ros_support::NodeProcess;
@@ -407,8 +407,10 @@ fn keyframes_with_depth_over_dds_give_the_offline_metric_loops() {
     let mut expected = Vec::new();
     for frame in ecm_lcd::io::open_source(&seq, None).unwrap() {
         let frame = frame.unwrap();
-        let outcome =
-            pipeline.process_input(Some(frame.index as u64), frame.stamp, &frame.image, frame.depth.as_ref()).unwrap();
+        let id = frame.index as u64;
+        let outcome = pipeline
+            .process_input(&Input { depth: frame.depth.as_ref(), ..Input::keyframe(id, frame.stamp, &frame.image) })
+            .unwrap();
         expected.extend(outcome.candidates.iter().map(|c| (c.query_id, c.match_id, c.score)));
     }
     assert!(expected.len() >= 10, "the sequence should close loops offline: {expected:?}");

@@ -28,6 +28,10 @@
 //! keyframe's transaction, and a depth image that arrives later updates them; a restart gives the
 //! newest back to verification, so loops to keyframes stored before it are still verified.
 //!
+//! Frames and tracker poses: a keyframe's camera `frame_id` and, where the tracker gave one, its pose
+//! in the tracker's map go into `frames` with it, so a restarted node still names the match's frame
+//! and draws loop edges to keyframes stored before the restart.
+//!
 //! Identity: a store records the weights' SHA-256, the architecture, the descriptor mode, the input size
 //! and the descriptor length ([`StoreIdentity`]); descriptors from any other combination are not
 //! comparable, so opening a store with a different identity is refused with both identities named.
@@ -41,6 +45,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, ensure, Context, Result};
 
 use crate::types::LoopCandidate;
+use nalgebra::Isometry3;
 use rusqlite::{params, Connection, OpenFlags, OptionalExtension};
 
 use crate::detector::rows::DescriptorRows;
@@ -161,6 +166,50 @@ fn descriptor_blob(descriptor: &[f32]) -> Vec<u8> {
     descriptor.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
 
+/// A pose as 7 little-endian `f64`: translation x, y, z, then the rotation quaternion i, j, k, w.
+fn pose_blob(pose: &Isometry3<f64>) -> Vec<u8> {
+    let (t, q) = (pose.translation.vector, pose.rotation.coords);
+    [t.x, t.y, t.z, q.x, q.y, q.z, q.w].iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+fn pose_from_blob(blob: &[u8]) -> Result<Isometry3<f64>> {
+    ensure!(blob.len() == 56, "a pose takes 56 bytes, not {}", blob.len());
+    let v: Vec<f64> = blob.chunks_exact(8).map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes"))).collect();
+    let rotation = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(v[6], v[3], v[4], v[5]));
+    Ok(Isometry3::from_parts(nalgebra::Translation3::new(v[0], v[1], v[2]), rotation))
+}
+
+/// One keyframe as [`KeyframeStore::append_keyframe`] commits it, in one transaction.
+#[derive(Clone, Copy, Debug)]
+pub struct KeyframeRecord<'a> {
+    pub id: u64,
+    pub stamp: Stamp,
+    pub descriptor: &'a [f32],
+    /// The loop candidates reported for it.
+    pub candidates: &'a [LoopCandidate],
+    /// Its local features, as the verification stage writes them (opaque here).
+    pub local_features: Option<&'a [u8]>,
+    /// The camera frame its image came in (empty: unknown).
+    pub frame_id: &'a str,
+    /// The camera's pose in the tracker's map (world_T_camera), where the tracker gave one.
+    pub tracker_pose: Option<Isometry3<f64>>,
+}
+
+impl<'a> KeyframeRecord<'a> {
+    /// A keyframe with nothing beside its descriptor.
+    pub fn new(id: u64, stamp: Stamp, descriptor: &'a [f32]) -> Self {
+        KeyframeRecord {
+            id,
+            stamp,
+            descriptor,
+            candidates: &[],
+            local_features: None,
+            frame_id: "",
+            tracker_pose: None,
+        }
+    }
+}
+
 impl KeyframeStore {
     /// Opens the store at `path`, creating it for `identity` when the file does not exist or is empty;
     /// an existing store must have exactly `identity` (module doc). A new store is built under a
@@ -240,7 +289,8 @@ impl KeyframeStore {
             connection
                 .execute_batch(
                     "CREATE TABLE IF NOT EXISTS candidates (query_id INTEGER PRIMARY KEY, json TEXT NOT NULL);
-                     CREATE TABLE IF NOT EXISTS local_features (id INTEGER PRIMARY KEY, data BLOB NOT NULL);",
+                     CREATE TABLE IF NOT EXISTS local_features (id INTEGER PRIMARY KEY, data BLOB NOT NULL);
+                     CREATE TABLE IF NOT EXISTS frames (id INTEGER PRIMARY KEY, frame_id TEXT NOT NULL, pose BLOB);",
                 )
                 .with_context(context)?;
         }
@@ -328,20 +378,15 @@ impl KeyframeStore {
     /// disk (fsynced). Refuses a descriptor of the wrong length or with a non-finite value, and an id
     /// that is already stored.
     pub fn append(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> Result<()> {
-        self.append_keyframe(id, stamp, descriptor, &[], None)
+        self.append_keyframe(&KeyframeRecord::new(id, stamp, descriptor))
     }
 
     /// As [`KeyframeStore::append`], with the keyframe's loop candidates in the same transaction: a
     /// crash leaves both or neither, so a restarted replay can write out every candidate emitted
-    /// before it ([`KeyframeStore::stored_candidates`]), and its local features where given (module doc).
-    pub fn append_keyframe(
-        &mut self,
-        id: u64,
-        stamp: Stamp,
-        descriptor: &[f32],
-        candidates: &[LoopCandidate],
-        local_features: Option<&[u8]>,
-    ) -> Result<()> {
+    /// before it ([`KeyframeStore::stored_candidates`]), and its local features, frame and tracker pose
+    /// where given (module doc).
+    pub fn append_keyframe(&mut self, record: &KeyframeRecord) -> Result<()> {
+        let KeyframeRecord { id, stamp, descriptor, candidates, local_features, frame_id, tracker_pose } = *record;
         ensure!(
             descriptor.len() == self.identity.dim,
             "keyframe {id} descriptor has {} values, the database {} holds {}-value descriptors",
@@ -368,6 +413,11 @@ impl KeyframeStore {
                 transaction
                     .prepare("INSERT OR REPLACE INTO local_features (id, data) VALUES (?1, ?2)")?
                     .execute(params![sql_id, features])?;
+            }
+            if !frame_id.is_empty() || tracker_pose.is_some() {
+                transaction
+                    .prepare("INSERT OR REPLACE INTO frames (id, frame_id, pose) VALUES (?1, ?2, ?3)")?
+                    .execute(params![sql_id, frame_id, tracker_pose.map(|p| pose_blob(&p))])?;
             }
             transaction.commit()
         })();
@@ -397,26 +447,52 @@ impl KeyframeStore {
 
     /// The stored local features of the newest `newest` keyframes that have them (0: all), oldest first.
     pub fn local_features(&self, newest: usize) -> Result<Vec<(u64, Vec<u8>)>> {
-        let context = || format!("reading the local features in {}", self.path.display());
-        let table: Option<String> = self
-            .connection
-            .query_row("SELECT name FROM sqlite_master WHERE type = 'table' AND name = 'local_features'", [], |r| {
-                r.get(0)
+        self.newest_rows("local_features", "data", newest, |r| r.get(1))
+    }
+
+    /// The stored camera frame and tracker pose of the newest `newest` keyframes that have them (0:
+    /// all), oldest first.
+    pub fn frames(&self, newest: usize) -> Result<Vec<(u64, (String, Option<Isometry3<f64>>))>> {
+        let rows = self.newest_rows("frames", "frame_id, f.pose", newest, |r| {
+            Ok((r.get::<_, String>(1)?, r.get::<_, Option<Vec<u8>>>(2)?))
+        })?;
+        rows.into_iter()
+            .map(|(id, (frame_id, pose))| {
+                let pose = pose
+                    .map(|blob| pose_from_blob(&blob))
+                    .transpose()
+                    .with_context(|| format!("keyframe {id}'s tracker pose in {}", self.path.display()))?;
+                Ok((id, (frame_id, pose)))
             })
+            .collect()
+    }
+
+    /// `(id, value)` of the newest `newest` keyframes (0: all) with a row in `table`, oldest first;
+    /// `value` is read from the columns after the id (`f.` is the table). Empty when a store written
+    /// before the table existed is opened read-only.
+    fn newest_rows<T>(
+        &self,
+        table: &str,
+        columns: &str,
+        newest: usize,
+        value: impl Fn(&rusqlite::Row) -> rusqlite::Result<T>,
+    ) -> Result<Vec<(u64, T)>> {
+        let context = || format!("reading {table} in {}", self.path.display());
+        let exists: Option<String> = self
+            .connection
+            .query_row("SELECT name FROM sqlite_master WHERE type = 'table' AND name = ?1", [table], |r| r.get(0))
             .optional()
             .with_context(context)?;
-        if table.is_none() {
-            return Ok(Vec::new()); // a store written before local features were kept, read-only
+        if exists.is_none() {
+            return Ok(Vec::new());
         }
         let limit = if newest == 0 { -1 } else { i64::try_from(newest).unwrap_or(i64::MAX) };
-        let mut statement = self
-            .connection
-            .prepare(
-                "SELECT k.id, f.data FROM keyframes k JOIN local_features f ON f.id = k.id ORDER BY k.seq DESC LIMIT ?1",
-            )
-            .with_context(context)?;
-        let mut rows: Vec<(u64, Vec<u8>)> = statement
-            .query_map([limit], |r| Ok((r.get::<_, i64>(0)? as u64, r.get(1)?)))
+        let sql = format!(
+            "SELECT k.id, f.{columns} FROM keyframes k JOIN {table} f ON f.id = k.id ORDER BY k.seq DESC LIMIT ?1"
+        );
+        let mut statement = self.connection.prepare(&sql).with_context(context)?;
+        let mut rows: Vec<(u64, T)> = statement
+            .query_map([limit], |r| Ok((r.get::<_, i64>(0)? as u64, value(r)?)))
             .with_context(context)?
             .collect::<rusqlite::Result<_>>()
             .with_context(context)?;
@@ -906,7 +982,8 @@ fn create_schema(connection: &Connection, identity: &StoreIdentity) -> Result<()
              descriptor BLOB NOT NULL
          );
          CREATE TABLE candidates (query_id INTEGER PRIMARY KEY, json TEXT NOT NULL);
-         CREATE TABLE local_features (id INTEGER PRIMARY KEY, data BLOB NOT NULL);",
+         CREATE TABLE local_features (id INTEGER PRIMARY KEY, data BLOB NOT NULL);
+         CREATE TABLE frames (id INTEGER PRIMARY KEY, frame_id TEXT NOT NULL, pose BLOB);",
     )?;
     let entries = [
         // Every keyframe's candidates are stored with it ([`KeyframeStore::append_keyframe`]).

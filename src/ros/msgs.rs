@@ -41,6 +41,21 @@ pub struct Pose {
     pub orientation: Quaternion,
 }
 
+impl Pose {
+    /// As an isometry; a zero quaternion (an unset orientation) is the identity.
+    pub fn to_isometry(&self) -> nalgebra::Isometry3<f64> {
+        let q = self.orientation;
+        let quaternion = nalgebra::Quaternion::new(q.w, q.x, q.y, q.z);
+        let rotation = if quaternion.norm() > 1e-12 {
+            nalgebra::UnitQuaternion::from_quaternion(quaternion)
+        } else {
+            nalgebra::UnitQuaternion::identity()
+        };
+        let p = self.position;
+        nalgebra::Isometry3::from_parts(nalgebra::Translation3::new(p.x, p.y, p.z), rotation)
+    }
+}
+
 /// `diagnostic_msgs/KeyValue`.
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct KeyValue {

@@ -45,8 +45,10 @@ use crate::config::{ParamValue, Params};
 use crate::io::depth::{depth_from_image, nearest_within_window};
 use crate::io::image_msg::{decode_compressed_image, decode_image};
 use crate::io::msgs::{CameraInfo, CompressedImage, Header, Image};
+use crate::pipeline::Input;
 use crate::types::{self, DepthImage, Stamp};
 use crate::verification::Intrinsics;
+use nalgebra::Isometry3;
 
 /// The node's name unless `-r __node:=...` says otherwise.
 pub const DEFAULT_NODE_NAME: &str = crate::config::NODE_NAME;
@@ -73,19 +75,18 @@ pub struct Processed {
 
 /// What the node runs each keyframe through (the pipeline implements it).
 pub trait KeyframeProcessor: Send + 'static {
-    /// `id`: Some(tracker's keyframe id) for Keyframe messages (selection bypassed); None for plain images
-    /// (the processor assigns ids from a counter and applies keyframe selection). `depth`: the image's
-    /// depth, where it arrived first.
-    fn process(
-        &mut self,
-        id: Option<u64>,
-        stamp: Stamp,
-        image: &image::RgbImage,
-        depth: Option<&DepthImage>,
-    ) -> Result<Processed>;
+    /// `input.id`: Some(tracker's keyframe id) for Keyframe messages (selection bypassed); None for
+    /// plain images (the processor assigns ids from a counter and applies keyframe selection).
+    /// `input.depth`: the image's depth, where it arrived first.
+    fn process(&mut self, input: &Input) -> Result<Processed>;
     /// A depth image that arrived after its keyframe was processed; returns whether it was taken.
     fn attach_depth(&mut self, _keyframe: u64, _depth: &DepthImage) -> Result<bool> {
         Ok(false)
+    }
+    /// The camera frame and tracker pose of each keyframe of the history kept from an earlier run
+    /// (a database), oldest first.
+    fn stored_frames(&self) -> Result<Vec<(u64, (String, Option<Isometry3<f64>>))>> {
+        Ok(Vec::new())
     }
     /// Apply a validated runtime parameter change.
     fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String>;
@@ -101,14 +102,9 @@ pub trait KeyframeProcessor: Send + 'static {
 }
 
 impl KeyframeProcessor for crate::pipeline::Pipeline {
-    fn process(
-        &mut self,
-        id: Option<u64>,
-        stamp: Stamp,
-        image: &image::RgbImage,
-        depth: Option<&DepthImage>,
-    ) -> Result<Processed> {
-        let outcome = self.process_input(id, stamp, image, depth)?;
+    fn process(&mut self, input: &Input) -> Result<Processed> {
+        let outcome = self.process_input(input)?;
+        let stamp = input.stamp;
         if let Some(id) = outcome.keyframe {
             let t = outcome.timings;
             log::debug!(
@@ -124,6 +120,10 @@ impl KeyframeProcessor for crate::pipeline::Pipeline {
 
     fn attach_depth(&mut self, keyframe: u64, depth: &DepthImage) -> Result<bool> {
         crate::pipeline::Pipeline::attach_depth(self, keyframe, depth)
+    }
+
+    fn stored_frames(&self) -> Result<Vec<(u64, (String, Option<Isometry3<f64>>))>> {
+        crate::pipeline::Pipeline::stored_frames(self)
     }
 
     fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String> {
@@ -733,6 +733,19 @@ fn worker_loop(
     let mut depths = DepthMatcher::default();
     let publisher = outputs.candidates;
     let mut frame_ids = FrameIds::default();
+    // Keyframes from an earlier run (a database): their frames, and positions for the markers.
+    match processor.stored_frames() {
+        Ok(stored) => {
+            for (id, (frame_id, pose)) in stored {
+                frame_ids.insert(id, &frame_id);
+                if let Some(pose) = pose {
+                    let t = pose.translation.vector;
+                    frame_ids.set_position(id, msgs::Point { x: t.x, y: t.y, z: t.z });
+                }
+            }
+        }
+        Err(e) => error!("[{fqn}] reading the stored keyframes' frames and poses failed: {e:#}"),
+    }
     // Read-only while running: read once.
     let mode = match live.lock().unwrap_or_else(|e| e.into_inner()).get("descriptor.mode") {
         Some(ParamValue::String(mode)) => mode,
@@ -769,8 +782,8 @@ fn worker_loop(
             Next::Closed => return,
         };
         let started = Instant::now();
-        let position = match &queued.message {
-            Incoming::Keyframe(kf) if kf.has_pose => Some(kf.pose.position),
+        let tracker_pose = match &queued.message {
+            Incoming::Keyframe(kf) if kf.has_pose => Some(kf.pose),
             _ => None,
         };
         let (topic, id, header, decoded) = match &queued.message {
@@ -798,7 +811,15 @@ fn worker_loop(
         let process_start = Instant::now();
         let depth = depths.depth_for(stamp);
         let had_depth = depth.is_some();
-        let result = processor.process(id, stamp, &image, depth);
+        let input = Input {
+            id,
+            stamp,
+            image: &image,
+            depth,
+            frame_id: &header.frame_id,
+            tracker_pose: tracker_pose.map(|p| p.to_isometry()),
+        };
+        let result = processor.process(&input);
         let process_ms = process_start.elapsed().as_secs_f64() * 1e3;
         counters.process_us.fetch_add((process_ms * 1e3) as u64, Ordering::Relaxed);
         let candidates = match result {
@@ -820,8 +841,8 @@ fn worker_loop(
         }
         if let Some(id) = id.or(candidates.first().map(|c| c.query_id)) {
             frame_ids.insert(id, &header.frame_id);
-            if let Some(position) = position {
-                frame_ids.set_position(id, position);
+            if let Some(pose) = tracker_pose {
+                frame_ids.set_position(id, pose.position);
             }
         }
         // One entry per keyframe the processor keeps: a match can only be one of those.

@@ -304,14 +304,18 @@ fn candidates_are_stored_with_their_keyframe_and_read_back_in_order() {
         rank: 0,
         verified: None,
     };
-    store.append_keyframe(5, stamp(5), &descriptor(5, 4), &[candidate(5, 0), candidate(5, 1)], None).unwrap();
-    store.append_keyframe(3, stamp(3), &descriptor(3, 4), &[candidate(3, 1)], None).unwrap();
+    let with = |store: &mut KeyframeStore, id: u64, candidates: &[LoopCandidate]| {
+        let d = descriptor(id, 4);
+        store.append_keyframe(&KeyframeRecord { candidates, ..KeyframeRecord::new(id, stamp(id), &d) })
+    };
+    with(&mut store, 5, &[candidate(5, 0), candidate(5, 1)]).unwrap();
+    with(&mut store, 3, &[candidate(3, 1)]).unwrap();
     // Insertion order (5 before 3), not id order; keyframes without candidates add nothing.
     let stored = store.stored_candidates().unwrap().unwrap();
     assert_eq!(stored.iter().map(|c| (c.query_id, c.match_id)).collect::<Vec<_>>(), [(5, 0), (5, 1), (3, 1)]);
     assert_eq!(stored[0], candidate(5, 0));
     // A refused keyframe stores neither it nor its candidates.
-    assert!(store.append_keyframe(5, stamp(5), &descriptor(5, 4), &[candidate(5, 1)], None).is_err());
+    assert!(with(&mut store, 5, &[candidate(5, 1)]).is_err());
     assert_eq!(store.stored_candidates().unwrap().unwrap().len(), 3);
     assert!(store.contains(3).unwrap() && !store.contains(4).unwrap());
     drop(store);
@@ -329,8 +333,15 @@ fn local_features_are_stored_with_their_keyframe_updated_and_read_newest_first_l
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("f.db");
     let mut store = store_with(&path, [0], 4);
+    let with_features = |store: &mut KeyframeStore, id: u64, features: &[u8]| {
+        let d = descriptor(id, 4);
+        store.append_keyframe(&KeyframeRecord {
+            local_features: Some(features),
+            ..KeyframeRecord::new(id, stamp(id), &d)
+        })
+    };
     for id in [1u64, 2, 3] {
-        store.append_keyframe(id, stamp(id), &descriptor(id, 4), &[], Some(&[id as u8; 3])).unwrap();
+        with_features(&mut store, id, &[id as u8; 3]).unwrap();
     }
     // Keyframe 0 has none; the newest two come oldest first.
     assert_eq!(store.local_features(0).unwrap(), vec![(1, vec![1; 3]), (2, vec![2; 3]), (3, vec![3; 3])]);
@@ -339,8 +350,36 @@ fn local_features_are_stored_with_their_keyframe_updated_and_read_newest_first_l
     let err = store.update_local_features(0, &[1]).unwrap_err().to_string();
     assert!(err.contains("keyframe 0 has no stored local features"), "{err}");
     // A duplicate id stores nothing: the keyframe's transaction is refused whole.
-    assert!(store.append_keyframe(3, stamp(3), &descriptor(3, 4), &[], Some(&[7])).is_err());
+    assert!(with_features(&mut store, 3, &[7]).is_err());
     drop(store);
     let reopened = KeyframeStore::open_read_only(&path).unwrap();
     assert_eq!(reopened.local_features(0).unwrap(), vec![(1, vec![1; 3]), (2, vec![9, 9]), (3, vec![3; 3])]);
+}
+
+#[test]
+fn frames_and_tracker_poses_are_stored_with_their_keyframe() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("p.db");
+    let mut store = store_with(&path, [0], 4);
+    let pose = Isometry3::from_parts(
+        nalgebra::Translation3::new(1.5, -2.0, 0.25),
+        nalgebra::UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
+    );
+    let d = descriptor(1, 4);
+    store
+        .append_keyframe(&KeyframeRecord {
+            frame_id: "cam",
+            tracker_pose: Some(pose),
+            ..KeyframeRecord::new(1, stamp(1), &d)
+        })
+        .unwrap();
+    let d = descriptor(2, 4);
+    store.append_keyframe(&KeyframeRecord { frame_id: "cam", ..KeyframeRecord::new(2, stamp(2), &d) }).unwrap();
+    drop(store);
+    let frames = KeyframeStore::open_read_only(&path).unwrap().frames(0).unwrap();
+    assert_eq!(frames.len(), 2, "keyframe 0 has neither");
+    assert_eq!((frames[0].0, frames[0].1 .0.as_str(), frames[1].0, frames[1].1 .1), (1, "cam", 2, None));
+    let back = frames[0].1 .1.unwrap();
+    assert!((back.translation.vector - pose.translation.vector).norm() < 1e-15);
+    assert!(back.rotation.angle_to(&pose.rotation) < 1e-12);
 }
