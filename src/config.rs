@@ -83,16 +83,41 @@ pub struct ParamSpec {
     pub read_only: bool,
 }
 
+/// Why a parameter value is refused; the message names the parameter and what it accepts.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum ParamError {
+    #[error("unknown parameter `{0}`")]
+    Unknown(String),
+    #[error("parameter `{0}` is read-only while running")]
+    ReadOnly(String),
+    /// A value of the wrong type or outside the parameter's range.
+    #[error("{name} must be {expected}, got {got}")]
+    Invalid { name: String, expected: String, got: String },
+    /// A ROS parameter type the table has no parameter of (byte and array values).
+    #[error("unsupported parameter type {0} (ecm-lcd uses bool, integer, double, string)")]
+    UnsupportedType(String),
+}
+
+impl ParamError {
+    fn invalid(name: &str, expected: impl Into<String>, got: impl Into<String>) -> ParamError {
+        ParamError::Invalid { name: name.to_string(), expected: expected.into(), got: got.into() }
+    }
+}
+
 impl ParamSpec {
     /// Checks `value` against the type and range; returns it in this parameter's type (an integer given
     /// for a double becomes a double) or the reason it is refused.
-    pub fn validate(&self, value: ParamValue) -> Result<ParamValue, String> {
+    pub fn validate(&self, value: ParamValue) -> Result<ParamValue, ParamError> {
         let value = match (self.kind, value) {
             (ParamKind::Double, ParamValue::Integer(i)) => ParamValue::Double(i as f64),
             (_, value) => value,
         };
         if value.kind() != self.kind {
-            return Err(format!("{} must be a {}, got the {} {value}", self.name, self.kind, value.kind()));
+            return Err(ParamError::invalid(
+                self.name,
+                format!("a {}", self.kind),
+                format!("the {} {value}", value.kind()),
+            ));
         }
         match (self.range, &value) {
             (ParamRange::Integer { min, max, step }, ParamValue::Integer(v)) => {
@@ -101,17 +126,17 @@ impl ParamSpec {
                 let on_step = step == 0 || *v == max || (in_range && ((*v - min) as u64).is_multiple_of(step));
                 if !in_range || !on_step {
                     let steps = if step > 1 { format!(" in steps of {step}") } else { String::new() };
-                    return Err(format!("{} must be in [{min}, {max}]{steps}, got {v}", self.name));
+                    return Err(ParamError::invalid(self.name, format!("in [{min}, {max}]{steps}"), v.to_string()));
                 }
             }
             (ParamRange::Double { min, max, step }, ParamValue::Double(v)) => {
                 let on_step = step == 0.0 || *v == max || (((*v - min) / step).round() * step + min - v).abs() < 1e-9;
                 if !v.is_finite() || *v < min || *v > max || !on_step {
-                    return Err(format!("{} must be in [{min}, {max}], got {v}", self.name));
+                    return Err(ParamError::invalid(self.name, format!("in [{min}, {max}]"), v.to_string()));
                 }
             }
             (ParamRange::OneOf(allowed), ParamValue::String(s)) if !allowed.contains(&s.as_str()) => {
-                return Err(format!("{} must be one of {}, got {s:?}", self.name, allowed.join(", ")));
+                return Err(ParamError::invalid(self.name, format!("one of {}", allowed.join(", ")), format!("{s:?}")));
             }
             _ => {}
         }
@@ -308,6 +333,14 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "A candidate is verified when at least this many feature matches fit one rigid geometry (RANSAC inliers).",
         ),
         integer("verification.features", 500, 50, 10_000, "ORB features extracted per keyframe for verification."),
+        ParamSpec {
+            name: "verification.equalise",
+            kind: ParamKind::Bool,
+            default: ParamValue::Bool(false),
+            range: ParamRange::Any,
+            description: "Equalise each image's grey levels before ORB: dim or night images keep their features (more loops verified), but identical-looking places pass more often.",
+            read_only: false,
+        },
         integer(
             "verification.keyframes",
             5000,
@@ -421,35 +454,30 @@ impl Params {
 
     /// Sets one parameter after validation; a refused value leaves the old one and says why.
     /// Read-only parameters may be set here (files, command line); see [`Params::set_at_runtime`].
-    pub fn set(&mut self, name: &str, value: ParamValue) -> Result<(), String> {
-        let spec = param_spec(name).ok_or_else(|| format!("unknown parameter `{name}`"))?;
+    pub fn set(&mut self, name: &str, value: ParamValue) -> Result<(), ParamError> {
+        let spec = param_spec(name).ok_or_else(|| ParamError::Unknown(name.to_string()))?;
         let value = spec.validate(value)?;
         self.values.insert(spec.name, value);
         Ok(())
     }
 
     /// As [`Params::set`], but refuses read-only parameters (for a running node's `set_parameters`).
-    pub fn set_at_runtime(&mut self, name: &str, value: ParamValue) -> Result<(), String> {
+    pub fn set_at_runtime(&mut self, name: &str, value: ParamValue) -> Result<(), ParamError> {
         match param_spec(name) {
-            Some(spec) if spec.read_only => Err(format!("parameter `{name}` is read-only while running")),
+            Some(spec) if spec.read_only => Err(ParamError::ReadOnly(name.to_string())),
             _ => self.set(name, value),
         }
     }
 
     /// Sets one parameter from text (`--param name=value` on a command line), typed by the table.
-    pub fn set_from_str(&mut self, name: &str, text: &str) -> Result<(), String> {
-        let spec = param_spec(name).ok_or_else(|| format!("unknown parameter `{name}`"))?;
+    pub fn set_from_str(&mut self, name: &str, text: &str) -> Result<(), ParamError> {
+        let spec = param_spec(name).ok_or_else(|| ParamError::Unknown(name.to_string()))?;
         let text = text.trim();
+        let refused = |expected: &str| ParamError::invalid(name, expected, format!("{text:?}"));
         let value = match spec.kind {
-            ParamKind::Bool => {
-                ParamValue::Bool(text.parse().map_err(|_| format!("{name} must be true or false, got {text:?}"))?)
-            }
-            ParamKind::Integer => {
-                ParamValue::Integer(text.parse().map_err(|_| format!("{name} must be an integer, got {text:?}"))?)
-            }
-            ParamKind::Double => {
-                ParamValue::Double(text.parse().map_err(|_| format!("{name} must be a number, got {text:?}"))?)
-            }
+            ParamKind::Bool => ParamValue::Bool(text.parse().map_err(|_| refused("true or false"))?),
+            ParamKind::Integer => ParamValue::Integer(text.parse().map_err(|_| refused("an integer"))?),
+            ParamKind::Double => ParamValue::Double(text.parse().map_err(|_| refused("a number"))?),
             ParamKind::String => ParamValue::String(text.to_string()),
         };
         self.set(name, value)
@@ -592,6 +620,7 @@ impl Params {
             min_inliers: self.count("verification.min_inliers"),
             max_features: self.count("verification.features"),
             keyframes: self.count("verification.keyframes"),
+            equalise: matches!(self.values.get("verification.equalise"), Some(ParamValue::Bool(true))),
             intrinsics,
             ..VerificationParams::default()
         })
@@ -723,6 +752,14 @@ impl fmt::Display for ParamValue {
 mod tests {
     use super::*;
 
+    #[test]
+    fn default_selection_is_the_documented_half_second() {
+        let selection = Params::default().selection();
+        assert_eq!((selection.every_nth, selection.min_period_secs, selection.novelty_min_distance), (1, 0.5, 0.0));
+        let detector = Params::default().detector();
+        assert!(detector.top_k >= 1 && detector.consistency_queries >= 1);
+    }
+
     fn shipped_file() -> std::path::PathBuf {
         Path::new(env!("CARGO_MANIFEST_DIR")).join("config/ecm_lcd.yaml")
     }
@@ -755,9 +792,9 @@ mod tests {
         let mut p = Params::default();
         p.set("detector.top_k", ParamValue::Integer(3)).unwrap();
         assert_eq!(p.get("detector.top_k"), Some(ParamValue::Integer(3)));
-        let err = p.set("detector.top_k", ParamValue::Integer(0)).unwrap_err();
+        let err = p.set("detector.top_k", ParamValue::Integer(0)).unwrap_err().to_string();
         assert!(err.contains("[1, 100]"), "{err}");
-        let err = p.set("detector.top_k", ParamValue::Double(2.0)).unwrap_err();
+        let err = p.set("detector.top_k", ParamValue::Double(2.0)).unwrap_err().to_string();
         assert!(err.contains("integer"), "{err}");
         assert_eq!(p.get("detector.top_k"), Some(ParamValue::Integer(3)));
         // Integer for a double is widened.
@@ -767,21 +804,22 @@ mod tests {
         assert!(p.set("detector.min_score", ParamValue::Double(f64::NAN)).is_err());
         // Step: multiples of 32 only.
         p.set("input_size", ParamValue::Integer(320)).unwrap();
-        let err = p.set("input_size", ParamValue::Integer(300)).unwrap_err();
+        let err = p.set("input_size", ParamValue::Integer(300)).unwrap_err().to_string();
         assert!(err.contains("steps of 32"), "{err}");
         assert_eq!(p.input_size(), 320);
         // Allowed strings.
-        let err = p.set("arch", ParamValue::String("resnet".into())).unwrap_err();
+        let err = p.set("arch", ParamValue::String("resnet".into())).unwrap_err().to_string();
         assert!(err.contains("ecmobilenet"), "{err}");
         p.set("arch", ParamValue::String("mobilenetv2".into())).unwrap();
         assert_eq!(p.arch(), "mobilenetv2");
         // Unknown names.
-        assert!(p.set("detector.nope", ParamValue::Integer(1)).unwrap_err().contains("detector.nope"));
+        assert!(p.set("detector.nope", ParamValue::Integer(1)).unwrap_err().to_string().contains("detector.nope"));
         assert_eq!(p.get("detector.nope"), None);
         // Read-only at run time.
         assert!(p
             .set_at_runtime("descriptor.mode", ParamValue::String("l2".into()))
             .unwrap_err()
+            .to_string()
             .contains("read-only"));
         p.set_at_runtime("detector.top_k", ParamValue::Integer(2)).unwrap();
         // From text.
@@ -822,7 +860,7 @@ mod tests {
         assert!(err.contains("blocks.16") && err.contains("blocks.12"), "{err}");
         assert!(p.set_from_str("descriptor.tap", "blocks.17").is_err());
         assert!(p.set_from_str("descriptor.grid", "5").is_err());
-        assert!(p.set_from_str("descriptor.pooling", "max").unwrap_err().contains("mac"));
+        assert!(p.set_from_str("descriptor.pooling", "max").unwrap_err().to_string().contains("mac"));
     }
 
     #[test]

@@ -17,7 +17,7 @@ use std::time::Instant;
 use anyhow::{ensure, Context, Result};
 use image::RgbImage;
 
-use crate::config::{ParamValue, Params};
+use crate::config::{ParamError, ParamValue, Params};
 use crate::descriptor::{Descriptor, DescriptorMode, Projection};
 use crate::detector::selection::{KeyframeSelector, Verdict};
 use crate::detector::store::{KeyframeRecord, KeyframeStore, StoreIdentity};
@@ -484,7 +484,7 @@ impl Pipeline {
     /// Changes one parameter at run time, validated by [`Params::set_at_runtime`]: a bad value
     /// is refused with a reason and the old value stays. `arch`, `input_size` and
     /// `descriptor.mode` are fixed at start (stored descriptors would no longer be comparable).
-    pub fn set_param(&mut self, name: &str, value: ParamValue) -> std::result::Result<(), String> {
+    pub fn set_param(&mut self, name: &str, value: ParamValue) -> std::result::Result<(), ParamError> {
         self.params.set_at_runtime(name, value)?;
         self.detector.set_params(self.params.detector());
         self.selector.set_params(self.params.selection());

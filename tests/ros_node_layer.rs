@@ -88,7 +88,7 @@ impl KeyframeProcessor for MeanColourProcessor {
         Ok(true)
     }
 
-    fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String> {
+    fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), ecm_lcd::config::ParamError> {
         self.seen.lock().unwrap().params.push((name.to_string(), value.clone()));
         if let ("detector.min_score", ParamValue::Double(v)) = (name, value) {
             self.min_score = *v as f32;

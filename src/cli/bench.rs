@@ -840,7 +840,7 @@ fn memory_child(stored: usize, dim: usize) -> Result<MemoryRow> {
     let (baseline_mb, _) = rss_mb()?;
     // Any unit-vector mode whose length is its channel count: only the length and the score matter here.
     let descriptor = crate::descriptor::Descriptor::new(crate::descriptor::DescriptorMode::L2, dim);
-    let params = crate::detector::DetectorParams { min_history: 1, ..Default::default() };
+    let params = crate::detector::DetectorParams { min_history: 1, ..crate::config::Params::default().detector() };
     let mut detector = Detector::new(descriptor, params);
     let mut generator = ClusteredVectors::new(dim, clusters_for(stored), 44);
     let mut v = vec![0f32; dim];

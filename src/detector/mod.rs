@@ -87,13 +87,6 @@ pub struct DetectorParams {
     pub centre_on_history: bool,
 }
 
-impl Default for DetectorParams {
-    /// The defaults of `config/ecm_lcd.yaml`.
-    fn default() -> Self {
-        crate::config::Params::default().detector()
-    }
-}
-
 /// One result of a database query: the keyframe's position (insertion order) and squared distance.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Neighbour {

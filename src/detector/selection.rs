@@ -30,13 +30,6 @@ pub struct SelectionParams {
     pub novelty_min_distance: f32,
 }
 
-impl Default for SelectionParams {
-    /// The defaults of `config/ecm_lcd.yaml`.
-    fn default() -> Self {
-        crate::config::Params::default().selection()
-    }
-}
-
 /// What the cheap rules say about a frame.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Verdict {
@@ -191,13 +184,6 @@ mod tests {
         assert_eq!(accepted(&mut s, 31), vec![0, 15, 30]);
         // Time going backwards passes the time rule.
         assert!(s.accept(frame_stamp(2), None).unwrap());
-    }
-
-    #[test]
-    fn default_is_the_documented_half_second() {
-        let mut s = KeyframeSelector::new(SelectionParams::default());
-        assert!(!s.needs_descriptor());
-        assert_eq!(accepted(&mut s, 61), vec![0, 15, 30, 45, 60]);
     }
 
     #[test]

@@ -264,13 +264,6 @@ fn consistency_of_three_needs_three_agreeing_queries() {
 }
 
 #[test]
-fn default_params_are_the_config_defaults() {
-    let p = DetectorParams::default();
-    assert_eq!(p, crate::config::Params::default().detector());
-    assert!(p.top_k >= 1 && p.consistency_queries >= 1);
-}
-
-#[test]
 fn dropping_the_oldest_keeps_positions_ids_and_search_exact() {
     let dim = 5;
     let mut db = KeyframeDb::new(dim);

@@ -41,7 +41,7 @@ use super::msgs::{self, DiagnosticArray, DiagnosticStatus, KeyValue, Keyframe, L
 use super::param_services::ParamServices;
 use super::params;
 use super::queue::{DropOldestQueue, Next};
-use crate::config::{ParamValue, Params};
+use crate::config::{ParamError, ParamValue, Params};
 use crate::io::depth::{depth_from_image, nearest_within_window};
 use crate::io::image_msg::{decode_compressed_image, decode_image};
 use crate::io::msgs::{CameraInfo, CompressedImage, Header, Image};
@@ -89,7 +89,7 @@ pub trait KeyframeProcessor: Send + 'static {
         Ok(Vec::new())
     }
     /// Apply a validated runtime parameter change.
-    fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String>;
+    fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), ParamError>;
     /// Camera intrinsics from `camera_info`; returns whether geometric verification is on afterwards.
     /// A processor without verification has no use for them.
     fn set_camera_info(&mut self, _intrinsics: Intrinsics) -> Result<bool> {
@@ -126,7 +126,7 @@ impl KeyframeProcessor for crate::pipeline::Pipeline {
         crate::pipeline::Pipeline::stored_frames(self)
     }
 
-    fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), String> {
+    fn set_param(&mut self, name: &str, value: &ParamValue) -> Result<(), ParamError> {
         crate::pipeline::Pipeline::set_param(self, name, value.clone())
     }
 
@@ -310,8 +310,9 @@ pub fn run_node(
     let validator_fqn = fqn.clone();
     options = options.parameter_validator(Box::new(move |name, value| {
         let current = validator_params.lock().unwrap_or_else(|e| e.into_inner()).clone();
-        params::validate_change(&current, name, value).map(|_| ()).inspect_err(|reason| {
+        params::validate_change(&current, name, value).map(|_| ()).map_err(|reason| {
             warn!("[{validator_fqn}] refused parameter change {name} = {value:?}: {reason}");
+            reason.to_string()
         })
     }));
     let action_params = live.clone();
@@ -320,11 +321,11 @@ pub fn run_node(
     let action_fqn = fqn.clone();
     options = options.parameter_set_action(Box::new(move |name, value| {
         let mut current = action_params.lock().unwrap_or_else(|e| e.into_inner());
-        let new = params::validate_change(&current, name, value)?;
+        let new = params::validate_change(&current, name, value).map_err(|e| e.to_string())?;
         if current.get(name).as_ref() == Some(&new) {
             return Ok(()); // the initial declarations, or a no-op set
         }
-        current.set(name, new.clone())?;
+        current.set(name, new.clone()).map_err(|e| e.to_string())?;
         drop(current);
         info!("[{action_fqn}] parameter {name} = {new}");
         action_counters.param_changes.fetch_add(1, Ordering::Relaxed);

@@ -166,7 +166,7 @@ impl ParamServices {
                         .then_some(())
                         .ok_or_else(|| "use_sim_time must be a bool".to_string());
                 }
-                let value = validate_change(&trial, &p.name, &p.value)?;
+                let value = validate_change(&trial, &p.name, &p.value).map_err(|e| e.to_string())?;
                 trial.set(&p.name, value).map_err(|e| format!("{}: {e}", p.name))
             });
             let result = check.and_then(|()| params.into_iter().try_for_each(|p| node.set_parameter(&p.name, p.value)));

@@ -10,7 +10,7 @@ use anyhow::{anyhow, Context, Result};
 use ros2_client::ParameterValue;
 
 use super::args::RosArgs;
-use crate::config::{param_spec, param_specs, ParamValue, Params};
+use crate::config::{param_spec, param_specs, ParamError, ParamValue, Params};
 
 /// The built-in ROS parameter that ros2-client itself serves (not in ecm-lcd's table).
 pub const USE_SIM_TIME: &str = "use_sim_time";
@@ -54,15 +54,13 @@ pub fn to_ros(value: &ParamValue) -> ParameterValue {
     }
 }
 
-pub fn from_ros(value: &ParameterValue) -> Result<ParamValue, String> {
+pub fn from_ros(value: &ParameterValue) -> Result<ParamValue, ParamError> {
     Ok(match value {
         ParameterValue::Boolean(b) => ParamValue::Bool(*b),
         ParameterValue::Integer(i) => ParamValue::Integer(*i),
         ParameterValue::Double(d) => ParamValue::Double(*d),
         ParameterValue::String(s) => ParamValue::String(s.clone()),
-        other => {
-            return Err(format!("unsupported parameter type {other:?} (ecm-lcd uses bool, integer, double, string)"))
-        }
+        other => return Err(ParamError::UnsupportedType(format!("{other:?}"))),
     })
 }
 
@@ -80,9 +78,9 @@ pub fn declarations(params: &Params) -> Result<Vec<(&'static str, ParameterValue
 /// Checks a requested runtime change against the current values: a refused change leaves them as they
 /// are and says why. Setting a read-only parameter to its current value is accepted (ros2-client checks
 /// every initial value this way when the node starts).
-pub fn validate_change(current: &Params, name: &str, value: &ParameterValue) -> Result<ParamValue, String> {
+pub fn validate_change(current: &Params, name: &str, value: &ParameterValue) -> Result<ParamValue, ParamError> {
     let value = from_ros(value)?;
-    let spec = param_spec(name).ok_or_else(|| format!("unknown parameter `{name}`"))?;
+    let spec = param_spec(name).ok_or_else(|| ParamError::Unknown(name.to_string()))?;
     let mut trial = current.clone();
     if spec.read_only {
         if current.get(name).as_ref() == Some(&value) {
@@ -105,13 +103,15 @@ mod tests {
         let spec = param_specs().iter().find(|s| !s.read_only && matches!(s.default, ParamValue::Double(_))).unwrap();
         let ok = validate_change(&params, spec.name, &to_ros(&spec.default)).unwrap();
         assert_eq!(ok, spec.default);
-        let err = validate_change(&params, spec.name, &ParameterValue::String("high".into())).unwrap_err();
+        let err = validate_change(&params, spec.name, &ParameterValue::String("high".into())).unwrap_err().to_string();
         assert!(err.contains(spec.name), "{err}");
         assert!(validate_change(&params, "no_such_parameter", &ParameterValue::Integer(1))
             .unwrap_err()
+            .to_string()
             .contains("unknown"));
         assert!(validate_change(&params, spec.name, &ParameterValue::ByteArray(vec![1]))
             .unwrap_err()
+            .to_string()
             .contains("unsupported"));
         if let Some(ro) = param_specs().iter().find(|s| s.read_only) {
             assert!(validate_change(&params, ro.name, &to_ros(&ro.default)).is_ok());

@@ -87,6 +87,8 @@ pub struct VerificationParams {
     pub min_inliers: usize,
     /// Local features are kept for the newest this-many keyframes (0 = all).
     pub keyframes: usize,
+    /// Equalise the grey-level histogram before ORB (dim and night images keep their corners).
+    pub equalise: bool,
     pub intrinsics: Option<Intrinsics>,
 }
 
@@ -98,6 +100,7 @@ impl Default for VerificationParams {
             pixel_threshold: 2.0,
             min_inliers: 15,
             keyframes: 5000,
+            equalise: false,
             intrinsics: None,
         }
     }
@@ -209,10 +212,14 @@ pub struct Verification {
 
 /// ORB features of `image` (converted to grayscale), at most `max_features`.
 pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
-    let gray = image::imageops::grayscale(image);
+    extract_gray(image::imageops::grayscale(image), max_features)
+}
+
+/// ORB features of a grayscale image, at most `max_features`.
+fn extract_gray(gray: image::GrayImage, max_features: usize) -> Result<LocalFeatures> {
     let size = ImageSize { width: gray.width() as usize, height: gray.height() as usize };
     let orb = OrbDetector { n_keypoints: max_features, ..OrbDetector::default() };
-    let image_size = [image.width(), image.height()];
+    let image_size = [gray.width(), gray.height()];
     // The extractor needs room for its pyramid and patch; a tiny image simply has no features.
     if size.width < 64 || size.height < 64 {
         return Ok(LocalFeatures { image_size, ..LocalFeatures::default() });
@@ -228,13 +235,19 @@ pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
     })
 }
 
-/// [`extract`], with each keypoint's depth read from `depth` where given.
-pub fn extract_with_depth(image: &RgbImage, depth: Option<&DepthImage>, max_features: usize) -> Result<LocalFeatures> {
-    let mut features = extract(image, max_features)?;
-    if let Some(depth) = depth {
-        features.set_depth(depth)?;
+/// Spreads the grey levels over the full range by their cumulative histogram.
+fn equalise_histogram(gray: &mut image::GrayImage) {
+    let mut histogram = [0u64; 256];
+    gray.pixels().for_each(|p| histogram[p[0] as usize] += 1);
+    let total = gray.pixels().len() as u64;
+    let lowest = histogram.iter().copied().find(|&h| h > 0).unwrap_or(0);
+    let mut cumulative = 0u64;
+    let mut map = [0u8; 256];
+    for (level, count) in histogram.iter().enumerate() {
+        cumulative += count;
+        map[level] = ((cumulative.saturating_sub(lowest)) * 255 / total.saturating_sub(lowest).max(1)) as u8;
     }
-    Ok(features)
+    gray.pixels_mut().for_each(|p| p[0] = map[p[0] as usize]);
 }
 
 /// Checks whether `query` and `matched` see one rigid scene (module doc).
@@ -474,7 +487,15 @@ impl Verifier {
     /// Features of an image (and keypoint depths, from `depth` where given) under this verifier's
     /// settings.
     pub fn extract(&self, image: &RgbImage, depth: Option<&DepthImage>) -> Result<LocalFeatures> {
-        extract_with_depth(image, depth, self.params.max_features)
+        let mut gray = image::imageops::grayscale(image);
+        if self.params.equalise {
+            equalise_histogram(&mut gray);
+        }
+        let mut features = extract_gray(gray, self.params.max_features)?;
+        if let Some(depth) = depth {
+            features.set_depth(depth)?;
+        }
+        Ok(features)
     }
 
     /// Keeps `features` as keyframe `id`'s, dropping the oldest beyond the budget.
@@ -720,5 +741,20 @@ mod tests {
         assert!(LocalFeatures::from_bytes(&[2, 0, 0]).is_err());
         let empty = LocalFeatures { image_size: [10, 20], ..LocalFeatures::default() };
         assert_eq!(LocalFeatures::from_bytes(&empty.to_bytes()).unwrap(), empty);
+    }
+
+    #[test]
+    fn equalising_keeps_the_corners_of_a_dark_image() {
+        let bright = blocks(9, 320, 240);
+        let dark = RgbImage::from_fn(320, 240, |x, y| Rgb([bright.get_pixel(x, y)[0] / 40; 3]));
+        let count = |equalise: bool, image: &RgbImage| {
+            let verifier = Verifier::new(VerificationParams { equalise, ..VerificationParams::default() }).unwrap();
+            verifier.extract(image, None).unwrap().len()
+        };
+        let (plain, equalised, reference) = (count(false, &dark), count(true, &dark), count(false, &bright));
+        assert!(
+            equalised > plain * 2 && equalised * 10 >= reference * 8,
+            "{plain} plain, {equalised} equalised, {reference} bright"
+        );
     }
 }

@@ -10,6 +10,12 @@ use anyhow::{bail, Context, Result};
 /// Largest file we are willing to download (the weights are 3.6 MB).
 const MAX_BYTES: u64 = 64 << 20;
 
+/// SHA-256 of `bytes`, lower-case hex (how downloads are checked and weights named).
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    use sha2::{Digest, Sha256};
+    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
+}
+
 /// Downloads `url` to `dest` if its SHA-256 is `sha256` (lower-case hex).
 pub fn fetch_verified(url: &str, sha256: &str, dest: &Path) -> Result<()> {
     let config = ureq::Agent::config_builder().timeout_global(Some(Duration::from_secs(120))).build();
@@ -21,7 +27,7 @@ pub fn fetch_verified(url: &str, sha256: &str, dest: &Path) -> Result<()> {
         .limit(MAX_BYTES)
         .read_to_vec()
         .with_context(|| format!("download of {url} broke off"))?;
-    let got = super::resolve::sha256_hex(&bytes);
+    let got = sha256_hex(&bytes);
     if got != sha256 {
         bail!("download of {url} has SHA-256 {got}, expected {sha256}; not using it");
     }

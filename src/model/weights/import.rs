@@ -23,7 +23,7 @@ pub fn import_tflite(path: &Path) -> Result<Weights> {
     let mut weights = import_tflite_bytes(&bytes).with_context(|| format!("cannot import {}", path.display()))?;
     weights.check_finite().with_context(|| format!("cannot import {}", path.display()))?;
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    weights.source = format!("{name} (TFLite, sha256 {})", super::resolve::sha256_hex(&bytes));
+    weights.source = format!("{name} (TFLite, sha256 {})", super::fetch::sha256_hex(&bytes));
     Ok(weights)
 }
 

@@ -13,8 +13,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
-use sha2::{Digest, Sha256};
 
+use super::fetch::sha256_hex;
 use super::Weights;
 
 /// The public MobileNetV2 file (Coral test data, Apache-2.0) and its checksum.
@@ -45,10 +45,6 @@ impl Resolved {
             self.weights.source
         )
     }
-}
-
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    Sha256::digest(bytes).iter().map(|b| format!("{b:02x}")).collect()
 }
 
 /// The per-user cache folder.
