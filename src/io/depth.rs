@@ -13,9 +13,9 @@
 
 use std::collections::VecDeque;
 
-use anyhow::{bail, ensure, Context, Result};
+use anyhow::{bail, Result};
 
-use super::image_msg::ImageMessage;
+use super::image_msg::{checked_layout, ImageMessage};
 use super::msgs::Image;
 pub use super::tum::DEPTH_ASSOCIATION;
 use super::TopicInfo;
@@ -38,17 +38,8 @@ pub fn depth_from_image(msg: &Image) -> Result<DepthImage> {
         "32FC1" => 4,
         _ => bail!("unsupported depth encoding {encoding:?} (supported: 16UC1 in millimetres, 32FC1 in metres)"),
     };
+    let (row_bytes, step) = checked_layout(msg, bytes_per_pixel, &format!("{encoding} depth image"))?;
     let (width, height) = (msg.width as usize, msg.height as usize);
-    ensure!(width > 0 && height > 0, "empty {encoding} depth image ({width}x{height})");
-    let row_bytes = width.checked_mul(bytes_per_pixel).context("depth image width overflows")?;
-    let step = msg.step as usize;
-    ensure!(step >= row_bytes, "{encoding} depth image {width}x{height}: step {step} is smaller than {row_bytes}");
-    let expected = step.checked_mul(height).context("depth image size overflows")?;
-    ensure!(
-        msg.data.len() == expected,
-        "{encoding} depth image {width}x{height}: data has {} bytes but step*height = {expected}",
-        msg.data.len()
-    );
     let big_endian = msg.is_bigendian != 0;
     let known = |m: f32| if m.is_finite() && m > 0.0 { m } else { 0.0 };
     let mut metres = Vec::with_capacity(width * height);

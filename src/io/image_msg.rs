@@ -255,20 +255,8 @@ pub fn decode_image(msg: &Image) -> Result<RgbImage> {
     let bpp = bytes_per_pixel(encoding).with_context(|| {
         format!("unsupported image encoding {encoding:?} (supported: rgb8, bgr8, rgba8, bgra8, mono8, mono16)")
     })?;
+    let (row_bytes, step) = checked_layout(msg, bpp, &format!("{encoding} image"))?;
     let (width, height) = (msg.width as usize, msg.height as usize);
-    ensure!(width > 0 && height > 0, "empty {encoding} image ({width}x{height})");
-    let row_bytes = width.checked_mul(bpp).context("image width overflows")?;
-    let step = msg.step as usize;
-    ensure!(
-        step >= row_bytes,
-        "{encoding} image {width}x{height}: step {step} is smaller than width*{bpp} = {row_bytes}"
-    );
-    let expected = step.checked_mul(height).context("image size overflows")?;
-    ensure!(
-        msg.data.len() == expected,
-        "{encoding} image {width}x{height}: data has {} bytes but step*height = {step}*{height} = {expected}",
-        msg.data.len()
-    );
     let big_endian = msg.is_bigendian != 0;
     let mut out = Vec::with_capacity(width * height * 3);
     for row in msg.data.chunks_exact(step) {
@@ -288,6 +276,26 @@ pub fn decode_image(msg: &Image) -> Result<RgbImage> {
         }
     }
     RgbImage::from_raw(msg.width, msg.height, out).context("pixel buffer size (internal)")
+}
+
+/// The bytes of one row of `msg`'s pixels and its step, checked against the size and the data
+/// (`what` names the image in errors, e.g. "rgb8 image").
+pub(crate) fn checked_layout(msg: &Image, bytes_per_pixel: usize, what: &str) -> Result<(usize, usize)> {
+    let (width, height) = (msg.width as usize, msg.height as usize);
+    ensure!(width > 0 && height > 0, "empty {what} ({width}x{height})");
+    let row_bytes = width.checked_mul(bytes_per_pixel).context("image width overflows")?;
+    let step = msg.step as usize;
+    ensure!(
+        step >= row_bytes,
+        "{what} {width}x{height}: step {step} is smaller than width*{bytes_per_pixel} = {row_bytes}"
+    );
+    let expected = step.checked_mul(height).context("image size overflows")?;
+    ensure!(
+        msg.data.len() == expected,
+        "{what} {width}x{height}: data has {} bytes but step*height = {step}*{height} = {expected}",
+        msg.data.len()
+    );
+    Ok((row_bytes, step))
 }
 
 /// `round(v * 255 / 65535)`.

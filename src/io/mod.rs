@@ -152,6 +152,18 @@ pub(crate) fn choose_image_topic(
     Ok((chosen.clone(), kind))
 }
 
+/// The colour topic (and its message kind) and, where asked for, the depth topic of the bag described
+/// by `bag` ([`Topics`]).
+pub(crate) fn choose_topics(
+    bag: &str,
+    topics: &[TopicInfo],
+    wanted: &Topics,
+) -> Result<(TopicInfo, ImageKind, Option<TopicInfo>)> {
+    let (chosen, kind) = choose_image_topic(bag, topics, wanted.image.as_deref())?;
+    let depth = wanted.depth.as_deref().map(|d| choose_depth_topic(bag, topics, d, &chosen.name)).transpose()?;
+    Ok((chosen, kind, depth))
+}
+
 /// Picks the depth topic `wanted` of the bag described by `bag`: a raw `sensor_msgs/Image` topic other
 /// than the colour topic `colour`.
 pub(crate) fn choose_depth_topic(bag: &str, topics: &[TopicInfo], wanted: &str, colour: &str) -> Result<TopicInfo> {

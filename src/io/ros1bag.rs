@@ -22,7 +22,7 @@ use std::path::{Path, PathBuf};
 
 use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
 use super::image_msg::{encode_image, ImageKind, ImageMessage, WireEncoding};
-use super::{choose_depth_topic, choose_image_topic, TopicInfo, Topics};
+use super::{choose_topics, TopicInfo, Topics};
 use crate::types::{Frame, Stamp};
 
 const MAGIC: &[u8] = b"#ROSBAG V2.0\n";
@@ -440,11 +440,7 @@ impl Ros1BagSource {
             Some(d) => err.context(format!("{name}: {d}")),
             None => err,
         };
-        let (chosen, kind) = choose_image_topic(&name, &topics, wanted.image.as_deref()).map_err(with_damage)?;
-        let depth = match &wanted.depth {
-            Some(depth) => Some(choose_depth_topic(&name, &topics, depth, &chosen.name).map_err(with_damage)?),
-            None => None,
-        };
+        let (chosen, kind, depth) = choose_topics(&name, &topics, wanted).map_err(with_damage)?;
         let mut messages: Vec<(bool, MessageRef)> = per_conn
             .into_iter()
             .filter_map(|(conn, m)| {

@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 
 use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
 use super::image_msg::{encode_image, ImageKind, ImageMessage, WireEncoding};
-use super::{choose_depth_topic, choose_image_topic, TopicInfo, Topics};
+use super::{choose_topics, TopicInfo, Topics};
 use crate::types::{Frame, Stamp};
 
 /// Decodes one CDR image payload into a frame.
@@ -83,11 +83,7 @@ impl SqliteBagSource {
         let topics =
             Self::topics(&db).with_context(|| format!("{name}: cannot read the topics and messages tables"))?;
         let infos: Vec<TopicInfo> = topics.values().map(|(info, _)| info.clone()).collect();
-        let (chosen, kind) = choose_image_topic(&name, &infos, wanted.image.as_deref())?;
-        let depth = match &wanted.depth {
-            Some(depth) => Some(choose_depth_topic(&name, &infos, depth, &chosen.name)?),
-            None => None,
-        };
+        let (chosen, kind, depth) = choose_topics(&name, &infos, wanted)?;
         let topic_id = |wanted: &TopicInfo| -> Result<i64> {
             let (id, format) = topics
                 .iter()
@@ -253,11 +249,7 @@ impl McapSource {
             Some(d) => err.context(format!("{d:#}")),
             None => err,
         };
-        let (chosen, kind) = choose_image_topic(&name, &infos, wanted.image.as_deref()).map_err(with_damage)?;
-        let depth = match &wanted.depth {
-            Some(depth) => Some(choose_depth_topic(&name, &infos, depth, &chosen.name).map_err(with_damage)?),
-            None => None,
-        };
+        let (chosen, kind, depth) = choose_topics(&name, &infos, wanted).map_err(with_damage)?;
         for topic in std::iter::once(&chosen).chain(&depth) {
             let encoding = encodings.get(&topic.name).cloned().unwrap_or_default();
             ensure!(
