@@ -192,7 +192,7 @@ mod tests {
             let got = p.tensor_from_image_msg(&msg)?.flatten_all()?.to_vec1::<f32>()?;
             let worst = got.iter().zip(&expected).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
             assert!(worst <= 1e-4, "{encoding} with {padding} bytes of row padding: max abs diff {worst}");
-            // The node's path (decode to RGB, then the tensor, as `ecm-lcd bench`'s end-to-end rows
+            // The node's path (decode to RGB, then the tensor, as `ecm-lcd-bench speed`'s end-to-end rows
             // run it) gives the same tensor bit for bit.
             let decoded = p.tensor(&crate::io::image_msg::decode_image(&msg)?)?.flatten_all()?.to_vec1::<f32>()?;
             let differing = got.iter().zip(&decoded).filter(|(a, b)| a.to_bits() != b.to_bits()).count();

@@ -1,4 +1,4 @@
-//! `ecm-lcd bench` end to end as a user runs it, on small sizes: the sections run, `--json` parses, and the
+//! `ecm-lcd-bench speed` end to end as a user runs it, on small sizes: the sections run, `--json` parses, and the
 //! ONNX export of the project's weights computes the same feature map as ecm-lcd (within 1e-4). The ONNX
 //! Runtime check creates `target/bench-venv` on its first run (needs PyPI then), like `io_fixtures.rs`.
 
@@ -12,8 +12,8 @@ fn tflite() -> PathBuf {
 }
 
 fn bench_json(cache: &Path, args: &[&str]) -> serde_json::Value {
-    let out = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
-        .arg("bench")
+    let out = Command::new(env!("CARGO_BIN_EXE_ecm-lcd-bench"))
+        .arg("speed")
         .args(args)
         .arg("--json")
         .env("ECM_LCD_CACHE", cache)
@@ -21,7 +21,7 @@ fn bench_json(cache: &Path, args: &[&str]) -> serde_json::Value {
         .env("RUST_LOG", "warn")
         .output()
         .unwrap();
-    assert!(out.status.success(), "ecm-lcd bench {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
+    assert!(out.status.success(), "ecm-lcd-bench speed {args:?} failed: {}", String::from_utf8_lossy(&out.stderr));
     serde_json::from_slice(&out.stdout)
         .unwrap_or_else(|e| panic!("bench printed no JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
 }

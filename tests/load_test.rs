@@ -1,4 +1,4 @@
-//! A short run of `ecm-lcd load-test` (the program runs the node and its peers inside a private
+//! A short run of `ecm-lcd-bench load-test` (the program runs the node and its peers inside a private
 //! network namespace of its own): under a burst of 10x the nominal keyframe rate the node's queue stays
 //! bounded (it drops the oldest keyframes and counts them), every received keyframe is accounted for,
 //! memory stays bounded and the parameter services answer during the burst. The full 60 s run's
@@ -9,7 +9,7 @@ use std::process::Command;
 
 #[test]
 fn burst_of_ten_times_the_nominal_rate_keeps_the_queue_and_memory_bounded() {
-    let out = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+    let out = Command::new(env!("CARGO_BIN_EXE_ecm-lcd-bench"))
         // A larger input (896 px: about 16x the network cost, some 5 keyframes/s on this 2-core machine)
         // and a queue of 2, so that 20 keyframes/s exceed what the node processes even on a much faster,
         // idle machine: the test is about the overflow policy. (At 448 px the node kept up here.)

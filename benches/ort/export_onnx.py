@@ -1,7 +1,7 @@
 """Builds an ONNX graph of ecm-lcd's network (MobileNetV2 or ECMobileNet) from the project's folded
 safetensors weights, so that ONNX Runtime runs exactly the same network with the same weights.
 
-Inputs (written by `ecm-lcd bench --only ort`):
+Inputs (written by `ecm-lcd-bench speed --only ort`):
   --weights  safetensors with folded BatchNorm (names of src/model/weights/mod.rs: `stem`, `blocks.{i}.expand`,
              `blocks.{i}.depthwise`, `blocks.{i}.eca`, `blocks.{i}.project`, `head`, each `.weight` + `.bias`)
   --spec     JSON: {"input_size": S, "stem_stride": 2, "blocks": [{"input", "hidden", "output", "stride",

@@ -1,4 +1,4 @@
-"""Times an ONNX model in ONNX Runtime the way `ecm-lcd bench` times its own network, and checks that
+"""Times an ONNX model in ONNX Runtime the way `ecm-lcd-bench speed` times its own network, and checks that
 it computes the same output.
 
 --input / --expected: raw little-endian f32 files (the preprocessed frame and ecm-lcd's output on it).

@@ -1,14 +1,11 @@
 //! Command-line interface: one sub-module per sub-command, each a thin shell over the library.
 
-pub mod bench;
-pub mod bench_node;
 pub mod db;
 pub mod demo;
 pub mod distill;
 pub mod eval;
 pub mod learn_projection;
 pub mod listen;
-pub mod load_test;
 pub mod model;
 pub mod node;
 pub mod param;
@@ -24,7 +21,7 @@ use std::process::ExitCode;
 
 /// `--threads`: 1 to 1024. (A `usize`, as the subcommands that take their own `--threads` lists
 /// read the same argument id.)
-fn parse_threads(text: &str) -> Result<usize, String> {
+pub fn parse_threads(text: &str) -> Result<usize, String> {
     match text.parse::<usize>() {
         Ok(n) if (1..=1024).contains(&n) => Ok(n),
         _ => Err(format!("{text:?} is not a thread count from 1 to 1024")),
@@ -53,8 +50,6 @@ pub enum Command {
     Classify(model::ClassifyArgs),
     /// The pooled 1280-d descriptor of images, as CSV.
     Embed(model::EmbedArgs),
-    /// Benchmark: network forward time per thread count (a program that measures, not a test).
-    Bench(bench::BenchArgs),
     /// The ROS 2 node: keyframes in, loop candidates out (ROS arguments after --ros-args).
     Node(node::Args),
     /// Tracker stand-in: publish the frames of a replay source as ROS 2 keyframes or images.
@@ -67,10 +62,6 @@ pub enum Command {
     Eval(eval::Args),
     /// Get or set a parameter of a running node (like `ros2 param get|set`).
     Param(param::Args),
-    /// Benchmark: node latency from keyframe publish to candidate receipt (private network namespace).
-    BenchNode(bench_node::Args),
-    /// Load test: a 10x keyframe burst into the node, parameter calls during it, drops and memory.
-    LoadTest(load_test::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
     Synth(synth::Args),
     /// Correct an odometry trajectory with the loop candidates (SE(3) pose graph); ATE and a Fig. 11 plot.
@@ -90,11 +81,7 @@ pub enum Command {
 /// Parses the command line, runs the command and turns an error into one line on stderr.
 pub fn main() -> ExitCode {
     let cli = Cli::parse();
-    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or(default_log_filter(std::env::args())))
-        .format_timestamp_millis()
-        .init();
-    crate::runtime::init_threads(cli.threads);
-    crate::runtime::keep_freed_memory();
+    init_process(cli.threads);
     match run(cli.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(err) => {
@@ -102,6 +89,16 @@ pub fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// What every program of the crate sets up first: the log (see [`default_log_filter`]), the compute
+/// threads and the allocator's handling of freed memory.
+pub fn init_process(threads: Option<usize>) {
+    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or(default_log_filter(std::env::args())))
+        .format_timestamp_millis()
+        .init();
+    crate::runtime::init_threads(threads);
+    crate::runtime::keep_freed_memory();
 }
 
 /// The log filter when `RUST_LOG` is unset: ecm-lcd's own lines at `info` (or at the level of a ROS
@@ -134,13 +131,10 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::ModelInfo(args) => model::model_info(args),
         Command::Classify(args) => model::classify(args),
         Command::Embed(args) => model::embed(args),
-        Command::Bench(args) => bench::run(args),
         Command::Node(args) => node::run(args),
         Command::PlayKeyframes(args) => play_keyframes::run(args),
         Command::Listen(args) => listen::run(args),
         Command::Param(args) => param::run(args),
-        Command::BenchNode(args) => bench_node::run(args),
-        Command::LoadTest(args) => load_test::run(args),
         Command::Synth(args) => synth::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),

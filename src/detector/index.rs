@@ -51,7 +51,7 @@ impl Default for IndexPolicy {
         // 2.5M values = 10 MB of f32: 20k keyframes at 128-d, 5k at 1280-d (the `min_len` floor),
         // where an exact scan costs about a millisecond and a half (128-d) to a few (1280-d).
         // A 64th of the lists (at least 8) kept recall@10 >= 0.99 on clustered data from 10k to 1M
-        // keyframes at 128-d and 1280-d (0.996 at 1M: `ecm-lcd bench --only search` measures it).
+        // keyframes at 128-d and 1280-d (0.996 at 1M: `ecm-lcd-bench speed --only search` measures it).
         // A retraining slice of 2^27 multiply-adds takes 2-3 ms of matrix products on two cores (a whole
         // retraining at 80k 1280-d keyframes, in one go: 3.5 s).
         IndexPolicy {

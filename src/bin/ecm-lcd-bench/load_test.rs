@@ -1,6 +1,6 @@
-//! `ecm-lcd load-test`: a load test program (not a test) for the node under a keyframe burst.
+//! `ecm-lcd-bench load-test`: a load test program (not a test) for the node under a keyframe burst.
 //!
-//! It re-runs itself in a private network namespace (loopback only, see [`crate::ros::netns`]), starts
+//! It re-runs itself in a private network namespace (loopback only, see [`ecm_lcd::ros::netns`]), starts
 //! `ecm-lcd node` there as a separate process with the real pipeline, and plays the tracker, the back
 //! end and a parameter client in this process. After a warm-up it publishes ecm_lcd_msgs/Keyframe at
 //! `--factor` (default 10) times the nominal keyframe rate for `--seconds` (default 60), while another
@@ -22,13 +22,13 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use super::bench_node::{
+use super::node::{
     every_keyframe_matches_args, frames_for_benchmark, quantile, rerun_in_private_netns, start_node, stop_node,
 };
-use crate::config::Params;
-use crate::ros::node::InputQos;
-use crate::ros::peer::{CandidateListener, FramePublisher, ParamClient, SendAs};
-use crate::types::{Frame, Stamp};
+use ecm_lcd::config::Params;
+use ecm_lcd::ros::node::InputQos;
+use ecm_lcd::ros::peer::{CandidateListener, FramePublisher, ParamClient, SendAs};
+use ecm_lcd::types::{Frame, Stamp};
 
 const NAMESPACE: &str = "/load";
 
@@ -50,7 +50,7 @@ pub struct Args {
     #[arg(long, default_value_t = 0.5)]
     pub param_period: f64,
     #[command(flatten)]
-    pub frames: super::bench_node::FrameArgs,
+    pub frames: super::node::FrameArgs,
     /// Extra node parameters, `name:=value` (as `-p` after --ros-args).
     #[arg(long = "node-param", value_name = "NAME:=VALUE")]
     pub node_params: Vec<String>,
@@ -324,7 +324,7 @@ fn measure(args: &Args, burst_hz: f64, frames: &[Frame], node_pid: u32) -> Resul
             let context = ros2_client::Context::new().context("creating the DDS participant")?;
             let client = ParamClient::new(
                 &context,
-                &format!("{NAMESPACE}/{}", crate::config::NODE_NAME),
+                &format!("{NAMESPACE}/{}", ecm_lcd::config::NODE_NAME),
                 Duration::from_secs(10),
             )?;
             client.get("detector.min_score").context("first parameter call, before the burst")?;
@@ -394,7 +394,7 @@ fn measure(args: &Args, burst_hz: f64, frames: &[Frame], node_pid: u32) -> Resul
     let period = Duration::from_secs_f64(1.0 / burst_hz);
     let mut sent: HashMap<u64, Instant> = HashMap::new();
     let mut latencies = Vec::new();
-    let mut take = |got: Vec<crate::ros::msgs::LoopCandidate>, sent: &HashMap<u64, Instant>, candidates: &mut u64| {
+    let mut take = |got: Vec<ecm_lcd::ros::msgs::LoopCandidate>, sent: &HashMap<u64, Instant>, candidates: &mut u64| {
         let now = Instant::now();
         for c in got {
             *candidates += 1;

@@ -1,4 +1,4 @@
-//! `ecm-lcd bench`: a benchmark program (not a test) that prints, in one run, the figures of the project's speed goals
+//! `ecm-lcd-bench speed`: a benchmark program (not a test) that prints, in one run, the figures of the project's speed goals
 //! side by side: network forward (ECMobileNet and MobileNetV2, per thread count), the same networks in
 //! ONNX Runtime with the same weights, preprocessing, search at growing database sizes (exact and
 //! indexed, with the index's recall), one keyframe end to end with a large database, and peak memory
@@ -10,7 +10,7 @@
 //!   section), which is also exactly what the ONNX Runtime script times, so their ratio compares like
 //!   with like. Median and p90 of `--runs` runs after 5 warm-up runs.
 //! - ONNX Runtime: the weights the bench runs are folded by the project (BatchNorm into the convolutions,
-//!   [`crate::model::Network::visit_units`]), saved with the project's safetensors writer, and turned into an
+//!   [`ecm_lcd::model::Network::visit_units`]), saved with the project's safetensors writer, and turned into an
 //!   ONNX graph by `benches/ort/export_onnx.py`; `benches/ort/time_ort.py` checks the output equals ours
 //!   (max abs difference reported, goal 1e-4) and times it. Both run in a virtualenv the bench creates
 //!   (`target/bench-venv`, reused).
@@ -22,7 +22,7 @@
 //!   JPEG `CompressedImage` in alternation, goes through decode -> preprocessing -> network ->
 //!   descriptor -> search -> candidates in a [`Pipeline`] whose detector already holds
 //!   `--e2e-stored` synthetic descriptors of the pipeline's descriptor length.
-//! - Verification: ORB extraction on the bench frame, and [`crate::verification::verify`] of the
+//! - Verification: ORB extraction on the bench frame, and [`ecm_lcd::verification::verify`] of the
 //!   frame against the next TUM frame (the same desk, 1 s later: a pair that verifies) and against
 //!   the last one (another view: a pair that does not, where RANSAC runs its full budget). The end to
 //!   end section runs once more with verification on (TUM fr3 intrinsics); there each keyframe's
@@ -40,17 +40,17 @@ use anyhow::{bail, ensure, Context, Result};
 use image::RgbImage;
 use serde::Serialize;
 
-use super::model::NetworkArgs;
-use crate::config::Params;
-use crate::detector::index::{ClusteredVectors, IndexPolicy};
-use crate::detector::{Detector, IndexInfo, KeyframeDb};
-use crate::io::image_msg::{decode_compressed_image, decode_image, jpeg_message, rgb8_message};
-use crate::model::layers::Mode;
-use crate::model::weights::resolve;
-use crate::model::Arch;
-use crate::pipeline::Pipeline;
-use crate::preprocess::Preprocessor;
-use crate::types::Stamp;
+use ecm_lcd::cli::model::NetworkArgs;
+use ecm_lcd::config::Params;
+use ecm_lcd::detector::index::{ClusteredVectors, IndexPolicy};
+use ecm_lcd::detector::{Detector, IndexInfo, KeyframeDb};
+use ecm_lcd::io::image_msg::{decode_compressed_image, decode_image, jpeg_message, rgb8_message};
+use ecm_lcd::model::layers::Mode;
+use ecm_lcd::model::weights::resolve;
+use ecm_lcd::model::Arch;
+use ecm_lcd::pipeline::Pipeline;
+use ecm_lcd::preprocess::Preprocessor;
+use ecm_lcd::types::Stamp;
 
 #[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
@@ -131,12 +131,6 @@ pub struct Timing {
     pub runs: usize,
     pub median_ms: f64,
     pub p90_ms: f64,
-}
-
-/// Median and 90th percentile of `samples` (ms).
-pub fn median_p90(samples: &mut [f64]) -> (f64, f64) {
-    let s = Stats::of(samples);
-    (s.median_ms, s.p90_ms)
 }
 
 /// Order statistics of timed runs (ms).
@@ -362,8 +356,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
     }
     if wanted(Section::E2e) {
         // A node runs its keyframes on a rayon worker (runtime::on_worker); so does this.
-        let mut rows = crate::runtime::on_worker(|| end_to_end(&args, &frame, false))?;
-        rows.extend(crate::runtime::on_worker(|| end_to_end(&args, &frame, true))?);
+        let mut rows = ecm_lcd::runtime::on_worker(|| end_to_end(&args, &frame, false))?;
+        rows.extend(ecm_lcd::runtime::on_worker(|| end_to_end(&args, &frame, true))?);
         report.end_to_end = Some(rows);
     }
     if wanted(Section::Verification) {
@@ -387,13 +381,13 @@ pub fn run(args: BenchArgs) -> Result<()> {
 /// A real 640x480 TUM frame from the shared data when present, else a fixed pseudo-random frame (the
 /// forward pass does not depend on the content; the JPEG size does).
 fn bench_frame() -> Result<(RgbImage, String)> {
-    for dir in crate::runtime::shared_dirs() {
+    for dir in ecm_lcd::runtime::shared_dirs() {
         let rgb = dir.join("data/tum/fr3_long_office_household/rgb");
         if let Ok(entries) = std::fs::read_dir(&rgb) {
             let mut paths: Vec<PathBuf> = entries.filter_map(|e| e.ok().map(|e| e.path())).collect();
             paths.sort();
             if let Some(path) = paths.first() {
-                return Ok((crate::preprocess::read_image(path)?, path.display().to_string()));
+                return Ok((ecm_lcd::preprocess::read_image(path)?, path.display().to_string()));
             }
         }
     }
@@ -413,7 +407,7 @@ fn with_threads<T: Send>(threads: usize, f: impl FnOnce() -> Result<T> + Send) -
     // candle sizes its matmul split by this variable on every call.
     std::env::set_var("RAYON_NUM_THREADS", threads.to_string());
     let out = pool.install(f);
-    std::env::set_var("RAYON_NUM_THREADS", crate::runtime::init_threads(None).to_string());
+    std::env::set_var("RAYON_NUM_THREADS", ecm_lcd::runtime::init_threads(None).to_string());
     out
 }
 
@@ -478,7 +472,7 @@ fn bench_python(venv: &Path) -> Result<PathBuf> {
     ensure!(
         status.success() && check(&python),
         "pip could not install onnxruntime, onnx, numpy and safetensors into {} (is PyPI reachable?); \
-         run `ecm-lcd bench --only forward,preprocess,search,e2e,memory` to skip the ONNX Runtime comparison",
+         run `ecm-lcd-bench speed --only forward,preprocess,search,e2e,memory` to skip the ONNX Runtime comparison",
         venv.display()
     );
     Ok(python)
@@ -521,8 +515,12 @@ fn ort(args: &BenchArgs, image: &RgbImage) -> Result<Ort> {
                 tensors.insert(format!("{name}.bias"), b.clone());
             }
         })?;
-        let folded =
-            crate::model::weights::Weights { arch, classes: None, source: "ecm-lcd bench (folded)".into(), tensors };
+        let folded = ecm_lcd::model::weights::Weights {
+            arch,
+            classes: None,
+            source: "ecm-lcd-bench speed (folded)".into(),
+            tensors,
+        };
         let weights_path = work.join(format!("{}.safetensors", arch.name()));
         folded.save(&weights_path)?;
         let blocks: Vec<serde_json::Value> = arch
@@ -752,12 +750,12 @@ fn end_to_end(args: &BenchArgs, frame: &(RgbImage, String), verify: bool) -> Res
 }
 
 fn verification(args: &BenchArgs, frame: &(RgbImage, String)) -> Result<VerificationTiming> {
-    use crate::verification::{extract, verify, VerificationParams};
+    use ecm_lcd::verification::{extract, verify, VerificationParams};
     let params = VerificationParams {
-        intrinsics: crate::verification::Intrinsics::preset("tum_fr3"),
+        intrinsics: ecm_lcd::verification::Intrinsics::preset("tum_fr3"),
         ..VerificationParams::default()
     };
-    let mut paths: Vec<PathBuf> = crate::runtime::shared_dirs()
+    let mut paths: Vec<PathBuf> = ecm_lcd::runtime::shared_dirs()
         .into_iter()
         .filter_map(|dir| std::fs::read_dir(dir.join("data/tum/fr3_long_office_household/rgb")).ok())
         .flat_map(|entries| entries.filter_map(|e| e.ok().map(|e| e.path())).collect::<Vec<_>>())
@@ -767,8 +765,8 @@ fn verification(args: &BenchArgs, frame: &(RgbImage, String)) -> Result<Verifica
         paths.len() >= 3,
         "the verification section needs the TUM fr3 frames of ../shared (data/tum/fr3_long_office_household)"
     );
-    let next = crate::preprocess::read_image(&paths[1])?;
-    let last = crate::preprocess::read_image(&paths[paths.len() - 1])?;
+    let next = ecm_lcd::preprocess::read_image(&paths[1])?;
+    let last = ecm_lcd::preprocess::read_image(&paths[paths.len() - 1])?;
     let runs = args.runs.max(20);
     let mut samples = Vec::new();
     let mut features = None;
@@ -817,7 +815,7 @@ fn memory(spec: &str) -> Result<MemoryRow> {
     eprintln!("memory: {spec} in a child process ...");
     let exe = std::env::current_exe().context("cannot find this program to run the memory child")?;
     let output =
-        Command::new(exe).args(["bench", "--memory-child", spec]).output().context("cannot run the memory child")?;
+        Command::new(exe).args(["speed", "--memory-child", spec]).output().context("cannot run the memory child")?;
     ensure!(output.status.success(), "memory child {spec} failed: {}", String::from_utf8_lossy(&output.stderr).trim());
     let out = String::from_utf8_lossy(&output.stdout);
     serde_json::from_str(out.trim()).with_context(|| format!("memory child printed {out:?}"))
@@ -839,8 +837,8 @@ fn rss_mb() -> Result<(f64, f64)> {
 fn memory_child(stored: usize, dim: usize) -> Result<MemoryRow> {
     let (baseline_mb, _) = rss_mb()?;
     // Any unit-vector mode whose length is its channel count: only the length and the score matter here.
-    let descriptor = crate::descriptor::Descriptor::new(crate::descriptor::DescriptorMode::L2, dim);
-    let params = crate::detector::DetectorParams { min_history: 1, ..crate::config::Params::default().detector() };
+    let descriptor = ecm_lcd::descriptor::Descriptor::new(ecm_lcd::descriptor::DescriptorMode::L2, dim);
+    let params = ecm_lcd::detector::DetectorParams { min_history: 1, ..ecm_lcd::config::Params::default().detector() };
     let mut detector = Detector::new(descriptor, params);
     let mut generator = ClusteredVectors::new(dim, clusters_for(stored), 44);
     let mut v = vec![0f32; dim];

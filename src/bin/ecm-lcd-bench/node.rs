@@ -1,7 +1,7 @@
-//! `ecm-lcd bench-node`: a benchmark program (not a test) for the node's end-to-end latency: the time
+//! `ecm-lcd-bench node`: a benchmark program (not a test) for the node's end-to-end latency: the time
 //! from publishing an ecm_lcd_msgs/Keyframe to receiving its LoopCandidate, over DDS on loopback.
 //!
-//! It re-runs itself in a private network namespace (see [`crate::ros::netns`]), starts `ecm-lcd node`
+//! It re-runs itself in a private network namespace (see [`ecm_lcd::ros::netns`]), starts `ecm-lcd node`
 //! there as a separate process (the real pipeline; the threshold at 0 and no history/recency limits, so
 //! every keyframe after the first yields exactly one candidate), and plays the tracker and the back end
 //! in this process. Keyframes go one at a time (closed loop: the next is published once the previous
@@ -16,11 +16,11 @@ use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::ros::netns::{inside_private_netns, private_netns_command};
-use crate::ros::node::InputQos;
-use crate::ros::peer::{CandidateListener, FramePublisher, SendAs};
-use crate::synth::{Scene, SynthConfig};
-use crate::types::Frame;
+use ecm_lcd::ros::netns::{inside_private_netns, private_netns_command};
+use ecm_lcd::ros::node::InputQos;
+use ecm_lcd::ros::peer::{CandidateListener, FramePublisher, SendAs};
+use ecm_lcd::synth::{Scene, SynthConfig};
+use ecm_lcd::types::Frame;
 
 /// What the benchmark publishes and the node runs with (shared by `bench-node` and `load-test`).
 #[derive(clap::Args, Debug)]
@@ -149,7 +149,7 @@ pub(crate) fn frames_for_benchmark(
     height: u32,
 ) -> Result<Vec<Frame>> {
     if let Some(path) = source {
-        let source = crate::io::open_source(path, None).with_context(|| format!("opening {}", path.display()))?;
+        let source = ecm_lcd::io::open_source(path, None).with_context(|| format!("opening {}", path.display()))?;
         let frames: Vec<Frame> =
             source.take(wanted).collect::<Result<_>>().with_context(|| format!("reading {}", path.display()))?;
         if frames.is_empty() {
@@ -199,9 +199,9 @@ pub(crate) fn every_keyframe_matches_args(ns: &str) -> Vec<String> {
     args
 }
 
-/// Starts `ecm-lcd node ARGS` (this program) with its log in `log_path`.
+/// Starts `ecm-lcd node ARGS` (the user binary beside this program) with its log in `log_path`.
 pub(crate) fn start_node(args: &[String], log_path: &std::path::Path) -> Result<Child> {
-    let exe = std::env::current_exe().context("finding this program to start the node")?;
+    let exe = super::user_binary()?;
     let log = std::fs::File::create(log_path).with_context(|| format!("creating {}", log_path.display()))?;
     let mut command = Command::new(exe);
     command
@@ -239,7 +239,7 @@ fn measure(args: &Args, frames: &[Frame]) -> Result<Vec<f64>> {
     for id in 0..=(args.warmup + args.keyframes) {
         let source = &frames[id % frames.len()];
         // Keyframe id = frame index; one second apart, whatever the source's stamps.
-        let stamp = crate::types::Stamp::from_sec_nsec(1_000 + id as i64, 0);
+        let stamp = ecm_lcd::types::Stamp::from_sec_nsec(1_000 + id as i64, 0);
         let frame = Frame { index: id, stamp, image: source.image.clone(), depth: None };
         let sent = Instant::now();
         publisher.publish(&frame)?;
