@@ -9,9 +9,9 @@ use std::sync::Arc;
 use candle_core::{Module, ModuleT, Result, Tensor};
 use candle_nn::{BatchNorm, BatchNormConfig, VarBuilder};
 
-use super::depthwise::{self, Activation};
-use super::fused::{DenseConv, FusedBottleneck};
-use super::{batch_norm_train, depthwise_grad, train_ops};
+use super::kernels::depthwise::{self, Activation};
+use super::kernels::fused::{DenseConv, FusedBottleneck};
+use super::kernels::{batch_norm_train, depthwise_grad, train_ops};
 
 /// How a forward pass runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -135,7 +135,7 @@ impl ConvUnit {
                 (_, Some(dense)) => {
                     // The op works channels-last; this per-unit entry keeps NCHW on both sides.
                     let x = if dense.is_pointwise() { to_channels_last(x)? } else { x.contiguous()? };
-                    super::fused::channels_first(&x.apply_op1_no_bwd(dense.as_ref())?)
+                    super::kernels::fused::channels_first(&x.apply_op1_no_bwd(dense.as_ref())?)
                 }
                 (ConvKind::Pointwise, None) => {
                     let y = pointwise(x, &self.weight)?;
@@ -382,7 +382,7 @@ impl InvertedResidual {
 
     pub fn forward_t(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
         if let (Mode::Inference, Some(fused)) = (mode, &self.fused) {
-            return super::fused::channels_first(&to_channels_last(x)?.apply_op1_no_bwd(fused.as_ref())?);
+            return super::kernels::fused::channels_first(&to_channels_last(x)?.apply_op1_no_bwd(fused.as_ref())?);
         }
         let mut y = match &self.expand {
             Some(expand) => expand.forward_t(x, mode)?,

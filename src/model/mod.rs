@@ -1,21 +1,18 @@
 //! The networks: MobileNetV2 (reference and import target) and ECMobileNet (the paper's variant),
-//! their building blocks, the fast depthwise kernel, and weights import/load/save.
+//! their building blocks ([`layers`]) and weights import/load/save ([`weights`]); the CPU kernels
+//! they run on are apart, in [`kernels`].
 //!
 //! Both networks are the same skeleton described by data ([`NetworkSpec`]: one row per bottleneck
 //! stage, as in the papers' tables): a 3x3 stride-2 stem, inverted-residual bottlenecks, a 1x1
 //! convolution to 1280 channels, global average pooling and an optional classifier.
-//! Layout is NCHW throughout; input is RGB scaled to [-1, 1].
+//! Tensors in and out are NCHW, input RGB scaled to [-1, 1]; the reference and training paths stay
+//! NCHW, while the inference path runs the bottlenecks channels-last inside [`kernels::fused`].
 
-pub mod batch_norm_train;
-pub mod depthwise;
-pub mod depthwise_grad;
 pub mod ecmobilenet;
 pub mod embedder;
-pub mod fused;
+pub mod kernels;
 pub mod layers;
 pub mod mobilenetv2;
-pub mod simd;
-pub mod train_ops;
 pub mod weights;
 
 use anyhow::{bail, Context};
@@ -26,8 +23,8 @@ use std::fmt;
 use std::str::FromStr;
 use std::sync::Arc;
 
-use depthwise::Activation;
-use fused::FusedBottleneck;
+use kernels::depthwise::Activation;
+use kernels::fused::FusedBottleneck;
 use layers::{BlockShape, ConvKind, ConvUnit, InvertedResidual, Mode};
 
 /// Which network.
@@ -316,7 +313,7 @@ impl Network {
                     if tap.depth(self.blocks.len()) == depth {
                         // The head's map is already channels-first (see `stage`).
                         let nchw = channels_last && !matches!(stage, Stage::Head);
-                        *slot = Some(if nchw { fused::channels_first(&y)? } else { y.clone() });
+                        *slot = Some(if nchw { kernels::fused::channels_first(&y)? } else { y.clone() });
                     }
                 }
                 if depth == deepest {
@@ -358,7 +355,7 @@ impl Network {
             }
             (Stage::Stem, true) => self.stem.forward_channels_last(x),
             (Stage::Stem, false) => self.stem.forward_t(x, mode),
-            (Stage::Head, true) => fused::channels_first(&self.head.forward_channels_last(x)?),
+            (Stage::Head, true) => kernels::fused::channels_first(&self.head.forward_channels_last(x)?),
             (Stage::Head, false) => self.head.forward_t(x, mode),
             (Stage::Block(i), true) => self.blocks[i].forward_channels_last(x),
             (Stage::Block(i), false) => self.blocks[i].forward_t(x, mode),
@@ -442,18 +439,4 @@ pub fn check_input_size(size: usize) -> anyhow::Result<usize> {
         bail!("input size {size} is not a multiple of 32 in [32, {MAX_INPUT_SIZE}]");
     }
     Ok(size)
-}
-
-/// The `f32` values of a custom op's operand, which must be contiguous (`op` and `what` name it in
-/// the error).
-pub(crate) fn contiguous_f32<'a>(
-    storage: &'a candle_core::CpuStorage,
-    layout: &candle_core::Layout,
-    op: &str,
-    what: &str,
-) -> candle_core::Result<&'a [f32]> {
-    let (start, end) = layout
-        .contiguous_offsets()
-        .ok_or_else(|| candle_core::Error::Msg(format!("{op}: {what} must be contiguous")))?;
-    Ok(&storage.as_slice::<f32>()?[start..end])
 }

@@ -4,8 +4,8 @@
 //!
 //! - The network is built in its training form (`Network::load(.., batch_norm = true)`) from a
 //!   `VarMap`. [`Mode::Train`] runs differentiable ops: stock candle ops, plus two custom ops with
-//!   hand-written backward passes, the depthwise convolution ([`crate::model::depthwise_grad`])
-//!   and training-mode BatchNorm ([`crate::model::batch_norm_train`]), both tested against
+//!   hand-written backward passes, the depthwise convolution ([`crate::model::kernels::depthwise_grad`])
+//!   and training-mode BatchNorm ([`crate::model::kernels::batch_norm_train`]), both tested against
 //!   finite differences and candle's stock ops. Distillation uses [`Mode::FineTune`] (BatchNorm
 //!   frozen). The inference kernels have no backward.
 //! - `--init` loads folded (inference-form) weights into the training form: convolution weight as

@@ -253,7 +253,7 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
 /// rates generalise worse: 1e-3 gave 0.529, 3e-3 0.772). Everything is seeded (the student starts
 /// from the converted teacher), so the run is repeatable. Measured: 0.894 -> 0.420 in 233 s wall,
 /// 92 s CPU, on this 2-core machine while other jobs kept the load average at 8-10; with the
-/// training ops of `model::train_ops` 0.894 -> 0.419 in 22 s wall (load average 0.2).
+/// training ops of `model::kernels::train_ops` 0.894 -> 0.419 in 22 s wall (load average 0.2).
 #[test]
 fn distillation_halves_the_heldout_descriptor_error() -> Result<()> {
     let teacher = crate::model::weights::resolve::resolve(None)

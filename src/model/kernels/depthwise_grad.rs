@@ -227,7 +227,7 @@ pub fn depthwise_conv_train(x: &Tensor, weight: &Tensor, stride: usize) -> Resul
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::depthwise::depthwise_conv_reference;
+    use crate::model::kernels::depthwise::depthwise_conv_reference;
     use candle_core::{Device, Var};
 
     fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {

@@ -29,8 +29,8 @@
 //!
 //! Hidden channels are padded to a multiple of 16 with zero weights, whose outputs are zero.
 //!
-//! [`Mode::Inference`]: super::layers::Mode::Inference
-//! [`Mode::Reference`]: super::layers::Mode::Reference
+//! [`Mode::Inference`]: crate::model::layers::Mode::Inference
+//! [`Mode::Reference`]: crate::model::layers::Mode::Reference
 
 use std::cell::Cell;
 use std::ops::Range;
@@ -65,7 +65,7 @@ fn input<'a>(storage: &'a CpuStorage, layout: &Layout, op: &str) -> Result<&'a [
 }
 
 /// ECA's gate from per-channel sums over `count` values: mean, 1-D convolution across channels
-/// (zero padding, `taps.len()` odd), sigmoid — as [`super::layers::Eca::gate`].
+/// (zero padding, `taps.len()` odd), sigmoid — as [`crate::model::layers::Eca::gate`].
 fn eca_gate(sums: &[f64], count: usize, taps: &[f32]) -> Vec<f32> {
     let channels = sums.len() as isize;
     let pad = (taps.len() as isize - 1) / 2;

@@ -1,4 +1,4 @@
-//! Differentiable CPU ops for [`Mode::Train`](super::layers::Mode::Train), each one candle custom
+//! Differentiable CPU ops for [`Mode::Train`](crate::model::layers::Mode::Train), each one candle custom
 //! op with a hand-written backward, replacing compositions of stock ops whose backward passes
 //! dominated a training step (measured: 580 ms per step of ECMobileNet at 32 px, batch 16, most
 //! of it in the backward passes of `clamp`, broadcasts and their gradient accumulation).
@@ -16,7 +16,7 @@
 //!   candle's broadcast ops (whose backward materialises and then reduces full-size tensors).
 //!
 //! [`crate::model::layers`] uses them only in the training modes; [`Mode::Reference`]
-//! (super::layers::Mode::Reference) keeps the stock ops, and the tests here check every op
+//! (crate::model::layers::Mode::Reference) keeps the stock ops, and the tests here check every op
 //! against the stock composition (values and gradients).
 
 use candle_core::{CpuStorage, CustomOp1, CustomOp2, Layout, Result, Shape, Tensor};
@@ -529,7 +529,7 @@ pub fn channel_scale(x: &Tensor, gate: &Tensor) -> Result<Tensor> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::depthwise::pad_same;
+    use crate::model::kernels::depthwise::pad_same;
     use candle_core::{Device, Var};
 
     fn max_abs_diff(a: &Tensor, b: &Tensor) -> f32 {
