@@ -123,6 +123,8 @@ pub trait MessageSource: Iterator<Item = Result<BagMessage>> + Send {
 /// depth topic passes its frames straight through.
 pub struct DepthPaired<S> {
     inner: S,
+    /// Whether the source has a depth topic (without one, frames pass straight through).
+    paired: bool,
     pending: VecDeque<Frame>,
     depths: VecDeque<(Stamp, DepthImage)>,
     /// Newest colour stamp seen.
@@ -132,9 +134,10 @@ pub struct DepthPaired<S> {
 }
 
 impl<S: MessageSource> DepthPaired<S> {
-    pub fn new(inner: S) -> Self {
+    pub fn new(inner: S, paired: bool) -> Self {
         DepthPaired {
             inner,
+            paired,
             pending: VecDeque::new(),
             depths: VecDeque::new(),
             newest_colour: None,
@@ -147,7 +150,8 @@ impl<S: MessageSource> DepthPaired<S> {
     fn front_is_ready(&self) -> bool {
         let Some(front) = self.pending.front() else { return false };
         let window_end = front.stamp.nanos.saturating_add(DEPTH_ASSOCIATION.nanos);
-        self.ended
+        !self.paired
+            || self.ended
             || self.depths.back().is_some_and(|(stamp, _)| stamp.nanos > window_end)
             || self.newest_colour.is_some_and(|s| s.nanos.saturating_sub(front.stamp.nanos) > MAX_HOLD.nanos)
     }
@@ -251,7 +255,7 @@ mod tests {
     }
 
     fn paired(messages: Vec<Result<BagMessage>>) -> Vec<Result<Frame>> {
-        DepthPaired::new(Scripted(messages.into_iter())).collect()
+        DepthPaired::new(Scripted(messages.into_iter()), true).collect()
     }
 
     /// The depth value each frame received (None: no depth), in order.
@@ -297,9 +301,12 @@ mod tests {
     fn frames_are_not_held_for_depth_that_never_comes() {
         // Colour only (no depth topic, or a silent one): every frame comes out once MAX_HOLD of
         // newer colour has passed, without waiting for the end.
-        let mut source = DepthPaired::new(Scripted(
-            (0..100).map(|i| Ok(colour(i, ms(i as i64 * 100)))).collect::<Vec<_>>().into_iter(),
-        ));
+        let frames = || (0..100).map(|i| Ok(colour(i, ms(i as i64 * 100)))).collect::<Vec<_>>().into_iter();
+        // Without a depth topic nothing is held at all.
+        let mut plain = DepthPaired::new(Scripted(frames()), false);
+        assert_eq!(plain.next().unwrap().unwrap().index, 0);
+        assert!(plain.pending.is_empty());
+        let mut source = DepthPaired::new(Scripted(frames()), true);
         let first = source.next().unwrap().unwrap();
         assert_eq!(first.index, 0);
         assert!(source.pending.len() <= (MAX_HOLD.nanos / ms(100).nanos) as usize + 1, "{}", source.pending.len());

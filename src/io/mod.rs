@@ -82,9 +82,15 @@ pub fn open_source_topics(path: &Path, topics: &Topics) -> Result<Box<dyn FrameS
     }
     let extension = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
     Ok(match extension.as_deref() {
-        Some("bag") => Box::new(depth::DepthPaired::new(ros1bag::Ros1BagSource::open(path, topics)?)),
-        Some("db3") => Box::new(depth::DepthPaired::new(ros2bag::SqliteBagSource::open(path, topics)?)),
-        Some("mcap") => Box::new(depth::DepthPaired::new(ros2bag::McapSource::open(path, topics)?)),
+        Some("bag") => {
+            Box::new(depth::DepthPaired::new(ros1bag::Ros1BagSource::open(path, topics)?, topics.depth.is_some()))
+        }
+        Some("db3") => {
+            Box::new(depth::DepthPaired::new(ros2bag::SqliteBagSource::open(path, topics)?, topics.depth.is_some()))
+        }
+        Some("mcap") => {
+            Box::new(depth::DepthPaired::new(ros2bag::McapSource::open(path, topics)?, topics.depth.is_some()))
+        }
         _ => bail!(
             "{}: unsupported source (expected a TUM folder, image folder, ROS 2 bag folder, .bag, .db3 or .mcap)",
             path.display()
