@@ -154,7 +154,7 @@ fn measure(set: &DevSet, overrides: &[(&str, &str)], weights: &Resolved) -> Resu
     };
     row.metrics = evaluate(&results, &truth)?;
     row.min_score = min_score;
-    Ok((row, pipeline.descriptor().dim() * std::mem::size_of::<f32>()))
+    Ok((row, pipeline.detector().row_bytes()))
 }
 
 fn main() -> Result<()> {

@@ -24,7 +24,7 @@
 
 use crate::descriptor::{Descriptor, DescriptorMode, Pooling, DEFAULT_GRID};
 use crate::detector::selection::SelectionParams;
-use crate::detector::{DetectorParams, Threshold};
+use crate::detector::{DetectorParams, Storage, Threshold};
 use crate::model::{Arch, Tap};
 use crate::verification::{Intrinsics, VerificationParams};
 use anyhow::Context;
@@ -304,6 +304,15 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             range: ParamRange::Any,
             description: "Compare descriptors after removing the mean of the keyframe history (not for the paper descriptor).",
             read_only: false,
+        },
+        ParamSpec {
+            read_only: true,
+            ..one_of(
+                "detector.storage",
+                "auto",
+                &Storage::NAMES,
+                "How keyframe descriptors are kept in memory: levels6 (six levels a value, under 1 KiB for the default descriptor), f32 (exact), or auto (levels6 for descriptors over 1 KiB as f32, except the paper's).",
+            )
         },
         integer(
             "detector.sequence.length",
@@ -594,6 +603,8 @@ impl Params {
             max_keyframes: self.count("detector.max_keyframes"),
             sequence_length: self.count("detector.sequence.length"),
             centre_on_history: matches!(self.values.get("detector.centre_on_history"), Some(ParamValue::Bool(true))),
+            // The table's allowed strings are exactly the storage names.
+            storage: self.string("detector.storage").parse().unwrap_or_default(),
         }
     }
 

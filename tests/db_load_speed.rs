@@ -96,5 +96,5 @@ fn append_latency_and_loading_100k_keyframes() {
         "first load without a vector file (read from SQLite, file written): {:.3} s",
         started.elapsed().as_secs_f64()
     );
-    assert_eq!((db.len(), db.descriptor(total as usize - 1)), (total as usize, descriptor(7, dim).as_slice()));
+    assert_eq!((db.len(), &*db.descriptor(total as usize - 1)), (total as usize, descriptor(7, dim).as_slice()));
 }

@@ -98,6 +98,8 @@ pub fn replay_on(
     let groundtruth = read_groundtruth(&set.path.join("groundtruth.txt"))?;
     let mut params = Params::default();
     params.set_from_str("arch", arch).map_err(anyhow::Error::msg)?;
+    // These programs study descriptors, so the database keeps them exactly.
+    params.set_from_str("detector.storage", "f32").map_err(anyhow::Error::msg)?;
     if let Some(mode) = mode {
         params.set_from_str("descriptor.mode", mode).map_err(anyhow::Error::msg)?;
     }

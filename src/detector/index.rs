@@ -6,8 +6,8 @@
 //!   the distances are bit-identical to the plain function.
 //! - IVF: k-means centroids (a few Lloyd iterations on a sample) split the stored descriptors into
 //!   `nlist` lists (spherical for unit descriptors: see [`IvfIndex::train`]); a query ranks the centroids and scans only the `nprobe` nearest lists, computing exact
-//!   distances on the stored `f32` descriptors, so a returned distance is always the true one and only
-//!   the *set* of neighbours can differ from the exact search. Chosen over a graph index (HNSW) because
+//!   distances on the stored rows (`f32`, or six-level codes: [`super::codes`]), so a returned distance
+//!   is always the one the exact scan gives and only the *set* of neighbours can differ from it. Chosen over a graph index (HNSW) because
 //!   it is small (4 bytes per keyframe besides the descriptors, against 100+ for an HNSW graph), inserts
 //!   incrementally at a fixed cost, tolerates dropping the oldest keyframes (the memory budget) with a
 //!   linear pass, and its build time is bounded and predictable (seconds at 1M keyframes).
@@ -25,6 +25,7 @@
 
 use rayon::prelude::*;
 
+use super::rows::{PreparedQuery, Rows};
 use super::Neighbour;
 use crate::descriptor::squared_distance;
 
@@ -157,21 +158,6 @@ pub(crate) fn scan<'a>(
 
 /// Rows ahead of the scan whose memory is requested early (see [`IvfIndex::nearest`]).
 const PREFETCH_AHEAD: usize = 8;
-
-/// Asks the CPU to start loading `row` (its first 512 bytes; the hardware prefetcher follows a longer row).
-#[inline(always)]
-fn prefetch(row: &[f32]) {
-    #[cfg(target_arch = "x86_64")]
-    for offset in (0..row.len().min(128)).step_by(16) {
-        // SAFETY: SSE is part of x86_64; prefetching a valid address has no side effect.
-        #[allow(unused_unsafe)]
-        unsafe {
-            std::arch::x86_64::_mm_prefetch(row.as_ptr().add(offset) as *const i8, std::arch::x86_64::_MM_HINT_T0)
-        };
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = row;
-}
 
 /// Rows assigned per matrix product (bounds the `rows x nlist` product to a few MB per thousand lists).
 const ASSIGN_CHUNK: usize = 2048;
@@ -342,8 +328,8 @@ pub(crate) struct IvfTraining {
 impl IvfTraining {
     /// Starts a training on the live rows `rows[first_live..]` (`dim` values each): only the sample is
     /// taken now.
-    pub fn start(rows: &[f32], dim: usize, first_live: usize, probe_fraction: f64) -> Self {
-        let total = rows.len() / dim;
+    pub fn start(rows: &Rows, first_live: usize, probe_fraction: f64) -> Self {
+        let (dim, total) = (rows.dim(), rows.slots());
         let live = total - first_live;
         // 2 sqrt(n) lists, up to 1024, and at most MAX_ASSIGN_VALUES / dim.
         let nlist =
@@ -355,7 +341,7 @@ impl IvfTraining {
         let sample: Vec<f32> = (0..sample_len)
             .flat_map(|i| {
                 let slot = first_live + (i * stride + sampler.next(stride)).min(live - 1);
-                rows[slot * dim..(slot + 1) * dim].iter().copied()
+                rows.values(slot, slot + 1).into_owned()
             })
             .collect();
         // Initial centroids: sample rows spread over the sample.
@@ -382,13 +368,13 @@ impl IvfTraining {
 
     /// Does at most about `max_macs` multiply-adds of the training (at least one row's worth); the
     /// index once it is complete, with every row of `rows` assigned.
-    pub fn step(&mut self, rows: &[f32], max_macs: usize) -> anyhow::Result<Option<IvfIndex>> {
+    pub fn step(&mut self, rows: &Rows, max_macs: usize) -> anyhow::Result<Option<IvfIndex>> {
         let (dim, nlist) = (self.dim, self.nlist);
         let step_rows = (max_macs / (nlist * dim).max(1)).max(1);
         if let Some(index) = &mut self.index {
-            let end = index.assigned.saturating_add(step_rows).min(rows.len() / dim);
-            index.assign_pending(&rows[..end * dim])?;
-            return Ok((end == rows.len() / dim).then(|| self.index.take().expect("the index being filled")));
+            let end = index.assigned.saturating_add(step_rows).min(rows.slots());
+            index.assign_pending(rows, end)?;
+            return Ok((end == rows.slots()).then(|| self.index.take().expect("the index being filled")));
         }
         let sample_len = self.sample.len() / dim;
         let end = self.cursor.saturating_add(step_rows).min(sample_len);
@@ -462,9 +448,9 @@ impl IvfTraining {
 }
 
 impl IvfIndex {
-    /// Trains on the live rows `rows[first_live..]` (`dim` values each) and assigns every row, in one go.
-    pub fn train(rows: &[f32], dim: usize, first_live: usize, probe_fraction: f64) -> anyhow::Result<Self> {
-        let mut training = IvfTraining::start(rows, dim, first_live, probe_fraction);
+    /// Trains on the live rows (slots from `first_live`) and assigns every row, in one go.
+    pub fn train(rows: &Rows, first_live: usize, probe_fraction: f64) -> anyhow::Result<Self> {
+        let mut training = IvfTraining::start(rows, first_live, probe_fraction);
         loop {
             if let Some(index) = training.step(rows, usize::MAX)? {
                 return Ok(index);
@@ -489,18 +475,21 @@ impl IvfIndex {
     }
 
     /// Rows not yet in a list.
-    pub fn pending(&self, rows: &[f32]) -> usize {
-        rows.len() / self.dim - self.assigned
+    pub fn pending(&self, rows: &Rows) -> usize {
+        rows.slots() - self.assigned
     }
 
-    /// Puts every row of `rows` not yet assigned into its list (`rows`: the buffer, or a prefix of it).
-    pub fn assign_pending(&mut self, rows: &[f32]) -> anyhow::Result<()> {
-        let start = self.assigned;
-        let lists = self.matrix.nearest(self.dim, &rows[start * self.dim..])?;
-        for (offset, c) in lists.into_iter().enumerate() {
-            self.lists[c].push((start + offset) as u32);
+    /// Puts every slot before `end` not yet assigned into its list, a chunk at a time (coded rows
+    /// are decoded a chunk at a time).
+    pub fn assign_pending(&mut self, rows: &Rows, end: usize) -> anyhow::Result<()> {
+        for start in (self.assigned..end).step_by(ASSIGN_CHUNK) {
+            let stop = (start + ASSIGN_CHUNK).min(end);
+            let lists = self.matrix.nearest(self.dim, &rows.values(start, stop))?;
+            for (offset, c) in lists.into_iter().enumerate() {
+                self.lists[c].push((start + offset) as u32);
+            }
         }
-        self.assigned = rows.len() / self.dim;
+        self.assigned = self.assigned.max(end);
         Ok(())
     }
 
@@ -515,20 +504,20 @@ impl IvfIndex {
     }
 
     /// The approximate top `k` over live rows (slots from `first_live`) that `eligible` accepts
-    /// (positions = slot - first_live). `None` when fewer than `k` eligible rows were found, so the
-    /// caller falls back to the exact scan.
+    /// (positions = slot - first_live), `prepared` being `query` prepared for `rows`. `None` when
+    /// fewer than `k` eligible rows were found, so the caller falls back to the exact scan.
     pub fn nearest(
         &self,
-        rows: &[f32],
+        rows: &Rows,
         first_live: usize,
         query: &[f32],
+        prepared: &PreparedQuery<'_>,
         k: usize,
         eligible: &(dyn Fn(usize) -> bool + Sync),
     ) -> Option<Vec<Neighbour>> {
         let dim = self.dim;
         let mut probe = TopK::new(self.nprobe);
         scan(query, self.centroids.chunks_exact(dim).enumerate(), |c, d2| probe.offer(c, d2));
-        let row = |slot: usize| &rows[slot * dim..(slot + 1) * dim];
         // On a rayon worker (the pipeline runs there: `runtime::on_worker`), the probed lists are
         // scanned in parallel, each into a top-k of its own, merged after: the scan waits on memory
         // (rows are scattered), and two threads overlap twice the misses. From any other thread a
@@ -542,12 +531,12 @@ impl IvfIndex {
                 // A list's rows are scattered over the buffer: fetch a few rows ahead so the memory
                 // latency overlaps the arithmetic (the scan is latency-bound otherwise).
                 if let Some(&ahead) = list.get(j + PREFETCH_AHEAD) {
-                    prefetch(&rows[ahead as usize * dim..(ahead as usize + 1) * dim]);
+                    rows.prefetch(ahead as usize);
                 }
                 let slot = slot as usize;
-                (slot >= first_live && eligible(slot - first_live)).then(|| (slot - first_live, row(slot)))
+                (slot >= first_live && eligible(slot - first_live)).then_some((slot - first_live, slot))
             });
-            scan(query, slots, |p, d2| top.offer(p, d2));
+            rows.scan(prepared, slots, |p, d2| top.offer(p, d2));
             top
         };
         let lists = probe.into_vec();
@@ -556,9 +545,8 @@ impl IvfIndex {
         } else {
             lists.into_iter().map(scan_list).fold(TopK::new(k), TopK::merge)
         };
-        let total = rows.len() / dim;
-        let tail = (self.assigned.max(first_live)..total).map(|s| s - first_live).filter(|&p| eligible(p));
-        scan(query, tail.map(|p| (p, row(p + first_live))), |p, d2| top.offer(p, d2));
+        let tail = (self.assigned.max(first_live)..rows.slots()).map(|s| s - first_live).filter(|&p| eligible(p));
+        rows.scan(prepared, tail.map(|p| (p, p + first_live)), |p, d2| top.offer(p, d2));
         (top.len() == k).then(|| top.into_vec())
     }
 }
@@ -566,7 +554,7 @@ impl IvfIndex {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::detector::KeyframeDb;
+    use crate::detector::{KeyframeDb, RowFormat};
     use crate::types::Stamp;
 
     fn clustered(count: usize, dim: usize, clusters: usize, seed: u64) -> Vec<f32> {
@@ -586,14 +574,21 @@ mod tests {
 
     #[test]
     fn index_is_chosen_by_size_and_keeps_recall() -> anyhow::Result<()> {
+        for format in [RowFormat::F32, RowFormat::Levels6] {
+            index_keeps_recall(format)?;
+        }
+        Ok(())
+    }
+
+    fn index_keeps_recall(format: RowFormat) -> anyhow::Result<()> {
         let (dim, count) = (32, 6000);
         let policy = IndexPolicy { min_len: 2000, scan_values: 0, ..IndexPolicy::default() };
         assert_eq!(policy.threshold(dim), 2000);
         assert_eq!(IndexPolicy::EXACT.threshold(dim), usize::MAX);
         let data = clustered(count, dim, 60, 7);
-        let mut db = KeyframeDb::new(dim);
+        let mut db = KeyframeDb::with_format(format, dim, 0);
         db.set_index_policy(policy)?;
-        let mut exact = KeyframeDb::new(dim);
+        let mut exact = KeyframeDb::with_format(format, dim, 0);
         exact.set_index_policy(IndexPolicy::EXACT)?;
         for (i, v) in data.chunks_exact(dim).enumerate() {
             db.insert(i as u64, Stamp::from_nanos(i as i64), v)?;
@@ -617,16 +612,16 @@ mod tests {
             hits += got.iter().filter(|n| want.contains(n)).count();
         }
         let recall = hits as f64 / (100 * k) as f64;
-        assert!(recall >= 0.99, "recall@{k} {recall}");
+        assert!(recall >= 0.99, "{format:?} recall@{k} {recall}");
         Ok(())
     }
 
     #[test]
     fn a_training_in_slices_equals_one_in_one_go() -> anyhow::Result<()> {
         let dim = 24;
-        let rows = clustered(4000, dim, 40, 11);
-        let whole = IvfIndex::train(&rows, dim, 100, 1.0 / 64.0)?;
-        let mut training = IvfTraining::start(&rows, dim, 100, 1.0 / 64.0);
+        let rows = Rows::plain(dim, clustered(4000, dim, 40, 11).into());
+        let whole = IvfIndex::train(&rows, 100, 1.0 / 64.0)?;
+        let mut training = IvfTraining::start(&rows, 100, 1.0 / 64.0);
         let mut steps = 1;
         // A slice of 300 rows' worth of work.
         let sliced = loop {

@@ -1,7 +1,7 @@
 //! Keyframe database and loop-closure detector: which earlier keyframe, if any, does a new one revisit.
 //!
-//! [`KeyframeDb`] stores every keyframe's descriptor in one contiguous `f32` buffer and answers top-k
-//! nearest-neighbour queries: by an exact SIMD scan while small, and through an approximate inverted-file
+//! [`KeyframeDb`] stores every keyframe's descriptor in one contiguous buffer, as `f32` or as six-level
+//! codes of under a kilobyte ([`codes`], `detector.storage`), and answers top-k nearest-neighbour queries: by an exact SIMD scan while small, and through an approximate inverted-file
 //! index it builds by itself once large ([`index`]: when, how, and the recall it keeps).
 //!
 //! [`Detector`] applies the policy ([`DetectorParams`]) to each new keyframe: query the history, then
@@ -41,6 +41,7 @@
 //! from the oldest kept keyframe and the consistency history follows. A persistent store ([`store`])
 //! keeps every keyframe on disk regardless; a restart loads only the newest `n`.
 
+pub mod codes;
 pub mod index;
 pub mod rows;
 pub mod selection;
@@ -51,8 +52,11 @@ use crate::descriptor::Descriptor;
 use crate::types::{LoopCandidate, Stamp};
 use anyhow::{ensure, Context};
 use index::{IndexPolicy, IvfIndex, IvfTraining, TopK};
-use rows::DescriptorRows;
+use rows::{DescriptorRows, PreparedQuery, Rows};
+use std::borrow::Cow;
 use std::collections::VecDeque;
+
+pub use rows::RowFormat;
 
 /// The acceptance threshold, on the distance or on the score (see [`crate::descriptor::Descriptor::score`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -85,6 +89,56 @@ pub struct DetectorParams {
     pub sequence_length: usize,
     /// Compare descriptors after removing the history's mean (module doc).
     pub centre_on_history: bool,
+    /// How the database keeps descriptors.
+    pub storage: Storage,
+}
+
+/// How the keyframe database keeps descriptors (`detector.storage`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum Storage {
+    /// Six-level codes for the unit-vector modes whose `f32` rows would take over a kilobyte; `f32`
+    /// for the rest, so the paper's descriptor (the reproduction) is kept exactly.
+    #[default]
+    Auto,
+    F32,
+    Levels6,
+}
+
+impl Storage {
+    pub const NAMES: [&'static str; 3] = ["auto", "f32", "levels6"];
+
+    pub fn name(self) -> &'static str {
+        Self::NAMES[self as usize]
+    }
+
+    /// The row format for `descriptor`'s values.
+    pub fn format_for(self, descriptor: &Descriptor) -> RowFormat {
+        match self {
+            Storage::F32 => RowFormat::F32,
+            Storage::Levels6 => RowFormat::Levels6,
+            Storage::Auto => {
+                let unit = descriptor.mode != crate::descriptor::DescriptorMode::Paper;
+                if unit && RowFormat::F32.row_bytes(descriptor.dim()) > 1024 {
+                    RowFormat::Levels6
+                } else {
+                    RowFormat::F32
+                }
+            }
+        }
+    }
+}
+
+impl std::str::FromStr for Storage {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "auto" => Ok(Storage::Auto),
+            "f32" => Ok(Storage::F32),
+            "levels6" => Ok(Storage::Levels6),
+            _ => Err(format!("unknown storage {s:?} (expected one of {})", Self::NAMES.join(", "))),
+        }
+    }
 }
 
 /// One result of a database query: the keyframe's position (insertion order) and squared distance.
@@ -113,8 +167,8 @@ pub struct KeyframeDb {
     dim: usize,
     ids: Vec<u64>,
     stamps: Vec<Stamp>,
-    /// `len * dim` values, keyframe after keyframe.
-    descriptors: DescriptorRows,
+    /// Keyframe after keyframe, in the database's [`RowFormat`].
+    descriptors: Rows,
     /// Dropped keyframes still at the front of the vectors (removed in batches: see [`KeyframeDb::drop_oldest`]).
     dropped: usize,
     index_policy: IndexPolicy,
@@ -130,13 +184,18 @@ impl KeyframeDb {
         Self::with_capacity(dim, 0)
     }
 
-    /// An empty database with room for `keyframes` keyframes (loading a stored history).
+    /// An empty database of `f32` rows with room for `keyframes` keyframes (loading a stored history).
     pub fn with_capacity(dim: usize, keyframes: usize) -> Self {
+        Self::with_format(RowFormat::F32, dim, keyframes)
+    }
+
+    /// An empty database keeping its rows in `format`, with room for `keyframes` keyframes.
+    pub fn with_format(format: RowFormat, dim: usize, keyframes: usize) -> Self {
         KeyframeDb {
             dim,
             ids: Vec::with_capacity(keyframes),
             stamps: Vec::with_capacity(keyframes),
-            descriptors: DescriptorRows::with_capacity(keyframes * dim),
+            descriptors: Rows::with_capacity(format, dim, keyframes),
             dropped: 0,
             index_policy: IndexPolicy::default(),
             index: None,
@@ -162,7 +221,23 @@ impl KeyframeDb {
             stamps.len(),
             descriptors.len()
         );
-        Ok(KeyframeDb { ids, stamps, descriptors, ..Self::new(dim) })
+        Ok(KeyframeDb { ids, stamps, descriptors: Rows::plain(dim, descriptors), ..Self::new(dim) })
+    }
+
+    /// How the rows are kept.
+    pub fn format(&self) -> RowFormat {
+        self.descriptors.format()
+    }
+
+    /// This database with its rows in `format` (coding is lossy); the index is rebuilt at the next
+    /// insert, as after a load.
+    pub fn into_format(mut self, format: RowFormat) -> Self {
+        if self.format() != format {
+            self.descriptors = self.descriptors.into_format(format);
+            self.index = None;
+            self.training = None;
+        }
+        self
     }
 
     /// Changes when the approximate index is used; builds or drops it at once to match.
@@ -224,17 +299,19 @@ impl KeyframeDb {
             // The first index is built at once: until it exists every query is an exact scan.
             None if len >= policy.threshold(dim) => {
                 self.index = Some(
-                    IvfIndex::train(&self.descriptors, dim, first_live, policy.probe_fraction)
+                    IvfIndex::train(&self.descriptors, first_live, policy.probe_fraction)
                         .context("training the search index")?,
                 )
             }
             None => {}
             Some(index) => {
                 if self.training.is_none() && len >= index.trained_len().saturating_mul(policy.retrain_growth.max(2)) {
-                    self.training = Some(IvfTraining::start(&self.descriptors, dim, first_live, policy.probe_fraction));
+                    self.training = Some(IvfTraining::start(&self.descriptors, first_live, policy.probe_fraction));
                 }
                 if index.pending(&self.descriptors) >= index::ASSIGN_BATCH {
-                    index.assign_pending(&self.descriptors).context("extending the search index")?;
+                    index
+                        .assign_pending(&self.descriptors, self.descriptors.slots())
+                        .context("extending the search index")?;
                 }
             }
         }
@@ -249,7 +326,7 @@ impl KeyframeDb {
         if self.dropped > 0 && self.dropped >= self.len() / 8 {
             self.ids.drain(..self.dropped);
             self.stamps.drain(..self.dropped);
-            self.descriptors.drain_front(self.dropped * self.dim);
+            self.descriptors.drain_front(self.dropped);
             if let Some(index) = &mut self.index {
                 index.drain(self.dropped);
             }
@@ -303,7 +380,7 @@ impl KeyframeDb {
         Self::check_descriptor(self.dim, descriptor, format_args!("keyframe {id}"))?;
         self.ids.push(id);
         self.stamps.push(stamp);
-        self.descriptors.extend_from_slice(descriptor);
+        self.descriptors.extend(descriptor);
         self.update_index()?;
         Ok(self.len() - 1)
     }
@@ -318,9 +395,19 @@ impl KeyframeDb {
         self.stamps()[position]
     }
 
-    pub fn descriptor(&self, position: usize) -> &[f32] {
-        let start = (self.dropped + position) * self.dim;
-        &self.descriptors[start..start + self.dim]
+    /// The stored descriptor at `position`: as inserted with `f32` rows, its reconstruction with codes.
+    pub fn descriptor(&self, position: usize) -> Cow<'_, [f32]> {
+        let slot = self.dropped + position;
+        self.descriptors.values(slot, slot + 1)
+    }
+
+    /// Squared distance from `query` to the keyframe at `position`, as the search computes it (exact
+    /// for `f32` rows, the estimate for codes: [`codes`]).
+    pub fn squared_distance_to(&self, query: &[f32], position: usize) -> f32 {
+        let mut found = 0.0;
+        let slot = self.dropped + position;
+        self.descriptors.scan(&self.descriptors.prepare(query), std::iter::once((position, slot)), |_, d2| found = d2);
+        found
     }
 
     /// The `k` keyframes nearest to `query` among the positions `eligible` accepts, nearest first (equal
@@ -333,12 +420,13 @@ impl KeyframeDb {
         eligible: impl Fn(usize) -> bool + Sync,
     ) -> anyhow::Result<Vec<Neighbour>> {
         Self::check_descriptor(self.dim, query, "query")?;
+        let prepared = self.descriptors.prepare(query);
         if let Some(index) = self.index.as_ref().filter(|_| k > 0) {
-            if let Some(found) = index.nearest(&self.descriptors, self.dropped, query, k, &eligible) {
+            if let Some(found) = index.nearest(&self.descriptors, self.dropped, query, &prepared, k, &eligible) {
                 return Ok(found);
             }
         }
-        self.nearest_exact(query, k, eligible)
+        Ok(self.scan_exact(&prepared, k, eligible))
     }
 
     /// [`KeyframeDb::nearest`] by the exact scan, whatever the size (the reference for the index's recall).
@@ -349,21 +437,22 @@ impl KeyframeDb {
         eligible: impl Fn(usize) -> bool,
     ) -> anyhow::Result<Vec<Neighbour>> {
         Self::check_descriptor(self.dim, query, "query")?;
+        Ok(self.scan_exact(&self.descriptors.prepare(query), k, eligible))
+    }
+
+    fn scan_exact(&self, query: &PreparedQuery<'_>, k: usize, eligible: impl Fn(usize) -> bool) -> Vec<Neighbour> {
         if k == 0 || self.dim == 0 {
             // A zero-length descriptor makes every keyframe equally near; take the first eligible ones.
-            return Ok((0..self.len())
+            return (0..self.len())
                 .filter(|&p| eligible(p))
                 .take(k)
                 .map(|position| Neighbour { position, squared_distance: 0.0 })
-                .collect());
+                .collect();
         }
         let mut top = TopK::new(k);
-        let live = self.descriptors[self.dropped * self.dim..]
-            .chunks_exact(self.dim)
-            .enumerate()
-            .filter(|&(p, _)| eligible(p));
-        index::scan(query, live, |position, d2| top.offer(position, d2));
-        Ok(top.into_vec())
+        let live = (0..self.len()).filter(|&p| eligible(p)).map(|p| (p, p + self.dropped));
+        self.descriptors.scan(query, live, |position, d2| top.offer(position, d2));
+        top.into_vec()
     }
 }
 
@@ -396,7 +485,7 @@ impl Detector {
         let recent_queries = sequence::RecentQueries::new(params.sequence_length);
         let history_sum = vec![0.0; descriptor.dim()];
         Detector {
-            db: KeyframeDb::new(descriptor.dim()),
+            db: KeyframeDb::with_format(params.storage.format_for(&descriptor), descriptor.dim(), 0),
             descriptor,
             params,
             recent_matches: VecDeque::new(),
@@ -409,10 +498,16 @@ impl Detector {
         &self.params
     }
 
-    /// Changes the policy at run time (a node's `set_parameters`); the database is kept, and the
-    /// consistency history is trimmed to the new length.
+    /// Changes the policy at run time (a node's `set_parameters`); the database is kept (in the new
+    /// storage format, if that changed), and the consistency history is trimmed to the new length.
     pub fn set_params(&mut self, params: DetectorParams) {
         self.params = params;
+        let format = self.params.storage.format_for(&self.descriptor);
+        if format != self.db.format() {
+            let db = std::mem::replace(&mut self.db, KeyframeDb::new(0));
+            self.db = db.into_format(format);
+            self.resum_history();
+        }
         let keep = self.params.consistency_queries.saturating_sub(1);
         while self.recent_matches.len() > keep {
             self.recent_matches.pop_front();
@@ -431,15 +526,28 @@ impl Detector {
             db.dim(),
             self.db.dim()
         );
-        self.db = db;
+        self.db = db.into_format(self.params.storage.format_for(&self.descriptor));
         self.recent_matches.clear();
         self.recent_queries.clear();
-        self.history_sum.iter_mut().for_each(|s| *s = 0.0);
-        for position in 0..self.db.len() {
-            add_into(&mut self.history_sum, self.db.descriptor(position), 1.0);
-        }
+        self.resum_history();
         self.enforce_budget();
         self.db.defer_index(false).context("indexing the loaded history")
+    }
+
+    /// Recomputes the history's sum from the stored descriptors.
+    fn resum_history(&mut self) {
+        self.history_sum.iter_mut().for_each(|s| *s = 0.0);
+        for position in 0..self.db.len() {
+            add_into(&mut self.history_sum, &self.db.descriptor(position), 1.0);
+        }
+    }
+
+    /// Inserts into the database and adds the descriptor as stored (a code's reconstruction) to the
+    /// history's sum, as dropping it will subtract it.
+    fn store(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<()> {
+        let position = self.db.insert(id, stamp, descriptor)?;
+        add_into(&mut self.history_sum, &self.db.descriptor(position), 1.0);
+        Ok(())
     }
 
     /// Drops the oldest keyframes beyond `max_keyframes` (module doc); consistency positions follow.
@@ -450,7 +558,7 @@ impl Detector {
         }
         let excess = self.db.len() - max;
         for position in 0..excess {
-            add_into(&mut self.history_sum, self.db.descriptor(position), -1.0);
+            add_into(&mut self.history_sum, &self.db.descriptor(position), -1.0);
         }
         self.db.drop_oldest(excess);
         for positions in &mut self.recent_matches {
@@ -465,6 +573,11 @@ impl Detector {
 
     pub fn db(&self) -> &KeyframeDb {
         &self.db
+    }
+
+    /// Bytes of memory one keyframe's descriptor takes in the database.
+    pub fn row_bytes(&self) -> usize {
+        self.db.format().row_bytes(self.db.dim())
     }
 
     /// The threshold as a distance: matches at most this far apart pass.
@@ -522,9 +635,9 @@ impl Detector {
         // (distance, score) of a query descriptor against keyframe `p`, centred or not.
         let compare = |query: &[f32], p: usize| -> (f32, f32) {
             match &centring {
-                Some(mean) => centred_comparison(query, self.db.descriptor(p), mean),
+                Some(mean) => centred_comparison(query, &self.db.descriptor(p), mean),
                 None => {
-                    let distance = crate::descriptor::distance(query, self.db.descriptor(p));
+                    let distance = self.db.squared_distance_to(query, p).sqrt();
                     (distance, self.descriptor.score(distance))
                 }
             }
@@ -606,8 +719,7 @@ impl Detector {
                 verified: None,
             })
             .collect();
-        self.db.insert(id, stamp, descriptor)?;
-        add_into(&mut self.history_sum, descriptor, 1.0);
+        self.store(id, stamp, descriptor)?;
         self.recent_queries.push(descriptor);
         if needed > 0 {
             self.recent_matches.push_back(passing.iter().map(|&(position, _, _)| position).collect());
@@ -642,8 +754,7 @@ impl Detector {
 
     /// Inserts a keyframe without querying (pairs with [`Detector::best_match`]).
     pub fn insert(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<()> {
-        self.db.insert(id, stamp, descriptor)?;
-        add_into(&mut self.history_sum, descriptor, 1.0);
+        self.store(id, stamp, descriptor)?;
         self.enforce_budget();
         Ok(())
     }

@@ -9,8 +9,14 @@
 //! Copying 100k 1280-value descriptors into new memory needs 512 MB of it, and on a virtual machine
 //! whose host backs each new page on first touch that alone took 0.9-1.8 s (13 us a page, measured
 //! on the CI's machine kind), more than the whole load is allowed.
+//!
+//! [`Rows`] is what the database holds: these `f32` rows, or six-level codes of them
+//! ([`super::codes`], `detector.storage`), behind one interface for the scan and the index.
 
+use std::borrow::Cow;
 use std::ops::Deref;
+
+use super::codes::{CodedQuery, CodedRows};
 
 /// Contiguous descriptor values (module doc).
 pub struct DescriptorRows {
@@ -99,6 +105,202 @@ impl Clone for DescriptorRows {
 impl std::fmt::Debug for DescriptorRows {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "DescriptorRows({} values{})", self.len(), if self.is_mapped() { ", mapped" } else { "" })
+    }
+}
+
+/// How the database keeps its rows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum RowFormat {
+    /// Every value as an `f32` (exact).
+    #[default]
+    F32,
+    /// Six levels a value, three values a byte, two factors a row ([`super::codes`]).
+    Levels6,
+}
+
+impl RowFormat {
+    /// Bytes one `dim`-value row takes.
+    pub fn row_bytes(self, dim: usize) -> usize {
+        match self {
+            RowFormat::F32 => 4 * dim,
+            RowFormat::Levels6 => super::codes::row_bytes(dim),
+        }
+    }
+}
+
+/// The database's rows in their format, `dim` values a row (module doc).
+#[derive(Clone, Debug)]
+pub(crate) struct Rows {
+    dim: usize,
+    kind: RowsKind,
+}
+
+#[derive(Clone, Debug)]
+enum RowsKind {
+    Plain(DescriptorRows),
+    Coded(CodedRows),
+}
+
+/// A query prepared for one scan of [`Rows`].
+pub(crate) enum PreparedQuery<'q> {
+    Plain(&'q [f32]),
+    Coded(CodedQuery),
+}
+
+impl Rows {
+    pub fn with_capacity(format: RowFormat, dim: usize, rows: usize) -> Self {
+        let kind = match format {
+            RowFormat::F32 => RowsKind::Plain(DescriptorRows::with_capacity(rows * dim)),
+            RowFormat::Levels6 => RowsKind::Coded(CodedRows::with_capacity(dim, rows)),
+        };
+        Rows { dim, kind }
+    }
+
+    /// `f32` rows as they are.
+    pub fn plain(dim: usize, rows: DescriptorRows) -> Self {
+        Rows { dim, kind: RowsKind::Plain(rows) }
+    }
+
+    /// These rows in `format` (coding is lossy: `f32` rows from codes are their reconstructions).
+    pub fn into_format(self, format: RowFormat) -> Self {
+        if self.format() == format {
+            return self;
+        }
+        use rayon::prelude::*;
+        // In parallel pieces (a restart codes its whole loaded history), appended in order.
+        const PIECE: usize = 4096;
+        let slots = self.slots();
+        let pieces: Vec<Rows> = (0..slots.div_ceil(PIECE))
+            .into_par_iter()
+            .map(|piece| {
+                let (start, end) = (piece * PIECE, ((piece + 1) * PIECE).min(slots));
+                let mut out = Rows::with_capacity(format, self.dim, end - start);
+                out.extend(&self.values(start, end));
+                out
+            })
+            .collect();
+        let mut out = Rows::with_capacity(format, self.dim, slots);
+        for piece in pieces {
+            out.append(piece);
+        }
+        out
+    }
+
+    pub fn format(&self) -> RowFormat {
+        match self.kind {
+            RowsKind::Plain(_) => RowFormat::F32,
+            RowsKind::Coded(_) => RowFormat::Levels6,
+        }
+    }
+
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// Rows held, from the buffer's start.
+    pub fn slots(&self) -> usize {
+        match &self.kind {
+            RowsKind::Plain(rows) => rows.len() / self.dim.max(1),
+            RowsKind::Coded(rows) => rows.rows(),
+        }
+    }
+
+    /// Whether the rows are (still) a map of a vector file.
+    pub fn is_mapped(&self) -> bool {
+        matches!(&self.kind, RowsKind::Plain(rows) if rows.is_mapped())
+    }
+
+    /// Appends the rows of `values` (`dim` values each).
+    pub fn extend(&mut self, values: &[f32]) {
+        match &mut self.kind {
+            RowsKind::Plain(rows) => rows.extend_from_slice(values),
+            RowsKind::Coded(rows) => rows.extend_from_values(values),
+        }
+    }
+
+    /// Moves `other`'s rows (the same format and length) to the end of these.
+    fn append(&mut self, other: Rows) {
+        match (&mut self.kind, other.kind) {
+            (RowsKind::Plain(rows), RowsKind::Plain(more)) => rows.extend_from_slice(&more),
+            (RowsKind::Coded(rows), RowsKind::Coded(more)) => rows.append(more),
+            _ => unreachable!("rows of another format"),
+        }
+    }
+
+    /// Removes the first `rows` rows.
+    pub fn drain_front(&mut self, rows: usize) {
+        match &mut self.kind {
+            RowsKind::Plain(plain) => plain.drain_front(rows * self.dim),
+            RowsKind::Coded(coded) => coded.drain_front(rows),
+        }
+    }
+
+    /// The values of slots `start..end`: borrowed `f32` rows, or the codes' reconstructions.
+    pub fn values(&self, start: usize, end: usize) -> Cow<'_, [f32]> {
+        match &self.kind {
+            RowsKind::Plain(rows) => Cow::Borrowed(&rows[start * self.dim..end * self.dim]),
+            RowsKind::Coded(rows) => {
+                let mut out = vec![0f32; (end - start) * self.dim];
+                for (slot, row) in (start..end).zip(out.chunks_exact_mut(self.dim.max(1))) {
+                    rows.decode_into(slot, row);
+                }
+                Cow::Owned(out)
+            }
+        }
+    }
+
+    pub fn prepare<'q>(&self, query: &'q [f32]) -> PreparedQuery<'q> {
+        match &self.kind {
+            RowsKind::Plain(_) => PreparedQuery::Plain(query),
+            RowsKind::Coded(_) => PreparedQuery::Coded(CodedQuery::new(query)),
+        }
+    }
+
+    /// Calls `visit(position, squared distance)` for each `(position, slot)` of `items`; `query`
+    /// comes from [`Rows::prepare`] on these rows.
+    #[inline]
+    pub fn scan(
+        &self,
+        query: &PreparedQuery<'_>,
+        items: impl Iterator<Item = (usize, usize)>,
+        mut visit: impl FnMut(usize, f32),
+    ) {
+        match (&self.kind, query) {
+            (RowsKind::Plain(rows), PreparedQuery::Plain(query)) => {
+                let dim = self.dim;
+                super::index::scan(query, items.map(|(p, s)| (p, &rows[s * dim..(s + 1) * dim])), visit)
+            }
+            (RowsKind::Coded(rows), PreparedQuery::Coded(query)) => {
+                for (position, slot) in items {
+                    let (codes, factors) = rows.row(slot);
+                    visit(position, query.squared_distance(codes, factors));
+                }
+            }
+            _ => unreachable!("a query prepared for rows of another format"),
+        }
+    }
+
+    /// Asks the CPU to start loading row `slot`: a whole coded row, the first 512 bytes of an `f32`
+    /// one (the hardware prefetcher follows a longer row).
+    #[inline(always)]
+    pub fn prefetch(&self, slot: usize) {
+        let bytes: &[u8] = match &self.kind {
+            RowsKind::Plain(rows) => {
+                let row = &rows[slot * self.dim..(slot + 1) * self.dim];
+                bytemuck::cast_slice(&row[..row.len().min(128)])
+            }
+            RowsKind::Coded(rows) => rows.row(slot).0,
+        };
+        #[cfg(target_arch = "x86_64")]
+        for offset in (0..bytes.len()).step_by(64) {
+            // SAFETY: SSE is part of x86_64; prefetching a valid address has no side effect.
+            #[allow(unused_unsafe)]
+            unsafe {
+                std::arch::x86_64::_mm_prefetch(bytes.as_ptr().add(offset) as *const i8, std::arch::x86_64::_MM_HINT_T0)
+            };
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = bytes;
     }
 }
 

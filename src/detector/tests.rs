@@ -99,6 +99,7 @@ fn params_all_off() -> DetectorParams {
         max_keyframes: 0,
         sequence_length: 1,
         centre_on_history: false,
+        storage: Storage::Auto,
     }
 }
 
@@ -431,4 +432,64 @@ fn centring_compares_against_the_mean_of_the_searched_history() {
         paper.insert(i as u64, secs(i as f64), &d.iter().map(|x| x.abs()).cycle().take(8).collect::<Vec<_>>()).unwrap();
     }
     assert!(paper.centring().is_none());
+}
+
+#[test]
+fn storage_codes_the_large_unit_descriptors_and_keeps_the_paper_s_exact() {
+    // The default: 3x3 cells of MobileNetV2's last bottleneck (320 channels).
+    let regional = Descriptor::regional(320, 3, Default::default());
+    assert_eq!(regional.dim(), 2880);
+    assert_eq!(Storage::Auto.format_for(&regional), RowFormat::Levels6);
+    assert_eq!(Storage::Auto.format_for(&Descriptor::new(DescriptorMode::L2, 256)), RowFormat::F32);
+    assert_eq!(Storage::Auto.format_for(&Descriptor::new(DescriptorMode::Paper, 1280)), RowFormat::F32);
+    assert_eq!(Storage::F32.format_for(&regional), RowFormat::F32);
+    assert_eq!("levels6".parse::<Storage>(), Ok(Storage::Levels6));
+    assert!("f16".parse::<Storage>().is_err());
+    assert_eq!(RowFormat::Levels6.row_bytes(2880), 968);
+}
+
+#[test]
+fn a_coded_detector_finds_the_revisits_an_exact_one_finds_with_nearly_its_scores() {
+    let dim = 1280;
+    let descriptor = Descriptor::new(DescriptorMode::L2, dim);
+    let mut places = crate::detector::index::ClusteredVectors::new(dim, 30, 5);
+    let data = places.take(300);
+    let coded_params = params_all_off();
+    let mut coded = Detector::new(descriptor, coded_params.clone());
+    let mut exact = Detector::new(descriptor, DetectorParams { storage: Storage::F32, ..coded_params });
+    assert_eq!((coded.db().format(), exact.db().format()), (RowFormat::Levels6, RowFormat::F32));
+    assert_eq!((coded.row_bytes(), exact.row_bytes()), (435, 5120));
+    // The points of a cluster are near ties (noise in every value), so which one is best may
+    // change; what must hold is that the coded best is as good, by exact distance, as the exact
+    // best, and that its reported score is the exact score of that keyframe.
+    let (mut worse, mut change, mut bias) = (Vec::new(), Vec::new(), 0f32);
+    for (i, v) in data.chunks_exact(dim).enumerate() {
+        let stamp = secs(i as f64);
+        let (c, e) = (coded.best_match(stamp, v).unwrap(), exact.best_match(stamp, v).unwrap());
+        if let (Some(c), Some(e)) = (c, e) {
+            let exact_score_of_coded_best = descriptor.score(exact.db().squared_distance_to(v, c.id as usize).sqrt());
+            worse.push(e.score - exact_score_of_coded_best);
+            change.push((c.score - exact_score_of_coded_best).abs());
+            bias += c.score - exact_score_of_coded_best;
+        }
+        coded.insert(i as u64, stamp, v).unwrap();
+        exact.insert(i as u64, stamp, v).unwrap();
+    }
+    let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32;
+    let largest = |v: &[f32]| v.iter().fold(0f32, |m, &x| m.max(x));
+    assert!(
+        mean(&worse) < 0.002 && largest(&worse) < 0.015,
+        "coded best matches score below the exact best: {worse:?}"
+    );
+    assert!(mean(&change) < 0.004 && largest(&change) < 0.015, "coded scores differ from exact ones: {change:?}");
+    // No shrinking (the estimator's point): only the best-of-noisy-estimates' slight upward pull.
+    assert!((bias / change.len() as f32).abs() < 0.003, "mean score change {}", bias / change.len() as f32);
+    // A stored descriptor queried again is found at distance 0, as with f32 rows.
+    let again = coded.best_match(secs(1000.0), &data[..dim]).unwrap().unwrap();
+    assert_eq!(again.id, 0);
+    assert!(again.distance < 1e-2, "{}", again.distance);
+    // A history loaded as f32 rows is coded on the way in.
+    let history = exact.db().clone();
+    coded.replace_history(history).unwrap();
+    assert_eq!((coded.db().format(), coded.db().len()), (RowFormat::Levels6, 300));
 }
