@@ -58,6 +58,8 @@ fn search_and_memory_sections_report_exact_and_indexed_search() {
             "1000,8000",
             "--search-dims",
             "400",
+            "--search-coded-dims",
+            "400",
             "--queries",
             "20",
             "--memory",
@@ -65,18 +67,30 @@ fn search_and_memory_sections_report_exact_and_indexed_search() {
         ],
     );
     let rows = report["search"].as_array().unwrap();
-    assert_eq!(rows.len(), 2, "{report}");
-    // 1000 x 400 is below the index threshold (exact), 8000 x 400 above it (IVF).
-    assert_eq!(rows[0]["auto_method"], "exact");
-    assert_eq!(rows[0]["recall"], 1.0);
-    assert_eq!(rows[1]["auto_method"], "ivf");
-    assert!(rows[1]["recall"].as_f64().unwrap() >= 0.99, "{}", rows[1]);
+    assert_eq!(rows.len(), 4, "{report}");
+    // 1000 x 400 is below the index threshold (exact), 8000 x 400 above it (IVF); f32 rows first,
+    // then six-level codes of the same vectors.
+    for (row, storage) in rows.iter().zip(["f32", "f32", "levels6", "levels6"]) {
+        assert_eq!(row["storage"], storage, "{row}");
+        assert!(row["auto_on_two_threads"]["median_ms"].as_f64().unwrap() > 0.0, "{row}");
+    }
+    for pair in rows.chunks(2) {
+        assert_eq!(pair[0]["auto_method"], "exact");
+        assert_eq!(pair[0]["recall"], 1.0);
+        assert_eq!(pair[1]["auto_method"], "ivf");
+        assert!(pair[1]["recall"].as_f64().unwrap() >= 0.99, "{}", pair[1]);
+    }
+    // Coded rows are also compared with the exact search of the f32 vectors they code.
+    assert!(rows[0]["recall_vs_f32"].is_null() && rows[3]["recall_vs_f32"].as_f64().unwrap() > 0.0, "{report}");
     let memory = &report["memory"][0];
     assert_eq!(memory["stored"], 7000);
     assert_eq!(memory["indexed"], true);
-    // 7000 x 400 f32 = 11.2 MB: the peak includes at least the descriptors.
+    // 400 values take 1600 bytes as f32, so the default storage codes them: 134 code bytes and two
+    // factors a row, 7000 x 142 bytes. The peak includes at least the rows.
+    assert_eq!(memory["storage"], "levels6");
+    assert!((memory["descriptors_mb"].as_f64().unwrap() - 0.994).abs() < 1e-9, "{memory}");
     let (baseline, peak) = (memory["baseline_mb"].as_f64().unwrap(), memory["peak_mb"].as_f64().unwrap());
-    assert!(peak >= baseline + 11.2, "{memory}");
+    assert!(peak >= baseline + 0.994, "{memory}");
 }
 
 #[test]

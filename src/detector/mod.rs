@@ -1,8 +1,9 @@
 //! Keyframe database and loop-closure detector: which earlier keyframe, if any, does a new one revisit.
 //!
 //! [`KeyframeDb`] stores every keyframe's descriptor in one contiguous buffer, as `f32` or as six-level
-//! codes of under a kilobyte ([`codes`], `detector.storage`), and answers top-k nearest-neighbour queries: by an exact SIMD scan while small, and through an approximate inverted-file
-//! index it builds by itself once large ([`index`]: when, how, and the recall it keeps).
+//! codes of under a kilobyte ([`codes`], `detector.storage`), and answers top-k nearest-neighbour
+//! queries: by an exact SIMD scan while small, and through an approximate inverted-file index it
+//! builds by itself once large ([`index`]: when, how, and the recall it keeps).
 //!
 //! [`Detector`] applies the policy ([`DetectorParams`]) to each new keyframe: query the history, then
 //! insert. Rules, in order:
