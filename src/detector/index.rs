@@ -5,7 +5,9 @@
 //!   loop compiled twice, baseline and AVX2, picked at run time; the additions are the same in both, so
 //!   the distances are bit-identical to the plain function.
 //! - IVF: k-means centroids (a few Lloyd iterations on a sample) split the stored descriptors into
-//!   `nlist` lists (spherical for unit descriptors: see [`IvfIndex::train`]); a query ranks the centroids and scans only the `nprobe` nearest lists, computing exact
+//!   `nlist` lists (spherical for unit descriptors: see [`IvfIndex::train`]); a query ranks the
+//!   centroids (for coded rows: a shortlist by the centroids' codes, then exactly) and scans only the
+//!   `nprobe` nearest lists, computing exact
 //!   distances on the stored rows (`f32`, or six-level codes: [`super::codes`]), so a returned distance
 //!   is always the one the exact scan gives and only the *set* of neighbours can differ from it. Chosen over a graph index (HNSW) because
 //!   it is small (4 bytes per keyframe besides the descriptors, against 100+ for an HNSW graph), inserts
@@ -25,7 +27,7 @@
 
 use rayon::prelude::*;
 
-use super::rows::{PreparedQuery, Rows};
+use super::rows::{PreparedQuery, RowFormat, Rows};
 use super::Neighbour;
 use crate::descriptor::squared_distance;
 
@@ -273,6 +275,8 @@ impl ClusteredVectors {
 pub(crate) struct IvfIndex {
     dim: usize,
     centroids: Vec<f32>,
+    /// For coded rows, the centroids coded too, so that ranking them reads a twelfth of the bytes.
+    coded_centroids: Option<Rows>,
     matrix: CentroidMatrix,
     lists: Vec<Vec<u32>>,
     /// Slots `[0, assigned)` are in the lists; later ones are scanned exactly.
@@ -305,6 +309,8 @@ const SAMPLE_PER_LIST: usize = 32;
 pub(crate) struct IvfTraining {
     dim: usize,
     nlist: usize,
+    /// The rows' format, which the index's coded centroids follow.
+    format: RowFormat,
     /// `sample.len() / dim` rows copied at the start: later inserts and drops do not change them.
     sample: Vec<f32>,
     centroids: Vec<f32>,
@@ -350,6 +356,7 @@ impl IvfTraining {
         IvfTraining {
             dim,
             nlist,
+            format: rows.format(),
             sample,
             centroids,
             sampler,
@@ -423,8 +430,14 @@ impl IvfTraining {
         self.iteration += 1;
         if self.iteration == KMEANS_ITERATIONS {
             let nprobe = ((self.nlist as f64 * self.probe_fraction).round() as usize).max(MIN_PROBE).min(self.nlist);
+            let coded_centroids = (self.format == RowFormat::Levels6).then(|| {
+                let mut coded = Rows::with_capacity(self.format, dim, self.nlist);
+                coded.extend(&self.centroids);
+                coded
+            });
             self.index = Some(IvfIndex {
                 dim,
+                coded_centroids,
                 matrix: CentroidMatrix::new(&self.centroids, dim)?,
                 centroids: std::mem::take(&mut self.centroids),
                 lists: vec![Vec::new(); self.nlist],
@@ -517,7 +530,18 @@ impl IvfIndex {
     ) -> Option<Vec<Neighbour>> {
         let dim = self.dim;
         let mut probe = TopK::new(self.nprobe);
-        scan(query, self.centroids.chunks_exact(dim).enumerate(), |c, d2| probe.offer(c, d2));
+        let centroid = |c: usize| (c, &self.centroids[c * dim..(c + 1) * dim]);
+        match &self.coded_centroids {
+            // The codes' estimate shortlists twice the lists, and the exact distances pick from those:
+            // the lists the exact ranking alone would probe, at a fraction of its reads.
+            Some(coded) => {
+                let mut shortlist = TopK::new(2 * self.nprobe);
+                coded.scan(prepared, (0..self.nlist()).map(|c| (c, c)), |c, d2| shortlist.offer(c, d2));
+                let shortlisted = shortlist.into_vec().into_iter().map(|n| centroid(n.position));
+                scan(query, shortlisted, |c, d2| probe.offer(c, d2));
+            }
+            None => scan(query, (0..self.nlist()).map(centroid), |c, d2| probe.offer(c, d2)),
+        }
         // On a rayon worker (the pipeline runs there: `runtime::on_worker`), the probed lists are
         // scanned in parallel, each into a top-k of its own, merged after: the scan waits on memory
         // (rows are scattered), and two threads overlap twice the misses. From any other thread a

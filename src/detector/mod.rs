@@ -43,6 +43,7 @@
 //! keeps every keyframe on disk regardless; a restart loads only the newest `n`.
 
 pub mod codes;
+mod huge_pages;
 pub mod index;
 pub mod rows;
 pub mod selection;
@@ -405,10 +406,21 @@ impl KeyframeDb {
     /// Squared distance from `query` to the keyframe at `position`, as the search computes it (exact
     /// for `f32` rows, the estimate for codes: [`codes`]).
     pub fn squared_distance_to(&self, query: &[f32], position: usize) -> f32 {
+        self.prepared_distance_to(&self.descriptors.prepare(query), position)
+    }
+
+    /// [`KeyframeDb::squared_distance_to`] for a query prepared once ([`KeyframeDb::prepare`]) and
+    /// compared with many keyframes.
+    pub(crate) fn prepared_distance_to(&self, query: &PreparedQuery, position: usize) -> f32 {
         let mut found = 0.0;
         let slot = self.dropped + position;
-        self.descriptors.scan(&self.descriptors.prepare(query), std::iter::once((position, slot)), |_, d2| found = d2);
+        self.descriptors.scan(query, std::iter::once((position, slot)), |_, d2| found = d2);
         found
+    }
+
+    /// A query prepared for the rows' format (for codes: rounded once, see [`codes`]).
+    pub(crate) fn prepare<'q>(&self, query: &'q [f32]) -> PreparedQuery<'q> {
+        self.descriptors.prepare(query)
     }
 
     /// The `k` keyframes nearest to `query` among the positions `eligible` accepts, nearest first (equal
@@ -633,12 +645,18 @@ impl Detector {
         }
         let neighbours = self.eligible_nearest(stamp, descriptor, top_k.max(sequence::CANDIDATES))?;
         let eligible = self.eligibility(stamp);
-        // (distance, score) of a query descriptor against keyframe `p`, centred or not.
-        let compare = |query: &[f32], p: usize| -> (f32, f32) {
+        // The current query, then the kept earlier ones (by age), each prepared once for the rows.
+        let queries: Vec<&[f32]> = std::iter::once(descriptor).chain(self.recent_queries.newest_first()).collect();
+        let prepared: Vec<PreparedQuery> = match centring {
+            Some(_) => Vec::new(),
+            None => queries.iter().map(|q| self.db.prepare(q)).collect(),
+        };
+        // (distance, score) of the query `age` steps back against keyframe `p`, centred or not.
+        let compare = |age: usize, p: usize| -> (f32, f32) {
             match &centring {
-                Some(mean) => centred_comparison(query, &self.db.descriptor(p), mean),
+                Some(mean) => centred_comparison(queries[age], &self.db.descriptor(p), mean),
                 None => {
-                    let distance = self.db.squared_distance_to(query, p).sqrt();
+                    let distance = self.db.prepared_distance_to(&prepared[age], p).sqrt();
                     (distance, self.descriptor.score(distance))
                 }
             }
@@ -646,15 +664,9 @@ impl Detector {
         let mut ranked: Vec<(usize, f32, f32)> = neighbours
             .iter()
             .map(|n| {
-                let (distance, single) = compare(descriptor, n.position);
+                let (distance, single) = compare(0, n.position);
                 let score = if self.params.sequence_length > 1 {
-                    self.recent_queries.sequence_score(
-                        descriptor,
-                        n.position,
-                        self.db.len(),
-                        |q, p| compare(q, p).1,
-                        &eligible,
-                    )
+                    self.recent_queries.sequence_score(n.position, self.db.len(), |age, p| compare(age, p).1, &eligible)
                 } else {
                     single
                 };

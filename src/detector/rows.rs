@@ -119,6 +119,14 @@ pub enum RowFormat {
 }
 
 impl RowFormat {
+    /// The name `detector.storage` gives this format.
+    pub fn name(self) -> &'static str {
+        match self {
+            RowFormat::F32 => super::Storage::F32.name(),
+            RowFormat::Levels6 => super::Storage::Levels6.name(),
+        }
+    }
+
     /// Bytes one `dim`-value row takes.
     pub fn row_bytes(self, dim: usize) -> usize {
         match self {
@@ -289,7 +297,7 @@ impl Rows {
                 let row = &rows[slot * self.dim..(slot + 1) * self.dim];
                 bytemuck::cast_slice(&row[..row.len().min(128)])
             }
-            RowsKind::Coded(rows) => rows.row(slot).0,
+            RowsKind::Coded(rows) => rows.row_span(slot),
         };
         #[cfg(target_arch = "x86_64")]
         for offset in (0..bytes.len()).step_by(64) {

@@ -58,31 +58,36 @@ impl RecentQueries {
         }
     }
 
-    /// The sequence score of `query` (the current one) against keyframe `position` of a history of
-    /// `len` keyframes (module doc). `pair_score(q, p)` is the single-image score of a query
-    /// descriptor against keyframe `p`, and `eligible(p)` whether the recency rules let it match.
+    /// The kept queries, newest first (the query `k + 1` steps before the current one is item `k`).
+    pub fn newest_first(&self) -> impl Iterator<Item = &[f32]> {
+        self.queries.iter().rev().map(Vec::as_slice)
+    }
+
+    /// The sequence score of the current query against keyframe `position` of a history of `len`
+    /// keyframes (module doc). `pair_score(age, p)` is the single-image score against keyframe `p`
+    /// of the query `age` steps back (0: the current one, `k + 1`: item `k` of
+    /// [`RecentQueries::newest_first`]), and `eligible(p)` whether the recency rules let `p` match.
     pub fn sequence_score(
         &self,
-        query: &[f32],
         position: usize,
         len: usize,
-        pair_score: impl Fn(&[f32], usize) -> f32,
+        pair_score: impl Fn(usize, usize) -> f32,
         eligible: impl Fn(usize) -> bool,
     ) -> f32 {
-        let first = pair_score(query, position);
-        let step_score = |earlier: &[f32], centre: isize| -> Option<f32> {
+        let first = pair_score(0, position);
+        let step_score = |age: usize, centre: isize| -> Option<f32> {
             (centre - 1..=centre + 1)
                 .filter(|&p| p >= 0 && (p as usize) < len && eligible(p as usize))
-                .map(|p| pair_score(earlier, p as usize))
+                .map(|p| pair_score(age, p as usize))
                 .reduce(f32::max)
         };
         [-1isize, 1]
             .into_iter()
             .map(|direction| {
                 let (mut sum, mut steps) = (first, 1usize);
-                for (k, earlier) in self.queries.iter().rev().enumerate() {
-                    let centre = position as isize + direction * (k as isize + 1);
-                    if let Some(score) = step_score(earlier, centre) {
+                for age in 1..=self.queries.len() {
+                    let centre = position as isize + direction * age as isize;
+                    if let Some(score) = step_score(age, centre) {
                         sum += score;
                         steps += 1;
                     }
@@ -107,26 +112,28 @@ mod tests {
         let d = Descriptor::new(DescriptorMode::L2, 2);
         // History: keyframes at angles 0, 0.1, ..., 0.9.
         let history: Vec<Vec<f32>> = (0..10).map(|i| unit(i as f32 * 0.1)).collect();
-        let pair = |q: &[f32], p: usize| d.score(distance(q, &history[p]));
         let mut recent = RecentQueries::new(3);
         for angle in [0.5, 0.3, 0.4] {
             recent.push(&unit(angle));
         }
         assert_eq!(recent.queries.len(), 2, "length 3 keeps the two before the current");
+        let current = unit(0.5);
+        let queries: Vec<&[f32]> = std::iter::once(&current[..]).chain(recent.newest_first()).collect();
+        let pair = |age: usize, p: usize| d.score(distance(queries[age], &history[p]));
         // The current query equals keyframe 5; the earlier ones were 0.3 (k=2) and 0.4 (k=1): forwards
         // (p-1 = 4, p-2 = 3) they match exactly, so the sequence score is 1.
-        let score = recent.sequence_score(&unit(0.5), 5, history.len(), pair, |_| true);
+        let score = recent.sequence_score(5, history.len(), pair, |_| true);
         assert!((score - 1.0).abs() < 1e-6, "{score}");
         // Against keyframe 8, forwards the steps take the best of 6..=8 for 0.4 and of 5..=7 for 0.3;
         // backwards of 8..=9 and of 9 alone (10 and 11 are past the history).
         let single = |a: f32, b: f32| d.score(distance(&unit(a), &unit(b)));
         let expected_forwards = (single(0.5, 0.8) + single(0.4, 0.6) + single(0.3, 0.5)) / 3.0;
         let expected_backwards = (single(0.5, 0.8) + single(0.4, 0.8) + single(0.3, 0.9)) / 3.0;
-        let score = recent.sequence_score(&unit(0.5), 8, history.len(), pair, |_| true);
+        let score = recent.sequence_score(8, history.len(), pair, |_| true);
         assert!((score - expected_forwards.max(expected_backwards)).abs() < 1e-6, "{score}");
         // Excluded keyframes are not steps: with only keyframe 5 eligible, the step of 0.4 (centre 4 or
         // 6) still reaches 5, the step of 0.3 (centre 3 or 7) reaches nothing and is left out.
-        let score = recent.sequence_score(&unit(0.5), 5, history.len(), pair, |p| p == 5);
+        let score = recent.sequence_score(5, history.len(), pair, |p| p == 5);
         assert!((score - (1.0 + single(0.4, 0.5)) / 2.0).abs() < 1e-6, "{score}");
         // Length 1 keeps nothing.
         let mut off = RecentQueries::new(1);

@@ -631,13 +631,6 @@ fn clusters_for(stored: usize) -> usize {
 /// Newest keyframes a bench query may not match (the detector's recency rule).
 const BENCH_EXCLUDE_RECENT: usize = 100;
 
-fn storage_name(format: RowFormat) -> &'static str {
-    match format {
-        RowFormat::F32 => "f32",
-        RowFormat::Levels6 => "levels6",
-    }
-}
-
 fn search(args: &BenchArgs) -> Result<Vec<SearchRow>> {
     let mut rows = Vec::new();
     let plain = args.search_dims.iter().map(|&dim| (dim, RowFormat::F32));
@@ -645,7 +638,7 @@ fn search(args: &BenchArgs) -> Result<Vec<SearchRow>> {
     for (dim, format) in plain.chain(coded) {
         for &stored in &args.search_sizes {
             let mb = stored * format.row_bytes(dim) / 1_000_000;
-            let storage = storage_name(format);
+            let storage = format.name();
             if mb > args.search_max_mb {
                 eprintln!(
                     "search: skipping {stored} x {dim}-d {storage} ({mb} MB > --search-max-mb {})",
@@ -750,7 +743,7 @@ fn search_one(args: &BenchArgs, dim: usize, stored: usize, format: RowFormat) ->
     let index = db.index_info();
     Ok(SearchRow {
         dim,
-        storage: storage_name(format),
+        storage: format.name(),
         stored,
         build_s,
         slowest_insert_ms,
@@ -935,7 +928,7 @@ fn memory_child(stored: usize, dim: usize) -> Result<MemoryRow> {
         baseline_mb,
         peak_mb,
         descriptors_mb: (stored * detector.row_bytes()) as f64 / 1e6,
-        storage: storage_name(detector.db().format()).into(),
+        storage: detector.db().format().name().into(),
         indexed: detector.db().index_info().is_some(),
     })
 }
