@@ -79,6 +79,7 @@ fn fast_kernels_equal_stock_candle_on_whole_networks() {
     let x = ecm_lcd::preprocess::Preprocessor::new(224).tensor(&image).unwrap();
     for arch in [Arch::MobileNetV2, Arch::EcMobileNet] {
         let net = weights.for_arch(arch).unwrap().network(false).unwrap();
+        assert!(net.is_planned(), "{arch}: folded constant weights run the inference plan");
         let fast = net.features(&x, Mode::Inference).unwrap();
         let reference = net.features(&x, Mode::Reference).unwrap();
         assert_eq!(fast.dims(), &[1, 1280, 7, 7]);

@@ -1,10 +1,10 @@
 //! The building blocks both networks share: a convolution unit (conv + BatchNorm or folded bias +
-//! activation), Efficient Channel Attention, and the inverted-residual bottleneck.
+//! activation), Efficient Channel Attention, and the inverted-residual bottleneck. They hold the
+//! definition and run the reference and training paths; the fused inference kernels are built from
+//! them once, by [`super::plan`].
 //!
 //! Tensor names inside a unit: `weight` (OIHW), then either `bias` (BatchNorm folded, inference
 //! form) or `bn.weight`, `bn.bias`, `bn.running_mean`, `bn.running_var` (training form).
-
-use std::sync::Arc;
 
 use candle_core::{Module, ModuleT, Result, Tensor};
 use candle_nn::{BatchNorm, BatchNormConfig, VarBuilder};
@@ -16,7 +16,8 @@ use super::kernels::{batch_norm_train, depthwise_grad, train_ops};
 /// How a forward pass runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Mode {
-    /// Inference with the fast custom kernels (BatchNorm folded).
+    /// Inference with the fast custom kernels: the network's [`super::plan`] where the weights are
+    /// folded constants, else the layers with the NCHW depthwise kernel.
     Inference,
     /// Inference with stock candle ops only: the reference the fast path is checked against.
     Reference,
@@ -58,8 +59,6 @@ pub struct ConvUnit {
     bn: Option<BatchNorm>,
     kind: ConvKind,
     activation: Activation,
-    /// The fused kernel of a folded full or 1x1 convolution (inference fast path).
-    dense: Option<Arc<DenseConv>>,
 }
 
 /// Fast kernels copy the weights, so they are built only for constant (non-trainable) tensors.
@@ -68,16 +67,20 @@ fn frozen(weight: &Tensor) -> bool {
 }
 
 impl ConvUnit {
-    /// A folded unit (bias, no BatchNorm), with its fused kernel where it has one.
-    fn with_bias(weight: Tensor, bias: Tensor, kind: ConvKind, activation: Activation) -> Result<Self> {
-        let dense = match kind {
-            ConvKind::Full { stride } if frozen(&weight) => {
-                Some(Arc::new(DenseConv::new(&weight, &bias, stride, activation)?))
-            }
-            ConvKind::Pointwise if frozen(&weight) => Some(Arc::new(DenseConv::new(&weight, &bias, 1, activation)?)),
-            _ => None,
-        };
-        Ok(ConvUnit { weight, bias: Some(bias), bn: None, kind, activation, dense })
+    /// A folded unit (bias, no BatchNorm).
+    fn with_bias(weight: Tensor, bias: Tensor, kind: ConvKind, activation: Activation) -> Self {
+        ConvUnit { weight, bias: Some(bias), bn: None, kind, activation }
+    }
+
+    /// The fused kernel of a folded full or 1x1 convolution with constant weights (what the
+    /// inference plan runs); `None` for other units.
+    pub fn dense_kernel(&self) -> Result<Option<DenseConv>> {
+        let (Some(bias), None, true) = (&self.bias, &self.bn, frozen(&self.weight)) else { return Ok(None) };
+        match self.kind {
+            ConvKind::Full { stride } => DenseConv::new(&self.weight, bias, stride, self.activation).map(Some),
+            ConvKind::Pointwise => DenseConv::new(&self.weight, bias, 1, self.activation).map(Some),
+            ConvKind::Depthwise { .. } => Ok(None),
+        }
     }
 
     /// Loads `weight` `[out, in, kh, kw]` and the BatchNorm or bias under `vb`.
@@ -95,11 +98,11 @@ impl ConvUnit {
         if batch_norm || (has_bn && !vb.contains_tensor("bias")) {
             let config = BatchNormConfig { eps: BN_EPS, remove_mean: true, affine: true, momentum: BN_MOMENTUM };
             let bn = candle_nn::batch_norm(out, config, vb.pp("bn"))?;
-            let unit = ConvUnit { weight, bias: None, bn: Some(bn), kind, activation, dense: None };
+            let unit = ConvUnit { weight, bias: None, bn: Some(bn), kind, activation };
             return if batch_norm { Ok(unit) } else { unit.folded() };
         }
         let bias = vb.get(out, "bias")?;
-        ConvUnit::with_bias(weight, bias, kind, activation)
+        Ok(ConvUnit::with_bias(weight, bias, kind, activation))
     }
 
     /// The inference form: BatchNorm folded into the convolution's weight and bias.
@@ -113,7 +116,7 @@ impl ConvUnit {
         let scale = (gamma / (bn.running_var().affine(1.0, BN_EPS)?.sqrt()?))?;
         let weight = self.weight.broadcast_mul(&scale.reshape((out, 1, 1, 1))?)?;
         let bias = (beta - bn.running_mean().mul(&scale)?)?;
-        ConvUnit::with_bias(weight, bias, self.kind, self.activation)
+        Ok(ConvUnit::with_bias(weight, bias, self.kind, self.activation))
     }
 
     pub fn weight(&self) -> &Tensor {
@@ -128,21 +131,16 @@ impl ConvUnit {
         let fast = mode == Mode::Inference && self.bn.is_none();
         if fast {
             let bias = self.bias.as_ref().expect("a unit without BatchNorm has a bias");
-            return match (self.kind, &self.dense) {
-                (ConvKind::Depthwise { stride }, _) => {
+            return match self.kind {
+                ConvKind::Depthwise { stride } => {
                     depthwise::depthwise_conv(x, &self.weight, bias, stride, self.activation)
                 }
-                (_, Some(dense)) => {
-                    // The op works channels-last; this per-unit entry keeps NCHW on both sides.
-                    let x = if dense.is_pointwise() { to_channels_last(x)? } else { x.contiguous()? };
-                    super::kernels::fused::channels_first(&x.apply_op1_no_bwd(dense.as_ref())?)
-                }
-                (ConvKind::Pointwise, None) => {
+                ConvKind::Pointwise => {
                     let y = pointwise(x, &self.weight)?;
                     depthwise::bias_activation_(&y, bias, self.activation)?;
                     Ok(y)
                 }
-                (ConvKind::Full { stride }, None) => {
+                ConvKind::Full { stride } => {
                     let y = self.convolve(x, stride, 1)?;
                     depthwise::bias_activation_(&y, bias, self.activation)?;
                     Ok(y)
@@ -172,30 +170,11 @@ impl ConvUnit {
         }
     }
 
-    /// The inference fast path on channels-last maps, where the unit has a fused kernel: the stem
-    /// takes the NCHW image and gives `[B, H, W, C]`, a 1x1 unit takes and gives `[B, H, W, C]`.
-    pub fn forward_channels_last(&self, x: &Tensor) -> Result<Tensor> {
-        let dense =
-            self.dense.as_ref().ok_or_else(|| candle_core::Error::Msg("this unit has no fused kernel".into()))?;
-        x.contiguous()?.apply_op1_no_bwd(dense.as_ref())
-    }
-
-    /// Whether [`Self::forward_channels_last`] runs (folded constant weights: only those get a
-    /// fused kernel).
-    pub fn is_fused(&self) -> bool {
-        self.dense.is_some()
-    }
-
     fn convolve(&self, x: &Tensor, stride: usize, groups: usize) -> Result<Tensor> {
         let (_, _, h, w) = x.dims4()?;
         let (_, _, kh, kw) = self.weight.dims4()?;
         depthwise::pad_same(x, h, w, kh, kw, stride)?.conv2d(&self.weight, 0, stride, 1, groups)
     }
-}
-
-/// `[B, C, H, W]` -> contiguous `[B, H, W, C]`.
-pub fn to_channels_last(x: &Tensor) -> Result<Tensor> {
-    x.permute((0, 2, 3, 1))?.contiguous()
 }
 
 /// A 1x1 convolution as a plain matrix multiply: `[O, I] x [B, I, H*W]`, no im2col copy.
@@ -293,8 +272,6 @@ pub struct InvertedResidual {
     depthwise: ConvUnit,
     eca: Option<Eca>,
     project: ConvUnit,
-    /// The whole block as one kernel (inference fast path), for folded constant weights.
-    fused: Option<Arc<FusedBottleneck>>,
 }
 
 impl InvertedResidual {
@@ -325,23 +302,30 @@ impl InvertedResidual {
             Activation::Identity,
             batch_norm,
         )?;
-        let fused = match (&expand, &depthwise, &project) {
-            (_, ConvUnit { bias: Some(dw_bias), bn: None, .. }, ConvUnit { bias: Some(p_bias), bn: None, .. })
-                if frozen(&depthwise.weight) && expand.as_ref().is_none_or(|e| e.bn.is_none()) =>
-            {
-                let expand = expand.as_ref().map(|e| (&e.weight, e.bias.as_ref().expect("folded")));
-                let eca = eca.as_ref().map(|e| &e.weight);
-                Some(Arc::new(FusedBottleneck::new(
-                    shape.stride,
-                    expand,
-                    (&depthwise.weight, dw_bias),
-                    eca,
-                    (&project.weight, p_bias),
-                )?))
+        Ok(InvertedResidual { shape, expand, depthwise, eca, project })
+    }
+
+    /// The whole block as one fused kernel (what the inference plan runs), where every unit is
+    /// folded and constant; `None` otherwise.
+    pub fn fused_kernel(&self) -> Result<Option<FusedBottleneck>> {
+        fn folded(unit: &ConvUnit) -> Option<(&Tensor, &Tensor)> {
+            match (&unit.bias, &unit.bn) {
+                (Some(bias), None) if frozen(&unit.weight) => Some((&unit.weight, bias)),
+                _ => None,
             }
-            _ => None,
+        }
+        let expand = match &self.expand {
+            Some(unit) => match folded(unit) {
+                Some(folded) => Some(folded),
+                None => return Ok(None),
+            },
+            None => None,
         };
-        Ok(InvertedResidual { shape, expand, depthwise, eca, project, fused })
+        let (Some(depthwise), Some(project)) = (folded(&self.depthwise), folded(&self.project)) else {
+            return Ok(None);
+        };
+        let eca = self.eca.as_ref().map(|e| &e.weight);
+        FusedBottleneck::new(self.shape.stride, expand, depthwise, eca, project).map(Some)
     }
 
     /// The convolution units with their names: `expand` (if any), `depthwise`, `project`.
@@ -359,31 +343,7 @@ impl InvertedResidual {
         self.eca.as_ref()
     }
 
-    /// The inference fast path on a channels-last map `[B, H, W, C]`, where the block has its
-    /// fused kernel.
-    pub fn forward_channels_last(&self, x: &Tensor) -> Result<Tensor> {
-        let fused =
-            self.fused.as_ref().ok_or_else(|| candle_core::Error::Msg("this block has no fused kernel".into()))?;
-        x.contiguous()?.apply_op1_no_bwd(fused.as_ref())
-    }
-
-    /// Whether [`Self::forward_channels_last`] runs (folded constant weights).
-    pub fn is_fused(&self) -> bool {
-        self.fused.is_some()
-    }
-
-    /// This block's fused kernel taking the NCHW image through `stem`
-    /// ([`FusedBottleneck::with_stem`]), where both have fused kernels and the block can take the
-    /// stem (no expansion, no residual: the first block of both networks).
-    pub fn fused_with_stem(&self, stem: &ConvUnit) -> Option<Arc<FusedBottleneck>> {
-        let (fused, dense) = (self.fused.as_ref()?, stem.dense.as_ref()?);
-        fused.with_stem(dense.clone()).ok().map(Arc::new)
-    }
-
     pub fn forward_t(&self, x: &Tensor, mode: Mode) -> Result<Tensor> {
-        if let (Mode::Inference, Some(fused)) = (mode, &self.fused) {
-            return super::kernels::fused::channels_first(&to_channels_last(x)?.apply_op1_no_bwd(fused.as_ref())?);
-        }
         let mut y = match &self.expand {
             Some(expand) => expand.forward_t(x, mode)?,
             None => x.clone(),

@@ -1,18 +1,19 @@
 //! The networks: MobileNetV2 (reference and import target) and ECMobileNet (the paper's variant),
-//! their building blocks ([`layers`]) and weights import/load/save ([`weights`]); the CPU kernels
-//! they run on are apart, in [`kernels`].
+//! their building blocks ([`layers`]), the inference plan built from them ([`plan`]) and weights
+//! import/load/save ([`weights`]); the CPU kernels they run on are apart, in [`kernels`].
 //!
 //! Both networks are the same skeleton described by data ([`NetworkSpec`]: one row per bottleneck
 //! stage, as in the papers' tables): a 3x3 stride-2 stem, inverted-residual bottlenecks, a 1x1
 //! convolution to 1280 channels, global average pooling and an optional classifier.
 //! Tensors in and out are NCHW, input RGB scaled to [-1, 1]; the reference and training paths stay
-//! NCHW, while the inference path runs the bottlenecks channels-last inside [`kernels::fused`].
+//! NCHW, while the inference plan runs channels-last inside [`kernels::fused`].
 
 pub mod ecmobilenet;
 pub mod embedder;
 pub mod kernels;
 pub mod layers;
 pub mod mobilenetv2;
+pub mod plan;
 pub mod weights;
 
 use anyhow::{bail, Context};
@@ -24,8 +25,8 @@ use std::str::FromStr;
 use std::sync::Arc;
 
 use kernels::depthwise::Activation;
-use kernels::fused::FusedBottleneck;
 use layers::{BlockShape, ConvKind, ConvUnit, InvertedResidual, Mode};
+use plan::{InferencePlan, Step};
 
 /// Which network.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
@@ -186,9 +187,8 @@ pub struct Network {
     pub blocks: Vec<InvertedResidual>,
     head: ConvUnit,
     classifier: Option<candle_nn::Linear>,
-    /// The stem and the first block as one fused op, where they have fused kernels and the block
-    /// can take the stem ([`InvertedResidual::fused_with_stem`]).
-    stem_and_first_block: Option<Arc<FusedBottleneck>>,
+    /// What [`Mode::Inference`] runs, where the weights are folded constants ([`plan`]).
+    plan: Option<Arc<InferencePlan>>,
 }
 
 /// Where a descriptor reads the network: the output of bottleneck `i` (0-based, as in the weights'
@@ -232,10 +232,11 @@ impl FromStr for Tap {
 
 /// One stage of a pass: what [`Network::profile`] times.
 #[derive(Clone, Copy, Debug)]
-enum Stage {
+enum Stage<'a> {
+    /// A step of the inference plan (channels-last maps between steps).
+    Planned(&'a Step),
+    /// A layer on NCHW maps.
     Stem,
-    /// The stem and block 0 in one op (channels-last inference only).
-    StemAndFirstBlock,
     Block(usize),
     Head,
 }
@@ -266,8 +267,8 @@ impl Network {
             batch_norm,
         )?;
         let classifier = classes.map(|k| candle_nn::linear(spec.head_channels, k, vb.pp("classifier"))).transpose()?;
-        let stem_and_first_block = blocks.first().and_then(|b| b.fused_with_stem(&stem));
-        Ok(Network { spec: spec.clone(), stem, blocks, head, classifier, stem_and_first_block })
+        let plan = InferencePlan::build(&stem, &blocks, &head)?.map(Arc::new);
+        Ok(Network { spec: spec.clone(), stem, blocks, head, classifier, plan })
     }
 
     pub fn arch(&self) -> Arch {
@@ -298,22 +299,15 @@ impl Network {
             return Ok(Vec::new());
         };
         crate::runtime::with_hot_workers(|| {
-            let channels_last = self.runs_channels_last(mode);
             let mut y = x.clone();
             let mut maps: Vec<Option<Tensor>> = vec![None; taps.len()];
-            for stage in self.stages(channels_last) {
-                y = self.stage(stage, &y, mode, channels_last)?;
-                let depth = match stage {
-                    Stage::Stem => continue,
-                    Stage::StemAndFirstBlock => 0,
-                    Stage::Block(i) => i,
-                    Stage::Head => self.blocks.len(),
-                };
+            for stage in self.stages(mode) {
+                y = self.stage(stage, &y, mode)?;
+                let Some(depth) = self.stage_depth(stage) else { continue };
                 for (slot, tap) in maps.iter_mut().zip(taps) {
                     if tap.depth(self.blocks.len()) == depth {
-                        // The head's map is already channels-first (see `stage`).
-                        let nchw = channels_last && !matches!(stage, Stage::Head);
-                        *slot = Some(if nchw { kernels::fused::channels_first(&y)? } else { y.clone() });
+                        let channels_last = matches!(stage, Stage::Planned(step) if step.gives_channels_last());
+                        *slot = Some(if channels_last { kernels::fused::channels_first(&y)? } else { y.clone() });
                     }
                 }
                 if depth == deepest {
@@ -324,51 +318,52 @@ impl Network {
         })
     }
 
-    /// Stages of a pass: the stem, each block, the head; channels-last, the stem and the first
-    /// block as one where they fuse.
-    fn stages(&self, channels_last: bool) -> Vec<Stage> {
-        let fused_first = channels_last && self.stem_and_first_block.is_some();
-        let mut stages = vec![if fused_first { Stage::StemAndFirstBlock } else { Stage::Stem }];
-        stages.extend((usize::from(fused_first)..self.blocks.len()).map(Stage::Block));
-        stages.push(Stage::Head);
-        stages
+    /// Stages of a pass in `mode`: the plan's steps in inference where there is a plan, else the
+    /// stem, each block and the head.
+    fn stages(&self, mode: Mode) -> Vec<Stage<'_>> {
+        match self.plan.as_deref().filter(|_| mode == Mode::Inference) {
+            Some(plan) => plan.steps().iter().map(Stage::Planned).collect(),
+            None => std::iter::once(Stage::Stem)
+                .chain((0..self.blocks.len()).map(Stage::Block))
+                .chain(std::iter::once(Stage::Head))
+                .collect(),
+        }
+    }
+
+    /// Where a stage's output is in the pass (block `i`: `i`, the head: after the blocks; the stem
+    /// alone: nowhere a tap reads).
+    fn stage_depth(&self, stage: Stage) -> Option<usize> {
+        match stage {
+            Stage::Stem | Stage::Planned(Step::Stem(_)) => None,
+            Stage::Planned(Step::StemAndFirstBlock(_)) => Some(0),
+            Stage::Block(i) | Stage::Planned(&Step::Block(i, _)) => Some(i),
+            Stage::Head | Stage::Planned(Step::Head(_)) => Some(self.blocks.len()),
+        }
     }
 
     /// A stage's name: `stem`, `blocks.{i}`, `head`, or `stem+blocks.0` for the fused pair.
     fn stage_name(stage: Stage) -> String {
         match stage {
-            Stage::Stem => "stem".into(),
-            Stage::StemAndFirstBlock => "stem+blocks.0".into(),
-            Stage::Block(i) => format!("blocks.{i}"),
-            Stage::Head => "head".into(),
+            Stage::Stem | Stage::Planned(Step::Stem(_)) => "stem".into(),
+            Stage::Planned(Step::StemAndFirstBlock(_)) => "stem+blocks.0".into(),
+            Stage::Block(i) | Stage::Planned(&Step::Block(i, _)) => format!("blocks.{i}"),
+            Stage::Head | Stage::Planned(Step::Head(_)) => "head".into(),
         }
     }
 
-    /// `stage` of a pass. With `channels_last` (the fused kernels) the stages pass `[B, H, W, C]`
-    /// maps: the stem (alone or with the first block) takes the NCHW image, and the head's map is
-    /// turned back to NCHW.
-    fn stage(&self, stage: Stage, x: &Tensor, mode: Mode, channels_last: bool) -> Result<Tensor> {
-        match (stage, channels_last) {
-            (Stage::StemAndFirstBlock, _) => {
-                let fused = self.stem_and_first_block.as_deref().expect("planned only where it exists");
-                x.contiguous()?.apply_op1_no_bwd(fused)
-            }
-            (Stage::Stem, true) => self.stem.forward_channels_last(x),
-            (Stage::Stem, false) => self.stem.forward_t(x, mode),
-            (Stage::Head, true) => kernels::fused::channels_first(&self.head.forward_channels_last(x)?),
-            (Stage::Head, false) => self.head.forward_t(x, mode),
-            (Stage::Block(i), true) => self.blocks[i].forward_channels_last(x),
-            (Stage::Block(i), false) => self.blocks[i].forward_t(x, mode),
+    /// Runs `stage` on `x` in `mode`.
+    fn stage(&self, stage: Stage, x: &Tensor, mode: Mode) -> Result<Tensor> {
+        match stage {
+            Stage::Planned(step) => step.run(x),
+            Stage::Stem => self.stem.forward_t(x, mode),
+            Stage::Block(i) => self.blocks[i].forward_t(x, mode),
+            Stage::Head => self.head.forward_t(x, mode),
         }
     }
 
-    /// Whether a pass in `mode` runs the fused channels-last kernels from end to end: inference
-    /// with folded constant weights (not weights being trained).
-    fn runs_channels_last(&self, mode: Mode) -> bool {
-        mode == Mode::Inference
-            && self.stem.is_fused()
-            && self.head.is_fused()
-            && self.blocks.iter().all(|b| b.is_fused())
+    /// Whether inference runs the plan (the weights are folded constants).
+    pub fn is_planned(&self) -> bool {
+        self.plan.is_some()
     }
 
     /// Mean time of each stage ([`Self::stage_name`]) over `runs` passes of `x` in `mode`,
@@ -376,14 +371,13 @@ impl Network {
     pub fn profile(&self, x: &Tensor, mode: Mode, runs: usize) -> Result<Vec<(String, std::time::Duration)>> {
         // With the workers kept hot as in `features`, so that the stages add up to its time.
         crate::runtime::with_hot_workers(|| {
-            let channels_last = self.runs_channels_last(mode);
-            let stages = self.stages(channels_last);
+            let stages = self.stages(mode);
             let mut totals = vec![std::time::Duration::ZERO; stages.len()];
             for run in 0..=runs {
                 let mut y = x.clone();
                 for (&stage, total) in stages.iter().zip(&mut totals) {
                     let started = std::time::Instant::now();
-                    y = self.stage(stage, &y, mode, channels_last)?;
+                    y = self.stage(stage, &y, mode)?;
                     if run > 0 {
                         *total += started.elapsed();
                     }

@@ -1,6 +1,7 @@
-//! Fused CPU inference kernels on channels-last (NHWC) feature maps, as candle custom ops (the
-//! fast path of [`Mode::Inference`] once BatchNorm is folded; [`Mode::Reference`] runs stock candle
-//! ops and the tests check that the two agree within 1e-4):
+//! Fused CPU inference kernels on channels-last (NHWC) feature maps, as candle custom ops (what
+//! the inference plan of [`Mode::Inference`] runs once BatchNorm is folded:
+//! [`crate::model::plan`]; [`Mode::Reference`] runs stock candle ops and the tests check that the
+//! two agree within 1e-4):
 //!
 //! - [`FusedBottleneck`]: a whole inverted-residual bottleneck in one op, `[B, H, W, C]` ->
 //!   `[B, OH, OW, C']`: 1x1 expansion + ReLU6, 3x3 depthwise + ReLU6, optional ECA, the linear
@@ -881,6 +882,11 @@ mod tests {
     use super::*;
     use crate::model::layers::{BlockShape, ConvKind, ConvUnit, InvertedResidual, Mode};
 
+    /// `[B, C, H, W]` -> contiguous `[B, H, W, C]`.
+    fn to_channels_last(x: &Tensor) -> Result<Tensor> {
+        x.permute((0, 2, 3, 1))?.contiguous()
+    }
+
     fn max_diff(a: &Tensor, b: &Tensor) -> f32 {
         (a - b).unwrap().abs().unwrap().flatten_all().unwrap().max(0).unwrap().to_scalar::<f32>().unwrap()
     }
@@ -932,12 +938,17 @@ mod tests {
         ];
         for (shape, h, w) in cases {
             let block = random_block(shape)?;
+            let op = block.fused_kernel()?.expect("folded constant weights have a fused kernel");
             let x = random(&[2, shape.input, h, w], 2.0);
-            let fast = pool.install(|| block.forward_t(&x, Mode::Inference))?;
+            let fast = pool.install(|| channels_first(&to_channels_last(&x)?.apply_op1_no_bwd(&op)?))?;
             let reference = block.forward_t(&x, Mode::Reference)?;
             assert_eq!(fast.dims(), reference.dims(), "{shape:?}");
             let diff = max_diff(&fast, &reference);
             assert!(diff < 1e-4, "{shape:?} {h}x{w}: max diff {diff}");
+            // The layers' own inference path (NCHW depthwise kernel), where there is no plan.
+            let layered = pool.install(|| block.forward_t(&x, Mode::Inference))?;
+            let diff = max_diff(&layered, &reference);
+            assert!(diff < 1e-4, "{shape:?} {h}x{w}: layers' inference max diff {diff}");
         }
         Ok(())
     }
@@ -970,12 +981,18 @@ mod tests {
                 activation,
                 false,
             )?;
+            let op = unit.dense_kernel()?.expect("a folded constant unit has a fused kernel");
             let x = random(&[2, 3, h, w], 2.0);
-            let (fast, reference) =
-                (pool.install(|| unit.forward_t(&x, Mode::Inference))?, unit.forward_t(&x, Mode::Reference)?);
+            // The op takes the NCHW image (full convolution) or a channels-last map (1x1).
+            let input = if op.is_pointwise() { to_channels_last(&x)? } else { x.contiguous()? };
+            let fast = pool.install(|| channels_first(&input.apply_op1_no_bwd(&op)?))?;
+            let reference = unit.forward_t(&x, Mode::Reference)?;
             assert_eq!(fast.dims(), reference.dims());
             let diff = max_diff(&fast, &reference);
             assert!(diff < 1e-4, "{kernel}x{kernel} s{stride} {h}x{w} -> {out}: max diff {diff}");
+            let layered = pool.install(|| unit.forward_t(&x, Mode::Inference))?;
+            let diff = max_diff(&layered, &reference);
+            assert!(diff < 1e-4, "{kernel}x{kernel} s{stride} {h}x{w} -> {out}: layer's inference max diff {diff}");
         }
         Ok(())
     }
@@ -997,18 +1014,19 @@ mod tests {
             Activation::Relu6,
             false,
         )?;
+        let stem_op = Arc::new(stem.dense_kernel()?.expect("a folded stem has a fused kernel"));
         for (eca_kernel, h, w) in [(Some(3), 61, 50), (None, 40, 33)] {
             let block = random_block(BlockShape { input: 32, hidden: 32, output: 16, stride: 1, eca_kernel })?;
-            let fused = block.fused_with_stem(&stem).expect("a first block without expansion takes the stem");
+            let fused = block.fused_kernel()?.expect("a folded block").with_stem(stem_op.clone())?;
             let x = random(&[2, 3, h, w], 2.0);
-            let fast = pool.install(|| channels_first(&x.apply_op1_no_bwd(fused.as_ref())?))?;
+            let fast = pool.install(|| channels_first(&x.apply_op1_no_bwd(&fused)?))?;
             let reference = block.forward_t(&stem.forward_t(&x, Mode::Reference)?, Mode::Reference)?;
             assert_eq!(fast.dims(), reference.dims());
             let diff = max_diff(&fast, &reference);
             assert!(diff < 1e-4, "{h}x{w} eca {eca_kernel:?}: max diff {diff}");
         }
         let expanding = random_block(BlockShape { input: 32, hidden: 96, output: 16, stride: 2, eca_kernel: Some(3) })?;
-        assert!(expanding.fused_with_stem(&stem).is_none());
+        assert!(expanding.fused_kernel()?.expect("a folded block").with_stem(stem_op).is_err());
         Ok(())
     }
 }
