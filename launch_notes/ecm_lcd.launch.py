@@ -1,5 +1,5 @@
 """Launch ecm-lcd beside a tracker. Not run with `ros2 launch` here (no ROS 2 installation on the build
-machine); tests/launch_file.rs checks that its command line, at the defaults below, is one `ecm-lcd node` accepts.
+machine); src/cli/launch_file.rs checks that its command line, at the defaults below, is one `ecm-lcd node` accepts.
 
     ros2 launch ecm_lcd.launch.py image_topic:=/camera/color/image_raw params:=config/ecm_lcd.yaml
 """

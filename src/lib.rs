@@ -25,5 +25,3 @@ pub mod synth;
 pub mod train;
 pub mod types;
 pub mod verification;
-
-pub mod cli;

@@ -1,5 +1,7 @@
-//! The `ecm-lcd` command line: everything happens in the library.
+//! The `ecm-lcd` command line ([`cli`]): a thin shell over the library.
+
+mod cli;
 
 fn main() -> std::process::ExitCode {
-    ecm_lcd::cli::main()
+    cli::main()
 }

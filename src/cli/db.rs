@@ -1,11 +1,11 @@
 //! `ecm-lcd db info|export|merge`: inspect, export and merge the persistent keyframe databases that
-//! `replay --db` and `node --db` write ([`crate::detector::store`]).
+//! `replay --db` and `node --db` write ([`ecm_lcd::detector::store`]).
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 
-use crate::detector::store::{self, decode_descriptor, KeyframeStore};
+use ecm_lcd::detector::store::{self, decode_descriptor, KeyframeStore};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -62,9 +62,9 @@ pub fn run(args: Args) -> Result<()> {
             Ok(())
         }
         DbCommand::Export { path, output } => {
-            crate::io::output::ensure_not_an_input(&output, &[&path])?;
+            ecm_lcd::io::output::ensure_not_an_input(&output, &[&path])?;
             let store = KeyframeStore::open_read_only(&path)?;
-            crate::io::output::replace_with(&output, |file| {
+            ecm_lcd::io::output::replace_with(&output, |file| {
                 let mut out = csv::Writer::from_writer(file);
                 let mut header = vec!["id".to_string(), "stamp".to_string()];
                 header.extend((0..store.identity().dim).map(|i| format!("d{i}")));

@@ -8,9 +8,9 @@ use anyhow::{Context, Result};
 
 use super::eval::print_summary;
 use super::replay::{write_candidates_csv, SourceArgs};
-use crate::eval::{evaluate, loop_truth_from_poses, plot_pr_curve, write_curve_csv, PoseLoopCriteria};
-use crate::io::tum::read_groundtruth;
-use crate::replay::run_source;
+use ecm_lcd::eval::{evaluate, loop_truth_from_poses, plot_pr_curve, write_curve_csv, PoseLoopCriteria};
+use ecm_lcd::io::tum::read_groundtruth;
+use ecm_lcd::replay::run_source;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {

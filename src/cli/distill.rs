@@ -1,13 +1,13 @@
-//! `ecm-lcd distill`: ECMobileNet learns a teacher's descriptor (see [`crate::train::distill`]).
+//! `ecm-lcd distill`: ECMobileNet learns a teacher's descriptor (see [`ecm_lcd::train::distill`]).
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 
-use crate::model::weights::resolve;
-use crate::train::data::Augment;
-use crate::train::distill::{distill, DistillConfig, DistillLoss};
-use crate::train::{check_device, Optimisation, OptimizerKind};
+use ecm_lcd::model::weights::resolve;
+use ecm_lcd::train::data::Augment;
+use ecm_lcd::train::distill::{distill, DistillConfig, DistillLoss};
+use ecm_lcd::train::{check_device, Optimisation, OptimizerKind};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {

@@ -5,14 +5,14 @@
 //! the pipeline's; everything before (truth) and after (metrics, outputs) is here.
 
 use super::replay::SourceArgs;
-use crate::config::Params;
-use crate::eval::{
+use anyhow::{bail, Result};
+use ecm_lcd::config::Params;
+use ecm_lcd::eval::{
     evaluate, images_in_name_order, loop_truth_from_poses, plot_pr_curve, read_loops, summary_json, write_curve_csv,
     LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
 };
-use crate::replay::{run_database_queries, run_source};
-use crate::types::Stamp;
-use anyhow::{bail, Result};
+use ecm_lcd::replay::{run_database_queries, run_source};
+use ecm_lcd::types::Stamp;
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug)]
@@ -104,7 +104,7 @@ pub fn load_truth(args: &Args, query_stamps: &[Stamp]) -> Result<LoopTruth> {
     let Some(path) = args.groundtruth_path() else {
         bail!("no loop truth: give --loops FILE or --groundtruth FILE (or a SOURCE folder with groundtruth.txt)");
     };
-    let poses = crate::io::tum::read_groundtruth(&path)?;
+    let poses = ecm_lcd::io::tum::read_groundtruth(&path)?;
     if poses.is_empty() {
         bail!("ground truth {} holds no poses", path.display());
     }
@@ -179,7 +179,7 @@ pub fn print_summary(metrics: &Metrics, timings_ms: &[(&str, f64)]) {
 /// `ecm-lcd eval`: replays the source (or embeds the database and query folders), then scores.
 pub fn run(args: Args) -> Result<()> {
     if let Some(plot) = &args.plot {
-        crate::io::output::ensure_png(plot, "--plot")?;
+        ecm_lcd::io::output::ensure_png(plot, "--plot")?;
     }
     let mut pipeline = args.source_args.pipeline()?;
     if let Some((database, queries)) = args.database_and_queries()? {
@@ -276,7 +276,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (csv, png) = (dir.path().join("pr.csv"), dir.path().join("pr.png"));
         let args = parse(&["seq", "-o", csv.to_str().unwrap(), "--json", "--plot", png.to_str().unwrap()]).unwrap();
-        let truth = crate::eval::parse_loops("2,0\n3,1\n").unwrap();
+        let truth = ecm_lcd::eval::parse_loops("2,0\n3,1\n").unwrap();
         let results = [QueryResult { query: 2, best: Some((0, 0.8)) }, QueryResult { query: 3, best: Some((0, 0.6)) }];
         let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)], &Params::default()).unwrap();
         assert_eq!(metrics.recall_at_1, Some(0.5));

@@ -1,14 +1,14 @@
 //! `ecm-lcd learn-projection`: learns a PCA projection (optionally whitened) of the configured
 //! descriptor from the frames of one or more sources, without labels, and saves it for
-//! `descriptor.projection` ([`crate::descriptor::Projection`]).
+//! `descriptor.projection` ([`ecm_lcd::descriptor::Projection`]).
 
 use std::path::PathBuf;
 
 use anyhow::{ensure, Context, Result};
 
 use super::replay::SourceArgs;
-use crate::descriptor::Projection;
-use crate::io::open_source_topics;
+use ecm_lcd::descriptor::Projection;
+use ecm_lcd::io::open_source_topics;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -37,11 +37,11 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     let inputs: Vec<&std::path::Path> = args.sources.iter().map(PathBuf::as_path).collect();
-    crate::io::output::ensure_not_an_input(&args.output, &inputs)?;
+    ecm_lcd::io::output::ensure_not_an_input(&args.output, &inputs)?;
     let mut params = args.source_args.params()?;
     // Learned on the descriptor itself, never on a projection of it.
     params.set_from_str("descriptor.projection", "").map_err(anyhow::Error::msg)?;
-    let mut pipeline = crate::pipeline::Pipeline::new(params, args.source_args.weights.as_deref())?;
+    let mut pipeline = ecm_lcd::pipeline::Pipeline::new(params, args.source_args.weights.as_deref())?;
     let name = pipeline.descriptor_name();
     let mut samples = Vec::new();
     'sources: for source in &args.sources {

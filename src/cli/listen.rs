@@ -7,8 +7,8 @@ use anyhow::{Context as _, Result};
 use std::io::Write;
 use std::time::{Duration, Instant};
 
-use crate::ros::peer::CandidateListener;
-use crate::types::Stamp;
+use ecm_lcd::ros::peer::CandidateListener;
+use ecm_lcd::types::Stamp;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {

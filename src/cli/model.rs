@@ -6,10 +6,10 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 use serde::Serialize;
 
-use crate::model::embedder::Embedder;
-use crate::model::weights::{import, resolve};
-use crate::model::Arch;
-use crate::preprocess::read_image;
+use ecm_lcd::model::embedder::Embedder;
+use ecm_lcd::model::weights::{import, resolve};
+use ecm_lcd::model::Arch;
+use ecm_lcd::preprocess::read_image;
 
 /// Which weights and network every model-using command runs.
 #[derive(clap::Args, Debug, Clone)]
@@ -34,12 +34,8 @@ impl NetworkArgs {
     /// Resolves the weights, logs which ones run, and builds the embedder (`default_arch` unless
     /// `--arch` or ECMobileNet weights say otherwise).
     pub fn embedder(&self, default_arch: Arch, with_classifier: bool) -> Result<(Embedder, resolve::Resolved)> {
-        let resolved = resolve::resolve(self.weights.as_deref())?;
-        let own = resolved.weights.arch;
-        let arch = self.arch.unwrap_or(if own == Arch::EcMobileNet { own } else { default_arch });
-        let weights = resolved.weights.for_arch(arch)?;
-        log::info!("weights: {} -> {arch}", resolved.describe());
-        let mut embedder = Embedder::new(weights.network(with_classifier)?, self.size)?;
+        let (mut embedder, resolved) =
+            Embedder::from_weights(self.weights.as_deref(), self.arch, default_arch, self.size, with_classifier)?;
         embedder.set_reference(self.reference);
         Ok((embedder, resolved))
     }
@@ -58,7 +54,7 @@ pub struct ImportArgs {
 }
 
 pub fn import_weights(args: ImportArgs) -> Result<()> {
-    crate::io::output::ensure_not_an_input(&args.output, &[&args.tflite])?;
+    ecm_lcd::io::output::ensure_not_an_input(&args.output, &[&args.tflite])?;
     let weights = import::import_tflite(&args.tflite)?.for_arch(args.arch)?;
     weights.save(&args.output)?;
     println!(
@@ -85,7 +81,7 @@ pub struct InfoArgs {
 }
 
 pub fn model_info(args: InfoArgs) -> Result<()> {
-    crate::model::check_input_size(args.size)?;
+    ecm_lcd::model::check_input_size(args.size)?;
     let cost = args.arch.spec().cost(args.classes, args.size);
     if args.json {
         println!("{}", serde_json::to_string(&cost)?);
@@ -130,7 +126,7 @@ struct Classified {
 fn read_labels(path: Option<&Path>) -> Result<Vec<String>> {
     let path = match path {
         Some(p) => p.to_path_buf(),
-        None => match crate::runtime::shared_dirs()
+        None => match ecm_lcd::runtime::shared_dirs()
             .into_iter()
             .map(|d| d.join("data/imagenet/imagenet_labels.txt"))
             .find(|p| p.is_file())
@@ -142,7 +138,7 @@ fn read_labels(path: Option<&Path>) -> Result<Vec<String>> {
             }
         },
     };
-    let text = crate::io::read_capped_text(&path, crate::io::limits::TEXT_LIST, "labels")?;
+    let text = ecm_lcd::io::read_capped_text(&path, ecm_lcd::io::limits::TEXT_LIST, "labels")?;
     Ok(text.lines().map(str::to_string).collect())
 }
 
@@ -153,7 +149,7 @@ pub fn classify(args: ClassifyArgs) -> Result<()> {
     // name an ImageNet classifier's 1001 outputs.
     let labels = match &args.labels {
         Some(path) => read_labels(Some(path))?,
-        None => match crate::train::class_names_of(&resolved.path, classes) {
+        None => match ecm_lcd::train::class_names_of(&resolved.path, classes) {
             Some(names) => names,
             None if classes == 1001 => read_labels(None)?,
             None => vec![],
@@ -202,7 +198,7 @@ pub struct EmbedArgs {
 
 pub fn embed(args: EmbedArgs) -> Result<()> {
     let images: Vec<&std::path::Path> = args.images.iter().map(PathBuf::as_path).collect();
-    crate::io::output::ensure_not_an_input(&args.output, &images)?;
+    ecm_lcd::io::output::ensure_not_an_input(&args.output, &images)?;
     let (mut embedder, _) = args.network.embedder(Arch::EcMobileNet, false)?;
     // Every image is read before the output is opened, so a bad image leaves an existing file as it was.
     let mut records = Vec::with_capacity(args.images.len());
@@ -212,7 +208,7 @@ pub fn embed(args: EmbedArgs) -> Result<()> {
         record.extend(pooled.iter().map(|v| v.to_string()));
         records.push(record);
     }
-    crate::io::output::replace_with(&args.output, |file| {
+    ecm_lcd::io::output::replace_with(&args.output, |file| {
         let mut writer = csv::Writer::from_writer(file);
         for record in &records {
             writer.write_record(record)?;

@@ -1,6 +1,6 @@
 //! `ecm-lcd node [OPTIONS] [--ros-args ...]`: runs the loop-closure detector as the ROS 2 node
-//! `/ecm_lcd` (see [`crate::ros::node`] for topics, QoS, parameters and the drop policy). ROS arguments
-//! follow `--ros-args` as `ros2 run`/`ros2 launch` pass them (see [`crate::ros::args`]).
+//! `/ecm_lcd` (see [`ecm_lcd::ros::node`] for topics, QoS, parameters and the drop policy). ROS arguments
+//! follow `--ros-args` as `ros2 run`/`ros2 launch` pass them (see [`ecm_lcd::ros::args`]).
 //!
 //! SIGINT (Ctrl-C, `ros2 launch` shutdown) and SIGTERM (`kill`, systemd) stop the node cleanly: the
 //! keyframes already queued are processed and published, then it logs its final counters and exits 0.
@@ -11,10 +11,10 @@ use signal_hook::consts::{SIGINT, SIGTERM};
 use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
-use crate::config::Params;
-use crate::ros::args::RosArgs;
-use crate::ros::node::{run_node, InputQos, KeyframeProcessor, NodeCounters, NodeSettings, DEFAULT_NODE_NAME};
-use crate::ros::params::initial_params;
+use ecm_lcd::config::Params;
+use ecm_lcd::ros::args::RosArgs;
+use ecm_lcd::ros::node::{run_node, InputQos, KeyframeProcessor, NodeCounters, NodeSettings, DEFAULT_NODE_NAME};
+use ecm_lcd::ros::params::initial_params;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -42,7 +42,7 @@ pub fn run(args: Args) -> Result<()> {
     let weights = args.weights.clone();
     let db = args.db.clone();
     run_with(args, move |params| {
-        let mut pipeline = crate::pipeline::Pipeline::new(params.clone(), weights.as_deref())?;
+        let mut pipeline = ecm_lcd::pipeline::Pipeline::new(params.clone(), weights.as_deref())?;
         // The node publishes candidates only: no check of a best match that is not one.
         pipeline.set_verify_best(false);
         if let Some(db) = &db {

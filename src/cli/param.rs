@@ -7,9 +7,9 @@
 use anyhow::{bail, Context as _, Result};
 use std::time::Duration;
 
-use crate::ros::args::parse_param_value;
-use crate::ros::params::{from_ros, to_ros};
-use crate::ros::peer::ParamClient;
+use ecm_lcd::ros::args::parse_param_value;
+use ecm_lcd::ros::params::{from_ros, to_ros};
+use ecm_lcd::ros::peer::ParamClient;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {

@@ -7,8 +7,8 @@ use anyhow::{Context as _, Result};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use crate::ros::node::InputQos;
-use crate::ros::peer::{FramePublisher, SendAs};
+use ecm_lcd::ros::node::InputQos;
+use ecm_lcd::ros::peer::{FramePublisher, SendAs};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -55,8 +55,8 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     anyhow::ensure!(args.rate > 0.0 && args.rate.is_finite(), "--rate must be a positive number, got {}", args.rate);
-    let topics = crate::io::Topics { image: args.bag_topic.clone(), depth: args.bag_depth_topic.clone() };
-    let source = crate::io::open_source_topics(&args.source, &topics)
+    let topics = ecm_lcd::io::Topics { image: args.bag_topic.clone(), depth: args.bag_depth_topic.clone() };
+    let source = ecm_lcd::io::open_source_topics(&args.source, &topics)
         .with_context(|| format!("opening {}", args.source.display()))?;
     let topic = args.topic.clone().unwrap_or_else(|| args.send_as.default_topic().to_string());
     let context = ros2_client::Context::new().context("creating the DDS participant")?;

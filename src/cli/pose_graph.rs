@@ -1,5 +1,5 @@
 //! `ecm-lcd pose-graph`: an odometry trajectory and the loop candidates of a replay in, the trajectory
-//! corrected by SE(3) pose-graph optimisation out ([`crate::pose_graph`]), with the absolute trajectory
+//! corrected by SE(3) pose-graph optimisation out ([`ecm_lcd::pose_graph`]), with the absolute trajectory
 //! error before and after against ground truth and a figure like the paper's Fig. 11.
 
 use std::path::PathBuf;
@@ -7,12 +7,12 @@ use std::path::PathBuf;
 use anyhow::{bail, Context, Result};
 use nalgebra::Vector3;
 
-use crate::eval::trajectory::absolute_trajectory_error;
-use crate::eval::{plot_trajectories, TrajectoryPlot};
-use crate::io::candidates::read_candidates_csv;
-use crate::io::output::ensure_not_an_input;
-use crate::io::tum::{read_groundtruth, write_trajectory};
-use crate::pose_graph::{optimise, LoopConstraint, PoseGraphParams};
+use ecm_lcd::eval::trajectory::absolute_trajectory_error;
+use ecm_lcd::eval::{plot_trajectories, TrajectoryPlot};
+use ecm_lcd::io::candidates::read_candidates_csv;
+use ecm_lcd::io::output::ensure_not_an_input;
+use ecm_lcd::io::tum::{read_groundtruth, write_trajectory};
+use ecm_lcd::pose_graph::{optimise, LoopConstraint, PoseGraphParams};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -52,7 +52,7 @@ pub fn run(args: Args) -> Result<()> {
     ensure_not_an_input(&args.output, &inputs)?;
     if let Some(plot) = &args.plot {
         ensure_not_an_input(plot, &inputs)?;
-        crate::io::output::ensure_png(plot, "--plot")?;
+        ecm_lcd::io::output::ensure_png(plot, "--plot")?;
     }
     for (name, value) in [("--robust-scale", args.robust_scale), ("--loop-weight", args.loop_weight)] {
         if !(value.is_finite() && value > 0.0 && value <= 1e6) {
@@ -100,7 +100,7 @@ pub fn run(args: Args) -> Result<()> {
         None => None,
     };
     if let Some(path) = &args.plot {
-        let positions = |poses: &[(crate::types::Stamp, nalgebra::Isometry3<f64>)],
+        let positions = |poses: &[(ecm_lcd::types::Stamp, nalgebra::Isometry3<f64>)],
                          alignment: nalgebra::Isometry3<f64>|
          -> Vec<Vector3<f64>> {
             poses.iter().map(|(_, p)| (alignment * p).translation.vector).collect()

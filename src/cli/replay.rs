@@ -3,18 +3,18 @@
 //!
 //! The CSV is written incrementally, flushed after each keyframe's candidates, so what a killed replay
 //! emitted is on disk. With `--db`, keyframes are stored as they are accepted, and a replay of a source
-//! whose frames are already stored skips them ([`crate::replay`]) and appends to an existing output CSV
+//! whose frames are already stored skips them ([`ecm_lcd::replay`]) and appends to an existing output CSV
 //! instead of replacing it, so a crashed replay restarted with the same arguments completes the file.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
-use crate::config::{Params, NODE_NAME};
-pub use crate::io::candidates::write_candidates_csv;
-use crate::io::candidates::CandidateCsv;
-use crate::pipeline::Pipeline;
-use crate::replay::run_source_with;
+use ecm_lcd::config::{Params, NODE_NAME};
+pub use ecm_lcd::io::candidates::write_candidates_csv;
+use ecm_lcd::io::candidates::CandidateCsv;
+use ecm_lcd::pipeline::Pipeline;
+use ecm_lcd::replay::run_source_with;
 
 /// Options every command that replays a source shares.
 #[derive(clap::Args, Debug, Clone)]
@@ -50,8 +50,8 @@ pub struct SourceArgs {
 }
 
 impl SourceArgs {
-    pub fn topics(&self) -> crate::io::Topics {
-        crate::io::Topics { image: self.topic.clone(), depth: self.depth_topic.clone() }
+    pub fn topics(&self) -> ecm_lcd::io::Topics {
+        ecm_lcd::io::Topics { image: self.topic.clone(), depth: self.depth_topic.clone() }
     }
 
     pub fn params(&self) -> Result<Params> {
@@ -101,12 +101,12 @@ pub fn run(args: Args) -> Result<()> {
             .flatten()
             .collect();
     if let Some(db) = &args.source_args.db {
-        crate::io::output::ensure_not_an_input(db, &inputs)?;
+        ecm_lcd::io::output::ensure_not_an_input(db, &inputs)?;
     }
     if let Some(output) = &args.output {
         let mut read = inputs.clone();
         read.extend(args.source_args.db.as_deref());
-        crate::io::output::ensure_not_an_input(output, &read)?;
+        ecm_lcd::io::output::ensure_not_an_input(output, &read)?;
     }
     let mut pipeline = args.source_args.pipeline()?;
     let resuming = pipeline.store().is_some_and(|store| !store.is_empty());

@@ -1,10 +1,10 @@
 //! `ecm-lcd synth`: renders a synthetic looping indoor sequence into a TUM RGB-D folder.
 
-use crate::io::image_msg::WireEncoding;
-use crate::io::ros1bag::{write_ros1_bag, Ros1Compression};
-use crate::io::ros2bag::{write_ros2_bag, Ros2Storage};
-use crate::synth::{write_tum_folder, Scene, SynthConfig};
 use anyhow::{bail, Result};
+use ecm_lcd::io::image_msg::WireEncoding;
+use ecm_lcd::io::ros1bag::{write_ros1_bag, Ros1Compression};
+use ecm_lcd::io::ros2bag::{write_ros2_bag, Ros2Storage};
+use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 use std::path::PathBuf;
 use std::time::Instant;
 

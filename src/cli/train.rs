@@ -1,12 +1,12 @@
-//! `ecm-lcd train`: the paper's classification recipe on an image folder (see [`crate::train`]).
+//! `ecm-lcd train`: the paper's classification recipe on an image folder (see [`ecm_lcd::train`]).
 
 use std::path::PathBuf;
 
 use anyhow::{bail, Result};
 
-use crate::model::Arch;
-use crate::train::data::Augment;
-use crate::train::{check_device, train, Hyper, Optimisation, OptimizerKind, RunFiles, TrainConfig};
+use ecm_lcd::model::Arch;
+use ecm_lcd::train::data::Augment;
+use ecm_lcd::train::{check_device, train, Hyper, Optimisation, OptimizerKind, RunFiles, TrainConfig};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {

@@ -1,13 +1,13 @@
-//! `ecm-lcd train-place`: the loop-closure objective (see [`crate::train::place`]).
+//! `ecm-lcd train-place`: the loop-closure objective (see [`ecm_lcd::train::place`]).
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 
-use crate::model::weights::resolve;
-use crate::train::data::Augment;
-use crate::train::place::{train_place, PlaceConfig};
-use crate::train::{check_device, Optimisation, OptimizerKind};
+use ecm_lcd::model::weights::resolve;
+use ecm_lcd::train::data::Augment;
+use ecm_lcd::train::place::{train_place, PlaceConfig};
+use ecm_lcd::train::{check_device, Optimisation, OptimizerKind};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {

@@ -4,7 +4,8 @@ use anyhow::Result;
 use image::RgbImage;
 
 use super::layers::Mode;
-use super::{Network, Tap};
+use super::weights::resolve::{self, Resolved};
+use super::{Arch, Network, Tap};
 use crate::preprocess::Preprocessor;
 use crate::types::FeatureMap;
 
@@ -18,6 +19,24 @@ pub struct Embedder {
 }
 
 impl Embedder {
+    /// Resolves `weights` ([`super::weights::resolve`]), picks the network (`arch`, else that of
+    /// ECMobileNet weights, which serve no other, else `default_arch`), logs which weights run, and
+    /// builds the embedder at `input_size`, with the classifier where asked.
+    pub fn from_weights(
+        weights: Option<&std::path::Path>,
+        arch: Option<Arch>,
+        default_arch: Arch,
+        input_size: usize,
+        with_classifier: bool,
+    ) -> Result<(Self, Resolved)> {
+        let resolved = resolve::resolve(weights)?;
+        let own = resolved.weights.arch;
+        let arch = arch.unwrap_or(if own == Arch::EcMobileNet { own } else { default_arch });
+        let network = resolved.weights.for_arch(arch)?.network(with_classifier)?;
+        log::info!("weights: {} -> {arch}", resolved.describe());
+        Ok((Embedder::new(network, input_size)?, resolved))
+    }
+
     /// `input_size`: a multiple of 32 (224 is what the weights were trained at).
     pub fn new(network: Network, input_size: usize) -> Result<Self> {
         super::check_input_size(input_size)?;

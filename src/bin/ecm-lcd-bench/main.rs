@@ -18,7 +18,7 @@ use clap::{Parser, Subcommand};
 #[command(name = "ecm-lcd-bench", version, about = "ecm-lcd's measuring programs (not tests)")]
 struct Cli {
     /// Compute threads, 1 to 1024 (default: number of CPUs).
-    #[arg(long, global = true, value_parser = ecm_lcd::cli::parse_threads)]
+    #[arg(long, global = true, value_parser = ecm_lcd::runtime::parse_threads)]
     threads: Option<usize>,
     #[command(subcommand)]
     command: Command,
@@ -50,7 +50,7 @@ fn user_binary() -> anyhow::Result<PathBuf> {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
-    ecm_lcd::cli::init_process(cli.threads);
+    ecm_lcd::runtime::init_process(cli.threads);
     let result = match cli.command {
         Command::Speed(args) => speed::run(args),
         Command::Node(args) => node::run(args),

@@ -42,11 +42,11 @@ use anyhow::{bail, ensure, Context, Result};
 use image::RgbImage;
 use serde::Serialize;
 
-use ecm_lcd::cli::model::NetworkArgs;
 use ecm_lcd::config::Params;
 use ecm_lcd::detector::index::{ClusteredVectors, IndexPolicy};
 use ecm_lcd::detector::{Detector, IndexInfo, KeyframeDb, RowFormat};
 use ecm_lcd::io::image_msg::{decode_compressed_image, decode_image, jpeg_message, rgb8_message};
+use ecm_lcd::model::embedder::Embedder;
 use ecm_lcd::model::layers::Mode;
 use ecm_lcd::model::weights::resolve;
 use ecm_lcd::model::Arch;
@@ -331,9 +331,8 @@ pub struct ProfileRow {
 
 fn profile(args: &BenchArgs, image: &RgbImage) -> Result<Vec<ProfileRow>> {
     let x = Preprocessor::new(args.size).tensor(image)?;
-    let network =
-        NetworkArgs { weights: args.weights.clone(), arch: Some(Arch::EcMobileNet), size: args.size, reference: false };
-    let (embedder, _) = network.embedder(Arch::EcMobileNet, false)?;
+    let (embedder, _) =
+        Embedder::from_weights(args.weights.as_deref(), Some(Arch::EcMobileNet), Arch::EcMobileNet, args.size, false)?;
     let costs = Arch::EcMobileNet.spec().stage_costs(None, args.size);
     let mut rows = Vec::new();
     for &threads in &args.threads {
@@ -431,8 +430,7 @@ fn forward(args: &BenchArgs, image: &RgbImage) -> Result<Vec<Timing>> {
     for arch in [Arch::EcMobileNet, Arch::MobileNetV2] {
         let paths: &[bool] = if args.reference { &[false, true] } else { &[false] };
         for &reference in paths {
-            let network = NetworkArgs { weights: args.weights.clone(), arch: Some(arch), size: args.size, reference };
-            let (embedder, _) = network.embedder(arch, false)?;
+            let (embedder, _) = Embedder::from_weights(args.weights.as_deref(), Some(arch), arch, args.size, false)?;
             let mode = if reference { Mode::Reference } else { Mode::Inference };
             let cost = arch.spec().cost(None, args.size);
             for &threads in &args.threads {

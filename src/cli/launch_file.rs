@@ -1,4 +1,4 @@
-//! `launch_notes/ecm_lcd.launch.py` matches the code: the command it starts, with its launch
+//! Test: `launch_notes/ecm_lcd.launch.py` matches the code: the command it starts, with its launch
 //! arguments at their defaults, parses as `ecm-lcd node` does (options, `--ros-args`), its remaps name
 //! the node's topics, and its default params file is `config/ecm_lcd.yaml`, which loads to the
 //! built-in defaults. The launch file is read with Python's `ast` (no ROS 2 needed): substitutions are
@@ -7,8 +7,8 @@
 use std::path::Path;
 use std::process::Command;
 
+use super::{Cli, Command as EcmCommand};
 use clap::Parser;
-use ecm_lcd::cli::{Cli, Command as EcmCommand};
 use ecm_lcd::config::Params;
 use ecm_lcd::ros::args::RosArgs;
 use ecm_lcd::ros::node::{CAMERA_INFO_TOPIC, COMPRESSED_TOPIC, DEFAULT_NODE_NAME, IMAGE_TOPIC, KEYFRAMES_TOPIC};
