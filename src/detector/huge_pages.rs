@@ -10,13 +10,23 @@
 //! splits the huge pages it had into small ones. Where the reservation is refused (an address-space
 //! limit, another OS), or transparent huge pages are off, the buffer is an ordinary `Vec` or its
 //! pages are small: the same contents, only slower scans.
+//!
+//! A small buffer (under [`RESERVE_FROM`]) stays an ordinary `Vec`: a few thousand rows fit the TLB
+//! anyway, and small buffers are many (test databases, the pieces of a parallel conversion, an
+//! index's centroids), each of which would otherwise take a reservation and a 2 MiB page. A buffer
+//! growing past it moves into a reservation once.
 
 use std::ops::{Deref, DerefMut};
 
 /// Growable bytes (module doc).
 pub struct HugePageBytes {
     storage: Storage,
+    /// Set once the system refused a reservation or one overflowed: the bytes stay on the heap.
+    heap_only: bool,
 }
+
+/// Bytes from which a buffer lives in a reservation (module doc).
+pub const RESERVE_FROM: usize = 32 << 20;
 
 enum Storage {
     Heap(Vec<u8>),
@@ -27,16 +37,40 @@ enum Storage {
 impl HugePageBytes {
     /// An empty buffer expected to grow to about `capacity` bytes (it may grow past them).
     pub fn with_capacity(capacity: usize) -> Self {
-        #[cfg(target_os = "linux")]
-        if let Some(reserved) = reserved::Reserved::new(capacity) {
-            return HugePageBytes { storage: Storage::Reserved(reserved) };
+        let mut bytes = HugePageBytes { storage: Storage::Heap(Vec::new()), heap_only: false };
+        if !bytes.try_reserve(capacity) {
+            bytes.storage = Storage::Heap(Vec::with_capacity(capacity));
         }
-        HugePageBytes { storage: Storage::Heap(Vec::with_capacity(capacity)) }
+        bytes
+    }
+
+    /// Moves the bytes into a reservation for at least `capacity` bytes where that is due and the
+    /// system gives one; whether the bytes are reserved afterwards.
+    fn try_reserve(&mut self, capacity: usize) -> bool {
+        #[cfg(target_os = "linux")]
+        if capacity >= RESERVE_FROM && !self.heap_only && !self.is_reserved() {
+            match reserved::Reserved::new(capacity) {
+                Some(mut reserved) => {
+                    let len = self.len();
+                    if reserved.try_grow(len) {
+                        reserved.as_mut_slice().copy_from_slice(self);
+                        self.storage = Storage::Reserved(reserved);
+                    } else {
+                        self.heap_only = true;
+                    }
+                }
+                None => self.heap_only = true,
+            }
+        }
+        self.is_reserved()
     }
 
     /// Appends `count` zero bytes; the appended bytes, to fill in.
     pub fn extend_zeroed(&mut self, count: usize) -> &mut [u8] {
         let at = self.len();
+        if at + count >= RESERVE_FROM && !self.is_reserved() {
+            self.try_reserve(2 * (at + count));
+        }
         match &mut self.storage {
             Storage::Heap(vec) => vec.resize(at + count, 0),
             #[cfg(target_os = "linux")]
@@ -47,6 +81,7 @@ impl HugePageBytes {
                     vec.extend_from_slice(reserved.as_slice());
                     vec.resize(at + count, 0);
                     self.storage = Storage::Heap(vec);
+                    self.heap_only = true;
                 }
             }
         }
@@ -75,7 +110,7 @@ impl HugePageBytes {
 
 impl Default for HugePageBytes {
     fn default() -> Self {
-        HugePageBytes { storage: Storage::Heap(Vec::new()) }
+        HugePageBytes { storage: Storage::Heap(Vec::new()), heap_only: false }
     }
 }
 
@@ -246,11 +281,12 @@ mod tests {
     #[test]
     fn bytes_grow_past_their_capacity_hint_and_drain_from_the_front() {
         let mut bytes = HugePageBytes::with_capacity(10);
-        #[cfg(target_os = "linux")]
-        assert!(bytes.is_reserved());
-        let pattern: Vec<u8> = (0..=255).cycle().take(5 << 20).collect();
+        assert!(!bytes.is_reserved(), "a small buffer stays on the heap");
+        let pattern: Vec<u8> = (0..=255).cycle().take(RESERVE_FROM + (5 << 20)).collect();
         bytes.extend_from_slice(&pattern[..100]);
         bytes.extend_from_slice(&pattern[100..]);
+        #[cfg(target_os = "linux")]
+        assert!(bytes.is_reserved(), "a large one moves into a reservation");
         assert_eq!(&bytes[..], &pattern[..]);
         bytes.drain_front(3 << 20);
         assert_eq!(&bytes[..], &pattern[3 << 20..]);
@@ -258,17 +294,19 @@ mod tests {
         let fresh = bytes.extend_zeroed(3 << 20);
         assert!(fresh.iter().all(|&b| b == 0));
         fresh[0] = 7;
-        assert_eq!(bytes.len(), 5 << 20);
-        assert_eq!(bytes[2 << 20], 7);
+        assert_eq!(bytes.len(), pattern.len());
+        assert_eq!(bytes[pattern.len() - (3 << 20)], 7);
         let copy = bytes.clone();
         assert_eq!(&copy[..], &bytes[..]);
+        #[cfg(target_os = "linux")]
+        assert!(HugePageBytes::with_capacity(RESERVE_FROM).is_reserved());
     }
 
     #[cfg(target_os = "linux")]
     #[test]
     fn a_full_reservation_moves_to_the_heap_with_its_bytes() {
         let reserved = reserved::Reserved::reserve(2 << 20).expect("a reservation");
-        let mut bytes = HugePageBytes { storage: Storage::Reserved(reserved) };
+        let mut bytes = HugePageBytes { storage: Storage::Reserved(reserved), heap_only: false };
         bytes.extend_from_slice(&vec![3u8; 2 << 20]);
         assert!(bytes.is_reserved(), "it fits exactly");
         bytes.extend_from_slice(&[4u8; 10]);
