@@ -290,13 +290,15 @@ pub(crate) struct IvfIndex {
 const KMEANS_ITERATIONS: usize = 6;
 /// Lists probed at least.
 const MIN_PROBE: usize = 8;
-/// Bound on `nlist * dim`: the centroids every query ranks and every keyframe is assigned by (5 MB:
-/// 1024 lists up to 1280-d). It used to be 262144 (204 lists at 1280-d): at 100k 1280-d
-/// keyframes a query then scanned 4% of them, not 1.6% (1.4-1.9 ms now against 3.3-4.4 ms, same recall);
-/// retraining in slices ([`IvfTraining`]) made the larger training affordable.
-const MAX_ASSIGN_VALUES: usize = 1024 * 1280;
+/// Bound on the bytes of centroids every query ranks: 1024 `f32` centroids up to 1280-d. With coded
+/// rows a query ranks the centroids' codes (a twelfth of the bytes), so long coded descriptors get up
+/// to [`MAX_LISTS`] lists too. Fewer, larger lists make a query scan a larger share of the keyframes
+/// for the same recall; retraining in slices ([`IvfTraining`]) keeps the larger training affordable.
+const MAX_RANKED_BYTES: usize = 1024 * 1280 * 4;
+/// Lists at most.
+const MAX_LISTS: usize = 1024;
 /// Training sample per list.
-const SAMPLE_PER_LIST: usize = 32;
+const SAMPLE_PER_LIST: usize = 64;
 
 /// An index being trained a slice at a time, so that a retraining never holds up one keyframe for
 /// seconds (k-means and assigning every keyframe cost `n * nlist * dim` multiply-adds: 3.5 s at 80k
@@ -311,8 +313,9 @@ pub(crate) struct IvfTraining {
     nlist: usize,
     /// The rows' format, which the index's coded centroids follow.
     format: RowFormat,
-    /// `sample.len() / dim` rows copied at the start: later inserts and drops do not change them.
-    sample: Vec<f32>,
+    /// Rows copied at the start, in the rows' format (a coded sample takes a twelfth of the
+    /// memory): later inserts and drops do not change them.
+    sample: Rows,
     centroids: Vec<f32>,
     sampler: Sampler,
     /// `centroids` prepared for this Lloyd pass (made by its first step).
@@ -337,26 +340,31 @@ impl IvfTraining {
     pub fn start(rows: &Rows, first_live: usize, probe_fraction: f64) -> Self {
         let (dim, total) = (rows.dim(), rows.slots());
         let live = total - first_live;
-        // 2 sqrt(n) lists, up to 1024, and at most MAX_ASSIGN_VALUES / dim.
-        let nlist =
-            ((2.0 * (live as f64).sqrt()).round() as usize).clamp(1, (MAX_ASSIGN_VALUES / dim.max(1)).clamp(1, 1024));
+        let format = rows.format();
+        // 2 sqrt(n) lists, at most MAX_LISTS and as many as MAX_RANKED_BYTES allows.
+        let ranked_row_bytes = if format == RowFormat::F32 { 4 * dim } else { format.row_bytes(dim) };
+        let max_lists = (MAX_RANKED_BYTES / ranked_row_bytes.max(1)).clamp(1, MAX_LISTS);
+        let nlist = ((2.0 * (live as f64).sqrt()).round() as usize).clamp(1, max_lists);
         // A fixed sample: evenly spread over the history, then jittered, so training is reproducible.
         let mut sampler = Sampler(0x9E37_79B9_7F4A_7C15 ^ live as u64);
         let sample_len = (nlist * SAMPLE_PER_LIST).min(live).max(1);
         let stride = live / sample_len;
-        let sample: Vec<f32> = (0..sample_len)
-            .flat_map(|i| {
-                let slot = first_live + (i * stride + sampler.next(stride)).min(live - 1);
-                rows.values(slot, slot + 1).into_owned()
+        let mut sample = Rows::with_capacity(format, dim, sample_len);
+        for i in 0..sample_len {
+            let slot = first_live + (i * stride + sampler.next(stride)).min(live - 1);
+            sample.extend(&rows.values(slot, slot + 1));
+        }
+        // Initial centroids: sample rows spread over the sample.
+        let centroids: Vec<f32> = (0..nlist)
+            .flat_map(|c| {
+                let row = c * sample_len / nlist;
+                sample.values(row, row + 1).into_owned()
             })
             .collect();
-        // Initial centroids: sample rows spread over the sample.
-        let centroids: Vec<f32> =
-            (0..nlist).flat_map(|c| sample[c * sample_len / nlist * dim..][..dim].iter().copied()).collect();
         IvfTraining {
             dim,
             nlist,
-            format: rows.format(),
+            format,
             sample,
             centroids,
             sampler,
@@ -383,14 +391,15 @@ impl IvfTraining {
             index.assign_pending(rows, end)?;
             return Ok((end == rows.slots()).then(|| self.index.take().expect("the index being filled")));
         }
-        let sample_len = self.sample.len() / dim;
-        let end = self.cursor.saturating_add(step_rows).min(sample_len);
-        let chunk = &self.sample[self.cursor * dim..end * dim];
+        let sample_len = self.sample.slots();
+        // At most a chunk at a time: a coded sample is decoded for the pass.
+        let end = self.cursor.saturating_add(step_rows.min(ASSIGN_CHUNK)).min(sample_len);
+        let chunk = self.sample.values(self.cursor, end);
         let matrix = match &mut self.matrix {
             Some(matrix) => matrix,
             none => none.insert(CentroidMatrix::new(&self.centroids, dim)?),
         };
-        for (offset, c) in matrix.nearest(dim, chunk)?.into_iter().enumerate() {
+        for (offset, c) in matrix.nearest(dim, &chunk)?.into_iter().enumerate() {
             let row = &chunk[offset * dim..(offset + 1) * dim];
             self.counts[c] += 1;
             self.norm_sums[c] += row.iter().map(|&x| (x as f64) * (x as f64)).sum::<f64>().sqrt();
@@ -405,13 +414,13 @@ impl IvfTraining {
 
     /// Ends a Lloyd pass: moves each centroid to its members; after the last pass, the index to fill.
     fn finish_pass(&mut self) -> anyhow::Result<()> {
-        let (dim, sample_len) = (self.dim, self.sample.len() / self.dim);
+        let (dim, sample_len) = (self.dim, self.sample.slots());
         for c in 0..self.nlist {
             let centroid = &mut self.centroids[c * dim..(c + 1) * dim];
             if self.counts[c] == 0 {
                 // An empty list takes a random sample row, so no centroid is wasted.
                 let row = self.sampler.next(sample_len);
-                centroid.copy_from_slice(&self.sample[row * dim..(row + 1) * dim]);
+                centroid.copy_from_slice(&self.sample.values(row, row + 1));
             } else {
                 // The members' mean direction at their mean length: for unit descriptors this is
                 // spherical k-means. A plain mean is shorter than its members, and short centroids
@@ -446,7 +455,7 @@ impl IvfTraining {
                 nprobe,
             });
             // The sample is no longer needed; free it while the assignment goes on.
-            self.sample = Vec::new();
+            self.sample = Rows::with_capacity(self.format, dim, 0);
         }
         Ok(())
     }
