@@ -13,6 +13,8 @@
 //! levels (`l2qsgn`: its sign); `STUDY_POSTS=l2,l2q8` picks them. `STUDY_PHOTO=equalise` (or
 //! `stretch`, `gamma`, `standardise`) normalises every image's brightness before the network, and
 //! `STUDY_DUMP=FILE` appends each calibrated query's scores and true matches as JSON lines.
+//! `STUDY_COMBOS="12:grid4-mac+16:grid2-mac;..."` also measures combinations of taps (each part
+//! unit-normalised, then concatenated; `16:grid3-mac*0.5` weighs a part), as `f32` and six-level codes.
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -289,6 +291,34 @@ fn main() -> Result<()> {
             whitenings.insert((t, agg), (mean, cut(64), cut(128), full));
         }
     }
+    // Combinations of taps: `STUDY_COMBOS="12:grid2-mac+16:grid3-mac;..."`, each part unit-normalised
+    // then concatenated with weight `w` (`16:grid3-mac*2`), measured with the `l2` and `l2q6` posts.
+    let combos: Vec<Vec<(usize, String, f32)>> = std::env::var("STUDY_COMBOS")
+        .unwrap_or_default()
+        .split(';')
+        .filter(|c| !c.is_empty())
+        .map(|combo| {
+            combo
+                .split('+')
+                .map(|part| {
+                    let (part, weight) = part.split_once('*').unwrap_or((part, "1"));
+                    let (block, agg) = part.split_once(':').context("combo part is BLOCK:AGG")?;
+                    let tap = Tap::Block(block.parse()?);
+                    let t = taps.iter().position(|x| *x == tap).context("combo block must be in STUDY_TAPS")?;
+                    Ok((t, agg.to_string(), weight.parse()?))
+                })
+                .collect::<Result<Vec<_>>>()
+        })
+        .collect::<Result<_>>()?;
+    let combined = |maps: &[FeatureMap], combo: &[(usize, String, f32)]| -> Vec<f32> {
+        let mut out = Vec::new();
+        for (t, agg, weight) in combo {
+            let mut v = aggregate(&maps[*t], agg);
+            l2_normalise(&mut v);
+            out.extend(v.iter().map(|x| x * weight));
+        }
+        out
+    };
     let mut calibration: Vec<CalibrationRecord> = Vec::new();
     // (tap, agg, post) -> per set (r@1, r@100P)
     let mut table: BTreeMap<(String, String, String), Vec<(f64, f64)>> = BTreeMap::new();
@@ -298,6 +328,36 @@ fn main() -> Result<()> {
         };
         let db_maps = maps(&mut embedder, &set.database)?;
         let q_maps = maps(&mut embedder, &set.queries)?;
+        for combo in &combos {
+            let name: Vec<String> = combo.iter().map(|(t, agg, w)| format!("{}:{agg}*{w}", taps[*t])).collect();
+            let db = finish(db_maps.iter().map(|m| combined(m, combo)).collect(), "l2", None);
+            let q = finish(q_maps.iter().map(|m| combined(m, combo)).collect(), "l2", None);
+            for post in ["l2", "l2q6"] {
+                let coded = |vs: &[Vec<f32>]| -> Vec<Vec<f32>> {
+                    vs.iter().map(|v| if post == "l2q6" { quantised(v, "6") } else { v.clone() }).collect()
+                };
+                let (db, q) = (coded(&db), coded(&q));
+                let results: Vec<QueryResult> = q
+                    .iter()
+                    .enumerate()
+                    .map(|(qi, qv)| {
+                        let limit = set.eligible[qi].unwrap_or(db.len());
+                        let best = (limit > 0).then(|| {
+                            cosine_scores(qv, &db[..limit])
+                                .into_iter()
+                                .enumerate()
+                                .fold((0, f32::NEG_INFINITY), |b, (i, s)| if s > b.1 { (i, s) } else { b })
+                        });
+                        QueryResult { query: qi, best }
+                    })
+                    .collect();
+                let m = evaluate(&results, &set.truth)?;
+                table
+                    .entry((name.join("+"), format!("{}d", db[0].len()), post.to_string()))
+                    .or_default()
+                    .push((m.recall_at_1.unwrap_or(0.0), m.recall_at_100_precision.unwrap_or(0.0)));
+            }
+        }
         for (t, tap) in taps.iter().enumerate() {
             for &agg in &aggs {
                 let db_raw: Vec<Vec<f32>> = db_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
