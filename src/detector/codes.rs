@@ -1,21 +1,25 @@
 //! Six-level descriptor codes: how the keyframe database keeps a unit descriptor in under a
 //! kilobyte (`detector.storage`), and the scan that searches them without decoding.
 //!
-//! Each value `x` of a descriptor `v` (`dim` values, root-mean-square `rms`) becomes a digit
-//! `d = floor((clamp(x, -c, c) + c) / s)` in `0..6`, with `c = 2.5 rms` and `s = 2c / 6`: uniform
-//! levels over +-2.5 RMS, one scale per row, no training data. Three digits pack into a byte,
-//! `d0 + 6 d1 + 36 d2` (216 of 256 values), so a row takes `ceil(dim / 3)` bytes plus two `f32`s:
-//! 968 bytes for the default 2880-value descriptor. The levels' centres `l = 2d - 5` give the
-//! direction `l / |l|` (`descriptor_study`'s `l2q6` measured that direction on the development
-//! sets before it was built).
+//! A descriptor `s` (`dim` values, mean `m`) is split into `m` and its deviations `r = s - m`,
+//! root-mean-square `rms`. Each deviation `x` becomes a digit `d = floor((clamp(x, -c, c) + c) / w)`
+//! in `0..6`, with `c = 2.5 rms` and `w = 2c / 6`: uniform levels over +-2.5 RMS around the row's
+//! mean, one scale per row, no training data. Without the mean, a descriptor of non-negative values
+//! (`l2`, `power` and `spatial` pool ReLU6 outputs) would leave the three negative levels unused.
+//! Three digits pack into a byte, `d0 + 6 d1 + 36 d2` (216 of 256 values), so a row takes
+//! `ceil(dim / 3)` bytes plus three `f32`s: 972 bytes for the default 2880-value descriptor. The
+//! levels' centres `l = 2d - 5` give the direction of `r` (`descriptor_study`'s `l2q6` measured
+//! such codes on the development sets before they were built).
 //!
-//! Search is asymmetric: the query `q` stays a float vector. The inner product with the stored `s`
-//! is estimated as `|s|^2 (q.l) / (s.l)`, i.e. `q.r / (s^.r)` with `r` the reconstruction at
-//! `|s|` and `s^` the unit `s`: the estimator RaBitQ uses (Gao and Long, SIGMOD 2024). Projecting on
-//! the reconstruction alone shrinks every inner product by about `s^.r` (0.98 or so at six levels),
-//! which would move every score and the threshold with it; divided by it, scores stay those of the
-//! `f32` rows on average, and a query equal to the stored vector is at distance 0 exactly. The
-//! distance is `|q|^2 + |s|^2 - 2 estimate`, so each row keeps `|s|^2` and `|s|^2 / (s.l)`.
+//! Search is asymmetric: the query `q` (mean `q_m`) stays a float vector. Its inner product with
+//! `s` is `m sum(q) + (q - q_m).r`, as the deviations sum to zero, and the second term is estimated
+//! as `|r|^2 ((q - q_m).l) / (r.l)`: the estimator RaBitQ uses (Gao and Long, SIGMOD 2024).
+//! Projecting on the reconstruction alone shrinks every inner product by the code's fidelity
+//! `r^.l^` (0.98 or so at six levels), which would move every score and the threshold with it;
+//! divided by it, scores stay those of the `f32` rows on average, and a query equal to the stored
+//! vector is at distance 0 exactly. With `k = |r|^2 / (r.l)`, the estimate is
+//! `k (q.l) + q_m (dim m - k sum(l))` and the distance `|q|^2 + |s|^2 - 2 estimate`, so each row keeps
+//! `|s|^2`, `k` and `dim m - k sum(l)`.
 //!
 //! So that the scan is integer arithmetic, the query is rounded once to `i16` (a step of
 //! `max|q| / 32767`, far below a level's width) and split into three planes (every byte's first,
@@ -42,7 +46,7 @@ pub fn code_len(dim: usize) -> usize {
     dim.div_ceil(PER_BYTE)
 }
 
-/// Bytes a coded row takes: its codes and its two factors.
+/// Bytes a coded row takes: its codes and its three factors.
 pub fn row_bytes(dim: usize) -> usize {
     code_len(dim) + std::mem::size_of::<Factors>()
 }
@@ -52,8 +56,11 @@ pub fn row_bytes(dim: usize) -> usize {
 pub struct Factors {
     /// `|s|^2`.
     pub norm2: f32,
-    /// `|s|^2 / (s.l)`, which turns `q.l` into the inner product's estimate (0 for a zero vector).
+    /// `k = |r|^2 / (r.l)`, which turns `q.l` into the deviations' part of the estimate (0 when
+    /// every value is the mean).
     pub dot_scale: f32,
+    /// `dim m - k sum(l)`: the query's mean times it completes the estimate.
+    pub mean_term: f32,
 }
 
 /// The levels' centre of digit `d`: odd, in `-5..=5`.
@@ -65,7 +72,9 @@ fn level(d: u32) -> i32 {
 /// Encodes `v` into `codes` (`code_len(v.len())` bytes); returns the row's factors.
 pub fn encode(v: &[f32], codes: &mut [u8]) -> Factors {
     debug_assert_eq!(codes.len(), code_len(v.len()));
-    let rms = (v.iter().map(|x| x * x).sum::<f32>() / v.len().max(1) as f32).sqrt();
+    let dim = v.len().max(1) as f64;
+    let mean = (v.iter().map(|&x| x as f64).sum::<f64>() / dim) as f32;
+    let rms = (v.iter().map(|&x| (x - mean) * (x - mean)).sum::<f32>() / dim as f32).sqrt();
     let clip = CLIP_RMS * rms;
     let step = 2.0 * clip / LEVELS as f32;
     let digit = |x: f32| -> u32 {
@@ -75,20 +84,24 @@ pub fn encode(v: &[f32], codes: &mut [u8]) -> Factors {
             LEVELS - 1
         }
     };
-    let (mut norm2, mut dot) = (0f64, 0f64);
+    let (mut norm2, mut deviation2, mut dot, mut level_sum) = (0f64, 0f64, 0f64, 0i64);
     for (byte, values) in codes.iter_mut().zip(v.chunks(PER_BYTE)) {
         let mut packed = 0u32;
         for (k, &x) in values.iter().enumerate() {
-            let d = digit(x);
+            let r = (x - mean) as f64;
+            let d = digit(x - mean);
             norm2 += x as f64 * x as f64;
-            dot += x as f64 * level(d) as f64;
+            deviation2 += r * r;
+            dot += r * level(d) as f64;
+            level_sum += level(d) as i64;
             packed += d * LEVELS.pow(k as u32);
         }
         *byte = packed as u8;
     }
-    // A level has the sign of its value, so `s.l > 0` unless `s` is zero.
-    let dot_scale = if dot > 0.0 { norm2 / dot } else { 0.0 };
-    Factors { norm2: norm2 as f32, dot_scale: dot_scale as f32 }
+    // A level has the sign of its deviation, so `r.l > 0` unless every value is the mean.
+    let dot_scale = if dot > 0.0 { deviation2 / dot } else { 0.0 };
+    let mean_term = dim * mean as f64 - dot_scale * level_sum as f64;
+    Factors { norm2: norm2 as f32, dot_scale: dot_scale as f32, mean_term: mean_term as f32 }
 }
 
 /// The digits of a code byte.
@@ -98,16 +111,19 @@ fn digits(byte: u8) -> [u32; PER_BYTE] {
     [b % LEVELS, b / LEVELS % LEVELS, b / (LEVELS * LEVELS)]
 }
 
-/// The reconstruction of a coded row (`out`: its `dim` values): the levels' direction at the
-/// stored vector's length.
+/// The reconstruction of a coded row (`out`: its `dim` values): the row's mean plus the levels'
+/// direction at the deviations' length.
 pub fn decode_into(codes: &[u8], factors: Factors, out: &mut [f32]) {
     let dim = out.len();
-    let sum_squares: i64 =
-        codes.iter().flat_map(|&b| digits(b)).take(dim).map(|d| level(d) as i64 * level(d) as i64).sum();
-    let scale = (factors.norm2 as f64 / sum_squares.max(1) as f64).sqrt() as f32;
+    let levels = || codes.iter().flat_map(|&b| digits(b)).take(dim).map(|d| level(d) as i64);
+    let (sum_squares, level_sum) = levels().fold((0i64, 0i64), |(q, s), l| (q + l * l, s + l));
+    // Back from the factors: `dim m = mean_term + k sum(l)`, `|r|^2 = |s|^2 - dim m^2`.
+    let mean = (factors.mean_term as f64 + factors.dot_scale as f64 * level_sum as f64) / dim.max(1) as f64;
+    let deviation2 = (factors.norm2 as f64 - dim as f64 * mean * mean).max(0.0);
+    let scale = (deviation2 / sum_squares.max(1) as f64).sqrt();
     for (values, &byte) in out.chunks_mut(PER_BYTE).zip(codes) {
         for (x, d) in values.iter_mut().zip(digits(byte)) {
-            *x = scale * level(d) as f32;
+            *x = (mean + scale * level(d) as f64) as f32;
         }
     }
 }
@@ -122,6 +138,8 @@ pub struct CodedQuery {
     step: f32,
     /// Sum of the rounded values.
     sum: i64,
+    /// The query's mean value.
+    mean: f32,
     norm2: f32,
 }
 
@@ -137,7 +155,8 @@ impl CodedQuery {
             planes[(i % PER_BYTE) * len + i / PER_BYTE] = q;
             sum += q as i64;
         }
-        CodedQuery { planes, step, sum, norm2: query.iter().map(|x| x * x).sum() }
+        let mean = (query.iter().map(|&x| x as f64).sum::<f64>() / query.len().max(1) as f64) as f32;
+        CodedQuery { planes, step, sum, mean, norm2: query.iter().map(|x| x * x).sum() }
     }
 
     /// The estimated squared distance from the query to a coded row (module doc).
@@ -145,7 +164,8 @@ impl CodedQuery {
     pub fn squared_distance(&self, codes: &[u8], factors: Factors) -> f32 {
         let weighted = digit_dot(&self.planes, codes) as i64;
         let q_dot_levels = self.step * (2 * weighted - (LEVELS as i64 - 1) * self.sum) as f32;
-        (self.norm2 + factors.norm2 - 2.0 * factors.dot_scale * q_dot_levels).max(0.0)
+        let estimate = factors.dot_scale * q_dot_levels + self.mean * factors.mean_term;
+        (self.norm2 + factors.norm2 - 2.0 * estimate).max(0.0)
     }
 }
 
@@ -274,9 +294,10 @@ impl CodedRows {
         let len = code_len(self.dim);
         for row in values.chunks_exact(self.dim.max(1)) {
             let (codes, factors) = self.bytes.extend_zeroed(row_bytes(self.dim)).split_at_mut(len);
-            let Factors { norm2, dot_scale } = encode(row, codes);
+            let Factors { norm2, dot_scale, mean_term } = encode(row, codes);
             factors[..4].copy_from_slice(&norm2.to_le_bytes());
-            factors[4..].copy_from_slice(&dot_scale.to_le_bytes());
+            factors[4..8].copy_from_slice(&dot_scale.to_le_bytes());
+            factors[8..].copy_from_slice(&mean_term.to_le_bytes());
         }
     }
 
@@ -296,7 +317,7 @@ impl CodedRows {
     pub fn row(&self, slot: usize) -> (&[u8], Factors) {
         let (codes, factors) = self.row_span(slot).split_at(code_len(self.dim));
         let value = |at: usize| f32::from_le_bytes(factors[at..at + 4].try_into().expect("4 bytes"));
-        (codes, Factors { norm2: value(0), dot_scale: value(4) })
+        (codes, Factors { norm2: value(0), dot_scale: value(4), mean_term: value(8) })
     }
 
     /// The bytes of row `slot`: what to prefetch.
@@ -333,11 +354,25 @@ mod tests {
         }
     }
 
-    /// The plain reference: the levels' centres one value at a time, as `descriptor_study`'s `l2q6`.
+    /// The plain reference: the levels' centres one value at a time over +-2.5 RMS around zero, as
+    /// `descriptor_study`'s `l2q6`.
     fn reference_levels(v: &[f32]) -> Vec<f32> {
         let rms = (v.iter().map(|x| x * x).sum::<f32>() / v.len() as f32).sqrt();
+        if rms == 0.0 {
+            return vec![0.0; v.len()];
+        }
         let (clip, step) = (2.5 * rms, 5.0 * rms / 6.0);
         v.iter().map(|x| ((x.clamp(-clip, clip - 1e-6) + clip) / step).floor() * step - clip + step / 2.0).collect()
+    }
+
+    fn mean(v: &[f32]) -> f64 {
+        v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64
+    }
+
+    /// The row's deviations from its mean.
+    fn deviations(v: &[f32]) -> Vec<f32> {
+        let m = mean(v) as f32;
+        v.iter().map(|x| x - m).collect()
     }
 
     fn dot(a: &[f32], b: &[f32]) -> f64 {
@@ -346,7 +381,7 @@ mod tests {
 
     #[test]
     fn a_row_takes_under_a_kilobyte_and_decodes_to_the_reference_levels() {
-        assert_eq!(row_bytes(2880), 968);
+        assert_eq!(row_bytes(2880), 972);
         for dim in [1, 2, 3, 7, 128, 2880] {
             // Not unit length: the factors carry the length.
             let v: Vec<f32> = ClusteredVectors::new(dim, 3, dim as u64).take(1).iter().map(|x| 3.0 * x).collect();
@@ -355,11 +390,12 @@ mod tests {
             assert!(codes.iter().all(|&b| b < 216));
             let mut decoded = vec![0f32; dim];
             decode_into(&codes, factors, &mut decoded);
-            // The decoded vector is the reference levels' direction at |v|.
-            let want = reference_levels(&v);
-            let (norm_want, norm_v) = (dot(&want, &want).sqrt(), dot(&v, &v).sqrt());
+            // The decoded vector is the mean plus the deviations' reference levels at their length.
+            let r = deviations(&v);
+            let want = reference_levels(&r);
+            let (norm_want, norm_r, norm_v) = (dot(&want, &want).sqrt(), dot(&r, &r).sqrt(), dot(&v, &v).sqrt());
             for (i, (got, want)) in decoded.iter().zip(&want).enumerate() {
-                let want = *want as f64 / norm_want * norm_v;
+                let want = if norm_want > 0.0 { *want as f64 / norm_want * norm_r } else { 0.0 } + mean(&v);
                 assert!((*got as f64 - want).abs() < 1e-5, "dim {dim} value {i}: {got} vs {want}");
             }
             assert!((factors.norm2 as f64 - norm_v * norm_v).abs() < 1e-4);
@@ -384,8 +420,12 @@ mod tests {
                 let mut decoded = vec![0f32; dim];
                 for (slot, s) in stored.chunks_exact(dim).enumerate() {
                     rows.decode_into(slot, &mut decoded);
-                    // |q|^2 + |s|^2 - 2 (q.r) / (s^.r), in f64 from the decoded reconstruction r.
-                    let estimate = dot(query, &decoded) * dot(s, s).sqrt() / (dot(s, &decoded) / dot(s, s).sqrt());
+                    // |q|^2 + |s|^2 - 2 (m sum(q) + (q - q_m).d |r|^2 / (r.d)), in f64, with `d` the
+                    // decoded reconstruction's deviations from the stored mean `m`.
+                    let (m, r) = (mean(s), deviations(s));
+                    let d: Vec<f32> = decoded.iter().map(|x| (*x as f64 - m) as f32).collect();
+                    let centred_query = deviations(query);
+                    let estimate = m * mean(query) * dim as f64 + dot(&centred_query, &d) * dot(&r, &r) / dot(&r, &d);
                     let want = dot(query, query) + dot(s, s) - 2.0 * estimate;
                     let (codes, factors) = rows.row(slot);
                     let got = prepared.squared_distance(codes, factors);
@@ -429,6 +469,25 @@ mod tests {
         let (estimate_bias, projection_bias) = (estimate_error / 50.0, projection_error / 50.0);
         assert!(projection_bias < -0.005, "the projection shrinks inner products: {projection_bias}");
         assert!(estimate_bias.abs() < projection_bias.abs() / 5.0, "{estimate_bias} vs {projection_bias}");
+    }
+
+    #[test]
+    fn a_non_negative_row_is_coded_around_its_mean() {
+        // Pooled ReLU6 features (`l2`, `power`): every value non-negative. Levels around zero would
+        // leave the three negative ones unused.
+        let dim = 1280;
+        let v: Vec<f32> = ClusteredVectors::new(dim, 2, 5).take(1).iter().map(|x| x.abs()).collect();
+        let mut codes = vec![0u8; code_len(dim)];
+        let factors = encode(&v, &mut codes);
+        let mut decoded = vec![0f32; dim];
+        decode_into(&codes, factors, &mut decoded);
+        let cosine = |a: &[f32], b: &[f32]| dot(a, b) / (dot(a, a) * dot(b, b)).sqrt();
+        let around_mean = cosine(&v, &decoded);
+        let around_zero = cosine(&v, &reference_levels(&v));
+        assert!(around_mean > 0.98, "{around_mean}");
+        assert!(1.0 - around_mean < (1.0 - around_zero) / 2.0, "{around_mean} vs {around_zero}");
+        let used: std::collections::BTreeSet<u32> = codes.iter().flat_map(|&b| digits(b)).collect();
+        assert_eq!(used.len(), LEVELS as usize);
     }
 
     #[test]

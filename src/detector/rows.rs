@@ -114,7 +114,7 @@ pub enum RowFormat {
     /// Every value as an `f32` (exact).
     #[default]
     F32,
-    /// Six levels a value, three values a byte, two factors a row ([`super::codes`]).
+    /// Six levels a value, three values a byte, three factors a row ([`super::codes`]).
     Levels6,
 }
 
