@@ -23,7 +23,7 @@ fn main() -> Result<()> {
     let mut keyframes = 0;
     for frame in open_source(&source, None)? {
         let frame = frame?;
-        let outcome = pipeline.process_source_frame(&frame)?;
+        let outcome = pipeline.process_source_frame(&frame, None)?;
         keyframes += usize::from(outcome.keyframe.is_some());
         for candidate in outcome.candidates {
             println!(

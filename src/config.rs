@@ -26,7 +26,7 @@ use crate::descriptor::{Descriptor, DescriptorMode, Pooling, DEFAULT_GRID};
 use crate::detector::selection::SelectionParams;
 use crate::detector::{DetectorParams, Storage, Threshold};
 use crate::model::{Arch, Tap};
-use crate::verification::{Intrinsics, VerificationParams};
+use crate::verification::{DriftBound, Intrinsics, VerificationParams};
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -350,6 +350,20 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             description: "Equalise each image's grey levels before ORB: dim or night images keep their features (more loops verified), but identical-looking places pass more often.",
             read_only: false,
         },
+        double(
+            "verification.max_drift",
+            0.0,
+            0.0,
+            10.0,
+            "Odometry consistency, for keyframes with tracker poses: a verified loop is rejected when the two keyframes' tracked positions lie farther apart than verification.drift_radius plus this fraction of the path travelled between them (the tracker's drift per metre). 0 = off.",
+        ),
+        double(
+            "verification.drift_radius",
+            1.0,
+            0.0,
+            1.0e4,
+            "Odometry consistency: how far apart, in the tracker's units (metres), two cameras seeing one place may stand, drift aside.",
+        ),
         integer(
             "verification.keyframes",
             5000,
@@ -633,6 +647,9 @@ impl Params {
             keyframes: self.count("verification.keyframes"),
             equalise: matches!(self.values.get("verification.equalise"), Some(ParamValue::Bool(true))),
             intrinsics,
+            drift: Some(self.double("verification.max_drift"))
+                .filter(|&d| d > 0.0)
+                .map(|max_drift| DriftBound { max_drift, radius_m: self.double("verification.drift_radius") }),
             ..VerificationParams::default()
         })
     }

@@ -26,7 +26,7 @@ use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::{Arch, Tap};
 use crate::types::{DepthImage, FeatureMap, Frame, LoopCandidate, Stamp, Verified};
-use crate::verification::{Intrinsics, LocalFeatures, Verification, Verifier};
+use crate::verification::{Intrinsics, LocalFeatures, OdometryTrack, Tracked, Verification, Verifier};
 
 /// Milliseconds spent per stage on one frame.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
@@ -103,6 +103,8 @@ pub struct Pipeline {
     /// Whether the best match is verified even when it is not a candidate (evaluation needs it; a
     /// node does not, and saves a check per keyframe).
     verify_best: bool,
+    /// The tracker's path through the frames that came with poses (odometry consistency).
+    odometry: OdometryTrack,
 }
 
 /// The descriptor as one name, the tap included: the mode's name for the modes on the head (`power`;
@@ -165,6 +167,7 @@ impl Pipeline {
             verifier,
             camera_info: None,
             verify_best: true,
+            odometry: OdometryTrack::default(),
         };
         log::info!("descriptor {} ({} values)", pipeline.descriptor_name(), pipeline.descriptor.dim());
         Ok(pipeline)
@@ -255,6 +258,14 @@ impl Pipeline {
             self.next_id
         );
         self.store = Some(store);
+        // The tracker's path through the stored keyframes (their poses; frames between them were not
+        // stored).
+        for (id, (_, pose)) in self.stored_frames()? {
+            if let Some(pose) = pose {
+                let tracked = self.odometry.advance(&pose);
+                self.odometry.keep(id, tracked);
+            }
+        }
         self.restore_local_features()
     }
 
@@ -284,12 +295,18 @@ impl Pipeline {
         self.run(id, true, &Input::frame(stamp, image))
     }
 
-    /// A frame from a source: selection decides, its index is the id, and its depth image (if any)
-    /// gives verification a metric pose.
-    pub fn process_source_frame(&mut self, frame: &Frame) -> Result<Outcome> {
+    /// A frame from a source: selection decides, its index is the id, its depth image (if any)
+    /// gives verification a metric pose and its tracker pose (if any, camera-to-world) an odometry
+    /// consistency check.
+    pub fn process_source_frame(
+        &mut self,
+        frame: &Frame,
+        tracker_pose: Option<nalgebra::Isometry3<f64>>,
+    ) -> Result<Outcome> {
         let id = frame.index as u64;
         self.next_id = self.next_id.max(id.saturating_add(1));
-        self.run(id, true, &Input { depth: frame.depth.as_ref(), ..Input::frame(frame.stamp, &frame.image) })
+        let input = Input { depth: frame.depth.as_ref(), tracker_pose, ..Input::frame(frame.stamp, &frame.image) };
+        self.run(id, true, &input)
     }
 
     /// A plain frame with the id taken from the pipeline's counter.
@@ -345,16 +362,24 @@ impl Pipeline {
     }
 
     fn run(&mut self, id: u64, select: bool, input: &Input) -> Result<Outcome> {
+        // Every frame with a pose lengthens the tracker's path, keyframe or not.
+        let tracked = input.tracker_pose.map(|pose| self.odometry.advance(&pose));
         if select && self.selector.offer(input.stamp) == Verdict::Reject {
             return Ok(Outcome::default());
         }
         // The workers stay hot from the forward pass through the search (its probed lists are
         // scanned in parallel). During a `--db` append (an fsynced transaction) a poller gives up
         // after `runtime::HOT_WORKER_PATIENCE`.
-        crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, input))
+        crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, input, tracked))
     }
 
-    fn describe_and_detect(&mut self, id: u64, select: bool, input: &Input) -> Result<Outcome> {
+    fn describe_and_detect(
+        &mut self,
+        id: u64,
+        select: bool,
+        input: &Input,
+        tracked: Option<Tracked>,
+    ) -> Result<Outcome> {
         let Input { stamp, image, depth, .. } = *input;
         let mut outcome = Outcome::default();
         let start = Instant::now();
@@ -373,12 +398,15 @@ impl Pipeline {
         }
         (outcome.best, outcome.candidates) = self.detector.process_with_best(id, stamp, &descriptor)?;
         outcome.keyframe = Some(id);
+        if let Some(tracked) = tracked {
+            self.odometry.keep(id, tracked);
+        }
         let after_detector = Instant::now();
         outcome.timings.detector_ms = (after_detector - after_descriptor).as_secs_f64() * 1e3;
         let mut stored_features = None;
         if self.verifier.is_some() {
             let features = self.local_features(image, depth)?;
-            self.verify_outcome(&features, &mut outcome);
+            self.verify_outcome(&features, tracked, &mut outcome);
             if self.store.is_some() {
                 stored_features = Some(features.to_bytes());
             }
@@ -441,15 +469,34 @@ impl Pipeline {
         }))
     }
 
-    /// Drops the candidates that fail verification (counted in [`Outcome::rejected`]) and records
-    /// whether the best match passes.
-    fn verify_outcome(&self, features: &LocalFeatures, outcome: &mut Outcome) {
+    /// Whether a loop from the query (tracked at `query`) to keyframe `matched` fits the tracker's
+    /// trajectory; true when not checked (no drift bound, or either keyframe without a pose).
+    fn odometry_consistent(&self, query: Option<Tracked>, matched: u64) -> bool {
+        let bound = self.verifier.as_ref().and_then(|v| v.params().drift);
+        let (Some(bound), Some(query)) = (bound, query) else { return true };
+        match self.odometry.check(query, matched, &bound) {
+            Some(check) if !check.consistent => {
+                log::debug!(
+                    "loop to keyframe {matched} rejected by odometry: tracked {:.2} m apart after {:.2} m travelled",
+                    check.distance_m,
+                    check.path_m
+                );
+                false
+            }
+            _ => true,
+        }
+    }
+
+    /// Drops the candidates that fail verification or odometry consistency (counted in
+    /// [`Outcome::rejected`]) and records whether the best match passes.
+    fn verify_outcome(&self, features: &LocalFeatures, tracked: Option<Tracked>, outcome: &mut Outcome) {
         let mut checked: Vec<(u64, Verification)> = Vec::new();
         let mut check = |id: u64| -> Verification {
             if let Some(&(_, v)) = checked.iter().find(|(seen, _)| *seen == id) {
                 return v;
             }
-            let v = self.verify(features, id).expect("called with verification on");
+            let mut v = self.verify(features, id).expect("called with verification on");
+            v.accepted = v.accepted && self.odometry_consistent(tracked, id);
             checked.push((id, v));
             v
         };

@@ -163,6 +163,10 @@ fn replay_frames(
         None => None,
     };
     let frames = open_source_topics(source, topics)?;
+    let mut tracker_poses = match &topics.poses {
+        Some(path) => Some(TrackerPoses::read(path)?),
+        None => None,
+    };
     log::info!("replaying {}", frames.describe());
     let bar = if progress { ProgressBar::new(frames.len_hint().unwrap_or(0) as u64) } else { ProgressBar::hidden() };
     bar.set_style(
@@ -208,8 +212,9 @@ fn replay_frames(
             bar.inc(1);
             continue;
         }
+        let tracker_pose = tracker_poses.as_mut().and_then(|poses| poses.at(frame.stamp));
         let outcome = pipeline
-            .process_source_frame(&frame)
+            .process_source_frame(&frame, tracker_pose)
             .with_context(|| format!("frame {} (stamp {}) of {}", frame.index, frame.stamp, source.display()))?;
         if outcome.keyframe.is_some() {
             let t = outcome.timings;
@@ -244,6 +249,37 @@ fn replay_frames(
             run.frames
         );
     }
+    if let Some(poses) = &tracker_poses {
+        log::info!("{} of {} frames had a tracker pose in {}", poses.found, run.frames - run.skipped, poses.path);
+    }
     run.wall_secs = started.elapsed().as_secs_f64();
     Ok(run)
+}
+
+/// The tracker's trajectory for a replay ([`Topics::poses`]), looked up by frame stamp.
+struct TrackerPoses {
+    path: String,
+    stamps: Vec<Stamp>,
+    poses: Vec<nalgebra::Isometry3<f64>>,
+    /// Frames that found a pose.
+    found: usize,
+}
+
+impl TrackerPoses {
+    fn read(path: &Path) -> Result<TrackerPoses> {
+        let mut trajectory = crate::io::tum::read_groundtruth(path).context("reading the tracker poses (--poses)")?;
+        if trajectory.is_empty() {
+            bail!("tracker poses {}: no poses in the file", path.display());
+        }
+        trajectory.sort_by_key(|(stamp, _)| *stamp);
+        let (stamps, poses) = trajectory.into_iter().unzip();
+        Ok(TrackerPoses { path: path.display().to_string(), stamps, poses, found: 0 })
+    }
+
+    /// The pose at the nearest stamp within [`crate::io::TRACKER_POSE_MAX_OFFSET`].
+    fn at(&mut self, stamp: Stamp) -> Option<nalgebra::Isometry3<f64>> {
+        let index = crate::types::nearest_stamp(&self.stamps, stamp, crate::io::TRACKER_POSE_MAX_OFFSET)?;
+        self.found += 1;
+        Some(self.poses[index])
+    }
 }

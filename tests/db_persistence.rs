@@ -15,6 +15,7 @@ use ecm_lcd::detector::store::KeyframeStore;
 use ecm_lcd::model::weights::resolve;
 use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
+use nalgebra::Isometry3;
 
 const FRAMES: usize = 40;
 
@@ -427,7 +428,7 @@ fn a_restart_keeps_verifying_loops_to_keyframes_stored_before_it() {
     let run = |p: &mut Pipeline, frames: &[ecm_lcd::types::Frame]| -> Vec<Row> {
         let mut rows = Vec::new();
         for frame in frames {
-            for c in p.process_source_frame(frame).unwrap().candidates {
+            for c in p.process_source_frame(frame, None).unwrap().candidates {
                 let verified = c.verified.expect("verification is on");
                 let pose = verified.pose.expect("intrinsics given: a pose");
                 let t = pose.translation;
@@ -452,4 +453,63 @@ fn a_restart_keeps_verifying_loops_to_keyframes_stored_before_it() {
         assert!(apart < 1e-9, "{} -> {}: translation {apart} m from the uninterrupted run's", got.0, got.1);
     }
     println!("{} candidates after the restart, all verified and metric as without it", after.len());
+}
+
+/// The odometry check goes on through a restart: the tracker poses of keyframes stored before it come
+/// back from the database, so a loop to one of them that the tracker puts elsewhere is still rejected.
+#[test]
+fn a_restart_keeps_checking_loops_against_the_stored_tracker_poses() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let scene =
+        Scene::new(SynthConfig { frames: 240, laps: 2, seed: 5, rate_hz: 5.0, ..SynthConfig::default() }).unwrap();
+    write_tum_folder(&scene, &seq).unwrap();
+    let frames: Vec<_> = ecm_lcd::io::open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    let mut params = Params::default();
+    for (name, value) in [
+        ("camera.fx", "262.4"),
+        ("camera.fy", "262.4"),
+        ("camera.cx", "160"),
+        ("camera.cy", "120"),
+        ("verification.max_drift", "0.1"),
+    ] {
+        params.set_from_str(name, value).unwrap();
+    }
+    let weights = resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
+    let pipeline = |db: &Path| {
+        let mut p = Pipeline::with_weights(params.clone(), weights.clone()).unwrap();
+        p.open_store(db).unwrap();
+        p
+    };
+    let second_lap = frames.len() / 2;
+    // Loops from the second lap to the first, with the tracker's pose of each frame from `pose`.
+    let loops = |p: &mut Pipeline, frames: &[ecm_lcd::types::Frame], pose: &dyn Fn(usize) -> Isometry3<f64>| {
+        let mut loops = Vec::new();
+        for frame in frames {
+            let outcome = p.process_source_frame(frame, Some(pose(frame.index))).unwrap();
+            loops.extend(
+                outcome.candidates.iter().filter(|c| c.match_id < second_lap as u64).map(|c| (c.query_id, c.match_id)),
+            );
+        }
+        loops
+    };
+    let truth = |i: usize| scene.pose(i);
+    let found = loops(&mut pipeline(&dir.path().join("truth.db")), &frames, &truth);
+    assert!(found.len() >= 10, "{found:?}: loops that fit the true trajectory pass");
+    // A tracker that put the second lap 10 m away: before and after a restart in that lap, no loop
+    // to the first lap passes.
+    let elsewhere = |i: usize| {
+        let mut pose = scene.pose(i);
+        if i >= second_lap {
+            pose.translation.vector.x += 10.0;
+        }
+        pose
+    };
+    let restart_at = second_lap + 30;
+    let db = dir.path().join("restarted.db");
+    let before = loops(&mut pipeline(&db), &frames[..restart_at], &elsewhere);
+    let after = loops(&mut pipeline(&db), &frames[restart_at..], &elsewhere);
+    assert_eq!(before, [], "before the restart");
+    assert_eq!(after, [], "after the restart");
+    assert!(found.iter().filter(|(q, _)| *q >= restart_at as u64).count() >= 5, "{found:?}");
 }

@@ -98,7 +98,7 @@ fn expected_depth(i: usize) -> Vec<f32> {
 /// its own depth image (stamped 7 ms later), in metres from both encodings.
 fn check_depth_pairing(bag: &str, path: &Path) {
     for depth_topic in ["/depth16", "/depth32"] {
-        let topics = Topics { image: Some("/rgb8".into()), depth: Some(depth_topic.into()) };
+        let topics = Topics { image: Some("/rgb8".into()), depth: Some(depth_topic.into()), poses: None };
         let source = open_source_topics(path, &topics).unwrap_or_else(|e| panic!("{bag}: {e:#}"));
         assert_eq!(source.len_hint(), Some(FRAMES), "{bag} {depth_topic}");
         assert!(source.describe().contains(&format!("depth {depth_topic} (4 messages)")), "{}", source.describe());
@@ -117,14 +117,14 @@ fn check_depth_pairing(bag: &str, path: &Path) {
             }
         }
     }
-    let wrong = Topics { image: Some("/rgb8".into()), depth: Some("/jpeg".into()) };
+    let wrong = Topics { image: Some("/rgb8".into()), depth: Some("/jpeg".into()), poses: None };
     let err = open_source_topics(path, &wrong).err().unwrap().to_string();
     assert!(err.contains("depth topic /jpeg") && err.contains("not sensor_msgs Image"), "{bag}: {err}");
-    let colour = Topics { image: Some("/rgb8".into()), depth: Some("/rgb8".into()) };
+    let colour = Topics { image: Some("/rgb8".into()), depth: Some("/rgb8".into()), poses: None };
     let err = open_source_topics(path, &colour).err().unwrap().to_string();
     assert!(err.contains("is the colour topic"), "{bag}: {err}");
     // A colour topic as depth is refused by its encoding at the first message.
-    let mono = Topics { image: Some("/rgb8".into()), depth: Some("/rgba8".into()) };
+    let mono = Topics { image: Some("/rgb8".into()), depth: Some("/rgba8".into()), poses: None };
     let err = format!("{:#}", open_source_topics(path, &mono).unwrap().find_map(|f| f.err()).unwrap());
     assert!(err.contains("unsupported depth encoding \"rgba8\""), "{bag}: {err}");
 }

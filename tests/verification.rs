@@ -34,6 +34,21 @@ fn pipeline(overrides: &[(&str, &str)]) -> Pipeline {
 /// Every eligible top-1 match becomes a candidate (`min_score` 0), so verification alone decides.
 const PERMISSIVE: (&str, &str) = ("detector.min_score", "0");
 
+/// The TUM fr3 two-pass sequence (frames one second apart) written into `dir`, its frame count, and
+/// the parameters that verify it with every top-1 match a candidate.
+fn two_pass(dir: &Path) -> (PathBuf, usize, [(&'static str, &'static str); 5]) {
+    let seq = dir.join("two_pass");
+    let frames = write_two_pass(&shared().join("data/tum/fr3_long_office_household"), &seq, 1.0, 0.05).unwrap();
+    let overrides = [
+        ("detector.min_history", "2"),
+        ("detector.exclude_recent.count", "1"),
+        ("detector.exclude_recent.seconds", "2"),
+        PERMISSIVE,
+        ("camera.preset", "tum_fr3"),
+    ];
+    (seq, frames, overrides)
+}
+
 #[test]
 fn the_orbit_revisit_is_verified_and_the_wrong_matches_are_not() {
     let orbit = shared().join("data/real/tum_fr3_desk_orbit");
@@ -66,15 +81,7 @@ fn the_orbit_revisit_is_verified_and_the_wrong_matches_are_not() {
 #[test]
 fn verified_relative_poses_agree_with_the_ground_truth() {
     let dir = tempfile::tempdir().unwrap();
-    let seq = dir.path().join("two_pass");
-    write_two_pass(&shared().join("data/tum/fr3_long_office_household"), &seq, 1.0, 0.05).unwrap();
-    let overrides = [
-        ("detector.min_history", "2"),
-        ("detector.exclude_recent.count", "1"),
-        ("detector.exclude_recent.seconds", "2"),
-        PERMISSIVE,
-        ("camera.preset", "tum_fr3"),
-    ];
+    let (seq, _, overrides) = two_pass(dir.path());
     let mut pipeline = pipeline(&overrides);
     let run = run_source(&mut pipeline, &seq, &Default::default(), false).unwrap();
     let groundtruth = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
@@ -165,4 +172,55 @@ fn a_node_checks_candidates_only_and_evaluation_checks_every_best_match() {
     };
     assert_eq!(checked(true), 6, "queries 4..9 have a best match");
     assert_eq!(checked(false), 0);
+}
+
+#[test]
+fn the_odometry_check_rejects_loops_the_tracker_puts_elsewhere() {
+    let dir = tempfile::tempdir().unwrap();
+    let (seq, frames, two_pass_overrides) = two_pass(dir.path());
+    let overrides: Vec<(&str, &str)> =
+        two_pass_overrides.iter().copied().chain([("verification.max_drift", "0.1")]).collect();
+    let replay = |poses: &Path| {
+        let topics = ecm_lcd::io::Topics { poses: Some(poses.to_path_buf()), ..Default::default() };
+        run_source(&mut pipeline(&overrides), &seq, &topics, false)
+    };
+    // The true poses as the tracker's: every revisit fits them.
+    let truth = seq.join("groundtruth.txt");
+    let consistent = replay(&truth).unwrap();
+    assert!(consistent.candidates.len() >= 6, "{:?}", consistent.candidates);
+
+    // A tracker that put the second pass (from frame `frames / 2` on) 10 m away, as if it were a
+    // look-alike room elsewhere: no loop between the passes fits it. (A frame without a ground-truth
+    // pose has none here either and is not checked.)
+    let second_pass = consistent.frame_stamps[frames / 2];
+    let mut poses = read_groundtruth(&truth).unwrap();
+    for (stamp, pose) in &mut poses {
+        if *stamp >= second_pass {
+            pose.translation.vector.x += 10.0;
+        }
+    }
+    let elsewhere = dir.path().join("elsewhere.txt");
+    ecm_lcd::io::tum::write_trajectory(&elsewhere, &poses).unwrap();
+    let inconsistent = replay(&elsewhere).unwrap();
+    let posed = |stamp: Stamp| poses.iter().any(|(s, _)| *s == stamp);
+    let across = |run: &ecm_lcd::replay::ReplayRun| -> Vec<(u64, u64)> {
+        run.candidates
+            .iter()
+            .filter(|c| c.match_stamp < second_pass && c.query_stamp >= second_pass)
+            .filter(|c| posed(c.query_stamp) && posed(c.match_stamp))
+            .map(|c| (c.query_id, c.match_id))
+            .collect()
+    };
+    assert!(across(&consistent).len() >= 4, "{:?}", consistent.candidates);
+    assert_eq!(across(&inconsistent), [], "loops between the passes");
+    assert!(inconsistent.candidates.len() < consistent.candidates.len());
+    assert_eq!(
+        inconsistent.rejected + inconsistent.candidates.len(),
+        consistent.rejected + consistent.candidates.len(),
+        "a candidate the odometry check drops is counted as rejected"
+    );
+
+    let missing = dir.path().join("no_such_poses.txt");
+    let error = format!("{:#}", replay(&missing).unwrap_err());
+    assert!(error.contains("no_such_poses.txt") && error.contains("--poses"), "{error}");
 }

@@ -55,7 +55,8 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     anyhow::ensure!(args.rate > 0.0 && args.rate.is_finite(), "--rate must be a positive number, got {}", args.rate);
-    let topics = ecm_lcd::io::Topics { image: args.bag_topic.clone(), depth: args.bag_depth_topic.clone() };
+    let topics =
+        ecm_lcd::io::Topics { image: args.bag_topic.clone(), depth: args.bag_depth_topic.clone(), poses: None };
     let source = ecm_lcd::io::open_source_topics(&args.source, &topics)
         .with_context(|| format!("opening {}", args.source.display()))?;
     let topic = args.topic.clone().unwrap_or_else(|| args.send_as.default_topic().to_string());

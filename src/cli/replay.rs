@@ -26,6 +26,11 @@ pub struct SourceArgs {
     /// nearest stamp within 20 ms; with camera intrinsics, verified loops get metric poses.
     #[arg(long, value_name = "TOPIC")]
     pub depth_topic: Option<String>,
+    /// The tracker's poses of the frames: a TUM trajectory (`timestamp tx ty tz qx qy qz qw`,
+    /// camera-to-world), each frame taking the pose within 20 ms of its stamp. With
+    /// `verification.max_drift`, loops that do not fit the tracker's trajectory are rejected.
+    #[arg(long, value_name = "FILE")]
+    pub poses: Option<PathBuf>,
     /// Parameters (a ROS 2 params file, section `ecm_lcd`); default: built-in defaults, which
     /// equal config/ecm_lcd.yaml.
     #[arg(long)]
@@ -51,7 +56,7 @@ pub struct SourceArgs {
 
 impl SourceArgs {
     pub fn topics(&self) -> ecm_lcd::io::Topics {
-        ecm_lcd::io::Topics { image: self.topic.clone(), depth: self.depth_topic.clone() }
+        ecm_lcd::io::Topics { image: self.topic.clone(), depth: self.depth_topic.clone(), poses: self.poses.clone() }
     }
 
     pub fn params(&self) -> Result<Params> {
@@ -95,11 +100,15 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     // Before anything is opened: neither output may be one of the inputs (or the other output).
-    let inputs: Vec<&Path> =
-        [Some(args.source.as_path()), args.source_args.config.as_deref(), args.source_args.weights.as_deref()]
-            .into_iter()
-            .flatten()
-            .collect();
+    let inputs: Vec<&Path> = [
+        Some(args.source.as_path()),
+        args.source_args.config.as_deref(),
+        args.source_args.weights.as_deref(),
+        args.source_args.poses.as_deref(),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
     if let Some(db) = &args.source_args.db {
         ecm_lcd::io::output::ensure_not_an_input(db, &inputs)?;
     }

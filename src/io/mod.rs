@@ -17,7 +17,7 @@ pub mod tum;
 use anyhow::{bail, Context, Result};
 use std::path::Path;
 
-use crate::types::Frame;
+use crate::types::{Frame, Stamp};
 use image_msg::ImageKind;
 
 /// A replayable stream of frames.
@@ -28,19 +28,26 @@ pub trait FrameSource: Iterator<Item = Result<Frame>> + Send {
     fn len_hint(&self) -> Option<usize>;
 }
 
-/// The topics of a bag to replay: the colour image topic (default: the bag's one image topic) and,
-/// optionally, a depth image topic whose messages are paired with the colour frames ([`depth`]).
-/// Folders have no topics (a TUM folder's depth comes from its `depth.txt`).
+/// What to read from a source beside its images: the colour image topic of a bag (default: the
+/// bag's one image topic), optionally a depth image topic whose messages are paired with the colour
+/// frames ([`depth`]), and optionally the tracker's poses of the frames from a file. Folders have no
+/// topics (a TUM folder's depth comes from its `depth.txt`).
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
 pub struct Topics {
     pub image: Option<String>,
     pub depth: Option<String>,
+    /// A TUM trajectory (`timestamp tx ty tz qx qy qz qw`, camera-to-world) of the tracker: each
+    /// frame takes the pose at the nearest stamp within [`TRACKER_POSE_MAX_OFFSET`].
+    pub poses: Option<std::path::PathBuf>,
 }
+
+/// How far a tracker pose's stamp may lie from its frame's (as a depth image's).
+pub const TRACKER_POSE_MAX_OFFSET: Stamp = Stamp::from_nanos(20_000_000);
 
 impl Topics {
     /// Only a colour topic (or the default one).
     pub fn image(topic: Option<&str>) -> Topics {
-        Topics { image: topic.map(str::to_string), depth: None }
+        Topics { image: topic.map(str::to_string), ..Topics::default() }
     }
 }
 

@@ -24,6 +24,11 @@
 //! fit to a dozen random matches always finds about eight "inliers", so the minimum must sit well
 //! above that. A candidate whose match keyframe has no features kept (older than the budget, or
 //! stored before the process started) cannot be checked and is rejected.
+//!
+//! Where keyframes carry tracker poses, a verified candidate must also be consistent with the
+//! tracker's trajectory ([`odometry`]): look-alike rooms pass any two-view check.
+
+pub mod odometry;
 
 use std::collections::{HashMap, VecDeque};
 
@@ -41,6 +46,7 @@ use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
 use crate::types::DepthImage;
 pub use crate::types::RelativePose;
+pub use odometry::{DriftBound, OdometryTrack, Tracked};
 
 /// PnP inliers a metric pose needs (below that, the pose stays up to scale).
 pub const MIN_METRIC_INLIERS: usize = 10;
@@ -90,6 +96,8 @@ pub struct VerificationParams {
     /// Equalise the grey-level histogram before ORB (dim and night images keep their corners).
     pub equalise: bool,
     pub intrinsics: Option<Intrinsics>,
+    /// Odometry consistency of keyframes with tracker poses (`None`: not checked).
+    pub drift: Option<DriftBound>,
 }
 
 impl Default for VerificationParams {
@@ -102,6 +110,7 @@ impl Default for VerificationParams {
             keyframes: 5000,
             equalise: false,
             intrinsics: None,
+            drift: None,
         }
     }
 }
