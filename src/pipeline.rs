@@ -82,6 +82,9 @@ pub struct Outcome {
     pub best_verified: Option<bool>,
     /// Candidates that passed the threshold but failed verification.
     pub rejected: usize,
+    /// Of [`Outcome::rejected`], those whose features verified but whose tracker poses did not fit
+    /// (`verification.max_drift`).
+    pub rejected_by_odometry: usize,
     pub timings: Timings,
 }
 
@@ -490,25 +493,30 @@ impl Pipeline {
     /// Drops the candidates that fail verification or odometry consistency (counted in
     /// [`Outcome::rejected`]) and records whether the best match passes.
     fn verify_outcome(&self, features: &LocalFeatures, tracked: Option<Tracked>, outcome: &mut Outcome) {
-        let mut checked: Vec<(u64, Verification)> = Vec::new();
-        let mut check = |id: u64| -> Verification {
-            if let Some(&(_, v)) = checked.iter().find(|(seen, _)| *seen == id) {
-                return v;
+        // Per match id: the feature check, and whether the odometry check (made only on what the
+        // features verified) failed.
+        let mut checked: Vec<(u64, Verification, bool)> = Vec::new();
+        let mut check = |id: u64| -> (Verification, bool) {
+            if let Some(&(_, v, odometry_failed)) = checked.iter().find(|(seen, ..)| *seen == id) {
+                return (v, odometry_failed);
             }
             let mut v = self.verify(features, id).expect("called with verification on");
-            v.accepted = v.accepted && self.odometry_consistent(tracked, id);
-            checked.push((id, v));
-            v
+            let odometry_failed = v.accepted && !self.odometry_consistent(tracked, id);
+            v.accepted &= !odometry_failed;
+            checked.push((id, v, odometry_failed));
+            (v, odometry_failed)
         };
         let best_is_candidate =
             outcome.best.is_some_and(|best| outcome.candidates.iter().any(|c| c.match_id == best.id));
         if self.verify_best || best_is_candidate {
-            outcome.best_verified = outcome.best.map(|best| check(best.id).accepted);
+            outcome.best_verified = outcome.best.map(|best| check(best.id).0.accepted);
         }
         let before = outcome.candidates.len();
+        let mut odometry_rejected = 0;
         outcome.candidates.retain_mut(|c| {
-            let v = check(c.match_id);
-            if !v.accepted {
+            let (v, odometry_failed) = check(c.match_id);
+            odometry_rejected += odometry_failed as usize;
+            if !v.accepted && !odometry_failed {
                 log::debug!(
                     "candidate {} -> {} rejected by verification: {} inliers of {} matches",
                     c.query_id,
@@ -523,6 +531,7 @@ impl Pipeline {
             v.accepted
         });
         outcome.rejected = before - outcome.candidates.len();
+        outcome.rejected_by_odometry = odometry_rejected;
         for (rank, candidate) in outcome.candidates.iter_mut().enumerate() {
             candidate.rank = rank as u32;
         }

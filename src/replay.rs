@@ -48,6 +48,8 @@ pub struct ReplayRun {
     pub candidates: Vec<LoopCandidate>,
     /// Candidates that passed the threshold but failed geometric verification.
     pub rejected: usize,
+    /// Of `rejected`, those the odometry check rejected (`verification.max_drift`).
+    pub rejected_by_odometry: usize,
     /// Summed per-stage time over the keyframes.
     pub total: Timings,
     pub wall_secs: f64,
@@ -223,6 +225,7 @@ fn replay_frames(
             run.total.detector_ms += t.detector_ms;
             run.total.verification_ms += t.verification_ms;
             run.rejected += outcome.rejected;
+            run.rejected_by_odometry += outcome.rejected_by_odometry;
             let keyframe = ReplayedKeyframe {
                 index: frame.index,
                 stamp: frame.stamp,
@@ -250,7 +253,12 @@ fn replay_frames(
         );
     }
     if let Some(poses) = &tracker_poses {
-        log::info!("{} of {} frames had a tracker pose in {}", poses.found, run.frames - run.skipped, poses.path);
+        let replayed = run.frames - run.skipped;
+        if poses.found == 0 && replayed > 0 {
+            log::warn!("no frame had a tracker pose in {} within 20 ms of its stamp: is it this source's?", poses.path);
+        } else {
+            log::info!("{} of {replayed} frames had a tracker pose in {}", poses.found, poses.path);
+        }
     }
     run.wall_secs = started.elapsed().as_secs_f64();
     Ok(run)

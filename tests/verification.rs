@@ -213,6 +213,8 @@ fn the_odometry_check_rejects_loops_the_tracker_puts_elsewhere() {
     };
     assert!(across(&consistent).len() >= 4, "{:?}", consistent.candidates);
     assert_eq!(across(&inconsistent), [], "loops between the passes");
+    assert_eq!(consistent.rejected_by_odometry, 0);
+    assert!(inconsistent.rejected_by_odometry >= across(&consistent).len(), "{}", inconsistent.rejected_by_odometry);
     assert!(inconsistent.candidates.len() < consistent.candidates.len());
     assert_eq!(
         inconsistent.rejected + inconsistent.candidates.len(),

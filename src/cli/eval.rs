@@ -76,6 +76,15 @@ impl Args {
     pub fn database_and_queries(&self) -> Result<Option<(Vec<PathBuf>, Vec<PathBuf>)>> {
         match (&self.database, &self.queries) {
             (Some(database), Some(queries)) => {
+                let a = &self.source_args;
+                let source_only = [
+                    ("--topic", a.topic.is_some()),
+                    ("--depth-topic", a.depth_topic.is_some()),
+                    ("--poses", a.poses.is_some()),
+                ];
+                if let Some((flag, _)) = source_only.iter().find(|(_, given)| *given) {
+                    bail!("{flag} applies to a replayed SOURCE, not to --database/--queries");
+                }
                 Ok(Some((images_in_name_order(database)?, images_in_name_order(queries)?)))
             }
             (None, None) => Ok(None),
@@ -264,6 +273,9 @@ mod tests {
             .unwrap();
         let err = args.database_and_queries().unwrap_err();
         assert!(err.to_string().contains("holds no png, jpg or bmp files"), "{err:#}");
+        let with_poses = ["--database", "db", "--queries", "q", "--loops", "l", "--poses", "odometry.txt"];
+        let err = parse(&with_poses).unwrap().database_and_queries().unwrap_err();
+        assert!(err.to_string().contains("--poses applies to a replayed SOURCE"), "{err:#}");
         std::fs::write(queries.join("q0.png"), b"x").unwrap();
         let (database, query_images) = args.database_and_queries().unwrap().unwrap();
         let names: Vec<_> = database.iter().map(|p| p.file_name().unwrap().to_str().unwrap().to_string()).collect();

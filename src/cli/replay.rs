@@ -154,7 +154,14 @@ pub fn run(args: Args) -> Result<()> {
     }
     let t = run.mean();
     let verification = if pipeline.verifies() {
-        format!(", verification {:.2} ms; {} candidates failed verification", t.verification_ms, run.rejected)
+        let odometry = match pipeline.params().verification(None).and_then(|v| v.drift) {
+            Some(_) if args.source_args.poses.is_none() => {
+                " (verification.max_drift is set, but without --poses no frame has a tracker pose)".to_string()
+            }
+            Some(_) => format!(" ({} of them by the odometry check)", run.rejected_by_odometry),
+            None => String::new(),
+        };
+        format!(", verification {:.2} ms; {} candidates failed verification{odometry}", t.verification_ms, run.rejected)
     } else {
         String::new()
     };
