@@ -64,6 +64,37 @@ pub struct OdometryDrift {
     pub translation_noise: f64,
 }
 
+impl OdometryDrift {
+    /// The odometry a tracker with these errors would report along `truth` (camera-to-world poses in
+    /// order), seeded: each true step between consecutive poses is drifted and chained on from the
+    /// first true pose. The heading error turns about the world's z axis (up in `synth`'s worlds).
+    pub fn apply(&self, truth: &[Isometry3<f64>], seed: u64) -> Vec<Isometry3<f64>> {
+        let mut rng = world::SplitMix64::new(seed ^ 0x6F64_6F6D_6574_7279);
+        let mut gaussian = move || {
+            let (u1, u2) = (rng.next_f64().max(1e-12), rng.next_f64());
+            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+        };
+        let Some(&first) = truth.first() else { return Vec::new() };
+        let mut poses = Vec::with_capacity(truth.len());
+        let mut odometry = first;
+        poses.push(odometry);
+        for pair in truth.windows(2) {
+            let step = pair[0].inverse() * pair[1];
+            let length = step.translation.vector.norm();
+            let noise = nalgebra::Vector3::new(gaussian(), gaussian(), gaussian()) * self.translation_noise * length;
+            let translation = step.translation.vector * self.scale + noise;
+            let yaw = (self.yaw_deg_per_m * length + self.yaw_noise_deg * length.sqrt() * gaussian()).to_radians();
+            // Heading error about world up, expressed in the previous camera's frame.
+            let up = odometry.rotation.inverse() * nalgebra::Vector3::z_axis();
+            let error = nalgebra::UnitQuaternion::from_axis_angle(&up, yaw);
+            let drifted = Isometry3::from_parts(translation.into(), error * step.rotation);
+            odometry *= drifted;
+            poses.push(odometry);
+        }
+        poses
+    }
+}
+
 impl Default for OdometryDrift {
     fn default() -> Self {
         OdometryDrift { scale: 1.03, yaw_deg_per_m: 1.0, yaw_noise_deg: 0.3, translation_noise: 0.05 }
@@ -307,30 +338,8 @@ impl Scene {
 
     /// The drifted odometry trajectory of the whole sequence ([`OdometryDrift`]), camera-to-world.
     pub fn odometry(&self) -> Vec<Isometry3<f64>> {
-        let drift = &self.config.drift;
-        let mut rng = world::SplitMix64::new(self.config.seed ^ 0x6F64_6F6D_6574_7279);
-        let mut gaussian = move || {
-            let (u1, u2) = (rng.next_f64().max(1e-12), rng.next_f64());
-            (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
-        };
-        let mut poses = Vec::with_capacity(self.len());
-        let mut odometry = self.pose(0);
-        poses.push(odometry);
-        for index in 1..self.len() {
-            let (before, after) = (self.pose(index - 1), self.pose(index));
-            let step = before.inverse() * after;
-            let length = step.translation.vector.norm();
-            let noise = nalgebra::Vector3::new(gaussian(), gaussian(), gaussian()) * drift.translation_noise * length;
-            let translation = step.translation.vector * drift.scale + noise;
-            let yaw = (drift.yaw_deg_per_m * length + drift.yaw_noise_deg * length.sqrt() * gaussian()).to_radians();
-            // Heading error about world up, expressed in the previous camera's frame.
-            let up = odometry.rotation.inverse() * nalgebra::Vector3::z_axis();
-            let error = nalgebra::UnitQuaternion::from_axis_angle(&up, yaw);
-            let drifted = Isometry3::from_parts(translation.into(), error * step.rotation);
-            odometry *= drifted;
-            poses.push(odometry);
-        }
-        poses
+        let truth: Vec<Isometry3<f64>> = (0..self.len()).map(|index| self.pose(index)).collect();
+        self.config.drift.apply(&truth, self.config.seed)
     }
 
     /// Stamp, image and camera-to-world pose of frame `index`.
@@ -351,6 +360,22 @@ mod tests {
 
     fn small(seed: u64) -> SynthConfig {
         SynthConfig { frames: 90, laps: 3, seed, width: 64, height: 48, ..SynthConfig::default() }
+    }
+
+    #[test]
+    fn drift_applies_to_any_trajectory_and_without_errors_reproduces_it() {
+        let scene = Scene::new(small(3)).unwrap();
+        let truth: Vec<Isometry3<f64>> = (0..scene.len()).map(|i| scene.pose(i)).collect();
+        let exact = OdometryDrift { scale: 1.0, yaw_deg_per_m: 0.0, yaw_noise_deg: 0.0, translation_noise: 0.0 };
+        for (got, want) in exact.apply(&truth, 7).iter().zip(&truth) {
+            assert!((got.translation.vector - want.translation.vector).norm() < 1e-9);
+            assert!(got.rotation.angle_to(&want.rotation) < 1e-9);
+        }
+        assert_eq!(OdometryDrift::default().apply(&truth, 3), scene.odometry(), "the scene's odometry is this");
+        let drifted = OdometryDrift::default().apply(&truth, 3);
+        let end = (drifted.last().unwrap().translation.vector - truth.last().unwrap().translation.vector).norm();
+        assert!(end > 0.5, "three laps of 3% scale and 1 deg/m heading error end {end} m off");
+        assert!(OdometryDrift::default().apply(&[], 3).is_empty());
     }
 
     #[test]
