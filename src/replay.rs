@@ -18,6 +18,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use crate::config::ParamValue;
 use crate::detector::Match;
 use crate::eval::QueryResult;
+use crate::io::tum::TrackerPoses;
 use crate::io::{open_source_topics, Topics};
 use crate::pipeline::{Pipeline, Timings};
 use crate::preprocess::read_image;
@@ -166,7 +167,7 @@ fn replay_frames(
     };
     let frames = open_source_topics(source, topics)?;
     let mut tracker_poses = match &topics.poses {
-        Some(path) => Some(TrackerPoses::read(path)?),
+        Some(path) => Some(TrackerPoses::read(path).context("reading the tracker poses (--poses)")?),
         None => None,
     };
     log::info!("replaying {}", frames.describe());
@@ -254,40 +255,8 @@ fn replay_frames(
     }
     if let Some(poses) = &tracker_poses {
         let replayed = run.frames - run.skipped;
-        if poses.found == 0 && replayed > 0 {
-            log::warn!("no frame had a tracker pose in {} within 20 ms of its stamp: is it this source's?", poses.path);
-        } else {
-            log::info!("{} of {replayed} frames had a tracker pose in {}", poses.found, poses.path);
-        }
+        poses.report(replayed);
     }
     run.wall_secs = started.elapsed().as_secs_f64();
     Ok(run)
-}
-
-/// The tracker's trajectory for a replay ([`Topics::poses`]), looked up by frame stamp.
-struct TrackerPoses {
-    path: String,
-    stamps: Vec<Stamp>,
-    poses: Vec<nalgebra::Isometry3<f64>>,
-    /// Frames that found a pose.
-    found: usize,
-}
-
-impl TrackerPoses {
-    fn read(path: &Path) -> Result<TrackerPoses> {
-        let mut trajectory = crate::io::tum::read_groundtruth(path).context("reading the tracker poses (--poses)")?;
-        if trajectory.is_empty() {
-            bail!("tracker poses {}: no poses in the file", path.display());
-        }
-        trajectory.sort_by_key(|(stamp, _)| *stamp);
-        let (stamps, poses) = trajectory.into_iter().unzip();
-        Ok(TrackerPoses { path: path.display().to_string(), stamps, poses, found: 0 })
-    }
-
-    /// The pose at the nearest stamp within [`crate::io::TRACKER_POSE_MAX_OFFSET`].
-    fn at(&mut self, stamp: Stamp) -> Option<nalgebra::Isometry3<f64>> {
-        let index = crate::types::nearest_stamp(&self.stamps, stamp, crate::io::TRACKER_POSE_MAX_OFFSET)?;
-        self.found += 1;
-        Some(self.poses[index])
-    }
 }

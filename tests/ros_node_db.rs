@@ -12,7 +12,7 @@ use ecm_lcd::detector::store::KeyframeStore;
 use ecm_lcd::io::open_source;
 use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::pipeline::Pipeline;
-use ecm_lcd::ros::msgs::{Marker, Point, Pose, Quaternion};
+use ecm_lcd::ros::msgs::{Marker, Point, Pose};
 use ecm_lcd::ros::node::InputQos;
 use ecm_lcd::ros::peer::{CandidateListener, FramePublisher, Listener, SendAs};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
@@ -104,13 +104,7 @@ fn publish_and_listen(frames: &[Frame], poses: &[Isometry3<f64>], expected: usiz
     std::thread::sleep(Duration::from_millis(500));
     let mut got = Vec::new();
     for frame in frames {
-        let pose = poses[frame.index];
-        let (t, q) = (pose.translation.vector, pose.rotation);
-        let pose = Pose {
-            position: Point { x: t.x, y: t.y, z: t.z },
-            orientation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w },
-        };
-        publisher.publish_with_pose(frame, Some(pose)).unwrap();
+        publisher.publish_with_pose(frame, Some(Pose::from_isometry(&poses[frame.index]))).unwrap();
         std::thread::sleep(Duration::from_millis(50));
         got.extend(listener.take_all().unwrap().iter().map(|c| (c.query_id, c.match_id)));
     }

@@ -387,42 +387,73 @@ fn the_default_log_level_keeps_a_cyclone_camera_run_to_the_nodes_own_lines() {
 
 /// Metric loops over DDS: a synthetic sequence with depth played as keyframes plus `depth` images
 /// (`play-keyframes --depth-topic`) into a node with the camera's intrinsics gives the offline run's
-/// candidates, each verified with a metric pose (`loop_type` 3).
+/// candidates, each verified with a metric pose (`loop_type` 3). The keyframes carry tracker poses
+/// (`play-keyframes --poses`) that put the second half of the second lap 10 m away, and the node
+/// checks loops against them (`verification.max_drift`), so exactly the loops from that half go, as
+/// offline.
 #[test]
-fn keyframes_with_depth_over_dds_give_the_offline_metric_loops() {
+fn keyframes_with_depth_and_poses_over_dds_give_the_offline_verified_loops() {
     if !ros_support::inside() {
-        return ros_support::check_inner_run("keyframes_with_depth_over_dds_give_the_offline_metric_loops");
+        return ros_support::check_inner_run("keyframes_with_depth_and_poses_over_dds_give_the_offline_verified_loops");
     }
     let dir = tempfile::tempdir().unwrap();
     let seq = dir.path().join("seq");
     let config = SynthConfig { frames: 240, laps: 2, seed: 5, rate_hz: 5.0, depth: true, ..SynthConfig::default() };
-    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    let scene = Scene::new(config).unwrap();
+    write_tum_folder(&scene, &seq).unwrap();
+    const MOVED_FROM: usize = 180;
+    let tracker_pose = |index: usize| {
+        let mut pose = scene.pose(index);
+        if index >= MOVED_FROM {
+            pose.translation.vector.x += 10.0;
+        }
+        pose
+    };
+    let poses: Vec<_> = (0..scene.len()).map(|i| (scene.stamp(i), tracker_pose(i))).collect();
+    let poses_file = dir.path().join("tracker.txt");
+    ecm_lcd::io::tum::write_trajectory(&poses_file, &poses).unwrap();
     // The renderer's camera: focal 0.82 * width, principal point at the centre.
-    let camera = [("camera.fx", "262.4"), ("camera.fy", "262.4"), ("camera.cx", "160"), ("camera.cy", "120")];
+    let node_params = [
+        ("camera.fx", "262.4"),
+        ("camera.fy", "262.4"),
+        ("camera.cx", "160"),
+        ("camera.cy", "120"),
+        ("verification.max_drift", "0.1"),
+    ];
     let mut params = Params::default();
-    for (name, value) in camera {
+    for (name, value) in node_params {
         params.set(name, parse_param_value(value).unwrap()).unwrap();
     }
     let mut pipeline = Pipeline::new(params, Some(&weights())).unwrap();
     let mut expected = Vec::new();
+    let mut rejected_by_odometry = 0;
     for frame in ecm_lcd::io::open_source(&seq, None).unwrap() {
         let frame = frame.unwrap();
         let id = frame.index as u64;
         let outcome = pipeline
-            .process_input(&Input { depth: frame.depth.as_ref(), ..Input::keyframe(id, frame.stamp, &frame.image) })
+            .process_input(&Input {
+                depth: frame.depth.as_ref(),
+                tracker_pose: Some(tracker_pose(frame.index)),
+                ..Input::keyframe(id, frame.stamp, &frame.image)
+            })
             .unwrap();
+        rejected_by_odometry += outcome.rejected_by_odometry;
         expected.extend(outcome.candidates.iter().map(|c| (c.query_id, c.match_id, c.score)));
     }
     assert!(expected.len() >= 10, "the sequence should close loops offline: {expected:?}");
+    assert!(expected.iter().all(|r| r.0 < MOVED_FROM as u64), "{expected:?}");
+    assert!(rejected_by_odometry >= 10, "{rejected_by_odometry} loops from the moved half rejected");
 
     let mut args = vec![OsString::from("--weights"), weights().into(), "--ros-args".into()];
-    for (name, value) in camera {
+    for (name, value) in node_params {
         args.extend(["-p".into(), format!("{name}:={value}").into()]);
     }
     let node = NodeProcess::start(dir.path(), dir.path().join("node.log"), args);
     let listener = ros_support::Listener::start(expected.len());
-    let played = play(&seq, &["--rate", "20", "--depth-topic", "/depth"]);
+    let poses_arg = poses_file.to_str().unwrap();
+    let played = play(&seq, &["--rate", "20", "--depth-topic", "/depth", "--poses", poses_arg]);
     assert!(played.contains("published 240 frames"), "{played}");
+    assert!(played.contains("240 of 240 frames had a tracker pose"), "{played}");
     let csv = listener.finish();
     let counters = node.stop("TERM");
     assert_rows_equal(&rows(&csv), &expected, &csv);

@@ -1,12 +1,15 @@
 //! `ecm-lcd play-keyframes`: a tracker stand-in. Publishes the frames of any replay source (TUM folder,
 //! image folder, ROS 1/2 bag) as ecm_lcd_msgs/Keyframe (id = frame index), sensor_msgs/Image or
 //! sensor_msgs/CompressedImage at a fixed rate, after waiting for a subscriber; with `--depth-topic`,
-//! each frame's depth image (a TUM folder's `depth.txt`, a bag's `--bag-depth-topic`) too.
+//! each frame's depth image (a TUM folder's `depth.txt`, a bag's `--bag-depth-topic`) too; with
+//! `--poses`, each Keyframe carries the tracker's pose.
 
 use anyhow::{Context as _, Result};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
+use ecm_lcd::io::tum::TrackerPoses;
+use ecm_lcd::ros::msgs::Pose;
 use ecm_lcd::ros::node::InputQos;
 use ecm_lcd::ros::peer::{FramePublisher, SendAs};
 
@@ -48,6 +51,10 @@ pub struct Args {
     /// Seconds to wait for a subscriber before publishing (then publish anyway, with a warning).
     #[arg(long, default_value_t = 10.0)]
     pub wait: f64,
+    /// The tracker's poses: a TUM trajectory (camera-to-world); each Keyframe carries the pose within
+    /// 20 ms of its stamp (`has_pose`), as a tracker's would (`--as keyframe` only).
+    #[arg(long, value_name = "FILE")]
+    pub poses: Option<PathBuf>,
     /// Seconds to stay up after the last frame so reliable delivery completes.
     #[arg(long, default_value_t = 2.0)]
     pub linger: f64,
@@ -59,6 +66,14 @@ pub fn run(args: Args) -> Result<()> {
         ecm_lcd::io::Topics { image: args.bag_topic.clone(), depth: args.bag_depth_topic.clone(), poses: None };
     let source = ecm_lcd::io::open_source_topics(&args.source, &topics)
         .with_context(|| format!("opening {}", args.source.display()))?;
+    anyhow::ensure!(
+        args.poses.is_none() || args.send_as == SendAs::Keyframe,
+        "--poses needs --as keyframe: only Keyframe messages carry a pose"
+    );
+    let mut poses = match &args.poses {
+        Some(path) => Some(TrackerPoses::read(path).context("reading --poses")?),
+        None => None,
+    };
     let topic = args.topic.clone().unwrap_or_else(|| args.send_as.default_topic().to_string());
     let context = ros2_client::Context::new().context("creating the DDS participant")?;
     let mut publisher = FramePublisher::new(&context, &topic, args.send_as, args.qos, &args.frame_id)?;
@@ -78,11 +93,15 @@ pub fn run(args: Args) -> Result<()> {
         if let Some(wait) = due.checked_duration_since(Instant::now()) {
             std::thread::sleep(wait);
         }
-        publisher.publish(&frame)?;
+        let pose = poses.as_mut().and_then(|poses| poses.at(frame.stamp));
+        publisher.publish_with_pose(&frame, pose.as_ref().map(Pose::from_isometry))?;
         log::debug!("published frame {} stamp {}", frame.index, frame.stamp);
         published += 1;
     }
     std::thread::sleep(Duration::from_secs_f64(args.linger.max(0.0)));
     log::info!("published {published} frames on {topic}");
+    if let Some(poses) = &poses {
+        poses.report(published);
+    }
     Ok(())
 }

@@ -372,6 +372,43 @@ fn tum_stamp(stamp: Stamp) -> String {
     format!("{}.{:06}", stamp.sec(), stamp.nsec() / 1000)
 }
 
+/// A tracker's trajectory (TUM format, camera-to-world) looked up by frame stamp: each frame takes
+/// the pose at the nearest stamp within [`super::TRACKER_POSE_MAX_OFFSET`] (`replay --poses`,
+/// `play-keyframes --poses`).
+pub struct TrackerPoses {
+    path: String,
+    stamps: Vec<Stamp>,
+    poses: Vec<Isometry3<f64>>,
+    /// Frames that found a pose.
+    found: usize,
+}
+
+impl TrackerPoses {
+    pub fn read(path: &Path) -> Result<TrackerPoses> {
+        let mut trajectory = read_groundtruth(path)?;
+        ensure!(!trajectory.is_empty(), "{}: no poses in the file", path.display());
+        trajectory.sort_by_key(|(stamp, _)| *stamp);
+        let (stamps, poses) = trajectory.into_iter().unzip();
+        Ok(TrackerPoses { path: path.display().to_string(), stamps, poses, found: 0 })
+    }
+
+    /// The pose of the frame stamped `stamp`, if one lies near enough.
+    pub fn at(&mut self, stamp: Stamp) -> Option<Isometry3<f64>> {
+        let index = crate::types::nearest_stamp(&self.stamps, stamp, super::TRACKER_POSE_MAX_OFFSET)?;
+        self.found += 1;
+        Some(self.poses[index])
+    }
+
+    /// Logs how many of `frames` found a pose; a warning when none did (another sequence's file).
+    pub fn report(&self, frames: usize) {
+        if self.found == 0 && frames > 0 {
+            log::warn!("no frame had a tracker pose in {} within 20 ms of its stamp: is it this source's?", self.path);
+        } else {
+            log::info!("{} of {frames} frames had a tracker pose in {}", self.found, self.path);
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

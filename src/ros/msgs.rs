@@ -42,6 +42,11 @@ pub struct Pose {
 }
 
 impl Pose {
+    pub fn from_isometry(pose: &nalgebra::Isometry3<f64>) -> Pose {
+        let (t, q) = (pose.translation.vector, pose.rotation);
+        Pose { position: Point { x: t.x, y: t.y, z: t.z }, orientation: Quaternion { x: q.i, y: q.j, z: q.k, w: q.w } }
+    }
+
     /// As an isometry; a zero quaternion (an unset orientation) is the identity.
     pub fn to_isometry(&self) -> nalgebra::Isometry3<f64> {
         let q = self.orientation;
