@@ -341,6 +341,20 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             MAX_COUNT,
             "A candidate is verified when at least this many feature matches fit one rigid geometry (RANSAC inliers).",
         ),
+        double(
+            "verification.min_inlier_ratio",
+            0.0,
+            0.0,
+            1.0,
+            "A candidate is verified only when at least this fraction of its feature matches are RANSAC inliers. 0 = any.",
+        ),
+        double(
+            "verification.match_ratio",
+            0.8,
+            0.1,
+            1.0,
+            "Ratio test of feature matching: a match's Hamming distance must be below this fraction of the second best's (lower = fewer, surer matches).",
+        ),
         integer("verification.features", 500, 50, 10_000, "ORB features extracted per keyframe for verification."),
         ParamSpec {
             name: "verification.equalise",
@@ -643,6 +657,8 @@ impl Params {
         };
         on.then(|| VerificationParams {
             min_inliers: self.count("verification.min_inliers"),
+            min_inlier_ratio: self.double("verification.min_inlier_ratio"),
+            ratio: self.double("verification.match_ratio") as f32,
             max_features: self.count("verification.features"),
             keyframes: self.count("verification.keyframes"),
             equalise: matches!(self.values.get("verification.equalise"), Some(ParamValue::Bool(true))),

@@ -20,7 +20,8 @@
 //!    query camera that sees them where its keypoints are. The metric pose replaces step 4's when
 //!    enough of those points agree ([`MIN_METRIC_INLIERS`]).
 //!
-//! A candidate is verified when the inliers reach [`VerificationParams::min_inliers`]. An 8-point
+//! A candidate is verified when the inliers reach [`VerificationParams::min_inliers`] (and
+//! [`VerificationParams::min_inlier_ratio`] of the matches). An 8-point
 //! fit to a dozen random matches always finds about eight "inliers", so the minimum must sit well
 //! above that. A candidate whose match keyframe has no features kept (older than the budget, or
 //! stored before the process started) cannot be checked and is rejected.
@@ -91,6 +92,8 @@ pub struct VerificationParams {
     pub pixel_threshold: f64,
     /// A candidate is verified with at least this many RANSAC inliers.
     pub min_inliers: usize,
+    /// ... and at least this fraction of its feature matches as inliers (0 = any).
+    pub min_inlier_ratio: f64,
     /// Local features are kept for the newest this-many keyframes (0 = all).
     pub keyframes: usize,
     /// Equalise the grey-level histogram before ORB (dim and night images keep their corners).
@@ -107,6 +110,7 @@ impl Default for VerificationParams {
             ratio: 0.8,
             pixel_threshold: 2.0,
             min_inliers: 15,
+            min_inlier_ratio: 0.0,
             keyframes: 5000,
             equalise: false,
             intrinsics: None,
@@ -409,7 +413,7 @@ fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams) -> (Verifica
         .filter_map(|(model, fit)| fit.as_ref().map(|fit| (*model, fit)))
         .max_by_key(|(model, fit)| (fit.inlier_count, *model == GeometricModel::Fundamental));
     let inliers = best.map_or(0, |(_, fit)| fit.inlier_count);
-    let accepted = inliers >= params.min_inliers;
+    let accepted = inliers >= params.min_inliers && inliers as f64 >= params.min_inlier_ratio * x1.len() as f64;
     let pose = match (best, &params.intrinsics) {
         (Some((model, fit)), Some(intrinsics)) if accepted => {
             relative_pose(model, &fit.model, &intrinsics.matrix(), x1, x2, &fit.inliers)
@@ -640,6 +644,10 @@ mod tests {
         // Without intrinsics the pair still verifies, with no pose.
         let uncalibrated = fit_geometry(&x1, &x2, &VerificationParams::default());
         assert!(uncalibrated.accepted && uncalibrated.pose.is_none());
+        // 120 of 160 matches fit: a minimum ratio of inliers above 3/4 refuses the pair.
+        let ratio = |min_inlier_ratio| VerificationParams { min_inlier_ratio, ..params.clone() };
+        assert!(fit_geometry(&x1, &x2, &ratio(0.7)).accepted);
+        assert!(!fit_geometry(&x1, &x2, &ratio(0.8)).accepted);
         // Outliers alone do not.
         let (_, noise) = two_views(&r, &t, &k, 0, 160);
         let shuffled: Vec<Vec2F64> = noise.iter().rev().copied().collect();
