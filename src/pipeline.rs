@@ -355,12 +355,21 @@ impl Pipeline {
         let (Some(store), Some(verifier)) = (&self.store, &mut self.verifier) else { return Ok(()) };
         let stored = store.local_features(verifier.params().keyframes)?;
         let count = stored.len();
+        let mut other_kind = 0;
         for (id, bytes) in stored {
             let features = LocalFeatures::from_bytes(&bytes)
                 .with_context(|| format!("keyframe {id}'s local features in {}", store.path().display()))?;
+            other_kind += usize::from(features.descriptors.kind() != verifier.params().local_features);
             verifier.remember(id, features);
         }
         log::info!("keyframe database {}: local features of {count} keyframes restored", store.path().display());
+        if other_kind > 0 {
+            log::warn!(
+                "keyframe database {}: {other_kind} keyframes hold features of the other verification.local_features; \
+                 candidates that match them fail verification",
+                store.path().display()
+            );
+        }
         Ok(())
     }
 

@@ -57,12 +57,8 @@ impl XFeatExtractor {
         Ok(XFeatExtractor(Arc::new(XFeat::load(path)?)))
     }
 
-    pub fn new(network: XFeat) -> Self {
-        XFeatExtractor(Arc::new(network))
-    }
-
-    /// The `max_features` most reliable cells of `gray`; none for an image under 32 pixels a side
-    /// once scaled.
+    /// The features of the `max_features` best cells of `gray` (module doc); none for an image under
+    /// 32 pixels a side once scaled.
     pub fn extract(&self, gray: &GrayImage, max_features: usize) -> Result<LocalFeatures> {
         let image_size = [gray.width(), gray.height()];
         let [width, height] = input_size(image_size);

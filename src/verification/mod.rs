@@ -162,7 +162,15 @@ impl Default for Descriptors {
 }
 
 impl Descriptors {
-    /// Bytes per descriptor, which is also the store's version of the features (1: ORB, 2: XFeat).
+    /// The extractor that made them.
+    pub fn kind(&self) -> LocalFeatureKind {
+        match self {
+            Descriptors::Orb(_) => LocalFeatureKind::Orb,
+            Descriptors::XFeat(_) => LocalFeatureKind::XFeat,
+        }
+    }
+
+    /// Bytes per descriptor.
     fn size(&self) -> usize {
         match self {
             Descriptors::Orb(_) => 32,
@@ -170,6 +178,7 @@ impl Descriptors {
         }
     }
 
+    /// The store's version of the features (1: ORB, 2: XFeat).
     fn version(&self) -> u8 {
         match self {
             Descriptors::Orb(_) => 1,
