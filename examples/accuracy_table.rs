@@ -317,6 +317,12 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
                 overrides.iter().copied().chain([("verification.max_drift", "0.1")]).collect();
             let name = format!("{name} + odometry check (`max_drift` 0.1, {})", odometry_source(odometry));
             print_verification_row(&name, &before, &measure(set, &checked, Some(odometry), weights)?.0, tum);
+            // And the verified relative rotation against the tracker's (the synthetic odometry drifts
+            // 1 degree per metre in heading).
+            let rotation: Vec<(&str, &str)> =
+                checked.iter().copied().chain([("verification.max_rotation_drift", "1.5")]).collect();
+            let name = format!("{name}, `max_rotation_drift` 1.5");
+            print_verification_row(&name, &before, &measure(set, &rotation, Some(odometry), weights)?.0, tum);
             Ok(())
         };
         if set.name.starts_with("synthetic") {

@@ -378,6 +378,20 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             1.0e4,
             "Odometry consistency: how far apart, in the tracker's units (metres), two cameras seeing one place may stand, drift aside.",
         ),
+        double(
+            "verification.max_rotation_drift",
+            0.0,
+            0.0,
+            360.0,
+            "Odometry consistency of the verified relative rotation, for keyframes with tracker poses: a verified loop is rejected when its relative rotation differs from the tracked one by more than verification.rotation_tolerance plus this many degrees per metre of path travelled between the keyframes (the tracker's heading drift per metre). Rejects wrong relative poses. 0 = off.",
+        ),
+        double(
+            "verification.rotation_tolerance",
+            10.0,
+            0.0,
+            180.0,
+            "Odometry consistency of the verified relative rotation: how many degrees a right verified rotation may be off, drift aside.",
+        ),
         integer(
             "verification.keyframes",
             5000,
@@ -677,9 +691,13 @@ impl Params {
             keyframes: self.count("verification.keyframes"),
             equalise: matches!(self.values.get("verification.equalise"), Some(ParamValue::Bool(true))),
             intrinsics,
-            drift: Some(self.double("verification.max_drift"))
-                .filter(|&d| d > 0.0)
-                .map(|max_drift| DriftBound { max_drift, radius_m: self.double("verification.drift_radius") }),
+            drift: Some(DriftBound {
+                max_drift: self.double("verification.max_drift"),
+                radius_m: self.double("verification.drift_radius"),
+                max_rotation_drift_deg: self.double("verification.max_rotation_drift"),
+                rotation_tolerance_deg: self.double("verification.rotation_tolerance"),
+            })
+            .filter(DriftBound::checks_anything),
             local_features: match self.string("verification.local_features") {
                 "xfeat" => LocalFeatureKind::XFeat,
                 _ => LocalFeatureKind::Orb,

@@ -25,7 +25,7 @@ use crate::detector::{Detector, Match};
 use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::{Arch, Tap};
-use crate::types::{DepthImage, FeatureMap, Frame, LoopCandidate, Stamp, Verified};
+use crate::types::{DepthImage, FeatureMap, Frame, LoopCandidate, RelativePose, Stamp, Verified};
 use crate::verification::{Intrinsics, LocalFeatures, OdometryTrack, Tracked, Verification, Verifier};
 
 /// Milliseconds spent per stage on one frame.
@@ -481,17 +481,20 @@ impl Pipeline {
         }))
     }
 
-    /// Whether a loop from the query (tracked at `query`) to keyframe `matched` fits the tracker's
-    /// trajectory; true when not checked (no drift bound, or either keyframe without a pose).
-    fn odometry_consistent(&self, query: Option<Tracked>, matched: u64) -> bool {
+    /// Whether a loop from the query (tracked at `query`) to keyframe `matched`, verified with
+    /// relative pose `pose`, fits the tracker's trajectory; true when not checked (no drift bound, or
+    /// either keyframe without a pose).
+    fn odometry_consistent(&self, query: Option<Tracked>, matched: u64, pose: Option<&RelativePose>) -> bool {
         let bound = self.verifier.as_ref().and_then(|v| v.params().drift);
         let (Some(bound), Some(query)) = (bound, query) else { return true };
-        match self.odometry.check(query, matched, &bound) {
-            Some(check) if !check.consistent => {
+        match self.odometry.check(query, matched, pose.map(|pose| &pose.rotation), &bound) {
+            Some(check) if !check.consistent() => {
+                let rotation = check.rotation_deg.map(|deg| format!(", relative rotations {deg:.1} deg apart"));
                 log::debug!(
-                    "loop to keyframe {matched} rejected by odometry: tracked {:.2} m apart after {:.2} m travelled",
+                    "loop to keyframe {matched} rejected by odometry: tracked {:.2} m apart after {:.2} m travelled{}",
                     check.distance_m,
-                    check.path_m
+                    check.path_m,
+                    rotation.unwrap_or_default()
                 );
                 false
             }
@@ -510,7 +513,7 @@ impl Pipeline {
                 return (v, odometry_failed);
             }
             let mut v = self.verify(features, id).expect("called with verification on");
-            let odometry_failed = v.accepted && !self.odometry_consistent(tracked, id);
+            let odometry_failed = v.accepted && !self.odometry_consistent(tracked, id, v.pose.as_ref());
             v.accepted &= !odometry_failed;
             checked.push((id, v, odometry_failed));
             (v, odometry_failed)

@@ -9,7 +9,7 @@ use ecm_lcd::eval::revisit::write_two_pass;
 use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::model::weights::resolve;
 use ecm_lcd::pipeline::Pipeline;
-use ecm_lcd::replay::run_source;
+use ecm_lcd::replay::{run_source, ReplayRun};
 use ecm_lcd::types::Stamp;
 
 fn shared() -> PathBuf {
@@ -174,36 +174,40 @@ fn a_node_checks_candidates_only_and_evaluation_checks_every_best_match() {
     assert_eq!(checked(false), 0);
 }
 
-#[test]
-fn the_odometry_check_rejects_loops_the_tracker_puts_elsewhere() {
-    let dir = tempfile::tempdir().unwrap();
-    let (seq, frames, two_pass_overrides) = two_pass(dir.path());
-    let overrides: Vec<(&str, &str)> =
-        two_pass_overrides.iter().copied().chain([("verification.max_drift", "0.1")]).collect();
-    let replay = |poses: &Path| {
+/// The TUM fr3 two-pass replayed with the odometry check `check` on, once with the true poses as the
+/// tracker's and once with the tracker's second pass changed by `displace`; asserts that loops
+/// between the passes are kept with the true poses and all rejected with the displaced ones. Returns
+/// the run with the true poses and the replay, for more checks.
+fn odometry_check_across_passes(
+    dir: &Path,
+    check: (&'static str, &'static str),
+    displace: impl Fn(&mut nalgebra::Isometry3<f64>),
+) -> (ReplayRun, impl Fn(&Path) -> anyhow::Result<ReplayRun>) {
+    let (seq, frames, two_pass_overrides) = two_pass(dir);
+    let overrides: Vec<(&str, &str)> = two_pass_overrides.iter().copied().chain([check]).collect();
+    let replay = move |poses: &Path| {
         let topics = ecm_lcd::io::Topics { poses: Some(poses.to_path_buf()), ..Default::default() };
         run_source(&mut pipeline(&overrides), &seq, &topics, false)
     };
     // The true poses as the tracker's: every revisit fits them.
-    let truth = seq.join("groundtruth.txt");
+    let truth = dir.join("two_pass/groundtruth.txt");
     let consistent = replay(&truth).unwrap();
     assert!(consistent.candidates.len() >= 6, "{:?}", consistent.candidates);
 
-    // A tracker that put the second pass (from frame `frames / 2` on) 10 m away, as if it were a
-    // look-alike room elsewhere: no loop between the passes fits it. (A frame without a ground-truth
-    // pose has none here either and is not checked.)
+    // A tracker that got the second pass (from frame `frames / 2` on) wrong: no loop between the
+    // passes fits it. (A frame without a ground-truth pose has none here either and is not checked.)
     let second_pass = consistent.frame_stamps[frames / 2];
     let mut poses = read_groundtruth(&truth).unwrap();
     for (stamp, pose) in &mut poses {
         if *stamp >= second_pass {
-            pose.translation.vector.x += 10.0;
+            displace(pose);
         }
     }
-    let elsewhere = dir.path().join("elsewhere.txt");
-    ecm_lcd::io::tum::write_trajectory(&elsewhere, &poses).unwrap();
-    let inconsistent = replay(&elsewhere).unwrap();
+    let displaced = dir.join("displaced.txt");
+    ecm_lcd::io::tum::write_trajectory(&displaced, &poses).unwrap();
+    let inconsistent = replay(&displaced).unwrap();
     let posed = |stamp: Stamp| poses.iter().any(|(s, _)| *s == stamp);
-    let across = |run: &ecm_lcd::replay::ReplayRun| -> Vec<(u64, u64)> {
+    let across = |run: &ReplayRun| -> Vec<(u64, u64)> {
         run.candidates
             .iter()
             .filter(|c| c.match_stamp < second_pass && c.query_stamp >= second_pass)
@@ -213,7 +217,6 @@ fn the_odometry_check_rejects_loops_the_tracker_puts_elsewhere() {
     };
     assert!(across(&consistent).len() >= 4, "{:?}", consistent.candidates);
     assert_eq!(across(&inconsistent), [], "loops between the passes");
-    assert_eq!(consistent.rejected_by_odometry, 0);
     assert!(inconsistent.rejected_by_odometry >= across(&consistent).len(), "{}", inconsistent.rejected_by_odometry);
     assert!(inconsistent.candidates.len() < consistent.candidates.len());
     assert_eq!(
@@ -221,8 +224,60 @@ fn the_odometry_check_rejects_loops_the_tracker_puts_elsewhere() {
         consistent.rejected + consistent.candidates.len(),
         "a candidate the odometry check drops is counted as rejected"
     );
+    (consistent, replay)
+}
 
+#[test]
+fn the_odometry_check_rejects_loops_the_tracker_puts_elsewhere() {
+    let dir = tempfile::tempdir().unwrap();
+    // As if the second pass were a look-alike room 10 m away.
+    let (consistent, replay) = odometry_check_across_passes(dir.path(), ("verification.max_drift", "0.1"), |pose| {
+        pose.translation.vector.x += 10.0
+    });
+    assert_eq!(consistent.rejected_by_odometry, 0, "the true poses fit every true loop");
     let missing = dir.path().join("no_such_poses.txt");
     let error = format!("{:#}", replay(&missing).unwrap_err());
     assert!(error.contains("no_such_poses.txt") && error.contains("--poses"), "{error}");
+}
+
+#[test]
+fn the_rotation_check_rejects_verified_rotations_the_tracker_contradicts() {
+    let dir = tempfile::tempdir().unwrap();
+    // Positions kept, every second-pass camera turned 60 degrees about its optical axis: each verified
+    // relative rotation between the passes is about 60 degrees off the tracker's, far beyond
+    // 10 + 1.5 degrees per metre of the few metres walked.
+    let turn = nalgebra::UnitQuaternion::from_euler_angles(0.0, 0.0, 60f64.to_radians());
+    let (checked, _) = odometry_check_across_passes(dir.path(), ("verification.max_rotation_drift", "1.5"), |pose| {
+        pose.rotation *= turn
+    });
+
+    // With the true poses as the tracker's, it drops exactly the verified loops whose relative
+    // rotation is off the truth by more than the bound: wrong poses, not drift.
+    let unchecked_dir = tempfile::tempdir().unwrap();
+    let (seq, _, overrides) = two_pass(unchecked_dir.path());
+    let unchecked = run_source(&mut pipeline(&overrides), &seq, &Default::default(), false).unwrap();
+    let mut truth = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
+    truth.sort_by_key(|(stamp, _)| *stamp);
+    let path_to = |stamp: Stamp| -> f64 {
+        let before: Vec<_> =
+            truth.iter().filter(|(s, _)| *s <= stamp).map(|(_, pose)| pose.translation.vector).collect();
+        before.windows(2).map(|w| (w[1] - w[0]).norm()).sum()
+    };
+    let pose_at = |stamp: Stamp| truth.iter().find(|(s, _)| *s == stamp).map(|(_, pose)| *pose);
+    let wrong: Vec<(u64, u64)> = unchecked
+        .candidates
+        .iter()
+        .filter(|c| {
+            let (Some(query), Some(matched)) = (pose_at(c.query_stamp), pose_at(c.match_stamp)) else { return false };
+            let verified = c.verified.as_ref().and_then(|v| v.pose.as_ref()).unwrap().rotation;
+            let error = verified.angle_to(&(matched.rotation.inverse() * query.rotation)).to_degrees();
+            error > 10.0 + 1.5 * (path_to(c.query_stamp) - path_to(c.match_stamp))
+        })
+        .map(|c| (c.query_id, c.match_id))
+        .collect();
+    assert!(wrong.len() <= 2, "{wrong:?}: most verified TUM poses are right");
+    assert_eq!(checked.rejected_by_odometry, wrong.len());
+    let kept: Vec<(u64, u64)> = checked.candidates.iter().map(|c| (c.query_id, c.match_id)).collect();
+    assert!(wrong.iter().all(|pair| !kept.contains(pair)), "{wrong:?} kept");
+    assert_eq!(kept.len() + wrong.len(), unchecked.candidates.len());
 }

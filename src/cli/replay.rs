@@ -28,7 +28,8 @@ pub struct SourceArgs {
     pub depth_topic: Option<String>,
     /// The tracker's poses of the frames: a TUM trajectory (`timestamp tx ty tz qx qy qz qw`,
     /// camera-to-world), each frame taking the pose within 20 ms of its stamp. With
-    /// `verification.max_drift`, loops that do not fit the tracker's trajectory are rejected.
+    /// `verification.max_drift` or `.max_rotation_drift`, loops that do not fit the tracker's
+    /// trajectory are rejected.
     #[arg(long, value_name = "FILE")]
     pub poses: Option<PathBuf>,
     /// Parameters (a ROS 2 params file, section `ecm_lcd`); default: built-in defaults, which
@@ -156,7 +157,7 @@ pub fn run(args: Args) -> Result<()> {
     let verification = if pipeline.verifies() {
         let odometry = match pipeline.params().verification(None).and_then(|v| v.drift) {
             Some(_) if args.source_args.poses.is_none() => {
-                " (verification.max_drift is set, but without --poses no frame has a tracker pose)".to_string()
+                " (an odometry check is set, but without --poses no frame has a tracker pose)".to_string()
             }
             Some(_) => format!(" ({} of them by the odometry check)", run.rejected_by_odometry),
             None => String::new(),
