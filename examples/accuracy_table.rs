@@ -299,14 +299,17 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
         let overrides: Vec<(&str, &str)> = permissive.iter().chain(verification).copied().collect();
         print_verification_row(&set.name, &before, &measure(set, &overrides, None, weights)?.0, tum);
         // XFeat instead of ORB, where its weights are given: XFEAT_WEIGHTS=.../xfeat.pt.
-        if let Ok(xfeat) = std::env::var("XFEAT_WEIGHTS") {
-            let learned: Vec<(&str, &str)> = overrides
+        let xfeat = std::env::var("XFEAT_WEIGHTS").ok();
+        let learned: Option<Vec<(&str, &str)>> = xfeat.as_deref().map(|xfeat| {
+            overrides
                 .iter()
                 .copied()
-                .chain([("verification.local_features", "xfeat"), ("verification.xfeat_weights", xfeat.as_str())])
-                .collect();
+                .chain([("verification.local_features", "xfeat"), ("verification.xfeat_weights", xfeat)])
+                .collect()
+        });
+        if let Some(learned) = &learned {
             let name = format!("{} + `verification.local_features` xfeat", set.name);
-            print_verification_row(&name, &before, &measure(set, &learned, None, weights)?.0, tum);
+            print_verification_row(&name, &before, &measure(set, learned, None, weights)?.0, tum);
             let more: Vec<(&str, &str)> = learned.iter().copied().chain([("verification.features", "1500")]).collect();
             let name = format!("{name}, `verification.features` 1500");
             print_verification_row(&name, &before, &measure(set, &more, None, weights)?.0, tum);
@@ -333,6 +336,10 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
             let name = format!("{} + `verification.equalise`", set.name);
             print_verification_row(&name, &before, &measure(set, &equalised, None, weights)?.0, tum);
             checked_row(name, &equalised, &sequence.path.join("odometry.txt"))?;
+            if let Some(learned) = &learned {
+                let name = format!("{} + `verification.local_features` xfeat", set.name);
+                checked_row(name, learned, &sequence.path.join("odometry.txt"))?;
+            }
         } else if tum && sequence.path.join("groundtruth.txt").is_file() {
             // Real frames: the ground truth with `synth`'s drift injected as the tracker's poses.
             let mut truth = ecm_lcd::io::tum::read_groundtruth(&sequence.path.join("groundtruth.txt"))?;
