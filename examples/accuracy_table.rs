@@ -350,6 +350,9 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
             let stamped: Vec<_> = truth.iter().map(|(stamp, _)| *stamp).zip(drifted).collect();
             ecm_lcd::io::tum::write_trajectory(&odometry, &stamped)?;
             checked_row(set.name.clone(), &overrides, &odometry)?;
+            if let Some(learned) = &learned {
+                checked_row(format!("{} + `verification.local_features` xfeat", set.name), learned, &odometry)?;
+            }
         }
     }
     Ok(())
