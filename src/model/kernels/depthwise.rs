@@ -25,16 +25,27 @@ pub fn same_padding(input: usize, kernel: usize, stride: usize) -> (usize, usize
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Activation {
     Identity,
+    /// `max(0, x)` (XFeat).
+    Relu,
+    /// `min(max(0, x), 6)` (MobileNetV2).
     Relu6,
 }
 
 impl Activation {
     #[inline(always)]
     fn apply(self, row: &mut [f32]) {
-        if self == Activation::Relu6 {
-            for v in row {
-                *v = v.clamp(0.0, 6.0);
-            }
+        for v in row {
+            *v = self.of(*v);
+        }
+    }
+
+    /// The activation of one value.
+    #[inline(always)]
+    pub(crate) fn of(self, v: f32) -> f32 {
+        match self {
+            Activation::Identity => v,
+            Activation::Relu => v.max(0.0),
+            Activation::Relu6 => v.clamp(0.0, 6.0),
         }
     }
 
@@ -42,6 +53,7 @@ impl Activation {
     pub fn forward(self, x: &Tensor) -> Result<Tensor> {
         match self {
             Activation::Identity => Ok(x.clone()),
+            Activation::Relu => x.relu(),
             Activation::Relu6 => x.clamp(0f32, 6f32),
         }
     }
@@ -231,13 +243,12 @@ fn convolve_plane_3x3(g: &PlaneGeometry, src: &[f32], w: &[f32], bias: f32, act:
         let PaddedPlane { data, flat_out, .. } = &mut padded;
         g.fill_padded_3x3(&layout, src, data);
         let (pitch, offsets) = (layout.pitch, layout.offsets);
-        let relu6 = act == Activation::Relu6;
         if ow >= WHOLE_PLANE_BELOW_WIDTH {
             for (oy, out_row) in out.chunks_exact_mut(ow).enumerate() {
-                tap_sum(out_row, bias, w, offsets.map(|o| &data[o + oy * pitch..]), relu6);
+                tap_sum(out_row, bias, w, offsets.map(|o| &data[o + oy * pitch..]), act);
             }
         } else {
-            tap_sum(flat_out, bias, w, offsets.map(|o| &data[o..]), relu6);
+            tap_sum(flat_out, bias, w, offsets.map(|o| &data[o..]), act);
             for (out_row, flat_row) in out.chunks_exact_mut(ow).zip(flat_out.chunks(pitch)) {
                 out_row.copy_from_slice(&flat_row[..ow]);
             }
@@ -341,16 +352,17 @@ fn split_columns(row: &[f32], first_is_odd: usize, even: &mut [f32], odd: &mut [
 /// `dst[i] = act(bias + Σ_k w[k] · taps[k][i])` over a row. Every tap is cut to `dst`'s length
 /// first, so the loop runs without bounds checks and vectorises (one FMA per tap and lane).
 #[inline(always)]
-fn tap_sum(dst: &mut [f32], bias: f32, w: &[f32], taps: [&[f32]; 9], relu6: bool) {
-    if relu6 {
-        tap_sum_with::<true>(dst, bias, w, taps)
-    } else {
-        tap_sum_with::<false>(dst, bias, w, taps)
+fn tap_sum(dst: &mut [f32], bias: f32, w: &[f32], taps: [&[f32]; 9], act: Activation) {
+    // One loop per activation, so that each vectorises without a branch.
+    match act {
+        Activation::Identity => tap_sum_with::<{ Activation::Identity as u8 }>(dst, bias, w, taps),
+        Activation::Relu => tap_sum_with::<{ Activation::Relu as u8 }>(dst, bias, w, taps),
+        Activation::Relu6 => tap_sum_with::<{ Activation::Relu6 as u8 }>(dst, bias, w, taps),
     }
 }
 
 #[inline(always)]
-fn tap_sum_with<const RELU6: bool>(dst: &mut [f32], bias: f32, w: &[f32], taps: [&[f32]; 9]) {
+fn tap_sum_with<const ACT: u8>(dst: &mut [f32], bias: f32, w: &[f32], taps: [&[f32]; 9]) {
     let n = dst.len();
     let w: &[f32; 9] = w.try_into().expect("3x3 taps");
     let [t0, t1, t2, t3, t4, t5, t6, t7, t8] = taps;
@@ -366,7 +378,13 @@ fn tap_sum_with<const RELU6: bool>(dst: &mut [f32], bias: f32, w: &[f32], taps: 
         acc = t6[i].mul_add(w[6], acc);
         acc = t7[i].mul_add(w[7], acc);
         acc = t8[i].mul_add(w[8], acc);
-        dst[i] = if RELU6 { acc.clamp(0.0, 6.0) } else { acc };
+        dst[i] = if ACT == Activation::Relu6 as u8 {
+            acc.clamp(0.0, 6.0)
+        } else if ACT == Activation::Relu as u8 {
+            acc.max(0.0)
+        } else {
+            acc
+        };
     }
 }
 

@@ -331,7 +331,7 @@ impl FusedBottleneck {
                     ldo: self.pitch,
                     residual: std::ptr::null(),
                     ldr: 0,
-                    relu6: true,
+                    activation: Activation::Relu6,
                 };
                 // SAFETY: `source` holds the row's `w` pixels of `input`, `pixels` `w` of `pitch`.
                 unsafe { pointwise(&p) }
@@ -426,7 +426,7 @@ impl FusedBottleneck {
                     ldo: self.output,
                     residual: if residual.is_null() { residual } else { residual.wrapping_add(first * self.input) },
                     ldr: self.input,
-                    relu6: false,
+                    activation: Activation::Identity,
                 };
                 // SAFETY: the buffer holds the band's pixels of `pitch`; `out` and the residual
                 // (same shape) hold the whole map, whose band rows are this task's alone.
@@ -497,7 +497,7 @@ impl FusedBottleneck {
                 ldo: self.output,
                 residual,
                 ldr: self.input,
-                relu6: false,
+                activation: Activation::Identity,
             };
             // SAFETY: `depthwise_out` holds oh*ow pixels of `pitch`, `out` and the residual
             // (same shape) oh*ow pixels of `output` channels.
@@ -587,7 +587,7 @@ impl FusedBottleneck {
                     ldo: self.output,
                     residual: if residual.is_null() { residual } else { residual.wrapping_add(oy * ow * self.input) },
                     ldr: self.input,
-                    relu6: false,
+                    activation: Activation::Identity,
                 };
                 // SAFETY: the scratch row holds `ow` pixels of `pitch`; output row `oy` (and the
                 // residual's) is this task's alone (the caller's contract).
@@ -636,35 +636,71 @@ impl CustomOp1 for FusedBottleneck {
     }
 }
 
-/// A folded convolution with "SAME" padding, fused bias and activation, on channels-last output:
-/// a full convolution (the stem) reads the NCHW image and multiplies each output row's columns
-/// by the weights; a 1x1 convolution (the head) is one product on the channels-last pixels.
+/// A folded convolution with fused bias and activation, on channels-last output: a full
+/// convolution (the stem) reads the NCHW image and multiplies each output row's columns by the
+/// weights; a 1x1 convolution (the head) is one product on the channels-last pixels.
 #[derive(Debug)]
 pub struct DenseConv {
     in_channels: usize,
     out_channels: usize,
     kernel: (usize, usize),
     stride: usize,
+    padding: Padding,
     /// `[in * kh * kw, out]`.
     weights: PackedWeights,
-    relu6: bool,
+    activation: Activation,
+}
+
+/// Where a full convolution's zero padding goes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Padding {
+    /// TensorFlow's "SAME" (the TFLite networks): `ceil(size / stride)` outputs, the odd extra
+    /// pixel of padding at the bottom and right.
+    Same,
+    /// PyTorch's `padding = kernel / 2` on every side (XFeat).
+    HalfKernel,
+}
+
+impl Padding {
+    /// Output size and padding before the first pixel, along a side of `input` pixels.
+    fn geometry(self, input: usize, kernel: usize, stride: usize) -> (usize, usize) {
+        match self {
+            Padding::Same => {
+                let (out, before, _) = same_padding(input, kernel, stride);
+                (out, before)
+            }
+            Padding::HalfKernel => ((input + 2 * (kernel / 2) - kernel) / stride + 1, kernel / 2),
+        }
+    }
 }
 
 impl DenseConv {
+    /// With TensorFlow's "SAME" padding.
     pub fn new(weight: &Tensor, bias: &Tensor, stride: usize, activation: Activation) -> Result<Self> {
+        Self::with_padding(weight, bias, stride, Padding::Same, activation)
+    }
+
+    pub fn with_padding(
+        weight: &Tensor,
+        bias: &Tensor,
+        stride: usize,
+        padding: Padding,
+        activation: Activation,
+    ) -> Result<Self> {
         let (out_channels, in_channels, kh, kw) = weight.dims4()?;
         Ok(DenseConv {
             in_channels,
             out_channels,
             kernel: (kh, kw),
             stride,
+            padding,
             weights: PackedWeights::from_output_major(
                 &to_vec(weight)?,
                 &to_vec(bias)?,
                 out_channels,
                 in_channels * kh * kw,
             ),
-            relu6: activation == Activation::Relu6,
+            activation,
         })
     }
 
@@ -675,7 +711,7 @@ impl DenseConv {
 
     /// Output height and width for an `h x w` image (a full convolution).
     fn output_size(&self, h: usize, w: usize) -> (usize, usize) {
-        (same_padding(h, self.kernel.0, self.stride).0, same_padding(w, self.kernel.1, self.stride).0)
+        (self.padding.geometry(h, self.kernel.0, self.stride).0, self.padding.geometry(w, self.kernel.1, self.stride).0)
     }
 
     /// `f` of the NCHW image `x` (`[in, h, w]`) zero-padded for this convolution, in a buffer
@@ -683,8 +719,8 @@ impl DenseConv {
     /// the image is copied in.
     fn with_padded<R>(&self, x: &[f32], h: usize, w: usize, f: impl FnOnce(&PaddedImage) -> R) -> R {
         let ((kh, kw), s) = (self.kernel, self.stride);
-        let (oh, top, _) = same_padding(h, kh, s);
-        let (ow, left, _) = same_padding(w, kw, s);
+        let (oh, top) = self.padding.geometry(h, kh, s);
+        let (ow, left) = self.padding.geometry(w, kw, s);
         let (ph, pw) = ((oh - 1) * s + kh, (ow - 1) * s + kw);
         let shape = (self.in_channels, ph, pw, top, left, h, w);
         let size = self.in_channels * ph * pw;
@@ -739,7 +775,7 @@ impl DenseConv {
             ldo,
             residual: std::ptr::null(),
             ldr: 0,
-            relu6: self.relu6,
+            activation: self.activation,
         };
         // SAFETY: every patch of the row lies in the padded image (its size covers the last
         // patch); the caller's contract for `out`.
@@ -811,7 +847,7 @@ impl CustomOp1 for DenseConv {
                         ldo: self.out_channels,
                         residual: std::ptr::null(),
                         ldr: 0,
-                        relu6: self.relu6,
+                        activation: self.activation,
                     };
                     // SAFETY: `x` and `out` hold all the pixels of the batch.
                     pointwise_parallel(&p)
@@ -823,8 +859,7 @@ impl CustomOp1 for DenseConv {
         if channels != self.in_channels {
             candle_core::bail!("dense conv: {channels} input channels, expected {}", self.in_channels);
         }
-        let ((kh, kw), s) = (self.kernel, self.stride);
-        let (oh, ow) = (same_padding(h, kh, s).0, same_padding(w, kw, s).0);
+        let (oh, ow) = self.output_size(h, w);
         let per_image = oh * ow * self.out_channels;
         // SAFETY: each image's convolution writes all of its `per_image` floats.
         let out = unsafe {
@@ -993,6 +1028,26 @@ mod tests {
             let layered = pool.install(|| unit.forward_t(&x, Mode::Inference))?;
             let diff = max_diff(&layered, &reference);
             assert!(diff < 1e-4, "{kernel}x{kernel} s{stride} {h}x{w} -> {out}: layer's inference max diff {diff}");
+        }
+        Ok(())
+    }
+
+    #[test]
+    fn dense_conv_with_half_kernel_padding_and_relu_equals_stock_ops() -> Result<()> {
+        // PyTorch's padding (XFeat): 3x3 at strides 1 and 2 on odd and even sizes, and 1x1.
+        let cases = [(3, 1, 12, 16, 8), (3, 2, 12, 16, 24), (3, 2, 9, 13, 4), (3, 1, 7, 5, 64), (1, 1, 6, 10, 65)];
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        for (kernel, stride, h, w, out) in cases {
+            let (weight, bias) = (random(&[out, 5, kernel, kernel], 1.0), random(&[out], 1.0));
+            let op = DenseConv::with_padding(&weight, &bias, stride, Padding::HalfKernel, Activation::Relu)?;
+            let x = random(&[1, 5, h, w], 2.0);
+            let input = if op.is_pointwise() { to_channels_last(&x)? } else { x.contiguous()? };
+            let fast = pool.install(|| channels_first(&input.apply_op1_no_bwd(&op)?))?;
+            let reference =
+                x.conv2d(&weight, kernel / 2, stride, 1, 1)?.broadcast_add(&bias.reshape((1, out, 1, 1))?)?.relu()?;
+            assert_eq!(fast.dims(), reference.dims(), "{kernel}x{kernel} s{stride} {h}x{w}");
+            let diff = max_diff(&fast, &reference);
+            assert!(diff < 1e-4, "{kernel}x{kernel} s{stride} {h}x{w} -> {out}: max diff {diff}");
         }
         Ok(())
     }

@@ -17,6 +17,8 @@
 
 use std::ops::Range;
 
+use super::depthwise::Activation;
+
 /// Lanes per vector.
 pub const LANES: usize = 16;
 
@@ -46,6 +48,7 @@ pub(crate) trait Lanes: Copy {
     /// `self * b + c`.
     fn mul_add(self, b: Self, c: Self) -> Self;
     fn add(self, b: Self) -> Self;
+    fn relu(self) -> Self;
     fn relu6(self) -> Self;
     fn to_array(self) -> [f32; LANES];
     /// Adds the lanes to `sums` (16 values) in double precision.
@@ -99,6 +102,10 @@ impl Lanes for Portable {
     #[inline(always)]
     fn add(self, b: Self) -> Self {
         Portable(std::array::from_fn(|i| self.0[i] + b.0[i]))
+    }
+    #[inline(always)]
+    fn relu(self) -> Self {
+        Portable(self.0.map(|v| v.max(0.0)))
     }
     #[inline(always)]
     fn relu6(self) -> Self {
@@ -155,6 +162,10 @@ mod avx512 {
         #[inline(always)]
         fn add(self, b: Self) -> Self {
             Avx512(unsafe { _mm512_add_ps(self.0, b.0) })
+        }
+        #[inline(always)]
+        fn relu(self) -> Self {
+            Avx512(unsafe { _mm512_max_ps(self.0, _mm512_setzero_ps()) })
         }
         #[inline(always)]
         fn relu6(self) -> Self {
@@ -246,6 +257,11 @@ mod avx2 {
         #[inline(always)]
         fn add(self, b: Self) -> Self {
             Avx2(unsafe { [_mm256_add_ps(self.0[0], b.0[0]), _mm256_add_ps(self.0[1], b.0[1])] })
+        }
+        #[inline(always)]
+        fn relu(self) -> Self {
+            let max = |v| unsafe { _mm256_max_ps(v, _mm256_setzero_ps()) };
+            Avx2([max(self.0[0]), max(self.0[1])])
         }
         #[inline(always)]
         fn relu6(self) -> Self {
@@ -411,7 +427,7 @@ impl PackedWeights {
 }
 
 /// One call of [`pointwise`]: rows `0..rows` and output columns `columns` of
-/// `out[r, c] = bias[c] + sum_i a[r, i] weight[i, c] (+ residual[r, c])`, ReLU6 if `relu6`.
+/// `out[r, c] = activation(bias[c] + sum_i a[r, i] weight[i, c] (+ residual[r, c]))`.
 pub(crate) struct Pointwise<'a> {
     pub rows: usize,
     /// Row `r` of the left operand starts at `a + r * lda`; step `i` of its sum reads the float
@@ -428,7 +444,7 @@ pub(crate) struct Pointwise<'a> {
     /// Null, or a matrix added before the activation, with row pitch `ldr`.
     pub residual: *const f32,
     pub ldr: usize,
-    pub relu6: bool,
+    pub activation: Activation,
 }
 
 // SAFETY: the pointers are read, or written in parts that no two threads share (the callers' contract).
@@ -671,8 +687,10 @@ impl Tile<'_, '_> {
         if !p.residual.is_null() {
             v = v.add(unsafe { L::load_first(p.residual.add(r * p.ldr + column), n) });
         }
-        if p.relu6 {
-            v = v.relu6();
+        match p.activation {
+            Activation::Identity => {}
+            Activation::Relu => v = v.relu(),
+            Activation::Relu6 => v = v.relu6(),
         }
         let out = unsafe { p.out.add(r * p.ldo + column) };
         if n == LANES {
@@ -832,16 +850,17 @@ mod tests {
     /// residual and activation.
     #[test]
     fn pointwise_equals_naive_product_in_every_build() {
-        for (rows, k, n, columns, residual, relu6) in [
-            (1, 3, 5, 0..5, false, false),
-            (13, 27, 32, 0..32, false, true),
-            (37, 16, 96, 48..96, false, true),
-            (25, 96, 24, 0..24, true, false),
-            (49, 320, 1280, 640..1280, false, true),
-            (7, 64, 144, 0..144, true, true),
-            (50, 40, 160, 16..112, true, false),
-            (70, 17, 16, 0..16, true, true),
-            (100, 24, 144, 0..144, false, true),
+        use Activation::{Identity, Relu, Relu6};
+        for (rows, k, n, columns, residual, activation) in [
+            (1, 3, 5, 0..5, false, Identity),
+            (13, 27, 32, 0..32, false, Relu6),
+            (37, 16, 96, 48..96, false, Relu),
+            (25, 96, 24, 0..24, true, Identity),
+            (49, 320, 1280, 640..1280, false, Relu6),
+            (7, 64, 144, 0..144, true, Relu),
+            (50, 40, 160, 16..112, true, Identity),
+            (70, 17, 16, 0..16, true, Relu6),
+            (100, 24, 144, 0..144, false, Relu),
         ] {
             let (lda, ldo) = (k + 3, n + 5);
             let a = random(rows * lda, 1);
@@ -856,7 +875,7 @@ mod tests {
                     if residual {
                         v += res[r * ldo + c];
                     }
-                    expected[r * ldo + c] = if relu6 { v.clamp(0.0, 6.0) } else { v };
+                    expected[r * ldo + c] = activation.of(v);
                 }
             }
             let run = |build: Build| {
@@ -872,7 +891,7 @@ mod tests {
                     ldo,
                     residual: if residual { res.as_ptr() } else { std::ptr::null() },
                     ldr: ldo,
-                    relu6,
+                    activation,
                 };
                 unsafe { pointwise_in(build, &p) };
                 out
