@@ -20,15 +20,21 @@ pub use crate::model::xfeat::FEATURE_DIM;
 
 /// Images are scaled down to at most this width for the network (its published setting, VGA).
 pub const MAX_INPUT_WIDTH: u32 = 640;
+/// ... and up to at least this width: a low-resolution camera's image has too few of XFeat's 8-pixel
+/// cells to match (64x48 would have 8x4), while its upscaled copy keeps matching.
+pub const MIN_INPUT_WIDTH: u32 = 320;
 /// Cosine similarity a match must exceed (XFeat's `match` default).
 pub const MIN_COSINE: f32 = 0.82;
 /// Quantisation of unit features to `i8`.
 const SCALE: f32 = 127.0;
 
 /// The network's input size for an image of `size` (width, height): scaled to at most
-/// [`MAX_INPUT_WIDTH`] wide, each side cut down to a multiple of 32.
+/// [`MAX_INPUT_WIDTH`] and at least [`MIN_INPUT_WIDTH`] wide, each side cut down to a multiple of 32.
 pub fn input_size(size: [u32; 2]) -> [u32; 2] {
-    let scale = (MAX_INPUT_WIDTH as f64 / size[0] as f64).min(1.0);
+    if size[0] == 0 || size[1] == 0 {
+        return [0, 0];
+    }
+    let scale = (MAX_INPUT_WIDTH as f64 / size[0] as f64).min(1.0).max(MIN_INPUT_WIDTH as f64 / size[0] as f64);
     let cut = |side: u32| ((side as f64 * scale) as u32) / SIDE_MULTIPLE as u32 * SIDE_MULTIPLE as u32;
     [cut(size[0]), cut(size[1])]
 }
@@ -142,12 +148,15 @@ mod tests {
     }
 
     #[test]
-    fn input_sizes_are_multiples_of_32_at_most_640_wide() {
+    fn input_sizes_are_multiples_of_32_from_320_to_640_wide() {
         assert_eq!(input_size([960, 540]), [640, 352]);
         assert_eq!(input_size([640, 480]), [640, 480]);
         assert_eq!(input_size([320, 240]), [320, 224]);
-        assert_eq!(input_size([20, 20]), [0, 0]);
+        assert_eq!(input_size([64, 48]), [320, 224]);
+        assert_eq!(input_size([160, 120]), [320, 224]);
+        assert_eq!(input_size([0, 20]), [0, 0]);
         assert!((input_scale([960, 540]) - 540.0 / 352.0).abs() < 1e-9);
         assert_eq!(input_scale([640, 480]), 1.0);
+        assert!((input_scale([64, 48]) - 48.0 / 224.0).abs() < 1e-9);
     }
 }
