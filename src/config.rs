@@ -332,7 +332,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "verification.mode",
             "auto",
             &["auto", "on", "off"],
-            "Geometric verification of loop candidates (ORB features and RANSAC): auto = on when the camera intrinsics are known (camera.*).",
+            "Geometric verification of loop candidates (ORB features and RANSAC): auto = on when the camera intrinsics are known (camera.*, camera_info, or carried by a replayed source).",
         ),
         integer(
             "verification.min_inliers",

@@ -572,7 +572,7 @@ impl Pipeline {
             match &mut self.verifier {
                 Some(verifier) => verifier.set_params(params),
                 None => {
-                    log::info!("geometric verification on from camera_info: {params:?}");
+                    log::info!("geometric verification on, with the camera intrinsics now known: {params:?}");
                     self.verifier = Some(Verifier::new(params)?);
                     self.restore_local_features()?;
                 }

@@ -171,6 +171,14 @@ fn replay_frames(
         None => None,
     };
     log::info!("replaying {}", frames.describe());
+    if let Some(carried) = frames.intrinsics() {
+        if pipeline.params().intrinsics().is_some() {
+            log::info!("camera intrinsics from the camera.* parameters; {} not used", carried.origin);
+        } else {
+            log::info!("camera intrinsics from {}: {:?}", carried.origin, carried.intrinsics);
+            pipeline.set_camera_info(carried.intrinsics)?;
+        }
+    }
     let bar = if progress { ProgressBar::new(frames.len_hint().unwrap_or(0) as u64) } else { ProgressBar::hidden() };
     bar.set_style(
         ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} frames, {per_sec}, {msg}")

@@ -74,6 +74,17 @@ fn rosbags_written_bags_read_with_every_encoding() {
         }
         let err = open_source(&path, None).err().unwrap().to_string();
         assert!(err.contains("11 image topics") && err.contains("/mono16_be (sensor_msgs"), "{bag}: {err}");
+        // The calibration beside the image topics (the fixture's CAMERA_K), raw or compressed.
+        for topic in ["/rgb8", "/jpeg"] {
+            let source = open_source(&path, Some(topic)).unwrap();
+            let carried = source.intrinsics().unwrap_or_else(|| panic!("{bag} {topic}: no intrinsics"));
+            let expected = ecm_lcd::verification::Intrinsics { fx: 525.25, fy: 526.5, cx: 7.75, cy: 5.5 };
+            assert_eq!(
+                (carried.intrinsics, carried.origin.as_str()),
+                (expected, "topic /camera_info"),
+                "{bag} {topic}"
+            );
+        }
         check_depth_pairing(bag, &path);
     }
     // The storage file of a ROS 2 bag folder opens directly too.
@@ -189,9 +200,10 @@ fn our_bags_read_by_rosbags_and_by_us() {
 }
 
 /// A synthetic sequence with depth, written by `rosbags` as a ROS 1 bag laid out like TUM's (rgb8
-/// colour, 32FC1 depth on its own topic), replays through the binary like the TUM folder it came from:
-/// the same candidates, each verified with a metric pose. Without `--depth-topic` the same bag gives
-/// poses up to scale only.
+/// colour with its `camera_info`, 32FC1 depth on its own topic), replays through the binary like the
+/// TUM folder it came from, given the same intrinsics as parameters: the same candidates, each verified
+/// with a metric pose. The bag's intrinsics come from its `camera_info` alone. Without
+/// `--depth-topic` the same bag gives poses up to scale only.
 #[test]
 fn a_tum_style_bag_with_depth_replays_like_its_folder() {
     let dir = tempfile::tempdir().unwrap();
@@ -199,20 +211,21 @@ fn a_tum_style_bag_with_depth_replays_like_its_folder() {
     let bag = dir.path().join("seq.bag");
     let arg = |p: &Path| p.to_str().unwrap().to_string();
     support::ecm_lcd_ok(&["synth", "-o", &arg(&seq), "--frames", "240", "--laps", "2", "--rate", "5", "--depth"]);
-    support::rosbags_fixtures(&["tum-bag".as_ref(), seq.as_os_str(), bag.as_os_str()]);
     // The renderer's camera: focal 0.82 * width, principal point at the centre.
-    let camera = ["camera.fx=262.4", "camera.fy=262.4", "camera.cx=160", "camera.cy=120"];
+    let (fx, fy, cx, cy) = ("262.4", "262.4", "160", "120");
+    let tum_bag = ["tum-bag", &arg(&seq), &arg(&bag), fx, fy, cx, cy];
+    support::rosbags_fixtures(&tum_bag.map(std::ffi::OsStr::new));
     let replay = |source: &Path, extra: &[&str], name: &str| {
         let out = dir.path().join(name);
         let mut args = vec!["replay".to_string(), arg(source), "-o".into(), arg(&out), "--quiet".into()];
         args.extend(extra.iter().map(|s| s.to_string()));
-        for param in camera {
-            args.extend(["--param".to_string(), param.to_string()]);
-        }
         support::ecm_lcd_ok(&args.iter().map(String::as_str).collect::<Vec<_>>());
         ecm_lcd::io::candidates::read_candidates_csv(&out).unwrap()
     };
-    let from_folder = replay(&seq, &[], "folder.csv");
+    let camera =
+        [format!("camera.fx={fx}"), format!("camera.fy={fy}"), format!("camera.cx={cx}"), format!("camera.cy={cy}")];
+    let camera: Vec<&str> = camera.iter().flat_map(|p| ["--param", p.as_str()]).collect();
+    let from_folder = replay(&seq, &camera, "folder.csv");
     let from_bag =
         replay(&bag, &["--topic", "/camera/rgb/image_color", "--depth-topic", "/camera/depth/image"], "bag.csv");
     let without_depth = replay(&bag, &["--topic", "/camera/rgb/image_color"], "no_depth.csv");

@@ -108,6 +108,31 @@ fn verified_relative_poses_agree_with_the_ground_truth() {
     assert!(direction_error <= 5.0, "median translation direction error {direction_error} deg");
 }
 
+/// A folder named as the TUM benchmark names its fr3 sequences gives the fr3 intrinsics by itself:
+/// replayed without `camera.*` parameters, it verifies as the same frames do with the preset.
+#[test]
+fn a_tum_folder_name_gives_verification_its_intrinsics() {
+    let dir = tempfile::tempdir().unwrap();
+    let (seq, _, overrides) = two_pass(dir.path());
+    let named = dir.path().join("rgbd_dataset_freiburg3_two_pass");
+    write_two_pass(&shared().join("data/tum/fr3_long_office_household"), &named, 1.0, 0.05).unwrap();
+    let without_preset: Vec<_> = overrides.iter().copied().filter(|(name, _)| *name != "camera.preset").collect();
+    let mut plain = pipeline(&without_preset);
+    assert!(!plain.verifies(), "no intrinsics in the parameters");
+    let from_name = run_source(&mut plain, &named, &Default::default(), false).unwrap();
+    assert!(plain.verifies(), "the folder name turned verification on");
+    let from_preset = run_source(&mut pipeline(&overrides), &seq, &Default::default(), false).unwrap();
+    let summary = |run: &ReplayRun| -> Vec<_> {
+        run.candidates.iter().map(|c| (c.query_id, c.match_id, c.verified.and_then(|v| v.pose))).collect()
+    };
+    assert!(from_preset.candidates.len() >= 6, "{} verified candidates", from_preset.candidates.len());
+    assert_eq!(summary(&from_name), summary(&from_preset));
+    assert_eq!(from_name.rejected, from_preset.rejected);
+    // Under another name the same frames have no intrinsics, so nothing is verified.
+    let unnamed = run_source(&mut pipeline(&without_preset), &seq, &Default::default(), false).unwrap();
+    assert!(unnamed.candidates.iter().all(|c| c.verified.is_none()) && unnamed.rejected == 0);
+}
+
 #[test]
 fn camera_info_turns_verification_on_in_auto_mode_only() {
     let fr3 = ecm_lcd::verification::Intrinsics::preset("tum_fr3").unwrap();

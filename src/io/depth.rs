@@ -117,6 +117,10 @@ pub trait MessageSource: Iterator<Item = Result<BagMessage>> + Send {
     fn describe(&self) -> String;
     /// Number of colour frames if known up front.
     fn len_hint(&self) -> Option<usize>;
+    /// The calibration beside the colour topic, if the bag has one.
+    fn intrinsics(&self) -> Option<super::SourceIntrinsics> {
+        None
+    }
 }
 
 /// Colour frames of a [`MessageSource`] with their depth attached (module doc); a source without a
@@ -217,6 +221,10 @@ impl<S: MessageSource> super::FrameSource for DepthPaired<S> {
 
     fn len_hint(&self) -> Option<usize> {
         self.inner.len_hint()
+    }
+
+    fn intrinsics(&self) -> Option<super::SourceIntrinsics> {
+        self.inner.intrinsics()
     }
 }
 

@@ -1,5 +1,5 @@
 //! ROS image messages (`sensor_msgs/Image`, `sensor_msgs/CompressedImage`) to and from
-//! [`image::RgbImage`], and their two wire formats: ROS 1 serialisation (little-endian, no
+//! [`image::RgbImage`], the calibration beside them (`sensor_msgs/CameraInfo`), and their two wire formats: ROS 1 serialisation (little-endian, no
 //! alignment, u32-length-prefixed strings and arrays, `uint32 seq` first in the header) and
 //! ROS 2 CDR (4-byte encapsulation header, then aligned little- or big-endian data).
 //!
@@ -18,7 +18,7 @@ use anyhow::{bail, ensure, Context, Result};
 use byteorder::{BigEndian, LittleEndian};
 use image::RgbImage;
 
-use super::msgs::{CompressedImage, Header, Image};
+use super::msgs::{CameraInfo, CompressedImage, Header, Image, RegionOfInterest};
 use crate::types::Stamp;
 
 /// The two image message types a source can carry.
@@ -145,25 +145,9 @@ impl ImageMessage {
 
     /// Parses a CDR payload (with its 4-byte encapsulation header) of the given kind.
     pub fn from_cdr(kind: ImageKind, bytes: &[u8]) -> Result<ImageMessage> {
-        ensure!(bytes.len() >= 4, "CDR payload of {} bytes is shorter than its 4-byte header", bytes.len());
-        let body = &bytes[4..];
-        let little_endian = match bytes[..2] {
-            [0, 0] => false,
-            [0, 1] => true,
-            [a, b] => bail!("unsupported CDR encapsulation {a:#04x} {b:#04x} (expected plain CDR, 00 00 or 00 01)"),
-            _ => unreachable!("slice of two"),
-        };
-        fn parse<'de, T: serde::Deserialize<'de>>(body: &'de [u8], little_endian: bool) -> Result<T> {
-            let parsed = if little_endian {
-                cdr_encoding::from_bytes::<T, LittleEndian>(body)
-            } else {
-                cdr_encoding::from_bytes::<T, BigEndian>(body)
-            };
-            Ok(parsed.map_err(|e| anyhow::anyhow!("{e}"))?.0)
-        }
         let message = match kind {
-            ImageKind::Raw => parse(body, little_endian).map(ImageMessage::Raw),
-            ImageKind::Compressed => parse(body, little_endian).map(ImageMessage::Compressed),
+            ImageKind::Raw => parse_cdr(bytes).map(ImageMessage::Raw),
+            ImageKind::Compressed => parse_cdr(bytes).map(ImageMessage::Compressed),
         };
         message.with_context(|| format!("{} CDR message of {} bytes", kind.ros2_type(), bytes.len()))
     }
@@ -180,6 +164,51 @@ impl ImageMessage {
         out.extend_from_slice(&body);
         Ok(out)
     }
+}
+
+/// Parses a CDR payload: its 4-byte encapsulation header, then the message.
+fn parse_cdr<T: serde::de::DeserializeOwned>(bytes: &[u8]) -> Result<T> {
+    ensure!(bytes.len() >= 4, "CDR payload of {} bytes is shorter than its 4-byte header", bytes.len());
+    let body = &bytes[4..];
+    let parsed = match bytes[..2] {
+        [0, 0] => cdr_encoding::from_bytes::<T, BigEndian>(body),
+        [0, 1] => cdr_encoding::from_bytes::<T, LittleEndian>(body),
+        [a, b] => bail!("unsupported CDR encapsulation {a:#04x} {b:#04x} (expected plain CDR, 00 00 or 00 01)"),
+        _ => unreachable!("slice of two"),
+    };
+    Ok(parsed.map_err(|e| anyhow::anyhow!("{e}"))?.0)
+}
+
+/// `sensor_msgs/CameraInfo` from ROS 1 serialised bytes (the ROS 2 layout, with `uint32 seq` in the
+/// header).
+pub fn camera_info_from_ros1(bytes: &[u8]) -> Result<CameraInfo> {
+    let mut reader = Ros1Reader { bytes, pos: 0 };
+    let header = reader.header()?;
+    let (height, width, distortion_model) = (reader.u32()?, reader.u32()?, reader.string()?);
+    let d_len = reader.u32()? as usize;
+    let d = (0..d_len).map(|_| reader.f64()).collect::<Result<Vec<f64>>>()?;
+    let k = reader.f64_array::<9>()?;
+    let r = reader.f64_array::<9>()?;
+    let p = reader.f64_array::<12>()?;
+    let (binning_x, binning_y) = (reader.u32()?, reader.u32()?);
+    let roi = RegionOfInterest {
+        x_offset: reader.u32()?,
+        y_offset: reader.u32()?,
+        height: reader.u32()?,
+        width: reader.u32()?,
+        do_rectify: reader.u8()? != 0,
+    };
+    ensure!(
+        reader.pos == bytes.len(),
+        "{} bytes left over after the sensor_msgs/CameraInfo message",
+        bytes.len() - reader.pos
+    );
+    Ok(CameraInfo { header, height, width, distortion_model, d, k, r, p, binning_x, binning_y, roi })
+}
+
+/// `sensor_msgs/CameraInfo` from a CDR payload.
+pub fn camera_info_from_cdr(bytes: &[u8]) -> Result<CameraInfo> {
+    parse_cdr(bytes).with_context(|| format!("sensor_msgs/msg/CameraInfo CDR message of {} bytes", bytes.len()))
 }
 
 fn put_ros1_bytes(out: &mut Vec<u8>, bytes: &[u8]) {
@@ -214,6 +243,19 @@ impl<'a> Ros1Reader<'a> {
     fn u32(&mut self) -> Result<u32> {
         let b = self.take(4, "uint32")?;
         Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+    }
+
+    fn f64(&mut self) -> Result<f64> {
+        let b = self.take(8, "float64")?;
+        Ok(f64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
+    }
+
+    fn f64_array<const N: usize>(&mut self) -> Result<[f64; N]> {
+        let mut values = [0.0; N];
+        for v in &mut values {
+            *v = self.f64()?;
+        }
+        Ok(values)
     }
 
     fn byte_array(&mut self) -> Result<Vec<u8>> {
@@ -457,6 +499,53 @@ pub fn jpeg_message(stamp: Stamp, frame_id: &str, image: &RgbImage, quality: u8)
 mod tests {
     use super::*;
 
+    #[test]
+    fn camera_info_reads_from_both_wire_formats() {
+        let info = CameraInfo {
+            header: Header { stamp: super::super::msgs::Time { sec: 5, nanosec: 7 }, frame_id: "rgb".into() },
+            height: 480,
+            width: 640,
+            distortion_model: "plumb_bob".into(),
+            d: vec![0.25, -0.5, 0.0, 0.0, 1.0],
+            k: [525.0, 0.0, 319.5, 0.0, 526.0, 239.5, 0.0, 0.0, 1.0],
+            r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            p: [525.0, 0.0, 319.5, 0.0, 0.0, 526.0, 239.5, 0.0, 0.0, 0.0, 1.0, 0.0],
+            binning_x: 1,
+            binning_y: 2,
+            roi: RegionOfInterest { x_offset: 1, y_offset: 2, height: 3, width: 4, do_rectify: true },
+        };
+        let mut cdr = vec![0, 1, 0, 0];
+        cdr.extend(cdr_encoding::to_vec::<_, LittleEndian>(&info).unwrap());
+        assert_eq!(camera_info_from_cdr(&cdr).unwrap(), info);
+        // ROS 1: `uint32 seq` first, then the same fields unaligned; `float64[]` carries a length.
+        let mut ros1 = Vec::new();
+        for v in [9u32, 5, 7] {
+            ros1.extend(v.to_le_bytes());
+        }
+        put_ros1_bytes(&mut ros1, b"rgb");
+        ros1.extend(480u32.to_le_bytes());
+        ros1.extend(640u32.to_le_bytes());
+        put_ros1_bytes(&mut ros1, b"plumb_bob");
+        ros1.extend(5u32.to_le_bytes());
+        for v in info.d.iter().chain(&info.k).chain(&info.r).chain(&info.p) {
+            ros1.extend(v.to_le_bytes());
+        }
+        for v in [1u32, 2, 1, 2, 3, 4] {
+            ros1.extend(v.to_le_bytes());
+        }
+        ros1.push(1);
+        assert_eq!(camera_info_from_ros1(&ros1).unwrap(), info);
+        for cut in [0, 20, ros1.len() - 1] {
+            assert!(camera_info_from_ros1(&ros1[..cut]).is_err(), "cut at {cut}");
+        }
+        let err = camera_info_from_ros1(&[ros1.as_slice(), &[0]].concat()).unwrap_err().to_string();
+        assert!(err.contains("1 bytes left over"), "{err}");
+        let expected = crate::verification::Intrinsics { fx: 525.0, fy: 526.0, cx: 319.5, cy: 239.5 };
+        assert_eq!(info.intrinsics(), Some(expected));
+        let uncalibrated = CameraInfo { k: [0.0; 9], ..info };
+        assert_eq!(uncalibrated.intrinsics(), None);
+    }
+
     fn test_image() -> RgbImage {
         RgbImage::from_fn(5, 3, |x, y| image::Rgb([(x * 40) as u8, (y * 70) as u8, (x * 10 + y * 5 + 3) as u8]))
     }
@@ -550,7 +639,10 @@ mod tests {
         }
         let err = ImageMessage::from_ros1(ImageKind::Raw, &[0xFF; 64]).unwrap_err().to_string();
         assert!(err.contains("truncated"), "{err}");
-        let err = ImageMessage::from_cdr(ImageKind::Raw, &[0, 7, 0, 0, 1]).unwrap_err().to_string();
-        assert!(err.contains("unsupported CDR encapsulation"), "{err}");
+        let err = format!("{:#}", ImageMessage::from_cdr(ImageKind::Raw, &[0, 7, 0, 0, 1]).unwrap_err());
+        assert!(
+            err.contains("sensor_msgs/msg/Image CDR message") && err.contains("unsupported CDR encapsulation"),
+            "{err}"
+        );
     }
 }

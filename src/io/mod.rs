@@ -26,6 +26,57 @@ pub trait FrameSource: Iterator<Item = Result<Frame>> + Send {
     fn describe(&self) -> String;
     /// Number of frames if known up front (for progress bars).
     fn len_hint(&self) -> Option<usize>;
+    /// The camera intrinsics the source carries ([`SourceIntrinsics`]), if any.
+    fn intrinsics(&self) -> Option<SourceIntrinsics> {
+        None
+    }
+}
+
+/// Camera intrinsics that come with a source: a bag's `sensor_msgs/CameraInfo` beside the image topic
+/// ([`camera_info_topic`]), or the TUM camera a TUM folder's name gives
+/// ([`tum::intrinsics_from_folder_name`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct SourceIntrinsics {
+    pub intrinsics: crate::verification::Intrinsics,
+    /// Where they were found, for the log: e.g. "topic /camera/rgb/camera_info".
+    pub origin: String,
+}
+
+/// The calibration topic of the image topic `image` among a bag's `topics`, by image_transport's
+/// convention: a `sensor_msgs/CameraInfo` topic named `camera_info` in the image topic's namespace
+/// (`/camera/rgb/image_color` and its `/camera/rgb/image_color/compressed` both have
+/// `/camera/rgb/camera_info`).
+pub(crate) fn camera_info_topic<'a>(topics: &'a [TopicInfo], image: &str) -> Option<&'a TopicInfo> {
+    let base = image.strip_suffix("/compressed").unwrap_or(image);
+    let namespace = base.rsplit_once('/').map_or("", |(namespace, _)| namespace);
+    let wanted = format!("{namespace}/camera_info");
+    topics.iter().find(|t| {
+        t.name == wanted && matches!(t.type_name.as_str(), "sensor_msgs/CameraInfo" | "sensor_msgs/msg/CameraInfo")
+    })
+}
+
+/// The intrinsics of `decoded`, the first message of `topic` in the bag described by `bag`. A message
+/// that does not decode, or an uncalibrated camera's (all-zero `K`), is said in the log and left out:
+/// the images replay without it.
+pub(crate) fn intrinsics_from_camera_info(
+    bag: &str,
+    topic: &str,
+    decoded: Result<msgs::CameraInfo>,
+) -> Option<SourceIntrinsics> {
+    let origin = format!("topic {topic}");
+    match decoded {
+        Ok(info) => {
+            let intrinsics = info.intrinsics();
+            if intrinsics.is_none() {
+                log::warn!("{bag}: {topic} holds no usable calibration (K = {:?}); not used", info.k);
+            }
+            intrinsics.map(|intrinsics| SourceIntrinsics { intrinsics, origin })
+        }
+        Err(err) => {
+            log::warn!("{bag}: the first message of {topic} cannot be read, so it is not used: {err:#}");
+            None
+        }
+    }
 }
 
 /// What to read from a source beside its images: the colour image topic of a bag (default: the
@@ -222,6 +273,23 @@ mod tests {
 
     fn topic(name: &str, type_name: &str, count: usize) -> TopicInfo {
         TopicInfo { name: name.into(), type_name: type_name.into(), count }
+    }
+
+    #[test]
+    fn the_calibration_topic_sits_beside_the_image_topic() {
+        let topics = vec![
+            topic("/camera/rgb/camera_info", "sensor_msgs/CameraInfo", 3),
+            topic("/camera/depth/camera_info", "sensor_msgs/msg/CameraInfo", 3),
+            topic("/camera_info", "sensor_msgs/msg/CameraInfo", 3),
+            topic("/other/camera_info", "std_msgs/String", 3),
+        ];
+        let found = |image: &str| camera_info_topic(&topics, image).map(|t| t.name.as_str());
+        assert_eq!(found("/camera/rgb/image_color"), Some("/camera/rgb/camera_info"));
+        assert_eq!(found("/camera/rgb/image_color/compressed"), Some("/camera/rgb/camera_info"));
+        assert_eq!(found("/camera/depth/image"), Some("/camera/depth/camera_info"));
+        assert_eq!(found("/image_raw"), Some("/camera_info"));
+        assert_eq!(found("/other/image"), None, "not a CameraInfo");
+        assert_eq!(found("/left/image_raw"), None, "none in its namespace");
     }
 
     #[test]

@@ -21,8 +21,8 @@ use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
-use super::image_msg::{encode_image, ImageKind, ImageMessage, WireEncoding};
-use super::{choose_topics, TopicInfo, Topics};
+use super::image_msg::{camera_info_from_ros1, encode_image, ImageKind, ImageMessage, WireEncoding};
+use super::{camera_info_topic, choose_topics, intrinsics_from_camera_info, SourceIntrinsics, TopicInfo, Topics};
 use crate::types::{Frame, Stamp};
 
 const MAGIC: &[u8] = b"#ROSBAG V2.0\n";
@@ -383,6 +383,7 @@ pub struct Ros1BagSource {
     /// The replayed messages in record order, each marked whether it is a depth message.
     messages: Vec<(bool, MessageRef)>,
     colour_count: usize,
+    intrinsics: Option<SourceIntrinsics>,
     next: usize,
     /// Colour frames read so far (the next frame's index).
     colour_read: usize,
@@ -441,6 +442,16 @@ impl Ros1BagSource {
             None => err,
         };
         let (chosen, kind, depth) = choose_topics(&name, &topics, wanted).map_err(with_damage)?;
+        let intrinsics = camera_info_topic(&topics, &chosen.name).and_then(|info_topic| {
+            let first = per_conn
+                .iter()
+                .filter(|(conn, _)| connections.get(conn).is_some_and(|c| c.topic == info_topic.name))
+                .min_by_key(|(_, m)| m.time)?;
+            let chunk = &chunks[first.1.chunk];
+            let decoded = load_chunk(&mut file, chunk)
+                .and_then(|data| camera_info_from_ros1(message_data(&data, &first.1, chunk)?));
+            intrinsics_from_camera_info(&name, &info_topic.name, decoded)
+        });
         let mut messages: Vec<(bool, MessageRef)> = per_conn
             .into_iter()
             .filter_map(|(conn, m)| {
@@ -460,6 +471,7 @@ impl Ros1BagSource {
             chunks,
             messages,
             colour_count,
+            intrinsics,
             next: 0,
             colour_read: 0,
             cached: None,
@@ -478,22 +490,33 @@ impl Ros1BagSource {
             self.cached = Some((message.chunk, data));
         }
         let data = &self.cached.as_ref().context("chunk cached above")?.1;
-        let at =
-            || format!("message record at offset {} of the chunk at byte offset {}", message.offset, chunk.record_pos);
-        let rest = data.get(message.offset as usize..).with_context(|| format!("{} lies outside the chunk", at()))?;
-        let record = record_in(rest).with_context(at)?;
-        let fields = Fields::parse(record.header).with_context(at)?;
-        ensure!(fields.op().with_context(at)? == OP_MESSAGE, "{} is not a message record", at());
+        let at = || record_at(&message, chunk);
+        let bytes = message_data(data, &message, chunk)?;
         if is_depth {
-            return ImageMessage::from_ros1(ImageKind::Raw, record.data)
+            return ImageMessage::from_ros1(ImageKind::Raw, bytes)
                 .and_then(|msg| depth_message(&msg))
                 .with_context(|| format!("{} (depth, sensor_msgs/Image)", at()));
         }
-        let decoded = ImageMessage::from_ros1(self.kind, record.data)
+        let decoded = ImageMessage::from_ros1(self.kind, bytes)
             .and_then(|msg| Ok((msg.stamp(), msg.to_rgb()?)))
             .with_context(|| format!("{} ({})", at(), self.kind.ros1_type()))?;
         Ok(BagMessage::Colour(Frame { index: colour_index, stamp: decoded.0, image: decoded.1, depth: None }))
     }
+}
+
+/// Where `message` lies, for error messages.
+fn record_at(message: &MessageRef, chunk: &ChunkRef) -> String {
+    format!("message record at offset {} of the chunk at byte offset {}", message.offset, chunk.record_pos)
+}
+
+/// The serialised message of the message record `message` in `data`, its decompressed `chunk`.
+fn message_data<'a>(data: &'a [u8], message: &MessageRef, chunk: &ChunkRef) -> Result<&'a [u8]> {
+    let at = || record_at(message, chunk);
+    let rest = data.get(message.offset as usize..).with_context(|| format!("{} lies outside the chunk", at()))?;
+    let record = record_in(rest).with_context(at)?;
+    let fields = Fields::parse(record.header).with_context(at)?;
+    ensure!(fields.op().with_context(at)? == OP_MESSAGE, "{} is not a message record", at());
+    Ok(record.data)
 }
 
 impl Iterator for Ros1BagSource {
@@ -535,6 +558,10 @@ impl MessageSource for Ros1BagSource {
 
     fn len_hint(&self) -> Option<usize> {
         Some(self.colour_count)
+    }
+
+    fn intrinsics(&self) -> Option<SourceIntrinsics> {
+        self.intrinsics.clone()
     }
 }
 

@@ -16,8 +16,8 @@ use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
 use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
-use super::image_msg::{encode_image, ImageKind, ImageMessage, WireEncoding};
-use super::{choose_topics, TopicInfo, Topics};
+use super::image_msg::{camera_info_from_cdr, encode_image, ImageKind, ImageMessage, WireEncoding};
+use super::{camera_info_topic, choose_topics, intrinsics_from_camera_info, SourceIntrinsics, TopicInfo, Topics};
 use crate::types::{Frame, Stamp};
 
 /// Decodes one CDR image payload into a frame.
@@ -68,6 +68,7 @@ pub struct SqliteBagSource {
     /// Row ids of the replayed messages in record order, each marked whether it is a depth message.
     message_ids: Vec<(i64, bool)>,
     colour_count: usize,
+    intrinsics: Option<SourceIntrinsics>,
     next: usize,
     /// Colour frames read so far (the next frame's index).
     colour_read: usize,
@@ -112,6 +113,19 @@ impl SqliteBagSource {
         .with_context(|| format!("{name}: cannot list the messages of {}", chosen.name))?;
         let colour_count = message_ids.iter().filter(|(_, is_depth)| !is_depth).count();
         let description = describe_topics(&name, &chosen.name, colour_count, depth.as_ref());
+        let intrinsics = camera_info_topic(&infos, &chosen.name).and_then(|info_topic| {
+            let decoded = topic_id(info_topic).and_then(|id| {
+                let first: Vec<u8> = db
+                    .query_row(
+                        "SELECT data FROM messages WHERE topic_id = ?1 ORDER BY timestamp, id LIMIT 1",
+                        [id],
+                        |row| row.get(0),
+                    )
+                    .with_context(|| format!("{name}: cannot read {}", info_topic.name))?;
+                camera_info_from_cdr(&first)
+            });
+            intrinsics_from_camera_info(&name, &info_topic.name, decoded)
+        });
         Ok(SqliteBagSource {
             path: path.to_path_buf(),
             db,
@@ -119,6 +133,7 @@ impl SqliteBagSource {
             kind,
             message_ids,
             colour_count,
+            intrinsics,
             next: 0,
             colour_read: 0,
             done: false,
@@ -190,6 +205,10 @@ impl MessageSource for SqliteBagSource {
     fn len_hint(&self) -> Option<usize> {
         Some(self.colour_count)
     }
+
+    fn intrinsics(&self) -> Option<SourceIntrinsics> {
+        self.intrinsics.clone()
+    }
 }
 
 /// Replays one image topic of an MCAP file, and optionally a depth topic beside it.
@@ -201,6 +220,7 @@ pub struct McapSource {
     depth_topic: Option<String>,
     kind: ImageKind,
     count: usize,
+    intrinsics: Option<SourceIntrinsics>,
     next: usize,
     done: bool,
 }
@@ -224,6 +244,8 @@ impl McapSource {
         let name = format!("MCAP file {}", path.display());
         let mut topics: BTreeMap<String, TopicInfo> = BTreeMap::new();
         let mut encodings: HashMap<String, String> = HashMap::new();
+        // The first message of each topic that may be a calibration topic.
+        let mut first_camera_infos: HashMap<String, Vec<u8>> = HashMap::new();
         let mut damage = None;
         let mut total = 0usize;
         for message in open_mcap_reader(path)? {
@@ -236,6 +258,9 @@ impl McapSource {
                         .or_insert_with(|| TopicInfo { name: channel.topic.clone(), type_name, count: 0 })
                         .count += 1;
                     encodings.insert(channel.topic.clone(), channel.message_encoding.clone());
+                    if channel.topic.ends_with("camera_info") && !first_camera_infos.contains_key(&channel.topic) {
+                        first_camera_infos.insert(channel.topic.clone(), message.data.into_owned());
+                    }
                     total += 1;
                 }
                 Err(err) => {
@@ -259,6 +284,10 @@ impl McapSource {
             );
         }
         let description = describe_topics(&name, &chosen.name, chosen.count, depth.as_ref());
+        let intrinsics = camera_info_topic(&infos, &chosen.name).and_then(|info_topic| {
+            let first = first_camera_infos.get(&info_topic.name).context("its first message was kept");
+            intrinsics_from_camera_info(&name, &info_topic.name, first.and_then(|data| camera_info_from_cdr(data)))
+        });
         Ok(McapSource {
             path: path.to_path_buf(),
             reader: open_mcap_reader(path)?,
@@ -267,6 +296,7 @@ impl McapSource {
             depth_topic: depth.map(|d| d.name),
             kind,
             count: chosen.count,
+            intrinsics,
             next: 0,
             done: false,
         })
@@ -314,6 +344,10 @@ impl MessageSource for McapSource {
 
     fn len_hint(&self) -> Option<usize> {
         Some(self.count)
+    }
+
+    fn intrinsics(&self) -> Option<SourceIntrinsics> {
+        self.intrinsics.clone()
     }
 }
 

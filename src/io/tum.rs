@@ -15,7 +15,7 @@ use std::fmt::Write as _;
 use std::fs;
 use std::path::{Path, PathBuf};
 
-use super::FrameSource;
+use super::{FrameSource, SourceIntrinsics};
 use crate::types::{DepthImage, Frame, Stamp};
 
 /// Largest stamp difference between a colour image and the depth image paired with it (TUM's
@@ -75,6 +75,19 @@ pub struct ImageFilesSource {
     description: String,
     entries: Vec<ImageEntry>,
     next: usize,
+    intrinsics: Option<SourceIntrinsics>,
+}
+
+/// The calibration of the TUM camera a TUM folder's name gives: the benchmark names its sequences
+/// `rgbd_dataset_freiburgN_...` after the Kinect that recorded them (fr1, fr2, fr3), whose published
+/// intrinsics are the `camera.preset` values `tum_frN`.
+pub fn intrinsics_from_folder_name(dir: &Path) -> Option<SourceIntrinsics> {
+    let absolute = dir.canonicalize().ok()?;
+    let name = absolute.file_name()?.to_str()?;
+    let camera = name.strip_prefix("rgbd_dataset_freiburg")?.split('_').next()?;
+    let preset = format!("tum_fr{camera}");
+    let intrinsics = crate::verification::Intrinsics::preset(&preset)?;
+    Some(SourceIntrinsics { intrinsics, origin: format!("the TUM folder name {name} (camera.preset {preset})") })
 }
 
 impl ImageFilesSource {
@@ -103,7 +116,7 @@ impl ImageFilesSource {
             );
         }
         let description = format!("TUM folder {} ({} images)", dir.display(), entries.len());
-        Ok(ImageFilesSource { description, entries, next: 0 })
+        Ok(ImageFilesSource { description, entries, next: 0, intrinsics: intrinsics_from_folder_name(dir) })
     }
 
     /// A folder of image files in file-name order; stamps are the index in seconds.
@@ -122,7 +135,7 @@ impl ImageFilesSource {
             })
             .collect();
         let description = format!("image folder {} ({} images)", dir.display(), entries.len());
-        Ok(ImageFilesSource { description, entries, next: 0 })
+        Ok(ImageFilesSource { description, entries, next: 0, intrinsics: None })
     }
 }
 
@@ -232,6 +245,10 @@ impl FrameSource for ImageFilesSource {
 
     fn len_hint(&self) -> Option<usize> {
         Some(self.entries.len())
+    }
+
+    fn intrinsics(&self) -> Option<SourceIntrinsics> {
+        self.intrinsics.clone()
     }
 }
 
@@ -412,6 +429,23 @@ impl TrackerPoses {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_tum_folder_name_gives_its_camera() {
+        let dir = tempfile::tempdir().unwrap();
+        let named = |name: &str| {
+            let path = dir.path().join(name);
+            fs::create_dir_all(&path).unwrap();
+            intrinsics_from_folder_name(&path)
+        };
+        let fr2 = named("rgbd_dataset_freiburg2_desk").expect("fr2");
+        assert_eq!(fr2.intrinsics, crate::verification::Intrinsics::preset("tum_fr2").unwrap());
+        assert!(fr2.origin.contains("camera.preset tum_fr2"), "{}", fr2.origin);
+        assert!(named("rgbd_dataset_freiburg3_long_office_household").is_some());
+        assert_eq!(named("rgbd_dataset_freiburg4_x"), None);
+        assert_eq!(named("freiburg1_desk"), None);
+        assert_eq!(named("seq"), None);
+    }
 
     #[test]
     fn writer_output_reads_back_exactly() {

@@ -3,9 +3,10 @@
   rosbags_fixtures.py write OUTDIR   writes ros1_none.bag, ros1_bz2.bag, ros1_lz4.bag,
                                      ros2_sqlite3/ and ros2_mcap/, each with one topic per
                                      image encoding (see TOPICS), FRAMES frames per topic,
-                                     and two depth topics (see DEPTH_TOPICS).
-  rosbags_fixtures.py tum-bag DIR BAG  writes TUM folder DIR (with depth.txt) as a ROS 1 bag laid
-                                     out like TUM's bags (see tum_bag).
+                                     two depth topics (see DEPTH_TOPICS) and /camera_info
+                                     (CAMERA_K, see camera_info_message).
+  rosbags_fixtures.py tum-bag DIR BAG FX FY CX CY  writes TUM folder DIR (with depth.txt) as a
+                                     ROS 1 bag laid out like TUM's bags (see tum_bag).
   rosbags_fixtures.py read BAG TOPIC prints one JSON line per message of TOPIC: header stamp,
                                      receive time, the message fields and sha256 of its data.
 
@@ -35,6 +36,8 @@ TOPICS = ["rgb8", "bgr8", "rgba8", "bgra8", "mono8", "mono16_le", "mono16_be", "
 DEPTH_TOPICS = ["depth16", "depth32"]
 DEPTH_MISSING = 3
 DEPTH_DELAY_NS = 7_000_000
+# The calibration on /camera_info, beside every image topic: fx, fy, cx, cy.
+CAMERA_K = (525.25, 526.5, 7.75, 5.5)
 
 
 def header_stamp(i):
@@ -152,6 +155,31 @@ def make_depth_message(store, ros1, topic, i):
     return "sensor_msgs/msg/Image", msg
 
 
+def camera_info_message(store, ros1, stamp_ns, frame_id, width, height, k, seq=0):
+    """sensor_msgs/CameraInfo with intrinsics k = (fx, fy, cx, cy), plumb-bob distortion; the ROS 1
+    type names its arrays D, K, R, P, the ROS 2 type d, k, r, p."""
+    types = store.types
+    stamp = types["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+    if ros1:
+        header = types["std_msgs/msg/Header"](seq=seq, stamp=stamp, frame_id=frame_id)
+    else:
+        header = types["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+    fx, fy, cx, cy = k
+    arrays = {
+        "D": np.array([0.2624, -0.9531, -0.0054, 0.0026, 1.1633]),
+        "K": np.array([fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]),
+        "R": np.eye(3).ravel(),
+        "P": np.array([fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0]),
+    }
+    if not ros1:
+        arrays = {name.lower(): value for name, value in arrays.items()}
+    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    msg = types["sensor_msgs/msg/CameraInfo"](header=header, height=height, width=width,
+                                              distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi,
+                                              **arrays)
+    return "sensor_msgs/msg/CameraInfo", msg
+
+
 def msgtype_of(topic):
     return "sensor_msgs/msg/CompressedImage" if topic in ("jpeg", "png") else "sensor_msgs/msg/Image"
 
@@ -163,7 +191,10 @@ def write_ros1(path, compression):
         writer.set_compression(compression)
     with writer:
         conns = {t: writer.add_connection("/" + t, msgtype_of(t), typestore=store) for t in TOPICS + DEPTH_TOPICS}
+        info = writer.add_connection("/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
         for i in WRITE_ORDER_SHUFFLED:
+            msgtype, msg = camera_info_message(store, True, receive_time(i), "camera", WIDTH, HEIGHT, CAMERA_K, i)
+            writer.write(info, receive_time(i), store.serialize_ros1(msg, msgtype))
             for t in TOPICS:
                 msgtype, msg = make_message(store, True, t, i)
                 writer.write(conns[t], receive_time(i), store.serialize_ros1(msg, msgtype))
@@ -176,7 +207,10 @@ def write_ros2(path, plugin, order):
     store = get_typestore(Stores.ROS2_HUMBLE)
     with Ros2Writer(path, version=9, storage_plugin=plugin) as writer:
         conns = {t: writer.add_connection("/" + t, msgtype_of(t), typestore=store) for t in TOPICS + DEPTH_TOPICS}
+        info = writer.add_connection("/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store)
         for i in order:
+            msgtype, msg = camera_info_message(store, False, receive_time(i), "camera", WIDTH, HEIGHT, CAMERA_K)
+            writer.write(info, receive_time(i), store.serialize_cdr(msg, msgtype))
             for t in TOPICS:
                 msgtype, msg = make_message(store, False, t, i)
                 writer.write(conns[t], receive_time(i), store.serialize_cdr(msg, msgtype))
@@ -195,10 +229,11 @@ def write_all(out):
     write_ros2(out / "ros2_mcap", StoragePlugin.MCAP, range(FRAMES))
 
 
-def tum_bag(tum_dir, out):
+def tum_bag(tum_dir, out, k):
     """A TUM folder with depth as a ROS 1 bag laid out like TUM's own: rgb8 colour on
-    /camera/rgb/image_color, 32FC1 metres on /camera/depth/image (NaN where unknown), header
-    stamps and receive times from rgb.txt and depth.txt."""
+    /camera/rgb/image_color with its calibration k = (fx, fy, cx, cy) on /camera/rgb/camera_info,
+    32FC1 metres on /camera/depth/image (NaN where unknown), header stamps and receive times from
+    rgb.txt and depth.txt."""
     tum_dir = Path(tum_dir)
     store = get_typestore(Stores.ROS1_NOETIC)
     types = store.types
@@ -221,6 +256,9 @@ def tum_bag(tum_dir, out):
         rgb = np.asarray(PilImage.open(tum_dir / name).convert("RGB"))
         h, w, _ = rgb.shape
         items.append(("rgb", message(stamp, "rgb", seq, "rgb8", w * 3, rgb.tobytes(), h, w)))
+        time = items[-1][1][0]
+        msgtype, info = camera_info_message(store, True, time, "rgb", w, h, k, seq)
+        items.append(("info", (time, store.serialize_ros1(info, msgtype))))
     for seq, (stamp, name) in enumerate(listing("depth.txt")):
         units = np.asarray(PilImage.open(tum_dir / name), dtype=np.uint16)
         metres = (units / 5000.0).astype("<f4")
@@ -232,6 +270,7 @@ def tum_bag(tum_dir, out):
         conns = {
             "rgb": writer.add_connection("/camera/rgb/image_color", "sensor_msgs/msg/Image", typestore=store),
             "depth": writer.add_connection("/camera/depth/image", "sensor_msgs/msg/Image", typestore=store),
+            "info": writer.add_connection("/camera/rgb/camera_info", "sensor_msgs/msg/CameraInfo", typestore=store),
         }
         for kind, (time, raw) in items:
             writer.write(conns[kind], time, raw)
@@ -263,8 +302,8 @@ def read(bag, topic):
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "write":
         write_all(sys.argv[2])
-    elif len(sys.argv) == 4 and sys.argv[1] == "tum-bag":
-        tum_bag(sys.argv[2], sys.argv[3])
+    elif len(sys.argv) == 8 and sys.argv[1] == "tum-bag":
+        tum_bag(sys.argv[2], sys.argv[3], tuple(float(v) for v in sys.argv[4:8]))
     elif len(sys.argv) == 4 and sys.argv[1] == "read":
         read(sys.argv[2], sys.argv[3])
     else:
