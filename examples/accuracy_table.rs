@@ -266,7 +266,7 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
     println!();
     println!("Geometric verification (`verification.mode`), every top-1 match a candidate (`detector.min_score` 0):");
     println!();
-    println!("| data | intrinsics | true loops found by retrieval | kept by verification | false top-1 matches | passed verification | precision after | verification ms/keyframe | relative pose: median rotation error (deg) / translation direction error (deg), pairs |");
+    println!("| data | intrinsics | true top-1 matches of retrieval | true loops after verification | false top-1 matches | false loops after verification | precision after | verification ms/keyframe | relative pose: median rotation error (deg) / translation direction error (deg), pairs |");
     println!("|---|---|---|---|---|---|---|---|---|");
     for set in sets {
         let tum = set.name.starts_with("TUM");

@@ -65,14 +65,15 @@ fn main() -> Result<()> {
                     Detector::new(*replayed.pipeline.descriptor(), replayed.pipeline.params().detector());
                 let mut results = Vec::with_capacity(keyframes.len());
                 for keyframe in &keyframes {
-                    let (best, _) = detector.process_with_best(
+                    let (nearest, _) = detector.process_ranked(
                         keyframe.id,
                         keyframe.stamp,
                         &(format.round_trip)(&keyframe.descriptor),
+                        1,
                     )?;
                     results.push(QueryResult {
                         query: keyframe.id as usize,
-                        best: best.map(|m| (m.id as usize, m.score)),
+                        best: nearest.first().map(|m| (m.id as usize, m.score)),
                     });
                 }
                 if format.name == "f32" {

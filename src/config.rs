@@ -335,6 +335,13 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "Geometric verification of loop candidates (ORB features and RANSAC): auto = on when the camera intrinsics are known (camera.*, camera_info, or carried by a replayed source).",
         ),
         integer(
+            "verification.candidates",
+            2,
+            1,
+            20,
+            "Matches verified per keyframe at most: when the best fails verification the next best are tried in turn, and the first detector.top_k that pass are reported (1 = the best only).",
+        ),
+        integer(
             "verification.min_inliers",
             15,
             8,
@@ -684,6 +691,7 @@ impl Params {
             _ => intrinsics.is_some(),
         };
         on.then(|| VerificationParams {
+            candidates: self.count("verification.candidates"),
             min_inliers: self.count("verification.min_inliers"),
             min_inlier_ratio: self.double("verification.min_inlier_ratio"),
             ratio: self.double("verification.match_ratio") as f32,

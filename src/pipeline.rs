@@ -9,7 +9,10 @@
 //!
 //! With verification on ([`Params::verification`]), each keyframe's local features are extracted and
 //! kept, and a candidate is reported only when [`crate::verification`] finds one rigid geometry for
-//! the pair; the best match (for evaluation) is checked the same way ([`Outcome::best_verified`]).
+//! the pair. When the best match fails, the next best are tried in turn, up to
+//! `verification.candidates` in all, as ORB-SLAM tries each of its candidate keyframes: a look-alike
+//! that outranks the true place no longer hides it. The best match (for evaluation) is chosen the
+//! same way ([`Outcome::best_verified`]).
 
 use std::path::Path;
 use std::time::Instant;
@@ -408,7 +411,9 @@ impl Pipeline {
         if let Some(store) = &self.store {
             ensure!(!store.contains(id)?, "keyframe id {id} is already stored in {}", store.path().display());
         }
-        (outcome.best, outcome.candidates) = self.detector.process_with_best(id, stamp, &descriptor)?;
+        // With verification, alternatives to try when a better match fails.
+        let (nearest, candidates) = self.detector.process_ranked(id, stamp, &descriptor, self.matches_tried())?;
+        (outcome.best, outcome.candidates) = (nearest.first().copied(), candidates);
         outcome.keyframe = Some(id);
         if let Some(tracked) = tracked {
             self.odometry.keep(id, tracked);
@@ -418,7 +423,7 @@ impl Pipeline {
         let mut stored_features = None;
         if self.verifier.is_some() {
             let features = self.local_features(image, depth)?;
-            self.verify_outcome(&features, tracked, &mut outcome);
+            self.verify_outcome(&features, tracked, &nearest, &mut outcome);
             if self.store.is_some() {
                 stored_features = Some(features.to_bytes());
             }
@@ -450,6 +455,12 @@ impl Pipeline {
     /// Whether geometric verification is on.
     pub fn verifies(&self) -> bool {
         self.verifier.is_some()
+    }
+
+    /// How many of a keyframe's nearest matches verification may try, best first, until one passes
+    /// (`verification.candidates`; 1 when verification is off).
+    pub fn matches_tried(&self) -> usize {
+        self.verifier.as_ref().map_or(1, |v| v.params().candidates)
     }
 
     /// The local features of `image` (with keypoint depths from `depth`) for verification (empty when
@@ -502,9 +513,17 @@ impl Pipeline {
         }
     }
 
-    /// Drops the candidates that fail verification or odometry consistency (counted in
-    /// [`Outcome::rejected`]) and records whether the best match passes.
-    fn verify_outcome(&self, features: &LocalFeatures, tracked: Option<Tracked>, outcome: &mut Outcome) {
+    /// Verifies the candidates best first and keeps the first `detector.top_k` that pass verification
+    /// and odometry consistency; those that fail before them are dropped (counted in
+    /// [`Outcome::rejected`]), those after them are not tried. With [`Pipeline::set_verify_best`] the
+    /// best match becomes the first of `nearest` that passes (else the nearest, marked failed).
+    fn verify_outcome(
+        &self,
+        features: &LocalFeatures,
+        tracked: Option<Tracked>,
+        nearest: &[Match],
+        outcome: &mut Outcome,
+    ) {
         // Per match id: the feature check, and whether the odometry check (made only on what the
         // features verified) failed.
         let mut checked: Vec<(u64, Verification, bool)> = Vec::new();
@@ -520,12 +539,20 @@ impl Pipeline {
         };
         let best_is_candidate =
             outcome.best.is_some_and(|best| outcome.candidates.iter().any(|c| c.match_id == best.id));
+        if self.verify_best {
+            if let Some(verified) = nearest.iter().find(|m| check(m.id).0.accepted) {
+                outcome.best = Some(*verified);
+            }
+        }
         if self.verify_best || best_is_candidate {
             outcome.best_verified = outcome.best.map(|best| check(best.id).0.accepted);
         }
-        let before = outcome.candidates.len();
-        let mut odometry_rejected = 0;
+        let wanted = self.params.detector().top_k;
+        let (mut kept, mut rejected, mut odometry_rejected) = (0, 0, 0);
         outcome.candidates.retain_mut(|c| {
+            if kept == wanted {
+                return false;
+            }
             let (v, odometry_failed) = check(c.match_id);
             odometry_rejected += odometry_failed as usize;
             if !v.accepted && !odometry_failed {
@@ -539,10 +566,13 @@ impl Pipeline {
             }
             if v.accepted {
                 c.verified = Some(Verified { inliers: v.inliers as u32, pose: v.pose });
+                kept += 1;
+            } else {
+                rejected += 1;
             }
             v.accepted
         });
-        outcome.rejected = before - outcome.candidates.len();
+        outcome.rejected = rejected;
         outcome.rejected_by_odometry = odometry_rejected;
         for (rank, candidate) in outcome.candidates.iter_mut().enumerate() {
             candidate.rank = rank as u32;

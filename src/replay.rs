@@ -119,10 +119,11 @@ pub fn run_database_queries(
     for (index, path) in queries.iter().enumerate() {
         let image = read_image(path)?;
         let descriptor = pipeline.describe(&image)?;
-        let best = pipeline.detector_mut().query(Stamp::from_nanos(i64::MAX), &descriptor)?;
-        // A best match that fails geometric verification counts as no match.
+        // With verification, the first of the nearest that passes; none passing counts as no match.
+        let tried = pipeline.matches_tried();
+        let nearest = pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), &descriptor, tried)?;
         let features = pipeline.local_features(&image, None)?;
-        let best = best.filter(|m| pipeline.verify(&features, m.id).is_none_or(|v| v.accepted));
+        let best = nearest.into_iter().find(|m| pipeline.verify(&features, m.id).is_none_or(|v| v.accepted));
         results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
     }
     let per_image = started.elapsed().as_secs_f64() * 1e3 / (database.len() + queries.len()).max(1) as f64;

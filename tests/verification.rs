@@ -6,10 +6,12 @@ use std::path::{Path, PathBuf};
 
 use ecm_lcd::config::Params;
 use ecm_lcd::eval::revisit::write_two_pass;
+use ecm_lcd::eval::{evaluate, loop_truth_from_poses, PoseLoopCriteria};
 use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::model::weights::resolve;
 use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::replay::{run_source, ReplayRun};
+use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 use ecm_lcd::types::Stamp;
 
 fn shared() -> PathBuf {
@@ -63,13 +65,21 @@ fn the_orbit_revisit_is_verified_and_the_wrong_matches_are_not() {
     assert!(appearance.candidates.iter().all(|c| c.verified.is_none()));
     assert!(appearance.candidates.iter().any(|c| (c.query_id, c.match_id) == (9, 0)));
 
-    // auto: on, because the preset gives the intrinsics.
-    let mut verifying = pipeline(&[recency[0], recency[1], recency[2], PERMISSIVE, ("camera.preset", "tum_fr3")]);
+    // auto: on, because the preset gives the intrinsics. Only each keyframe's best match is tried
+    // first, to compare with the appearance candidates.
+    let only_best = ("verification.candidates", "1");
+    let preset = ("camera.preset", "tum_fr3");
+    let mut verifying = pipeline(&[recency[0], recency[1], recency[2], PERMISSIVE, preset, only_best]);
     assert!(verifying.verifies());
     let verified = run_source(&mut verifying, &orbit.join("rgb"), &Default::default(), false).unwrap();
     let pairs: Vec<(u64, u64)> = verified.candidates.iter().map(|c| (c.query_id, c.match_id)).collect();
     assert_eq!(pairs, [(9, 0)], "only the true revisit survives");
     assert_eq!(verified.rejected, appearance.candidates.len() - 1);
+    // Trying the next best matches of every keyframe whose best fails lets no wrong one through.
+    let mut alternatives = pipeline(&[recency[0], recency[1], recency[2], PERMISSIVE, preset]);
+    let tried = run_source(&mut alternatives, &orbit.join("rgb"), &Default::default(), false).unwrap();
+    assert_eq!(tried.candidates.iter().map(|c| (c.query_id, c.match_id)).collect::<Vec<_>>(), [(9, 0)]);
+    assert!(tried.rejected > verified.rejected, "alternatives were tried: {} rejected", tried.rejected);
     let found = verified.candidates[0].verified.expect("a verified candidate says so");
     assert!(found.inliers >= 30, "{found:?}");
     let pose = found.pose.expect("intrinsics known: a relative pose");
@@ -209,7 +219,9 @@ fn odometry_check_across_passes(
     displace: impl Fn(&mut nalgebra::Isometry3<f64>),
 ) -> (ReplayRun, impl Fn(&Path) -> anyhow::Result<ReplayRun>) {
     let (seq, frames, two_pass_overrides) = two_pass(dir);
-    let overrides: Vec<(&str, &str)> = two_pass_overrides.iter().copied().chain([check]).collect();
+    // One match tried per keyframe, so both runs try the same candidates (the count below).
+    let only_best = ("verification.candidates", "1");
+    let overrides: Vec<(&str, &str)> = two_pass_overrides.iter().copied().chain([check, only_best]).collect();
     let replay = move |poses: &Path| {
         let topics = ecm_lcd::io::Topics { poses: Some(poses.to_path_buf()), ..Default::default() };
         run_source(&mut pipeline(&overrides), &seq, &topics, false)
@@ -305,4 +317,53 @@ fn the_rotation_check_rejects_verified_rotations_the_tracker_contradicts() {
     let kept: Vec<(u64, u64)> = checked.candidates.iter().map(|c| (c.query_id, c.match_id)).collect();
     assert!(wrong.iter().all(|pair| !kept.contains(pair)), "{wrong:?} kept");
     assert_eq!(kept.len() + wrong.len(), unchecked.candidates.len());
+}
+
+/// On the hard synthetic preset (three identical rooms, night laps, 160x120) a look-alike room often
+/// outranks the true place. Trying the next best matches when the best fails verification
+/// (`verification.candidates`) finds loops the look-alike hid, keeps every loop the best match alone
+/// found, and lets at most one more wrong match through.
+#[test]
+fn trying_the_next_best_matches_finds_loops_a_look_alike_hid() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("hard");
+    let config = SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..SynthConfig::hard() };
+    let scene = Scene::new(config.clone()).unwrap();
+    write_tum_folder(&scene, &seq).unwrap();
+    // The renderer's camera: principal point at the image centre (pixel index coordinates).
+    let focal = scene.focal_length().to_string();
+    let (cx, cy) = ((config.width as f64 / 2.0 - 0.5).to_string(), (config.height as f64 / 2.0 - 0.5).to_string());
+    let replay = |tried: &str| {
+        let camera = [("camera.fx", focal.as_str()), ("camera.fy", &focal), ("camera.cx", &cx), ("camera.cy", &cy)];
+        let mut overrides = vec![PERMISSIVE, ("verification.candidates", tried)];
+        overrides.extend(camera);
+        run_source(&mut pipeline(&overrides), &seq, &Default::default(), false).unwrap()
+    };
+    let (best_only, alternatives) = (replay("1"), replay("3"));
+    let groundtruth = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
+    let truth = loop_truth_from_poses(&best_only.frame_stamps, &groundtruth, &PoseLoopCriteria::default());
+    let before = evaluate(&best_only.query_results(), &truth).unwrap();
+    let after = evaluate(&alternatives.query_results(), &truth).unwrap();
+    println!(
+        "best only: {} true, {} wrong; with alternatives: {} true, {} wrong ({} positives)",
+        before.true_reports, before.false_reports, after.true_reports, after.false_reports, before.positives
+    );
+    let pairs =
+        |run: &ReplayRun| -> Vec<(u64, u64)> { run.candidates.iter().map(|c| (c.query_id, c.match_id)).collect() };
+    let with_alternatives = pairs(&alternatives);
+    for pair in pairs(&best_only) {
+        assert!(with_alternatives.contains(&pair), "{pair:?} lost");
+    }
+    assert!(
+        after.true_reports >= before.true_reports + 5,
+        "{} -> {} true loops",
+        before.true_reports,
+        after.true_reports
+    );
+    assert!(
+        after.false_reports <= before.false_reports + 1,
+        "{} -> {} wrong",
+        before.false_reports,
+        after.false_reports
+    );
 }

@@ -691,19 +691,23 @@ impl Detector {
     /// Queries the history with a new keyframe, then inserts it; returns the loop candidates reported
     /// under the full policy (module doc).
     pub fn process(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Vec<LoopCandidate>> {
-        Ok(self.process_with_best(id, stamp, descriptor)?.1)
+        Ok(self.process_ranked(id, stamp, descriptor, self.params.top_k)?.1)
     }
 
-    /// [`Detector::process`] that also returns the nearest eligible keyframe whether or not it passes
-    /// (what [`Detector::best_match`] gives), from the same search: one search per keyframe, not two.
-    pub fn process_with_best(
+    /// [`Detector::process`] that also returns the `depth` nearest eligible keyframes, best first, whether
+    /// or not they pass (the first is what [`Detector::best_match`] gives), from the same search: one search
+    /// per keyframe, not two. With `depth` above `top_k`, up to `depth` candidates are returned: the
+    /// alternatives that geometric verification tries in turn when a better one fails
+    /// (`verification.candidates`); consistency still remembers only the `top_k` best.
+    pub fn process_ranked(
         &mut self,
         id: u64,
         stamp: Stamp,
         descriptor: &[f32],
-    ) -> anyhow::Result<(Option<Match>, Vec<LoopCandidate>)> {
-        let ranked = self.ranked_matches(stamp, descriptor, self.params.top_k)?;
-        let best = ranked.first().map(|&m| self.to_match(m));
+        depth: usize,
+    ) -> anyhow::Result<(Vec<Match>, Vec<LoopCandidate>)> {
+        let ranked = self.ranked_matches(stamp, descriptor, depth.max(self.params.top_k))?;
+        let nearest = ranked.iter().map(|&m| self.to_match(m)).collect();
         let passing: Vec<(usize, f32, f32)> =
             ranked.into_iter().filter(|&(_, distance, score)| self.passes(distance, score)).collect();
         let needed = self.params.consistency_queries.saturating_sub(1);
@@ -735,13 +739,14 @@ impl Detector {
         self.store(id, stamp, descriptor)?;
         self.recent_queries.push(descriptor);
         if needed > 0 {
-            self.recent_matches.push_back(passing.iter().map(|&(position, _, _)| position).collect());
+            let best = passing.iter().take(self.params.top_k);
+            self.recent_matches.push_back(best.map(|&(position, _, _)| position).collect());
             while self.recent_matches.len() > needed {
                 self.recent_matches.pop_front();
             }
         }
         self.enforce_budget();
-        Ok((best, candidates))
+        Ok((nearest, candidates))
     }
 
     /// The nearest keyframe the history and recency rules allow, ignoring the threshold, `top_k` and
@@ -756,9 +761,14 @@ impl Detector {
     /// [`Detector::best_match`] for a query that is not inserted (database/query evaluation), which
     /// joins the sequence of recent queries.
     pub fn query(&mut self, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Option<Match>> {
-        let best = self.best_match(stamp, descriptor)?;
+        Ok(self.query_ranked(stamp, descriptor, 1)?.into_iter().next())
+    }
+
+    /// [`Detector::query`] with the `depth` nearest eligible keyframes, best first.
+    pub fn query_ranked(&mut self, stamp: Stamp, descriptor: &[f32], depth: usize) -> anyhow::Result<Vec<Match>> {
+        let ranked = self.ranked_matches(stamp, descriptor, depth)?;
         self.recent_queries.push(descriptor);
-        Ok(best)
+        Ok(ranked.into_iter().map(|m| self.to_match(m)).collect())
     }
 
     fn to_match(&self, (position, distance, score): (usize, f32, f32)) -> Match {

@@ -382,8 +382,8 @@ fn sequence_matching_finds_a_loop_that_single_images_miss() {
             .map(|p| {
                 let seen = blend(&place(p), &lighting, 0.4);
                 let seen = if p == 10 { blend(&seen, &place(3), 0.7) } else { seen };
-                let (best, _) = det.process_with_best(100 + p as u64, secs(100.0 + p as f64), &seen).unwrap();
-                best.map(|m| m.id)
+                let (nearest, _) = det.process_ranked(100 + p as u64, secs(100.0 + p as f64), &seen, 1).unwrap();
+                nearest.first().map(|m| m.id)
             })
             .collect()
     };

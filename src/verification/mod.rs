@@ -86,6 +86,9 @@ impl Intrinsics {
 /// The verification policy.
 #[derive(Clone, Debug, PartialEq)]
 pub struct VerificationParams {
+    /// Matches verified per keyframe at most, best first: the alternatives tried when a better one
+    /// fails (`verification.candidates`).
+    pub candidates: usize,
     /// ORB features extracted per keyframe (at most).
     pub max_features: usize,
     /// A match's Hamming distance must be below this fraction of the second best's.
@@ -122,6 +125,7 @@ pub enum LocalFeatureKind {
 impl Default for VerificationParams {
     fn default() -> Self {
         VerificationParams {
+            candidates: 2,
             max_features: 500,
             ratio: 0.8,
             pixel_threshold: 2.0,
