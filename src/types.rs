@@ -189,6 +189,26 @@ pub struct RelativePose {
     pub covariance: Option<nalgebra::Matrix6<f64>>,
 }
 
+impl RelativePose {
+    /// How far `truth` (the query camera's true pose in the match camera's frame) lies from this
+    /// metric pose in units of its covariance: the squared Mahalanobis distances of the rotation
+    /// error (a left perturbation) and of the translation error, each against its own 3x3 block.
+    /// Chi-square distributed with 3 degrees of freedom where the covariance is right. `None`
+    /// without a covariance or when a block is singular.
+    pub fn normalised_squared_errors(&self, truth: &nalgebra::Isometry3<f64>) -> Option<(f64, f64)> {
+        let covariance = self.covariance.filter(|_| self.metric)?;
+        let rotation_error = (truth.rotation * self.rotation.inverse()).scaled_axis();
+        let translation_error = truth.translation.vector - self.translation;
+        let mahalanobis = |error: nalgebra::Vector3<f64>, block: nalgebra::Matrix3<f64>| {
+            block.try_inverse().map(|information| (error.transpose() * information * error)[0])
+        };
+        Some((
+            mahalanobis(rotation_error, covariance.fixed_view::<3, 3>(3, 3).into())?,
+            mahalanobis(translation_error, covariance.fixed_view::<3, 3>(0, 0).into())?,
+        ))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -203,6 +223,25 @@ mod tests {
         assert_eq!(Stamp::parse_secs("-0.5").unwrap().nanos, -500_000_000);
         assert!(Stamp::parse_secs("12a.3").is_none());
         assert!(Stamp::parse_secs("").is_none());
+    }
+
+    #[test]
+    fn errors_are_measured_in_units_of_the_covariance() {
+        // Standard deviations 0.1 m and 0.01 rad on every axis.
+        let covariance = nalgebra::Matrix6::from_diagonal(&nalgebra::Vector6::new(0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4));
+        let pose = RelativePose {
+            rotation: nalgebra::UnitQuaternion::identity(),
+            translation: nalgebra::Vector3::new(1.0, 0.0, 0.0),
+            metric: true,
+            covariance: Some(covariance),
+        };
+        // Two standard deviations off in translation, three in rotation.
+        let truth =
+            nalgebra::Isometry3::new(nalgebra::Vector3::new(1.0, 0.2, 0.0), nalgebra::Vector3::new(0.0, 0.0, 0.03));
+        let (rotation, translation) = pose.normalised_squared_errors(&truth).unwrap();
+        assert!((rotation - 9.0).abs() < 1e-9 && (translation - 4.0).abs() < 1e-9, "{rotation} {translation}");
+        let direction = RelativePose { metric: false, ..pose };
+        assert_eq!(direction.normalised_squared_errors(&truth), None, "a unit direction has no covariance");
     }
 }
 

@@ -42,7 +42,7 @@ fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
     let real = dir.join("fr3_two_pass");
     write_two_pass(&shared.join("data/tum/fr3_long_office_household"), &real, 1.0, 0.05)?;
     let synthetic = dir.join("synthetic");
-    let scene = Scene::new(SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..SynthConfig::default() })?;
+    let scene = Scene::new(synthetic_sequence())?;
     write_tum_folder(&scene, &synthetic)?;
     let hard = dir.join("synthetic_hard");
     write_tum_folder(&Scene::new(SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..SynthConfig::hard() })?, &hard)?;
@@ -70,6 +70,11 @@ fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
             overrides: &[],
         },
     ])
+}
+
+/// The synthetic sequence's renderer settings: `synth` defaults but 600 frames at 5 Hz, 3 laps.
+pub fn synthetic_sequence() -> SynthConfig {
+    SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..SynthConfig::default() }
 }
 
 /// Replays `set` with `weights` as `arch` and the descriptor `mode` (`None`: the default);
