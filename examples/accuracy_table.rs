@@ -9,7 +9,8 @@
 //!
 //! Sets: Gardens Point day/night and the TUM desk orbit from `../shared/data/real`, Gardens Point
 //! again at 64x48 grayscale (degraded here, in a temporary folder: low-resolution cameras), the TUM
-//! fr3 two-pass and the synthetic sequences of `examples/common/mod.rs`.
+//! fr3 two-pass and the synthetic sequences of `examples/common/mod.rs`; for verification also the
+//! synthetic sequence rendered with depth (metric poses, their errors against the covariance).
 
 mod common;
 
@@ -344,7 +345,10 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
             if !set.name.contains("hard") {
                 // The same sequence rendered with depth: metric relative poses by PnP.
                 let dir = tempfile::tempdir()?;
-                let scene = ecm_lcd::synth::Scene::new(SynthConfig { depth: true, ..common::synthetic_sequence() })?;
+                let scene = ecm_lcd::synth::Scene::new(SynthConfig {
+                    depth: true,
+                    ..common::synthetic_sequence(SynthConfig::default())
+                })?;
                 ecm_lcd::synth::write_tum_folder(&scene, dir.path())?;
                 let name = "synthetic 600 frames, 3 laps, with depth (`depth.txt`)";
                 let with_depth = DevSet {

@@ -42,10 +42,10 @@ fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
     let real = dir.join("fr3_two_pass");
     write_two_pass(&shared.join("data/tum/fr3_long_office_household"), &real, 1.0, 0.05)?;
     let synthetic = dir.join("synthetic");
-    let scene = Scene::new(synthetic_sequence())?;
+    let scene = Scene::new(synthetic_sequence(SynthConfig::default()))?;
     write_tum_folder(&scene, &synthetic)?;
     let hard = dir.join("synthetic_hard");
-    write_tum_folder(&Scene::new(SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..SynthConfig::hard() })?, &hard)?;
+    write_tum_folder(&Scene::new(synthetic_sequence(SynthConfig::hard()))?, &hard)?;
     Ok(vec![
         EvalSet {
             name: "TUM fr3 two-pass (real)",
@@ -72,9 +72,10 @@ fn eval_sets(dir: &Path) -> Result<Vec<EvalSet>> {
     ])
 }
 
-/// The synthetic sequence's renderer settings: `synth` defaults but 600 frames at 5 Hz, 3 laps.
-pub fn synthetic_sequence() -> SynthConfig {
-    SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..SynthConfig::default() }
+/// The synthetic sequences' renderer settings: `base` (`synth`'s defaults or its hard preset) but
+/// 600 frames at 5 Hz, 3 laps.
+pub fn synthetic_sequence(base: SynthConfig) -> SynthConfig {
+    SynthConfig { frames: 600, laps: 3, rate_hz: 5.0, ..base }
 }
 
 /// Replays `set` with `weights` as `arch` and the descriptor `mode` (`None`: the default);
