@@ -169,7 +169,11 @@ fn measure(
 
 fn main() -> Result<()> {
     let (dir, sequences) = common::start()?;
-    let sets = dev_sets(dir.path(), sequences)?;
+    let mut sets = dev_sets(dir.path(), sequences)?;
+    // Narrow to some sets while exploring: ACCURACY_SETS="TUM fr3,synthetic 600" (parts of names).
+    if let Ok(wanted) = std::env::var("ACCURACY_SETS") {
+        sets.retain(|set| wanted.split(',').any(|part| set.name.contains(part.trim())));
+    }
     let weights = resolve::resolve(None)?;
     let sequence_length = "3";
     let defaults = Params::default();

@@ -132,13 +132,40 @@ impl DepthImage {
         image::ImageBuffer::from_raw(self.width, self.height, raw).expect("width * height values")
     }
 
-    /// The depth at pixel position (x, y) (nearest pixel); `None` outside the image or unknown.
+    /// The depth at pixel position (x, y) (nearest pixel; pixel centres at whole numbers); `None`
+    /// outside the image or unknown.
     pub fn at(&self, x: f32, y: f32) -> Option<f32> {
-        if !(x >= 0.0 && y >= 0.0) {
-            return None;
+        self.at_pixel(x.round(), y.round())
+    }
+
+    /// The depth at pixel position (x, y) where the surface around it is continuous, `None` where it
+    /// is not known to be: at an occlusion edge the nearest pixel may lie on either side of it (and a
+    /// depth camera's pixels there often on neither), so a corner found on a silhouette gets a depth
+    /// that is not its own. Continuous means: the 3x3 pixels around the nearest one are all known,
+    /// and along each of the four lines through it the inverse depth's second difference is at most
+    /// [`Self::EDGE_TOLERANCE`] of its value. Inverse depth is affine in the pixel position on a plane,
+    /// so a plane passes at any slant, and a crease (a corner of a room) passes too.
+    pub fn at_continuous(&self, x: f32, y: f32) -> Option<f32> {
+        let (col, row) = (x.round(), y.round());
+        let depth = self.at_pixel(col, row)?;
+        let centre = 1.0 / depth;
+        let inverse = |dx: f32, dy: f32| self.at_pixel(col + dx, row + dy).map(|d| 1.0 / d);
+        for (dx, dy) in [(1.0, 0.0), (0.0, 1.0), (1.0, 1.0), (1.0, -1.0)] {
+            let second_difference = inverse(dx, dy)? + inverse(-dx, -dy)? - 2.0 * centre;
+            if second_difference.abs() > Self::EDGE_TOLERANCE * centre {
+                return None;
+            }
         }
-        let (col, row) = (x as u32, y as u32);
-        if col >= self.width || row >= self.height {
+        Some(depth)
+    }
+
+    /// The largest second difference of inverse depth, as a fraction of it, that
+    /// [`Self::at_continuous`] takes for a continuous surface: above the steps of a Kinect's
+    /// disparity (about 1% at 3 m), well below an occlusion edge's jump.
+    pub const EDGE_TOLERANCE: f32 = 0.05;
+
+    fn at_pixel(&self, col: f32, row: f32) -> Option<f32> {
+        if !(col >= 0.0 && row >= 0.0 && col < self.width as f32 && row < self.height as f32) {
             return None;
         }
         let d = self.metres[row as usize * self.width as usize + col as usize];
@@ -223,6 +250,35 @@ mod tests {
         assert_eq!(Stamp::parse_secs("-0.5").unwrap().nanos, -500_000_000);
         assert!(Stamp::parse_secs("12a.3").is_none());
         assert!(Stamp::parse_secs("").is_none());
+    }
+
+    #[test]
+    fn depth_is_read_at_the_nearest_pixel_and_not_across_occlusion_edges() {
+        let image = |inverse: &dyn Fn(f32, f32) -> f32| DepthImage {
+            width: 10,
+            height: 8,
+            metres: (0..80).map(|i| 1.0 / inverse((i % 10) as f32, (i / 10) as f32)).collect(),
+        };
+        // A slanted plane: inverse depth is affine in the pixel position.
+        let plane = image(&|x, y| 0.2 + 0.05 * x + 0.01 * y);
+        let at_4_4 = 1.0 / (0.2 + 0.05 * 4.0 + 0.01 * 4.0);
+        assert_eq!(plane.at(4.4, 3.6), Some(at_4_4), "nearest pixel, not the one below and left");
+        assert_eq!(plane.at_continuous(4.4, 3.6), Some(at_4_4));
+        assert_eq!(plane.at_continuous(0.0, 4.0), None, "no 3x3 neighbourhood at the border");
+        assert_eq!((plane.at(9.6, 2.0), plane.at(-0.6, 2.0)), (None, None), "outside");
+        // A crease: two walls meeting at a room's corner.
+        let corner = image(&|x, _| 0.3 * (1.0 + 0.004 * (x - 5.0).abs()));
+        assert_eq!(corner.at_continuous(5.0, 3.0), corner.at(5.0, 3.0));
+        // A box 1 m away in front of a wall 3 m away, from column 5 on.
+        let edge = image(&|x, _| if x >= 5.0 { 1.0 } else { 1.0 / 3.0 });
+        assert_eq!((edge.at(5.0, 3.0), edge.at_continuous(5.0, 3.0)), (Some(1.0), None));
+        assert_eq!((edge.at(4.0, 3.0), edge.at_continuous(4.0, 3.0)), (Some(3.0), None));
+        assert_eq!(edge.at_continuous(6.0, 3.0), Some(1.0));
+        assert_eq!(edge.at_continuous(2.0, 3.0), Some(3.0));
+        // An unknown pixel beside the keypoint.
+        let mut hole = image(&|_, _| 0.5);
+        hole.metres[3 * 10 + 6] = 0.0;
+        assert_eq!((hole.at_continuous(5.0, 3.0), hole.at_continuous(3.0, 3.0)), (None, Some(2.0)));
     }
 
     #[test]
