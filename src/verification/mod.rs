@@ -219,7 +219,8 @@ impl LocalFeatures {
         self.keypoints.is_empty()
     }
 
-    /// Reads each keypoint's depth from `depth`, which must have the image's size.
+    /// Reads each keypoint's depth from `depth`, which must have the image's size; a keypoint on an
+    /// occlusion edge gets none ([`DepthImage::at_continuous`]).
     pub fn set_depth(&mut self, depth: &DepthImage) -> Result<()> {
         let [width, height] = self.image_size;
         ensure!(
@@ -228,7 +229,7 @@ impl LocalFeatures {
             depth.width,
             depth.height,
         );
-        self.depths = self.keypoints.iter().map(|&[x, y]| depth.at(x, y).unwrap_or(0.0)).collect();
+        self.depths = self.keypoints.iter().map(|&[x, y]| depth.at_continuous(x, y).unwrap_or(0.0)).collect();
         Ok(())
     }
 
@@ -403,12 +404,12 @@ fn metric_pose(
         random_seed: Some(0),
         ..PnPRansacParams::default()
     };
-    let found = solve_pnp_ransac(&world, &image, &k, None, PnPMethod::EPnPDefault, &ransac).ok()?;
+    let found = solve_pnp_ransac(&world, &image, &k, None, PnPMethod::AP3PDefault, &ransac).ok()?;
     if found.inliers.len() < MIN_METRIC_INLIERS {
         return None;
     }
-    // EPnP minimises an algebraic error; a Levenberg-Marquardt pass on the inliers' reprojection
-    // errors (kornia's PnP refinement) makes the pose the least-squares one.
+    // The minimal solver's pose fits a few points; a Levenberg-Marquardt pass on the inliers'
+    // reprojection errors (kornia's PnP refinement) brings it near the least-squares pose.
     let (inlier_world, inlier_image): (Vec<Vec3AF32>, Vec<Vec2F32>) =
         found.inliers.iter().map(|&i| (world[i], image[i])).unzip();
     let pose = refine_pnp_lm(
@@ -428,52 +429,125 @@ fn metric_pose(
     let t = pose.translation;
     let t = Vector3::new(t.x as f64, t.y as f64, t.z as f64);
     let inverse = rotation.transpose();
-    let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&inverse));
-    let translation = -(inverse * t);
-    let inliers: Vec<(Vector3<f64>, [f64; 2])> = inlier_world
+    let mut rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&inverse));
+    let mut translation = -(inverse * t);
+    // Two things stand between that pose and the least-squares one that the covariance describes:
+    // kornia's pass runs in f32 and stops short of the optimum, and its inliers are those of the best
+    // minimal sample's pose, a biased subset (about 85 of 100 where 98 agree with the final pose).
+    // Each left the errors' spread over twice what the covariance says. So: Gauss-Newton in f64 on
+    // the inliers of the current pose, until they stop changing.
+    let all: Vec<(Vector3<f64>, [f64; 2])> = world
         .iter()
-        .zip(&inlier_image)
+        .zip(&image)
         .map(|(p, q)| (Vector3::new(p.x as f64, p.y as f64, p.z as f64), [q.x as f64, q.y as f64]))
         .collect();
-    let covariance = pose_covariance(&rotation, &translation, &inliers, intrinsics);
+    let mut inliers = found.inliers;
+    let mut covariance = None;
+    for _ in 0..MAX_INLIER_ROUNDS {
+        let subset: Vec<_> = inliers.iter().map(|&i| all[i]).collect();
+        let Some(fitted) = least_squares_pose(rotation, translation, &subset, intrinsics, pixel_threshold) else {
+            break;
+        };
+        (rotation, translation, covariance) = (fitted.0, fitted.1, Some(fitted.2));
+        let agreeing: Vec<usize> = (0..all.len())
+            .filter(|&i| {
+                let [u, v] = project_into_query(&rotation, &translation, &all[i].0, intrinsics);
+                (u - all[i].1[0]).hypot(v - all[i].1[1]) < pixel_threshold
+            })
+            .collect();
+        if agreeing == inliers || agreeing.len() < MIN_METRIC_INLIERS {
+            break;
+        }
+        inliers = agreeing;
+    }
     Some(RelativePose { rotation, translation, metric: true, covariance })
 }
 
-/// The covariance of a metric relative pose from its PnP inliers (3-D points in the match camera,
-/// pixels in the query image): `s² (JᵀJ)⁻¹`, the Gauss-Newton estimate, with `J` the reprojection
-/// errors' Jacobian (central differences) and `s²` their variance per degree of freedom. The six
-/// parameters follow ROS's `PoseWithCovariance`: translation x, y, z in the match camera's frame, then
-/// rotations about its x, y and z axes (applied on the left of the rotation).
-fn pose_covariance(
+/// Rounds of [`metric_pose`]'s refit on the inliers of its latest pose; they settle in two or three.
+const MAX_INLIER_ROUNDS: usize = 5;
+
+/// The per-axis variance of isotropic 2-D Gaussian pixel errors whose vectors were kept only under
+/// `cut` pixels long (the inlier threshold), from the variance `observed` in those kept: the cut
+/// drops the tails, so the kept ones understate the spread. Where the kept errors fill the cut so
+/// evenly that the Gaussian would need more than twice their variance, they are not Gaussian tails
+/// to restore, and the correction stops at twice.
+fn untruncated_variance(observed: f64, cut: f64) -> f64 {
+    // A kept error's squared length over 2 sigma² is exponential with rate 1 cut at a = cut² / 2
+    // sigma²: its mean is 1 - a e^-a / (1 - e^-a). Fixed-point iteration on sigma².
+    let mut variance = observed;
+    for _ in 0..50 {
+        let a = cut * cut / (2.0 * variance);
+        let kept = 1.0 - a * (-a).exp() / (1.0 - (-a).exp());
+        variance = (observed / kept).min(2.0 * observed);
+    }
+    variance
+}
+
+/// Pixel position in the query image of `point` (in the match camera's frame), with the query
+/// camera at (`rotation`, `translation`) in the match camera's frame.
+fn project_into_query(
     rotation: &UnitQuaternion<f64>,
     translation: &Vector3<f64>,
+    point: &Vector3<f64>,
+    intrinsics: &Intrinsics,
+) -> [f64; 2] {
+    // p_match = r p_query + t, so p_query = rᵀ (p_match - t).
+    let c = rotation.inverse() * (point - translation);
+    [intrinsics.fx * c.x / c.z + intrinsics.cx, intrinsics.fy * c.y / c.z + intrinsics.cy]
+}
+
+/// Gauss-Newton from a metric relative pose near the optimum to the least-squares one over its PnP
+/// inliers (3-D points in the match camera, pixels in the query image), with its covariance
+/// `s² (JᵀJ)⁻¹`: `J` the reprojection errors' Jacobian (central differences) and `s²` their variance
+/// per degree of freedom, restored for the tails that `inlier_threshold` (pixels) cut off
+/// ([`untruncated_variance`]). The six parameters follow ROS's `PoseWithCovariance`: translation x, y, z
+/// in the match camera's frame, then rotations about its x, y and z axes (applied on the left of the
+/// rotation). `None` where the inliers do not fix the pose.
+fn least_squares_pose(
+    mut rotation: UnitQuaternion<f64>,
+    mut translation: Vector3<f64>,
     inliers: &[(Vector3<f64>, [f64; 2])],
     intrinsics: &Intrinsics,
-) -> Option<nalgebra::Matrix6<f64>> {
+    inlier_threshold: f64,
+) -> Option<(UnitQuaternion<f64>, Vector3<f64>, nalgebra::Matrix6<f64>)> {
     if inliers.len() < 4 {
         return None;
     }
-    let residuals = |delta: &nalgebra::Vector6<f64>| -> nalgebra::DVector<f64> {
-        let r = UnitQuaternion::from_scaled_axis(Vector3::new(delta[3], delta[4], delta[5])) * rotation;
-        let t = translation + Vector3::new(delta[0], delta[1], delta[2]);
-        // p_match = r p_query + t, so p_query = rᵀ (p_match - t).
-        let errors = inliers.iter().flat_map(|(p, q)| {
-            let c = r.inverse() * (p - t);
-            [intrinsics.fx * c.x / c.z + intrinsics.cx - q[0], intrinsics.fy * c.y / c.z + intrinsics.cy - q[1]]
-        });
-        nalgebra::DVector::from_iterator(2 * inliers.len(), errors)
-    };
-    let at = residuals(&nalgebra::Vector6::zeros());
-    let mut jacobian = nalgebra::DMatrix::<f64>::zeros(at.len(), 6);
-    for k in 0..6 {
-        let mut step = nalgebra::Vector6::zeros();
-        step[k] = 1e-6;
-        jacobian.set_column(k, &((residuals(&step) - residuals(&-step)) / 2e-6));
+    // The steps shrink quadratically from a pose this close; a few always suffice.
+    const MAX_STEPS: usize = 10;
+    let mut steps = 0;
+    loop {
+        let residuals = |delta: &nalgebra::Vector6<f64>| -> nalgebra::DVector<f64> {
+            let r = UnitQuaternion::from_scaled_axis(Vector3::new(delta[3], delta[4], delta[5])) * rotation;
+            let t = translation + Vector3::new(delta[0], delta[1], delta[2]);
+            let errors = inliers.iter().flat_map(|(p, q)| {
+                let [u, v] = project_into_query(&r, &t, p, intrinsics);
+                [u - q[0], v - q[1]]
+            });
+            nalgebra::DVector::from_iterator(2 * inliers.len(), errors)
+        };
+        let at = residuals(&nalgebra::Vector6::zeros());
+        let mut jacobian = nalgebra::DMatrix::<f64>::zeros(at.len(), 6);
+        for k in 0..6 {
+            let mut step = nalgebra::Vector6::zeros();
+            step[k] = 1e-6;
+            jacobian.set_column(k, &((residuals(&step) - residuals(&-step)) / 2e-6));
+        }
+        let information: nalgebra::Matrix6<f64> = (jacobian.transpose() * &jacobian).fixed_view::<6, 6>(0, 0).into();
+        let inverse = information.try_inverse()?;
+        let gradient: nalgebra::Vector6<f64> = (jacobian.transpose() * &at).fixed_view::<6, 1>(0, 0).into();
+        let step = -(inverse * gradient);
+        // Converged (a step under a micrometre and a microradian) or out of steps: the covariance
+        // of the pose the Jacobian was taken at.
+        if step.amax() < 1e-6 || steps == MAX_STEPS {
+            let variance = untruncated_variance(at.norm_squared() / (at.len() - 6) as f64, inlier_threshold);
+            let covariance = inverse * variance;
+            return covariance.iter().all(|v| v.is_finite()).then_some((rotation, translation, covariance));
+        }
+        rotation = UnitQuaternion::from_scaled_axis(Vector3::new(step[3], step[4], step[5])) * rotation;
+        translation += Vector3::new(step[0], step[1], step[2]);
+        steps += 1;
     }
-    let variance = at.norm_squared() / (at.len() - 6) as f64;
-    let information: nalgebra::Matrix6<f64> = (jacobian.transpose() * &jacobian).fixed_view::<6, 6>(0, 0).into();
-    let covariance = information.try_inverse()? * variance;
-    covariance.iter().all(|v| v.is_finite()).then_some(covariance)
 }
 
 /// Steps 3 and 4 of the module doc on matched pixel positions (`x1[i]` in the query, `x2[i]` in the
@@ -777,29 +851,44 @@ mod tests {
         assert_eq!((result.matches, result.inliers, result.accepted), (0, 0, false));
     }
 
+    /// `count` seeded random 3-D points 2-5 m in front of the match camera, seen from both cameras
+    /// (the query camera at `truth` in the match camera's frame) with Gaussian pixel noise of
+    /// `sigma` pixels in each image: (query pixel, match pixel, depth) as [`metric_pose`] takes them.
+    fn noisy_correspondences(
+        truth: &nalgebra::Isometry3<f64>,
+        intrinsics: &Intrinsics,
+        count: usize,
+        sigma: f64,
+        seed: u64,
+    ) -> Vec<(Vec2F64, Vec2F64, f32)> {
+        let mut state = seed;
+        let mut uniform = move || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let project = |c: Vector3<f64>| {
+            Vec2F64::new(intrinsics.fx * c.x / c.z + intrinsics.cx, intrinsics.fy * c.y / c.z + intrinsics.cy)
+        };
+        let mut points = Vec::with_capacity(count);
+        for _ in 0..count {
+            let p = Vector3::new(uniform() * 4.0 - 2.0, uniform() * 3.0 - 1.5, 2.0 + uniform() * 3.0);
+            let (mut q, mut m) = (project((truth.inverse() * nalgebra::Point3::from(p)).coords), project(p));
+            for value in [&mut q.x, &mut q.y, &mut m.x, &mut m.y] {
+                // Box-Muller.
+                let (u, v) = (uniform(), uniform());
+                *value += sigma * (-2.0 * u.max(1e-12).ln()).sqrt() * (std::f64::consts::TAU * v).cos();
+            }
+            points.push((q, m, p.z as f32));
+        }
+        points
+    }
+
     #[test]
     fn a_metric_pose_from_depth_matches_the_truth_within_its_covariance() {
         let intrinsics = Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0 };
         // The query camera in the match camera's frame: 0.3 m right, 0.1 m forward, turned 5 degrees.
         let truth = nalgebra::Isometry3::new(Vector3::new(0.3, 0.0, 0.1), Vector3::new(0.0, 5f64.to_radians(), 0.0));
-        let mut state = 7u64;
-        let mut uniform = move || {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
-        let sigma = 0.5;
-        let mut points = Vec::new();
-        for _ in 0..150 {
-            let p = Vector3::new(uniform() * 4.0 - 2.0, uniform() * 3.0 - 1.5, 2.0 + uniform() * 3.0);
-            let project = |c: Vector3<f64>| Vec2F64::new(500.0 * c.x / c.z + 320.0, 500.0 * c.y / c.z + 240.0);
-            let in_query = truth.inverse() * nalgebra::Point3::from(p);
-            // Gaussian pixel noise (Box-Muller) on the query keypoints.
-            let noise = |u: f64, v: f64| sigma * (-2.0 * u.max(1e-12).ln()).sqrt() * (std::f64::consts::TAU * v).cos();
-            let mut q = project(in_query.coords);
-            q.x += noise(uniform(), uniform());
-            q.y += noise(uniform(), uniform());
-            points.push((q, project(p), p.z as f32));
-        }
+        let points = noisy_correspondences(&truth, &intrinsics, 150, 0.5, 7);
         let pose = metric_pose(&points, &intrinsics, 2.0).expect("a metric pose");
         assert!(pose.metric);
         let rotation_error = pose.rotation.angle_to(&truth.rotation).to_degrees();
@@ -807,17 +896,34 @@ mod tests {
         assert!(rotation_error < 0.2 && translation_error.norm() < 0.02, "{rotation_error} deg, {translation_error:?}");
         let covariance = pose.covariance.expect("a covariance");
         assert!(covariance.cholesky().is_some(), "positive definite: {covariance}");
-        for axis in 0..3 {
-            let sd = covariance[(axis, axis)].sqrt();
-            assert!(sd > 1e-5 && sd < 0.05, "axis {axis}: sd {sd}");
-            assert!(
-                translation_error[axis].abs() < 5.0 * sd,
-                "axis {axis}: error {} vs sd {sd}",
-                translation_error[axis]
-            );
-        }
         // Too few points: no metric pose.
         assert!(metric_pose(&points[..MIN_METRIC_INLIERS - 1], &intrinsics, 2.0).is_none());
+    }
+
+    /// The covariance is calibrated: over many seeded pairs with independent pixel noise in both
+    /// images, the squared Mahalanobis distance of the errors averages 3 (chi-square, 3 degrees of
+    /// freedom) for rotation and for translation (about 3.4 here: the errors in the 3-D points are
+    /// not in the model). A pose fitted to the best minimal sample's inliers and left short of the
+    /// least-squares optimum by kornia's f32 refinement averaged about 8.5.
+    #[test]
+    fn the_metric_covariance_matches_the_spread_of_the_errors() {
+        // The synthetic camera at 320x240 and a revisit 13 cm apart, turned 3.5 degrees.
+        let intrinsics = Intrinsics { fx: 262.4, fy: 262.4, cx: 159.5, cy: 119.5 };
+        let truth =
+            nalgebra::Isometry3::new(Vector3::new(0.12, 0.0, 0.05), Vector3::new(0.0, 3.5f64.to_radians(), 0.0));
+        let trials = 100;
+        let (mut rotation, mut translation) = (0.0, 0.0);
+        for seed in 0..trials {
+            let points = noisy_correspondences(&truth, &intrinsics, 120, 1.0, seed);
+            let pose = metric_pose(&points, &intrinsics, 4.0).expect("a metric pose");
+            let (r, t) = pose.normalised_squared_errors(&truth).expect("a covariance");
+            rotation += r / trials as f64;
+            translation += t / trials as f64;
+        }
+        // The mean of 100 chi-square(3) draws: 3 with a standard deviation of 0.245.
+        for (name, mean) in [("rotation", rotation), ("translation", translation)] {
+            assert!((2.4..4.0).contains(&mean), "{name}: mean normalised squared error {mean:.2}, 3 if right");
+        }
     }
 
     #[test]
@@ -825,18 +931,20 @@ mod tests {
         let params = VerificationParams { keyframes: 2, ..VerificationParams::default() };
         let mut verifier = Verifier::new(params).unwrap();
         let features = LocalFeatures {
-            keypoints: vec![[1.5, 0.5], [3.0, 1.0]],
+            keypoints: vec![[1.4, 1.4], [3.0, 2.0]],
             descriptors: Descriptors::Orb(vec![[0; 32]; 2]),
             depths: Vec::new(),
-            image_size: [4, 2],
+            image_size: [5, 4],
         };
         verifier.remember(7, features);
-        let depth = DepthImage { width: 4, height: 2, metres: vec![0.5, 1.5, 2.5, 3.5, 4.5, 5.5, 6.5, 0.0] };
+        // A wall 2 m away with one pixel unknown, beside the second keypoint.
+        let mut depth = DepthImage { width: 5, height: 4, metres: vec![2.0; 20] };
+        depth.metres[2 * 5 + 4] = 0.0;
         let small = DepthImage { width: 2, height: 2, metres: vec![1.0; 4] };
         let err = verifier.attach_depth(7, &small).unwrap_err().to_string();
-        assert!(err.contains("depth image is 2x2, its colour image 4x2"), "{err}");
+        assert!(err.contains("depth image is 2x2, its colour image 5x4"), "{err}");
         assert!(verifier.attach_depth(7, &depth).unwrap());
-        assert_eq!(verifier.features[&7].depths, vec![1.5, 0.0]);
+        assert_eq!(verifier.features[&7].depths, vec![2.0, 0.0]);
         // Once only, and only for kept keyframes.
         assert!(!verifier.attach_depth(7, &depth).unwrap());
         assert!(!verifier.attach_depth(8, &depth).unwrap());
