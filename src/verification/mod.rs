@@ -16,9 +16,10 @@
 //!    the most inliers in front of both cameras. Two views fix the translation's direction, not its
 //!    length.
 //! 5. With a depth image of the match keyframe, a metric pose: the inliers whose match keypoint has a
-//!    depth are lifted to 3-D points in the match camera, and EPnP inside RANSAC (kornia-3d) finds the
-//!    query camera that sees them where its keypoints are. The metric pose replaces step 4's when
-//!    enough of those points agree ([`MIN_METRIC_INLIERS`]).
+//!    depth are lifted to 3-D points in the match camera, and AP3P inside RANSAC (kornia-3d) finds the
+//!    query camera that sees them where its keypoints are, refined to the least-squares pose on the
+//!    points that agree with it. The metric pose replaces step 4's when enough of those points agree
+//!    ([`MIN_METRIC_INLIERS`]).
 //!
 //! A candidate is verified when the inliers reach [`VerificationParams::min_inliers`] (and
 //! [`VerificationParams::min_inlier_ratio`] of the matches). An 8-point
