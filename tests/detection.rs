@@ -166,8 +166,9 @@ fn every_source_kind_replays_to_the_same_candidates() {
         assert!(out.status.success(), "{}: {}", source.display(), String::from_utf8_lossy(&out.stderr));
         outputs.push(std::fs::read_to_string(&csv).unwrap());
     }
-    assert!(outputs[0]
-        .starts_with("query_id,query_stamp,match_id,match_stamp,distance,score,inliers,qx,qy,qz,qw,tx,ty,tz,metric\n"));
+    assert!(outputs[0].starts_with(
+        "query_id,query_stamp,match_id,match_stamp,distance,score,inliers,qx,qy,qz,qw,tx,ty,tz,metric,cov_x_x,"
+    ));
     assert!(outputs[0].lines().count() > 3, "no loops found:\n{}", outputs[0]);
     for (i, other) in outputs.iter().enumerate().skip(1) {
         assert_eq!(&outputs[0], other, "source {i} differs from the TUM folder");

@@ -61,19 +61,32 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
     let pose_at =
         |stamp| truth.iter().find(|(s, _)| *s == stamp).map(|(_, p)| *p).expect("a ground-truth pose at every frame");
     let (mut rotation_deg, mut translation_m) = (Vec::new(), Vec::new());
+    let (mut rotation_nees, mut translation_nees) = (Vec::new(), Vec::new());
     for c in &found {
         let pose = c.verified.and_then(|v| v.pose).expect("verified with a pose");
         assert!(pose.metric, "depth given: metric pose for {} -> {}", c.query_id, c.match_id);
         let exact = pose_at(c.match_stamp).inverse() * pose_at(c.query_stamp);
         rotation_deg.push(exact.rotation.angle_to(&pose.rotation).to_degrees());
         translation_m.push((exact.translation.vector - pose.translation).norm());
+        // The CSV carries each metric pose's covariance; the errors in its units.
+        let (r, t) = pose.normalised_squared_errors(&exact).expect("a covariance read back from the CSV");
+        rotation_nees.push(r);
+        translation_nees.push(t);
     }
     let (rotation, translation) = (median(rotation_deg), median(translation_m));
+    let (rotation_nees, translation_nees) = (median(rotation_nees), median(translation_nees));
     println!(
-        "{} metric loops: median rotation error {rotation:.3} deg, translation error {translation:.4} m",
+        "{} metric loops: median rotation error {rotation:.3} deg, translation error {translation:.4} m; \
+         median normalised squared error {rotation_nees:.1} / {translation_nees:.1} (2.4 if the covariance is right)",
         found.len()
     );
     assert!(rotation <= 1.0 && translation <= 0.05, "median errors {rotation} deg, {translation} m");
+    // Standard deviations within 2x of the errors' (a right covariance's median is 2.4, so under
+    // 4 x 2.4): it understates errors shared by neighbouring keypoints, but not by more.
+    assert!(
+        rotation_nees < 4.0 * 2.4 && translation_nees < 4.0 * 2.4,
+        "median normalised squared errors {rotation_nees:.1} / {translation_nees:.1}"
+    );
 
     let corrected = dir.path().join("corrected.txt");
     let plot = dir.path().join("fig11.png");

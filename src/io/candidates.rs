@@ -8,11 +8,12 @@ use std::io::Write;
 use std::path::Path;
 
 use anyhow::{bail, ensure, Context, Result};
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use nalgebra::{Matrix6, Quaternion, UnitQuaternion, Vector3};
 
 use crate::types::{LoopCandidate, RelativePose, Stamp, Verified};
 
-const CSV_HEADER: [&str; 15] = [
+/// The columns before the covariance's ([`columns`]).
+const POSE_HEADER: [&str; 15] = [
     "query_id",
     "query_stamp",
     "match_id",
@@ -30,11 +31,29 @@ const CSV_HEADER: [&str; 15] = [
     "metric",
 ];
 
+/// Every column's name, in order.
+fn columns() -> Vec<String> {
+    POSE_HEADER.iter().map(|name| name.to_string()).chain(covariance_columns().map(|(name, _, _)| name)).collect()
+}
+
+/// The pose parameters in the order of ROS's `PoseWithCovariance` (translation, then rotation about
+/// the x, y and z axes), which name the covariance columns.
+const POSE_PARAMETERS: [&str; 6] = ["x", "y", "z", "rx", "ry", "rz"];
+
+/// The covariance columns: the upper triangle of the 6x6 matrix, row by row (`cov_x_x`, `cov_x_y`,
+/// ..., `cov_rz_rz`), with each entry's row and column.
+fn covariance_columns() -> impl Iterator<Item = (String, usize, usize)> {
+    (0..6).flat_map(|row| {
+        (row..6).map(move |column| (format!("cov_{}_{}", POSE_PARAMETERS[row], POSE_PARAMETERS[column]), row, column))
+    })
+}
+
 /// Candidates as CSV (`query_id,query_stamp,match_id,match_stamp,distance,score`, then geometric
 /// verification's `inliers` and the relative pose `qx,qy,qz,qw,tx,ty,tz` of the query camera in the
-/// match camera's frame; empty where not verified or without intrinsics), and `metric`: 1 where the
-/// translation is in metres (the match keyframe had depth), 0 where it is a unit direction. Written in
-/// pieces, each flushed.
+/// match camera's frame; empty where not verified or without intrinsics), `metric`: 1 where the
+/// translation is in metres (the match keyframe had depth), 0 where it is a unit direction, and the
+/// metric pose's covariance as the 21 columns of its upper triangle (`cov_x_x` ... `cov_rz_rz`, metres
+/// and radians; empty where there is none). Written in pieces, each flushed.
 pub struct CandidateCsv {
     out: csv::Writer<Box<dyn Write + Send>>,
     name: String,
@@ -48,6 +67,17 @@ impl CandidateCsv {
             std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
         }
         let continuing = append && std::fs::metadata(path).is_ok_and(|m| m.len() > 0);
+        if continuing {
+            // Lines of these columns under another header would be misread.
+            let text = crate::io::read_capped_text(path, crate::io::limits::TEXT_LIST, "candidates CSV")?;
+            let found = text.lines().next().unwrap_or("");
+            ensure!(
+                found == columns().join(","),
+                "{} has other columns than this version writes ({}); give another output file or remove it",
+                path.display(),
+                crate::io::excerpt(found, 60)
+            );
+        }
         let file = if continuing { File::options().append(true).open(path) } else { File::create(path) }
             .with_context(|| format!("cannot write {}", path.display()))?;
         Self::new(Box::new(file), path.display().to_string(), !continuing)
@@ -65,7 +95,7 @@ impl CandidateCsv {
         }
         crate::io::output::replace_with(path, |out| {
             let mut csv = csv::WriterBuilder::new().has_headers(false).from_writer(out);
-            csv.write_record(CSV_HEADER)?;
+            csv.write_record(columns())?;
             for c in candidates {
                 csv.write_record(record(c))?;
             }
@@ -81,7 +111,7 @@ impl CandidateCsv {
     fn new(out: Box<dyn Write + Send>, name: String, header: bool) -> Result<Self> {
         let mut csv = CandidateCsv { out: csv::WriterBuilder::new().has_headers(false).from_writer(out), name };
         if header {
-            csv.out.write_record(CSV_HEADER)?;
+            csv.out.write_record(columns())?;
             csv.flush()?;
         }
         Ok(csv)
@@ -117,6 +147,12 @@ fn record(c: &LoopCandidate) -> Vec<String> {
     });
     record.extend((0..7).map(|i| pose.map(|values| format!("{:.6}", values[i])).unwrap_or_default()));
     record.push(c.verified.and_then(|v| v.pose).map(|p| u8::from(p.metric).to_string()).unwrap_or_default());
+    let covariance = c.verified.and_then(|v| v.pose).and_then(|p| p.covariance);
+    record.extend(
+        covariance_columns().map(|(_, row, column)| {
+            covariance.map(|matrix| format!("{:.6e}", matrix[(row, column)])).unwrap_or_default()
+        }),
+    );
     record
 }
 
@@ -126,7 +162,7 @@ pub fn write_candidates_csv(candidates: &[LoopCandidate], path: &Path) -> Result
 }
 
 /// Reads a candidates CSV written by [`CandidateCsv`] (columns found by name; files from before the
-/// `metric` column read as up to scale). The rank is the order of a query's lines.
+/// `metric` column read as up to scale, from before the covariance columns without covariance). The rank is the order of a query's lines.
 pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
     let text = crate::io::read_capped_text(path, crate::io::limits::TEXT_LIST, "candidates CSV")?;
     let mut reader = csv::ReaderBuilder::new().has_headers(true).from_reader(text.as_bytes());
@@ -142,6 +178,8 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
     let pose_columns: Option<Vec<usize>> =
         ["inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz"].iter().map(|n| column(n)).collect();
     let metric = column("metric");
+    let covariance_columns: Option<Vec<(usize, usize, usize)>> =
+        covariance_columns().map(|(name, row, col)| column(&name).map(|i| (i, row, col))).collect();
     let mut candidates: Vec<LoopCandidate> = Vec::new();
     for (row, record) in reader.records().enumerate() {
         let line = row + 2;
@@ -185,11 +223,22 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
                             crate::io::excerpt(other, 20)
                         ),
                     };
+                    let covariance = match &covariance_columns {
+                        Some(columns) if !field(columns[0].0).is_empty() => {
+                            let mut matrix = Matrix6::zeros();
+                            for &(i, row, col) in columns {
+                                matrix[(row, col)] = number(i)?;
+                                matrix[(col, row)] = matrix[(row, col)];
+                            }
+                            Some(matrix)
+                        }
+                        _ => None,
+                    };
                     Some(RelativePose {
                         rotation: UnitQuaternion::from_quaternion(q),
                         translation: Vector3::new(v[4], v[5], v[6]),
                         metric,
-                        covariance: None,
+                        covariance,
                     })
                 };
                 Some(Verified { inliers, pose })
@@ -220,11 +269,15 @@ mod tests {
     fn candidates_read_back_as_written() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("c.csv");
+        // A covariance with correlations, of a pose with centimetre and milliradian errors.
+        let spread =
+            Matrix6::from_fn(|r, c| 1e-4 * (1.0 + r as f64) * (1.0 + c as f64) * if r < 3 { 1.0 } else { 0.1 });
+        let covariance = spread * spread.transpose() + Matrix6::identity() * 1e-6;
         let pose = RelativePose {
             rotation: UnitQuaternion::from_euler_angles(0.1, -0.2, 0.3),
             translation: Vector3::new(0.5, -0.25, 1.0),
             metric: true,
-            covariance: None,
+            covariance: Some(covariance),
         };
         let candidate = |query: u64, matched: u64, verified: Option<Verified>, rank: u32| LoopCandidate {
             query_id: query,
@@ -240,7 +293,12 @@ mod tests {
             candidate(9, 1, None, 0),
             candidate(9, 2, Some(Verified { inliers: 40, pose: None }), 1),
             candidate(12, 3, Some(Verified { inliers: 55, pose: Some(pose) }), 0),
-            candidate(13, 4, Some(Verified { inliers: 20, pose: Some(RelativePose { metric: false, ..pose }) }), 0),
+            candidate(
+                13,
+                4,
+                Some(Verified { inliers: 20, pose: Some(RelativePose { metric: false, covariance: None, ..pose }) }),
+                0,
+            ),
         ];
         write_candidates_csv(&written, &path).unwrap();
         let read = read_candidates_csv(&path).unwrap();
@@ -255,11 +313,20 @@ mod tests {
                 (None, None) => {}
                 (Some(a), Some(b)) => {
                     assert_eq!(a.metric, b.metric);
+                    match (a.covariance, b.covariance) {
+                        (None, None) => {}
+                        (Some(x), Some(y)) => assert!((x - y).amax() < 1e-6 * y.amax(), "{x} read, {y} written"),
+                        other => panic!("covariance mismatch {other:?}"),
+                    }
                     assert!(a.rotation.angle_to(&b.rotation) < 1e-5 && (a.translation - b.translation).norm() < 1e-5);
                 }
                 other => panic!("pose mismatch {other:?}"),
             }
         }
+        // Appending to a file of other columns is refused, naming it.
+        std::fs::write(&path, "query_id,query_stamp,match_id,match_stamp,distance,score\n").unwrap();
+        let err = CandidateCsv::to_file(&path, true).err().expect("other columns refused").to_string();
+        assert!(err.contains("c.csv has other columns"), "{err}");
         std::fs::write(&path, "query_id,stamp\n1,2\n").unwrap();
         let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
         assert!(err.contains("query_stamp") && err.contains("c.csv"), "{err}");
