@@ -82,7 +82,7 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
     );
     assert!(rotation <= 1.0 && translation <= 0.05, "median errors {rotation} deg, {translation} m");
     // Standard deviations within 2x of the errors' (a right covariance's median is 2.4, so under
-    // 4 x 2.4): it understates errors shared by neighbouring keypoints, but not by more.
+    // 4 x 2.4): it understates the errors of rendered views somewhat, but not by more.
     assert!(
         rotation_nees < 4.0 * 2.4 && translation_nees < 4.0 * 2.4,
         "median normalised squared errors {rotation_nees:.1} / {translation_nees:.1}"
