@@ -262,7 +262,7 @@ mod tests {
         // A slanted plane: inverse depth is affine in the pixel position.
         let plane = image(&|x, y| 0.2 + 0.05 * x + 0.01 * y);
         let at_4_4 = 1.0 / (0.2 + 0.05 * 4.0 + 0.01 * 4.0);
-        assert_eq!(plane.at(4.4, 3.6), Some(at_4_4), "nearest pixel, not the one below and left");
+        assert_eq!(plane.at(4.4, 3.6), Some(at_4_4), "nearest pixel, not the one above and left");
         assert_eq!(plane.at_continuous(4.4, 3.6), Some(at_4_4));
         assert_eq!(plane.at_continuous(0.0, 4.0), None, "no 3x3 neighbourhood at the border");
         assert_eq!((plane.at(9.6, 2.0), plane.at(-0.6, 2.0)), (None, None), "outside");

@@ -69,8 +69,15 @@ impl CandidateCsv {
         let continuing = append && std::fs::metadata(path).is_ok_and(|m| m.len() > 0);
         if continuing {
             // Lines of these columns under another header would be misread.
-            let text = crate::io::read_capped_text(path, crate::io::limits::TEXT_LIST, "candidates CSV")?;
-            let found = text.lines().next().unwrap_or("");
+            let mut found = String::new();
+            std::io::BufRead::read_line(
+                &mut std::io::BufReader::new(
+                    File::open(path).with_context(|| format!("cannot read {}", path.display()))?,
+                ),
+                &mut found,
+            )
+            .with_context(|| format!("cannot read {}", path.display()))?;
+            let found = found.trim_end();
             ensure!(
                 found == columns().join(","),
                 "{} has other columns than this version writes ({}); give another output file or remove it",
@@ -162,7 +169,8 @@ pub fn write_candidates_csv(candidates: &[LoopCandidate], path: &Path) -> Result
 }
 
 /// Reads a candidates CSV written by [`CandidateCsv`] (columns found by name; files from before the
-/// `metric` column read as up to scale, from before the covariance columns without covariance). The rank is the order of a query's lines.
+/// `metric` column read as up to scale, from before the covariance columns without covariance). The
+/// rank is the order of a query's lines.
 pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
     let text = crate::io::read_capped_text(path, crate::io::limits::TEXT_LIST, "candidates CSV")?;
     let mut reader = csv::ReaderBuilder::new().has_headers(true).from_reader(text.as_bytes());
