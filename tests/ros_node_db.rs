@@ -15,7 +15,6 @@ use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::ros::msgs::{Marker, Point, Pose};
 use ecm_lcd::ros::node::InputQos;
 use ecm_lcd::ros::peer::{CandidateListener, FramePublisher, Listener, SendAs};
-use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 use ecm_lcd::types::Frame;
 use nalgebra::Isometry3;
 use ros_support::NodeProcess;
@@ -55,19 +54,9 @@ fn start_node(dir: &Path, db: &Path, run: usize) -> NodeProcess {
     NodeProcess::start(dir, dir.join(format!("node{run}.log")), args)
 }
 
-/// The test sequence: two laps of a synthetic scene, written to `dir/seq`, and its frames.
+/// The test sequence (`ros_support::looped_sequence`) and its frames.
 fn looped_sequence(dir: &Path) -> (PathBuf, Vec<Frame>) {
-    let config = SynthConfig {
-        frames: FRAMES,
-        laps: 2,
-        seed: 3,
-        width: 160,
-        height: 120,
-        rate_hz: 10.0,
-        ..SynthConfig::default()
-    };
-    let seq = dir.join("seq");
-    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    let seq = ros_support::looped_sequence(dir, FRAMES);
     let frames = open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
     (seq, frames)
 }

@@ -49,22 +49,6 @@ fn weights() -> PathBuf {
     path
 }
 
-/// Writes the synthetic looped sequence as a TUM folder.
-fn synth_sequence(dir: &Path) -> PathBuf {
-    let config = SynthConfig {
-        frames: FRAMES,
-        laps: 2,
-        seed: 3,
-        width: 160,
-        height: 120,
-        rate_hz: 10.0,
-        ..SynthConfig::default()
-    };
-    let seq = dir.join("seq");
-    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
-    seq
-}
-
 fn params_with(min_score: &str) -> Params {
     let mut params = Params::default();
     for (name, value) in SHORT_SEQUENCE_PARAMS.iter().chain([&("detector.min_score", min_score)]) {
@@ -186,7 +170,7 @@ fn tracker_stand_in_node_and_listener_processes_match_the_offline_run() {
         return ros_support::check_inner_run("tracker_stand_in_node_and_listener_processes_match_the_offline_run");
     }
     let dir = tempfile::tempdir().unwrap();
-    let seq = synth_sequence(dir.path());
+    let seq = ros_support::looped_sequence(dir.path(), FRAMES);
     let expected = offline(&seq, LOOSE, None);
     assert!(expected.len() >= 10, "the sequence should close loops offline: {expected:?}");
 
@@ -215,7 +199,7 @@ fn threshold_set_by_another_process_mid_run_changes_the_output() {
     }
     const SWITCH_AT: usize = 50;
     let dir = tempfile::tempdir().unwrap();
-    let seq = synth_sequence(dir.path());
+    let seq = ros_support::looped_sequence(dir.path(), FRAMES);
     let expected = offline(&seq, STRICT, Some((SWITCH_AT, LOOSE)));
     assert!(expected.len() >= 5, "the loose threshold should find loops in the second lap: {expected:?}");
     assert!(expected.iter().all(|r| r.0 >= SWITCH_AT as u64), "the strict threshold finds none: {expected:?}");
@@ -263,7 +247,7 @@ fn cyclone_dds_peer_images_with_malformed_ones_through_the_real_pipeline() {
         return ros_support::check_inner_run("cyclone_dds_peer_images_with_malformed_ones_through_the_real_pipeline");
     }
     let dir = tempfile::tempdir().unwrap();
-    let seq = synth_sequence(dir.path());
+    let seq = ros_support::looped_sequence(dir.path(), FRAMES);
     // Plain images: the node selects keyframes (every frame here) and numbers them from 0.
     let mut params = params_with(LOOSE);
     params.set("selection.min_period", parse_param_value("0.0").unwrap()).unwrap();

@@ -151,3 +151,21 @@ impl NodeProcess {
         }
     }
 }
+
+/// Writes the node tests' sequence to `dir/seq` as a TUM folder: `frames` frames of two laps of a
+/// small synthetic scene at 10 Hz.
+#[allow(dead_code)] // each test crate builds this module for itself, and not every one calls this
+pub fn looped_sequence(dir: &Path, frames: usize) -> PathBuf {
+    let config = ecm_lcd::synth::SynthConfig {
+        frames,
+        laps: 2,
+        seed: 3,
+        width: 160,
+        height: 120,
+        rate_hz: 10.0,
+        ..ecm_lcd::synth::SynthConfig::default()
+    };
+    let seq = dir.join("seq");
+    ecm_lcd::synth::write_tum_folder(&ecm_lcd::synth::Scene::new(config).unwrap(), &seq).unwrap();
+    seq
+}
