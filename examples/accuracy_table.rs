@@ -347,69 +347,43 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
                 let name = format!("{} + `verification.local_features` xfeat", set.name);
                 checked_row(name, learned, &sequence.path.join("odometry.txt"))?;
             }
-            if set.name.contains("hard") {
-                // The hard preset rendered with depth, with its best checks: are the loops that the
-                // place rule counts as wrong right as pose-graph edges (metric poses)?
-                let dir = tempfile::tempdir()?;
-                let scene = ecm_lcd::synth::Scene::new(SynthConfig {
-                    depth: true,
-                    ..common::synthetic_sequence(SynthConfig::hard())
-                })?;
-                ecm_lcd::synth::write_tum_folder(&scene, dir.path())?;
-                let name =
+            // The same sequence rendered with depth: metric relative poses by PnP. On the hard
+            // preset with its best checks: are the loops the place rule counts as wrong right as
+            // pose-graph edges?
+            let hard = set.name.contains("hard");
+            let (base, name, checks): (SynthConfig, &'static str, &[(&str, &str)]) = if hard {
+                (
+                    SynthConfig::hard(),
                     "synthetic hard preset, with depth (`depth.txt`) + `verification.equalise` + odometry check \
-                            (`max_drift` 0.1, `max_rotation_drift` 1.5, `--poses` the synthetic odometry)";
-                let with_depth = DevSet {
-                    name: name.into(),
-                    data: Data::Sequence(
-                        common::EvalSet {
-                            name,
-                            path: dir.path().to_path_buf(),
-                            criteria: sequence.criteria,
-                            overrides: sequence.overrides,
-                        },
-                        None,
-                    ),
-                };
-                let checked: Vec<(&str, &str)> = overrides
-                    .iter()
-                    .copied()
-                    .chain([
+                     (`max_drift` 0.1, `max_rotation_drift` 1.5, `--poses` the synthetic odometry)",
+                    &[
                         ("verification.equalise", "true"),
                         ("verification.max_drift", "0.1"),
                         ("verification.max_rotation_drift", "1.5"),
-                    ])
-                    .collect();
-                let odometry = dir.path().join("odometry.txt");
-                print_verification_row(
-                    name,
-                    &before,
-                    &measure(&with_depth, &checked, Some(&odometry), weights)?.0,
-                    tum,
-                );
+                    ],
+                )
             } else {
-                // The same sequence rendered with depth: metric relative poses by PnP.
-                let dir = tempfile::tempdir()?;
-                let scene = ecm_lcd::synth::Scene::new(SynthConfig {
-                    depth: true,
-                    ..common::synthetic_sequence(SynthConfig::default())
-                })?;
-                ecm_lcd::synth::write_tum_folder(&scene, dir.path())?;
-                let name = "synthetic 600 frames, 3 laps, with depth (`depth.txt`)";
-                let with_depth = DevSet {
-                    name: name.into(),
-                    data: Data::Sequence(
-                        common::EvalSet {
-                            name,
-                            path: dir.path().to_path_buf(),
-                            criteria: sequence.criteria,
-                            overrides: sequence.overrides,
-                        },
-                        None,
-                    ),
-                };
-                print_verification_row(name, &before, &measure(&with_depth, &overrides, None, weights)?.0, tum);
-            }
+                (SynthConfig::default(), "synthetic 600 frames, 3 laps, with depth (`depth.txt`)", &[])
+            };
+            let dir = tempfile::tempdir()?;
+            let scene = ecm_lcd::synth::Scene::new(SynthConfig { depth: true, ..common::synthetic_sequence(base) })?;
+            ecm_lcd::synth::write_tum_folder(&scene, dir.path())?;
+            let with_depth = DevSet {
+                name: name.into(),
+                data: Data::Sequence(
+                    common::EvalSet {
+                        name,
+                        path: dir.path().to_path_buf(),
+                        criteria: sequence.criteria,
+                        overrides: sequence.overrides,
+                    },
+                    None,
+                ),
+            };
+            let checked: Vec<(&str, &str)> = overrides.iter().chain(checks).copied().collect();
+            let odometry = dir.path().join("odometry.txt");
+            let tracker_poses = hard.then_some(odometry.as_path());
+            print_verification_row(name, &before, &measure(&with_depth, &checked, tracker_poses, weights)?.0, tum);
         } else if tum && sequence.path.join("groundtruth.txt").is_file() {
             // Real frames: the ground truth with `synth`'s drift injected as the tracker's poses.
             let mut truth = ecm_lcd::io::tum::read_groundtruth(&sequence.path.join("groundtruth.txt"))?;
