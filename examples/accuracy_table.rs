@@ -126,6 +126,7 @@ fn measure(
         params.set_from_str(k, v).map_err(anyhow::Error::msg)?;
     }
     let threshold = params.detector().threshold;
+    let consistent_reports_only = params.detector().consistency_queries > 1;
     let mut pipeline = Pipeline::with_weights(params, weights.clone())?;
     let mut row = Row {
         metrics: Metrics::default(),
@@ -156,7 +157,9 @@ fn measure(
             row.ms_per_keyframe = t.network_ms + t.descriptor_ms + t.detector_ms + t.verification_ms;
             row.verification_ms = t.verification_ms;
             row.candidates = run.candidates.clone();
-            (run.query_results(), truth)
+            // Evaluation's best match ignores temporal consistency, which acts on reports.
+            let results = if consistent_reports_only { run.reported_results() } else { run.query_results() };
+            (results, truth)
         }
     };
     let min_score = match threshold {
@@ -322,6 +325,9 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
             print_verification_row(&name, &before, &measure(set, &more, None, weights)?.0, tum);
         }
         let Data::Sequence(sequence, _) = &set.data else { continue };
+        let consistent: Vec<(&str, &str)> = overrides.iter().copied().chain([CONSISTENCY]).collect();
+        let name = format!("{} + `detector.consistency.queries` 2", set.name);
+        print_verification_row(&name, &before, &measure(set, &consistent, None, weights)?.0, tum);
         let checked_row = |name: String, overrides: &[(&str, &str)], odometry: &Path| -> Result<()> {
             let checked: Vec<(&str, &str)> =
                 overrides.iter().copied().chain([("verification.max_drift", "0.1")]).collect();
@@ -333,6 +339,11 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
                 checked.iter().copied().chain([("verification.max_rotation_drift", "1.5")]).collect();
             let name = format!("{name}, `max_rotation_drift` 1.5");
             print_verification_row(&name, &before, &measure(set, &rotation, Some(odometry), weights)?.0, tum);
+            // And temporal consistency (DBoW2's, before verification): a match is tried only when
+            // the previous keyframe's best match lies near it.
+            let consistent: Vec<(&str, &str)> = rotation.iter().copied().chain([CONSISTENCY]).collect();
+            let name = format!("{name}, `detector.consistency.queries` 2");
+            print_verification_row(&name, &before, &measure(set, &consistent, Some(odometry), weights)?.0, tum);
             Ok(())
         };
         if set.name.starts_with("synthetic") {
@@ -384,6 +395,12 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
             let odometry = dir.path().join("odometry.txt");
             let tracker_poses = hard.then_some(odometry.as_path());
             print_verification_row(name, &before, &measure(&with_depth, &checked, tracker_poses, weights)?.0, tum);
+            if hard {
+                let consistent: Vec<(&str, &str)> = checked.iter().copied().chain([CONSISTENCY]).collect();
+                let name = format!("{name}, `detector.consistency.queries` 2");
+                let row = measure(&with_depth, &consistent, tracker_poses, weights)?.0;
+                print_verification_row(&name, &before, &row, tum);
+            }
         } else if tum && sequence.path.join("groundtruth.txt").is_file() {
             // Real frames: the ground truth with `synth`'s drift injected as the tracker's poses.
             let mut truth = ecm_lcd::io::tum::read_groundtruth(&sequence.path.join("groundtruth.txt"))?;
@@ -410,6 +427,10 @@ fn odometry_source(path: &Path) -> &'static str {
         "`--poses` the ground truth with the synthetic odometry's drift"
     }
 }
+
+/// Temporal consistency on the verification table's rows that measure it: each match must lie within
+/// `detector.consistency.window` keyframes of the previous keyframe's best match.
+const CONSISTENCY: (&str, &str) = ("detector.consistency.queries", "2");
 
 /// One row of the verification table: `before` without verification, `after` with it.
 fn print_verification_row(name: &str, before: &Row, after: &Row, tum: bool) {

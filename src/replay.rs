@@ -93,6 +93,23 @@ impl ReplayRun {
             })
             .collect()
     }
+
+    /// [`ReplayRun::query_results`] from what was reported: each keyframe's best candidate after the
+    /// whole policy (threshold, temporal consistency, verification), or no match. Evaluation's best
+    /// match ignores the threshold and consistency; this scores the policy as a node applies it.
+    pub fn reported_results(&self) -> Vec<QueryResult> {
+        self.keyframes
+            .iter()
+            .map(|k| QueryResult {
+                query: k.index,
+                best: self
+                    .candidates
+                    .iter()
+                    .find(|c| c.query_id == k.index as u64 && c.rank == 0)
+                    .map(|c| (c.match_id as usize, c.score)),
+            })
+            .collect()
+    }
 }
 
 /// Database/query mode: every database image is stored, then each query is matched against
