@@ -98,15 +98,13 @@ impl ReplayRun {
     /// whole policy (threshold, temporal consistency, verification), or no match. Evaluation's best
     /// match ignores the threshold and consistency; this scores the policy as a node applies it.
     pub fn reported_results(&self) -> Vec<QueryResult> {
+        let best: std::collections::HashMap<u64, &LoopCandidate> =
+            self.candidates.iter().filter(|c| c.rank == 0).map(|c| (c.query_id, c)).collect();
         self.keyframes
             .iter()
             .map(|k| QueryResult {
                 query: k.index,
-                best: self
-                    .candidates
-                    .iter()
-                    .find(|c| c.query_id == k.index as u64 && c.rank == 0)
-                    .map(|c| (c.match_id as usize, c.score)),
+                best: best.get(&(k.index as u64)).map(|c| (c.match_id as usize, c.score)),
             })
             .collect()
     }
