@@ -1,11 +1,12 @@
 //! The back end that uses the loops: SE(3) pose-graph optimisation of an odometry trajectory with the
-//! verified, metric loop candidates (the paper's Fig. 11: a tracker's drift removed by loop closure).
+//! verified loop candidates (the paper's Fig. 11: a tracker's drift removed by loop closure).
 //!
 //! - Nodes: odometry poses, at most [`PoseGraphParams::max_nodes`] of them (every k-th pose, and every
 //!   pose a loop ends at); the first is held fixed (the map's origin).
 //! - Odometry edges: the odometry's own motion between consecutive nodes.
 //! - Loop edges: each candidate's relative pose (the query camera in the match camera's frame, metres).
-//!   Candidates without a metric pose cannot constrain a metric map and are left out (counted).
+//!   A pose verified up to scale (a monocular camera: no depth) gives the rotation and the direction of
+//!   the translation, not its length. Candidates without a verified pose are left out (counted).
 //! - Solver: kornia-3d's pose-graph Levenberg-Marquardt (residual `log(T_meas⁻¹ T_b T_a⁻¹)`, rotation in
 //!   radians beside translation in metres, each edge scaled by its weight).
 //! - Robust kernel: a Cauchy kernel on the loop edges, applied by iteratively reweighted least squares
@@ -14,39 +15,57 @@
 //!   each round down to [`PoseGraphParams::robust_scale`], so true loops are not discarded for the
 //!   drift they are there to remove, while a false loop, inconsistent with the others, ends with a
 //!   weight near zero.
+//! - With loops up to scale, two stages instead, as rotation-then-translation initialisation does
+//!   (Carlone et al., ICRA 2015) and global structure from motion with relative directions:
+//!   1. rotations alone: the same solver and kernel with every translation left out (zero), down to
+//!      [`PoseGraphParams::robust_rotation_scale`];
+//!   2. positions for those rotations, by linear least squares: odometry edges `p_b - p_a = R_a t`,
+//!      metric loops `p_q - p_m = R_m t`, and loops up to scale as bearings, `(I - u uᵀ)(p_q - p_m) =
+//!      0` with `u = R_m d`: only the part of the estimated translation across the measured direction
+//!      counts, so no length is needed, the map's own units serve (a monocular tracker's), and a wrong
+//!      direction costs in proportion to the baseline. Reweighted with the kernel (translation over
+//!      `robust_scale`, rotation over `robust_rotation_scale`) until the weights settle. Along a loop's
+//!      own direction only the odometry places its cameras.
 //! - Every odometry pose is then moved with the node before it (its odometry offset from that node
 //!   kept), so the corrected trajectory has the odometry's stamps.
 
 use std::collections::BTreeSet;
+use std::ops::{AddAssign, SubAssign};
 
 use anyhow::{bail, ensure, Context, Result};
 use kornia_3d::pgo::{pose_graph_optimize, PgoEdge, PgoParams};
 use kornia_3d::pose::Pose3d;
 use kornia_algebra::{Mat3F64, QuatF32, Vec3AF32, Vec3F64, SE3F32};
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::{DMatrix, DVector, Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 
 use crate::types::{nearest_stamp, LoopCandidate, Stamp};
 
-/// A loop constraint: where the query camera is in the match camera's frame, in metres.
+/// A loop constraint: where the query camera is in the match camera's frame.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LoopConstraint {
     pub query_stamp: Stamp,
     pub match_stamp: Stamp,
-    /// `p_match = relative * p_query`.
+    /// `p_match = relative * p_query`; the translation is in metres where `metric`, else a unit
+    /// direction (verified up to scale).
     pub relative: Isometry3<f64>,
+    pub metric: bool,
 }
 
 impl LoopConstraint {
-    /// The constraints of the candidates that carry a metric relative pose, and how many did not.
-    pub fn from_candidates(candidates: &[LoopCandidate]) -> (Vec<LoopConstraint>, usize) {
+    /// The constraints of the candidates that carry a verified relative pose (only the metric ones
+    /// with `metric_only`), and how many candidates were left out.
+    pub fn from_candidates(candidates: &[LoopCandidate], metric_only: bool) -> (Vec<LoopConstraint>, usize) {
         let constraints: Vec<LoopConstraint> = candidates
             .iter()
             .filter_map(|c| {
-                let pose = c.verified?.pose.filter(|p| p.metric)?;
+                let pose = c.verified?.pose.filter(|p| p.metric || !metric_only)?;
+                let direction = pose.translation.try_normalize(1e-12);
+                let translation = if pose.metric { pose.translation } else { direction? };
                 Some(LoopConstraint {
                     query_stamp: c.query_stamp,
                     match_stamp: c.match_stamp,
-                    relative: Isometry3::from_parts(Translation3::from(pose.translation), pose.rotation),
+                    relative: Isometry3::from_parts(Translation3::from(translation), pose.rotation),
+                    metric: pose.metric,
                 })
             })
             .collect();
@@ -64,6 +83,9 @@ pub struct PoseGraphParams {
     pub loop_weight: f64,
     /// Final scale of the Cauchy kernel (metres and radians): loop residuals well beyond it count little.
     pub robust_scale: f64,
+    /// With loops up to scale, the kernel's scale on rotation (radians), apart from translation's
+    /// `robust_scale` in the map's units (a monocular map's units are its own).
+    pub robust_rotation_scale: f64,
     /// Largest stamp difference between a loop's keyframe and the odometry pose it is tied to, seconds.
     pub max_stamp_offset_s: f64,
     /// Levenberg-Marquardt iterations per reweighting round.
@@ -76,6 +98,7 @@ impl Default for PoseGraphParams {
             max_nodes: 200,
             loop_weight: 1.0,
             robust_scale: 0.1,
+            robust_rotation_scale: 0.1,
             max_stamp_offset_s: 0.05,
             iterations: 20,
         }
@@ -94,6 +117,11 @@ pub struct PoseGraphResult {
     pub unmatched_loops: usize,
     pub nodes: usize,
 }
+
+/// Most rounds of reweighting in stage two (positions), which stops sooner once no weight moves by
+/// more than [`WEIGHT_TOLERANCE`].
+const MAX_POSITION_ROUNDS: usize = 20;
+const WEIGHT_TOLERANCE: f64 = 1e-3;
 
 /// Camera-to-world to kornia's world-to-camera pose.
 fn to_kornia(camera_to_world: &Isometry3<f64>) -> Pose3d {
@@ -121,12 +149,56 @@ fn to_se3(motion: &Isometry3<f64>) -> SE3F32 {
     )
 }
 
-/// The size of a relative-pose residual: translation (metres) and rotation angle (radians) together.
-fn residual(measured: &Isometry3<f64>, from: &Isometry3<f64>, to: &Isometry3<f64>) -> f64 {
+/// The loop's measurement after stage two: one up to scale with the length of the estimate's
+/// translation along its direction (none where it points the other way), so that its residual is the
+/// part of the estimated translation across the measured direction.
+fn bearing_measurement(constraint: &LoopConstraint, from: &Isometry3<f64>, to: &Isometry3<f64>) -> Isometry3<f64> {
+    if constraint.metric {
+        return constraint.relative;
+    }
+    let direction = constraint.relative.translation.vector;
+    let length = (to.inverse() * from).translation.vector.dot(&direction).max(0.0);
+    Isometry3::from_parts(Translation3::from(direction * length), constraint.relative.rotation)
+}
+
+/// Stage two, where loops up to scale are in the graph: the node positions for fixed `rotations`, by
+/// linear least squares (module doc). Each edge is `(a, b, projection, offset, weight)`, for the
+/// residual `weight * projection * (p_b - p_a - offset)`; the first node keeps `first`.
+fn positions_for_rotations(
+    first: Vector3<f64>,
+    nodes: usize,
+    edges: &[(usize, usize, Matrix3<f64>, Vector3<f64>, f64)],
+) -> Result<Vec<Vector3<f64>>> {
+    // Normal equations of every node's position; node 0's block is then moved to the right side.
+    let mut h = DMatrix::<f64>::zeros(3 * nodes, 3 * nodes);
+    let mut g = DVector::<f64>::zeros(3 * nodes);
+    for &(a, b, projection, offset, weight) in edges {
+        let information = projection * (weight * weight);
+        for (i, j, sign) in [(a, a, 1.0), (b, b, 1.0), (a, b, -1.0), (b, a, -1.0)] {
+            let mut block = h.fixed_view_mut::<3, 3>(3 * i, 3 * j);
+            block += information * sign;
+        }
+        let pull = information * offset;
+        g.fixed_rows_mut::<3>(3 * b).add_assign(&pull);
+        g.fixed_rows_mut::<3>(3 * a).sub_assign(&pull);
+    }
+    let free = 3 * (nodes - 1);
+    let rhs = g.rows(3, free) - h.view((3, 0), (free, 3)) * first;
+    let cholesky = h
+        .view((3, 3), (free, free))
+        .into_owned()
+        .cholesky()
+        .context("the positions are not fixed by the graph (a node without an edge to the rest)")?;
+    let solved = cholesky.solve(&rhs);
+    Ok(std::iter::once(first).chain((0..nodes - 1).map(|k| solved.fixed_rows::<3>(3 * k).into_owned())).collect())
+}
+
+/// The size of a relative-pose residual: its translation (metres) and rotation angle (radians).
+fn residual(measured: &Isometry3<f64>, from: &Isometry3<f64>, to: &Isometry3<f64>) -> (f64, f64) {
     // Poses are camera-to-world; the edge's prediction maps `from`'s camera frame into `to`'s.
     let predicted = to.inverse() * from;
     let error = measured.inverse() * predicted;
-    (error.translation.vector.norm_squared() + error.rotation.angle().powi(2)).sqrt()
+    (error.translation.vector.norm(), error.rotation.angle())
 }
 
 /// Optimises `odometry` (camera-to-world, in time order) with `loops` (module doc).
@@ -139,17 +211,17 @@ pub fn optimise(
     ensure!(odometry.windows(2).all(|w| w[0].0 < w[1].0), "the odometry's stamps must increase");
     ensure!(params.max_nodes >= 2, "a pose graph needs at least 2 nodes");
     ensure!(
-        params.robust_scale > 0.0 && params.loop_weight > 0.0,
-        "the robust scale and the loop weight must be positive"
+        params.robust_scale > 0.0 && params.robust_rotation_scale > 0.0 && params.loop_weight > 0.0,
+        "the robust scales and the loop weight must be positive"
     );
     let stamps: Vec<Stamp> = odometry.iter().map(|(s, _)| *s).collect();
     let max_offset = Stamp::from_nanos((params.max_stamp_offset_s * 1e9).round() as i64);
     let index_of = |stamp: Stamp| nearest_stamp(&stamps, stamp, max_offset);
-    let mut tied: Vec<(usize, usize, Isometry3<f64>)> = Vec::new();
+    let mut tied: Vec<(usize, usize, LoopConstraint)> = Vec::new();
     let mut unmatched_loops = 0;
     for constraint in loops {
         match (index_of(constraint.query_stamp), index_of(constraint.match_stamp)) {
-            (Some(q), Some(m)) if q != m => tied.push((q, m, constraint.relative)),
+            (Some(q), Some(m)) if q != m => tied.push((q, m, *constraint)),
             _ => unmatched_loops += 1,
         }
     }
@@ -164,7 +236,17 @@ pub fn optimise(
     let nodes: Vec<usize> = nodes.into_iter().collect();
     let node_of = |index: usize| nodes.binary_search(&index).expect("loop ends are nodes");
 
-    let initial: Vec<Pose3d> = nodes.iter().map(|&i| to_kornia(&odometry[i].1)).collect();
+    // With loops up to scale, stage one solves rotations alone: every translation, measured and
+    // estimated, is left at zero, and stays there (its gradient is zero).
+    let two_stages = tied.iter().any(|(_, _, constraint)| !constraint.metric);
+    let stage_one = |pose: Isometry3<f64>| {
+        if two_stages {
+            Isometry3::from_parts(Translation3::identity(), pose.rotation)
+        } else {
+            pose
+        }
+    };
+    let initial: Vec<Pose3d> = nodes.iter().map(|&i| to_kornia(&stage_one(odometry[i].1))).collect();
     // Kornia's edge: T_ab = T_b T_a⁻¹ for world-to-camera poses, i.e. a's camera frame into b's.
     let mut edges: Vec<PgoEdge> = nodes
         .windows(2)
@@ -172,27 +254,43 @@ pub fn optimise(
         .map(|(k, w)| PgoEdge {
             pose_a: k,
             pose_b: k + 1,
-            t_ab_meas: to_se3(&(odometry[w[1]].1.inverse() * odometry[w[0]].1)),
+            t_ab_meas: to_se3(&stage_one(odometry[w[1]].1.inverse() * odometry[w[0]].1)),
             weight: 1.0,
         })
         .collect();
     let first_loop_edge = edges.len();
-    edges.extend(tied.iter().map(|&(q, m, relative)| PgoEdge {
+    edges.extend(tied.iter().map(|&(q, m, constraint)| PgoEdge {
         pose_a: node_of(q),
         pose_b: node_of(m),
-        t_ab_meas: to_se3(&relative),
+        t_ab_meas: to_se3(&stage_one(constraint.relative)),
         weight: params.loop_weight as f32,
     }));
 
     let solver = PgoParams { max_iterations: params.iterations, ..PgoParams::default() };
-    let mut estimate: Vec<Isometry3<f64>> = nodes.iter().map(|&i| odometry[i].1).collect();
-    let loop_residuals = |estimate: &[Isometry3<f64>]| -> Vec<f64> {
-        tied.iter().map(|&(q, m, relative)| residual(&relative, &estimate[node_of(q)], &estimate[node_of(m)])).collect()
+    let mut estimate: Vec<Isometry3<f64>> = nodes.iter().map(|&i| stage_one(odometry[i].1)).collect();
+    type Measurement = fn(&LoopConstraint, &Isometry3<f64>, &Isometry3<f64>) -> Isometry3<f64>;
+    let measured_by = |estimate: &[Isometry3<f64>], measurement: Measurement| -> Vec<Isometry3<f64>> {
+        tied.iter()
+            .map(|(q, m, constraint)| measurement(constraint, &estimate[node_of(*q)], &estimate[node_of(*m)]))
+            .collect()
     };
+    let loop_residuals = |estimate: &[Isometry3<f64>], measured: &[Isometry3<f64>]| -> Vec<(f64, f64)> {
+        tied.iter()
+            .zip(measured)
+            .map(|(&(q, m, _), measured)| residual(measured, &estimate[node_of(q)], &estimate[node_of(m)]))
+            .collect()
+    };
+    // Cauchy: rho'(r^2) = 1 / (1 + r^2 / c^2); the solver scales residuals, hence the root.
+    // The residual comes in units of the kernel's scale.
+    let cauchy = |scaled_residual: f64| (1.0 / (1.0 + scaled_residual.powi(2))).sqrt();
     let mut weights = vec![1.0; tied.len()];
     if !tied.is_empty() {
-        let largest = loop_residuals(&estimate).into_iter().fold(0.0, f64::max);
-        let mut scale = largest.max(params.robust_scale);
+        let measured: Vec<Isometry3<f64>> =
+            tied.iter().map(|(_, _, constraint)| stage_one(constraint.relative)).collect();
+        // One scale for both parts; in stage one of two, the translations are all zero.
+        let final_scale = if two_stages { params.robust_rotation_scale } else { params.robust_scale };
+        let largest = loop_residuals(&estimate, &measured).into_iter().map(|(t, r)| t.hypot(r)).fold(0.0, f64::max);
+        let mut scale = largest.max(final_scale);
         let mut poses = initial;
         loop {
             for (edge, w) in edges[first_loop_edge..].iter_mut().zip(&weights) {
@@ -203,12 +301,48 @@ pub fn optimise(
                 .context("pose-graph optimisation")?;
             poses = solved.poses;
             estimate = poses.iter().map(from_kornia).collect();
-            // Cauchy: rho'(r^2) = 1 / (1 + r^2 / c^2); the solver scales residuals, hence the root.
-            weights = loop_residuals(&estimate).iter().map(|r| (1.0 / (1.0 + (r / scale).powi(2))).sqrt()).collect();
-            if scale <= params.robust_scale {
+            weights = loop_residuals(&estimate, &measured).iter().map(|&(t, r)| cauchy(t.hypot(r) / scale)).collect();
+            if scale <= final_scale {
                 break;
             }
-            scale = (scale / 2.0).max(params.robust_scale);
+            scale = (scale / 2.0).max(final_scale);
+        }
+    }
+    if two_stages {
+        // Stage two: positions for the rotations found, loops up to scale as bearings.
+        let steps: Vec<Vector3<f64>> =
+            nodes.windows(2).map(|w| (odometry[w[0]].1.inverse() * odometry[w[1]].1).translation.vector).collect();
+        let first = odometry[nodes[0]].1.translation.vector;
+        for _ in 0..MAX_POSITION_ROUNDS {
+            let mut position_edges: Vec<_> = steps
+                .iter()
+                .enumerate()
+                .map(|(k, step)| (k, k + 1, Matrix3::identity(), estimate[k].rotation * step, 1.0))
+                .collect();
+            for (&(q, m, constraint), w) in tied.iter().zip(&weights) {
+                let rotation = estimate[node_of(m)].rotation;
+                let offset = rotation * constraint.relative.translation.vector;
+                let projection = if constraint.metric {
+                    Matrix3::identity()
+                } else {
+                    Matrix3::identity() - offset * offset.transpose()
+                };
+                let offset = if constraint.metric { offset } else { Vector3::zeros() };
+                position_edges.push((node_of(m), node_of(q), projection, offset, params.loop_weight * w));
+            }
+            let positions = positions_for_rotations(first, nodes.len(), &position_edges)?;
+            for (pose, position) in estimate.iter_mut().zip(positions) {
+                pose.translation = Translation3::from(position);
+            }
+            let renewed: Vec<f64> = loop_residuals(&estimate, &measured_by(&estimate, bearing_measurement))
+                .iter()
+                .map(|&(t, r)| cauchy((t / params.robust_scale).hypot(r / params.robust_rotation_scale)))
+                .collect();
+            let moved = renewed.iter().zip(&weights).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            weights = renewed;
+            if moved < WEIGHT_TOLERANCE {
+                break;
+            }
         }
     }
     // Every odometry pose moves with the node before it.
@@ -263,6 +397,7 @@ mod tests {
             query_stamp: truth[query].0,
             match_stamp: truth[matched].0,
             relative: truth[matched].1.inverse() * truth[query].1,
+            metric: true,
         }
     }
 
@@ -284,6 +419,59 @@ mod tests {
         let (_, _, false_weight) = *result.loops.last().unwrap();
         assert!(false_weight < 0.1, "the false loop keeps weight {false_weight}");
         assert!(result.loops[..result.loops.len() - 1].iter().all(|&(_, _, w)| w > 0.5), "{:?}", result.loops);
+    }
+
+    /// A monocular tracker's loops: rotation and translation direction, no length.
+    fn up_to_scale(constraint: LoopConstraint) -> LoopConstraint {
+        let direction = constraint.relative.translation.vector.normalize();
+        LoopConstraint {
+            relative: Isometry3::from_parts(Translation3::from(direction), constraint.relative.rotation),
+            metric: false,
+            ..constraint
+        }
+    }
+
+    #[test]
+    fn loops_up_to_scale_remove_the_drift_in_the_maps_own_units() {
+        let truth = circle(120);
+        let before = absolute_trajectory_error(&drifted(&truth), &truth).unwrap().rmse;
+        // Each second-lap pose matched to the first-lap pose two steps ahead (0.63 m away), and a
+        // false loop: a place on the other side of the circle claimed to be just ahead.
+        let mut loops: Vec<LoopConstraint> =
+            (60..118).step_by(4).map(|q| up_to_scale(true_loop(&truth, q, q - 58))).collect();
+        loops.push(LoopConstraint {
+            relative: Isometry3::translation(0.0, 0.0, -1.0),
+            ..up_to_scale(true_loop(&truth, 90, 0))
+        });
+        let params = PoseGraphParams { max_nodes: 60, ..PoseGraphParams::default() };
+        let exact = optimise(&truth, &loops[..loops.len() - 1], &params).unwrap();
+        assert!(absolute_trajectory_error(&exact.trajectory, &truth).unwrap().rmse < 1e-4, "exact odometry is kept");
+        for units in [1.0, 10.0] {
+            // The same odometry in a map ten times larger: directions have no scale.
+            let scaled = |poses: &[(Stamp, Isometry3<f64>)]| -> Vec<(Stamp, Isometry3<f64>)> {
+                poses
+                    .iter()
+                    .map(|&(s, p)| (s, Isometry3::from_parts((p.translation.vector * units).into(), p.rotation)))
+                    .collect()
+            };
+            let params = PoseGraphParams { max_nodes: 60, robust_scale: 0.1 * units, ..PoseGraphParams::default() };
+            let result = optimise(&scaled(&drifted(&truth)), &loops, &params).unwrap();
+            let after = absolute_trajectory_error(&result.trajectory, &scaled(&truth)).unwrap().rmse / units;
+            assert!(after * 5.0 < before, "{units}x units: ATE {before} -> {after}");
+            let (true_loops, false_loop) = result.loops.split_at(result.loops.len() - 1);
+            assert!(false_loop[0].2 < 0.1, "the false loop keeps weight {}", false_loop[0].2);
+            assert!(true_loops.iter().all(|&(_, _, w)| w > 0.5), "{:?}", result.loops);
+            // The graph gave the true loops their lengths, in the map's units (along a loop's own
+            // direction only the odometry places its cameras, so not exactly).
+            for &(q, m, _) in true_loops {
+                let length = (result.trajectory[m].1.inverse() * result.trajectory[q].1).translation.vector.norm();
+                let true_length = (truth[m].1.inverse() * truth[q].1).translation.vector.norm() * units;
+                assert!(
+                    (length - true_length).abs() < 0.2 * true_length,
+                    "loop {q} -> {m}: {length} against {true_length}"
+                );
+            }
+        }
     }
 
     #[test]

@@ -269,6 +269,20 @@ fn plots_must_be_png_and_empty_sources_and_foreign_databases_are_refused() {
         &["pose-graph", "--odometry", &d("odometry.txt"), "--candidates", &d("c.csv"), "-o", &d("c.csv")],
         &["destroy"],
     );
+    refused(
+        &[
+            "pose-graph",
+            "--odometry",
+            &d("odometry.txt"),
+            "--candidates",
+            &d("c.csv"),
+            "-o",
+            &d("out.txt"),
+            "--robust-rotation-scale",
+            "0",
+        ],
+        &["--robust-rotation-scale", "positive"],
+    );
 
     // A ROS 2 bag with its image topic and no message in it.
     let bag = dir.path().join("empty_bag");

@@ -20,9 +20,13 @@ pub struct Args {
     /// tracker's keyframe poses or `synth`'s `odometry.txt`.
     #[arg(long)]
     pub odometry: PathBuf,
-    /// Loop candidates CSV of `ecm-lcd replay` (those with a metric relative pose are used).
+    /// Loop candidates CSV of `ecm-lcd replay` (those with a verified relative pose are used: metric
+    /// ones in full, those up to scale for their rotation and translation direction).
     #[arg(long)]
     pub candidates: PathBuf,
+    /// Use only the loops with a metric relative pose (verified with depth).
+    #[arg(long)]
+    pub metric_only: bool,
     /// Corrected trajectory, TUM format.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -41,6 +45,10 @@ pub struct Args {
     /// Final scale of the robust (Cauchy) kernel on loop edges, metres/radians.
     #[arg(long, default_value_t = PoseGraphParams::default().robust_scale)]
     pub robust_scale: f64,
+    /// With loops up to scale: the robust kernel's final scale on rotation, radians (`--robust-scale`
+    /// then applies to translation alone, in the odometry's units).
+    #[arg(long, default_value_t = PoseGraphParams::default().robust_rotation_scale)]
+    pub robust_rotation_scale: f64,
     /// Weight of a loop edge against an odometry edge's 1.
     #[arg(long, default_value_t = PoseGraphParams::default().loop_weight)]
     pub loop_weight: f64,
@@ -54,7 +62,11 @@ pub fn run(args: Args) -> Result<()> {
         ensure_not_an_input(plot, &inputs)?;
         ecm_lcd::io::output::ensure_png(plot, "--plot")?;
     }
-    for (name, value) in [("--robust-scale", args.robust_scale), ("--loop-weight", args.loop_weight)] {
+    for (name, value) in [
+        ("--robust-scale", args.robust_scale),
+        ("--robust-rotation-scale", args.robust_rotation_scale),
+        ("--loop-weight", args.loop_weight),
+    ] {
         if !(value.is_finite() && value > 0.0 && value <= 1e6) {
             bail!("{name} must be positive and finite, got {value}");
         }
@@ -62,16 +74,16 @@ pub fn run(args: Args) -> Result<()> {
     let odometry = read_groundtruth(&args.odometry)
         .with_context(|| format!("reading the odometry {}", args.odometry.display()))?;
     let candidates = read_candidates_csv(&args.candidates)?;
-    let (loops, not_metric) = LoopConstraint::from_candidates(&candidates);
-    if not_metric > 0 {
-        log::warn!(
-            "{not_metric} of {} candidates have no metric relative pose (no depth, or not verified) and are not used",
-            candidates.len()
-        );
+    let (loops, left_out) = LoopConstraint::from_candidates(&candidates, args.metric_only);
+    let up_to_scale = loops.iter().filter(|l| !l.metric).count();
+    if left_out > 0 {
+        let pose = if args.metric_only { "metric relative pose (no depth" } else { "relative pose (not verified" };
+        log::warn!("{left_out} of {} candidates have no {pose}, or no intrinsics) and are not used", candidates.len());
     }
     let params = PoseGraphParams {
         max_nodes: args.max_nodes as usize,
         robust_scale: args.robust_scale,
+        robust_rotation_scale: args.robust_rotation_scale,
         loop_weight: args.loop_weight,
         ..PoseGraphParams::default()
     };
@@ -135,7 +147,8 @@ pub fn run(args: Args) -> Result<()> {
             "candidates": candidates.len(),
             "loops": result.loops.len(),
             "loops_kept": kept,
-            "loops_not_metric": not_metric,
+            "loops_up_to_scale": up_to_scale,
+            "loops_not_used": left_out,
             "loops_unmatched": result.unmatched_loops,
             "seconds": seconds,
             "ate_rmse_before_m": errors.as_ref().map(|(b, _)| b.rmse),
@@ -144,7 +157,8 @@ pub fn run(args: Args) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {
         println!(
-            "{} poses, {} nodes, {} loop edges ({kept} kept by the robust kernel), {:.2} s; corrected trajectory in {}",
+            "{} poses, {} nodes, {} loop edges ({up_to_scale} up to scale; {kept} kept by the robust kernel), {:.2} s; \
+             corrected trajectory in {}",
             result.trajectory.len(),
             result.nodes,
             result.loops.len(),
