@@ -7,25 +7,26 @@
 //! - Loop edges: each candidate's relative pose (the query camera in the match camera's frame, metres).
 //!   A pose verified up to scale (a monocular camera: no depth) gives the rotation and the direction of
 //!   the translation, not its length. Candidates without a verified pose are left out (counted).
-//! - Solver: kornia-3d's pose-graph Levenberg-Marquardt (residual `log(T_meas⁻¹ T_b T_a⁻¹)`, rotation in
-//!   radians beside translation in metres, each edge scaled by its weight).
-//! - Robust kernel: a Cauchy kernel on the loop edges, applied by iteratively reweighted least squares
-//!   (the solver's edge weights are set to `sqrt(ρ'(r²))` from the last solution) with graduated
-//!   non-convexity: the kernel's scale starts at the largest loop residual of the odometry and halves
-//!   each round down to [`PoseGraphParams::robust_scale`], so true loops are not discarded for the
-//!   drift they are there to remove, while a false loop, inconsistent with the others, ends with a
-//!   weight near zero.
-//! - With loops up to scale, two stages instead, as rotation-then-translation initialisation does
-//!   (Carlone et al., ICRA 2015) and global structure from motion with relative directions:
-//!   1. rotations alone: the same solver and kernel with every translation left out (zero), down to
-//!      [`PoseGraphParams::robust_rotation_scale`];
+//! - Solved in two stages, as rotation-then-translation initialisation does (Carlone et al., ICRA
+//!   2015), and as global structure from motion does with relative directions:
+//!   1. rotations alone: kornia-3d's pose-graph Levenberg-Marquardt (residual `log(T_meas⁻¹ T_b
+//!      T_a⁻¹)`, each edge scaled by its weight) with every translation left out (zero);
 //!   2. positions for those rotations, by linear least squares: odometry edges `p_b - p_a = R_a t`,
 //!      metric loops `p_q - p_m = R_m t`, and loops up to scale as bearings, `(I - u uᵀ)(p_q - p_m) =
 //!      0` with `u = R_m d`: only the part of the estimated translation across the measured direction
 //!      counts, so no length is needed, the map's own units serve (a monocular tracker's), and a wrong
-//!      direction costs in proportion to the baseline. Reweighted with the kernel (translation over
-//!      `robust_scale`, rotation over `robust_rotation_scale`) until the weights settle. Along a loop's
-//!      own direction only the odometry places its cameras.
+//!      direction costs in proportion to the baseline. Along a loop's own direction only the odometry
+//!      places its cameras.
+//!
+//!   Solving both at once, in one stage, measured as well on the synthetic sequence but diverged
+//!   where wrong loops with metric poses came in (the hard preset).
+//! - Robust kernel: a Cauchy kernel on the loop edges, applied by iteratively reweighted least squares
+//!   (edge weights `sqrt(ρ'(r²))` from the last solution). In stage one with graduated non-convexity:
+//!   the kernel's scale starts at the largest loop rotation residual of the odometry and halves each
+//!   round down to [`PoseGraphParams::robust_rotation_scale`], so true loops are not discarded for the
+//!   drift they are there to remove, while a false loop, inconsistent with the others, ends with a
+//!   weight near zero. In stage two at the final scales (translation over
+//!   [`PoseGraphParams::robust_scale`], rotation over `robust_rotation_scale`) until the weights settle.
 //! - Every odometry pose is then moved with the node before it (its odometry offset from that node
 //!   kept), so the corrected trajectory has the odometry's stamps.
 
@@ -81,10 +82,10 @@ pub struct PoseGraphParams {
     pub max_nodes: usize,
     /// Weight of a loop edge against an odometry edge's 1.
     pub loop_weight: f64,
-    /// Final scale of the Cauchy kernel (metres and radians): loop residuals well beyond it count little.
+    /// Final scale of the Cauchy kernel on the loops' translation, in the odometry's units (metres,
+    /// or a monocular map's own): loop residuals well beyond it count little.
     pub robust_scale: f64,
-    /// With loops up to scale, the kernel's scale on rotation (radians), apart from translation's
-    /// `robust_scale` in the map's units (a monocular map's units are its own).
+    /// Final scale of the Cauchy kernel on the loops' rotation, radians.
     pub robust_rotation_scale: f64,
     /// Largest stamp difference between a loop's keyframe and the odometry pose it is tied to, seconds.
     pub max_stamp_offset_s: f64,
@@ -236,38 +237,6 @@ pub fn optimise(
     let nodes: Vec<usize> = nodes.into_iter().collect();
     let node_of = |index: usize| nodes.binary_search(&index).expect("loop ends are nodes");
 
-    // With loops up to scale, stage one solves rotations alone: every translation, measured and
-    // estimated, is left at zero, and stays there (its gradient is zero).
-    let two_stages = tied.iter().any(|(_, _, constraint)| !constraint.metric);
-    let stage_one = |pose: Isometry3<f64>| {
-        if two_stages {
-            Isometry3::from_parts(Translation3::identity(), pose.rotation)
-        } else {
-            pose
-        }
-    };
-    let initial: Vec<Pose3d> = nodes.iter().map(|&i| to_kornia(&stage_one(odometry[i].1))).collect();
-    // Kornia's edge: T_ab = T_b T_a⁻¹ for world-to-camera poses, i.e. a's camera frame into b's.
-    let mut edges: Vec<PgoEdge> = nodes
-        .windows(2)
-        .enumerate()
-        .map(|(k, w)| PgoEdge {
-            pose_a: k,
-            pose_b: k + 1,
-            t_ab_meas: to_se3(&stage_one(odometry[w[1]].1.inverse() * odometry[w[0]].1)),
-            weight: 1.0,
-        })
-        .collect();
-    let first_loop_edge = edges.len();
-    edges.extend(tied.iter().map(|&(q, m, constraint)| PgoEdge {
-        pose_a: node_of(q),
-        pose_b: node_of(m),
-        t_ab_meas: to_se3(&stage_one(constraint.relative)),
-        weight: params.loop_weight as f32,
-    }));
-
-    let solver = PgoParams { max_iterations: params.iterations, ..PgoParams::default() };
-    let mut estimate: Vec<Isometry3<f64>> = nodes.iter().map(|&i| stage_one(odometry[i].1)).collect();
     type Measurement = fn(&LoopConstraint, &Isometry3<f64>, &Isometry3<f64>) -> Isometry3<f64>;
     let measured_by = |estimate: &[Isometry3<f64>], measurement: Measurement| -> Vec<Isometry3<f64>> {
         tied.iter()
@@ -280,18 +249,40 @@ pub fn optimise(
             .map(|(&(q, m, _), measured)| residual(measured, &estimate[node_of(q)], &estimate[node_of(m)]))
             .collect()
     };
-    // Cauchy: rho'(r^2) = 1 / (1 + r^2 / c^2); the solver scales residuals, hence the root.
-    // The residual comes in units of the kernel's scale.
+    // Cauchy: rho'(r^2) = 1 / (1 + r^2 / c^2), the residual in units of the kernel's scale; the solver
+    // scales residuals, hence the root.
     let cauchy = |scaled_residual: f64| (1.0 / (1.0 + scaled_residual.powi(2))).sqrt();
+    let mut estimate: Vec<Isometry3<f64>> = nodes.iter().map(|&i| odometry[i].1).collect();
     let mut weights = vec![1.0; tied.len()];
     if !tied.is_empty() {
+        // Stage one, rotations: every translation, measured and estimated, is left at zero, and stays
+        // there (its gradient is zero).
+        let rotation_only = |pose: Isometry3<f64>| Isometry3::from_parts(Translation3::identity(), pose.rotation);
         let measured: Vec<Isometry3<f64>> =
-            tied.iter().map(|(_, _, constraint)| stage_one(constraint.relative)).collect();
-        // One scale for both parts; in stage one of two, the translations are all zero.
-        let final_scale = if two_stages { params.robust_rotation_scale } else { params.robust_scale };
-        let largest = loop_residuals(&estimate, &measured).into_iter().map(|(t, r)| t.hypot(r)).fold(0.0, f64::max);
-        let mut scale = largest.max(final_scale);
-        let mut poses = initial;
+            tied.iter().map(|(_, _, constraint)| rotation_only(constraint.relative)).collect();
+        // Kornia's edge: T_ab = T_b T_a⁻¹ for world-to-camera poses, i.e. a's camera frame into b's.
+        let mut edges: Vec<PgoEdge> = nodes
+            .windows(2)
+            .enumerate()
+            .map(|(k, w)| PgoEdge {
+                pose_a: k,
+                pose_b: k + 1,
+                t_ab_meas: to_se3(&rotation_only(odometry[w[1]].1.inverse() * odometry[w[0]].1)),
+                weight: 1.0,
+            })
+            .collect();
+        let first_loop_edge = edges.len();
+        edges.extend(tied.iter().zip(&measured).map(|(&(q, m, _), measured)| PgoEdge {
+            pose_a: node_of(q),
+            pose_b: node_of(m),
+            t_ab_meas: to_se3(measured),
+            weight: params.loop_weight as f32,
+        }));
+        let solver = PgoParams { max_iterations: params.iterations, ..PgoParams::default() };
+        let mut poses: Vec<Pose3d> = estimate.iter().map(|&pose| to_kornia(&rotation_only(pose))).collect();
+        let mut rotations: Vec<Isometry3<f64>> = poses.iter().map(from_kornia).collect();
+        let largest = loop_residuals(&rotations, &measured).into_iter().map(|(_, r)| r).fold(0.0, f64::max);
+        let mut scale = largest.max(params.robust_rotation_scale);
         loop {
             for (edge, w) in edges[first_loop_edge..].iter_mut().zip(&weights) {
                 edge.weight = (params.loop_weight * w) as f32;
@@ -300,19 +291,21 @@ pub fn optimise(
                 .map_err(|e| anyhow::anyhow!("{e}"))
                 .context("pose-graph optimisation")?;
             poses = solved.poses;
-            estimate = poses.iter().map(from_kornia).collect();
-            weights = loop_residuals(&estimate, &measured).iter().map(|&(t, r)| cauchy(t.hypot(r) / scale)).collect();
-            if scale <= final_scale {
+            rotations = poses.iter().map(from_kornia).collect();
+            weights = loop_residuals(&rotations, &measured).iter().map(|&(_, r)| cauchy(r / scale)).collect();
+            if scale <= params.robust_rotation_scale {
                 break;
             }
-            scale = (scale / 2.0).max(final_scale);
+            scale = (scale / 2.0).max(params.robust_rotation_scale);
         }
-    }
-    if two_stages {
-        // Stage two: positions for the rotations found, loops up to scale as bearings.
+        for (pose, solved) in estimate.iter_mut().zip(&rotations) {
+            pose.rotation = solved.rotation;
+        }
+
+        // Stage two, positions for those rotations; loops up to scale as bearings.
         let steps: Vec<Vector3<f64>> =
             nodes.windows(2).map(|w| (odometry[w[0]].1.inverse() * odometry[w[1]].1).translation.vector).collect();
-        let first = odometry[nodes[0]].1.translation.vector;
+        let first = estimate[0].translation.vector;
         for _ in 0..MAX_POSITION_ROUNDS {
             let mut position_edges: Vec<_> = steps
                 .iter()
@@ -320,15 +313,13 @@ pub fn optimise(
                 .map(|(k, step)| (k, k + 1, Matrix3::identity(), estimate[k].rotation * step, 1.0))
                 .collect();
             for (&(q, m, constraint), w) in tied.iter().zip(&weights) {
-                let rotation = estimate[node_of(m)].rotation;
-                let offset = rotation * constraint.relative.translation.vector;
-                let projection = if constraint.metric {
-                    Matrix3::identity()
+                let offset = estimate[node_of(m)].rotation * constraint.relative.translation.vector;
+                let edge = if constraint.metric {
+                    (Matrix3::identity(), offset)
                 } else {
-                    Matrix3::identity() - offset * offset.transpose()
+                    (Matrix3::identity() - offset * offset.transpose(), Vector3::zeros())
                 };
-                let offset = if constraint.metric { offset } else { Vector3::zeros() };
-                position_edges.push((node_of(m), node_of(q), projection, offset, params.loop_weight * w));
+                position_edges.push((node_of(m), node_of(q), edge.0, edge.1, params.loop_weight * w));
             }
             let positions = positions_for_rotations(first, nodes.len(), &position_edges)?;
             for (pose, position) in estimate.iter_mut().zip(positions) {

@@ -42,11 +42,10 @@ pub struct Args {
     /// Most nodes in the graph.
     #[arg(long, default_value_t = PoseGraphParams::default().max_nodes as u32, value_parser = clap::value_parser!(u32).range(2..=2000))]
     pub max_nodes: u32,
-    /// Final scale of the robust (Cauchy) kernel on loop edges, metres/radians.
+    /// Final scale of the robust (Cauchy) kernel on the loops' translation, in the odometry's units.
     #[arg(long, default_value_t = PoseGraphParams::default().robust_scale)]
     pub robust_scale: f64,
-    /// With loops up to scale: the robust kernel's final scale on rotation, radians (`--robust-scale`
-    /// then applies to translation alone, in the odometry's units).
+    /// Final scale of the robust (Cauchy) kernel on the loops' rotation, radians.
     #[arg(long, default_value_t = PoseGraphParams::default().robust_rotation_scale)]
     pub robust_rotation_scale: f64,
     /// Weight of a loop edge against an odometry edge's 1.
