@@ -49,9 +49,15 @@ const SYNTHETIC_CAMERA: [&str; 8] = [
     "camera.cy=120",
 ];
 
-/// `pose-graph --json` on these files; its summary.
-fn pose_graph(odometry: &Path, candidates: &Path, groundtruth: &Path, corrected: &Path) -> serde_json::Value {
-    let output = support::ecm_lcd_ok(&[
+/// `pose-graph --json` on these files, with `more` arguments; its summary.
+fn pose_graph(
+    odometry: &Path,
+    candidates: &Path,
+    groundtruth: &Path,
+    corrected: &Path,
+    more: &[&str],
+) -> serde_json::Value {
+    let mut args = vec![
         "pose-graph",
         "--odometry",
         odometry.to_str().unwrap(),
@@ -62,8 +68,9 @@ fn pose_graph(odometry: &Path, candidates: &Path, groundtruth: &Path, corrected:
         "-o",
         corrected.to_str().unwrap(),
         "--json",
-    ]);
-    serde_json::from_slice(&output.stdout).unwrap()
+    ];
+    args.extend(more);
+    serde_json::from_slice(&support::ecm_lcd_ok(&args).stdout).unwrap()
 }
 
 #[test]
@@ -115,21 +122,7 @@ fn loops_with_metric_poses_remove_the_drift_and_the_ate_agrees_with_evo() {
     let plot = dir.path().join("fig11.png");
     let odometry = seq.join("odometry.txt");
     let groundtruth = seq.join("groundtruth.txt");
-    let output = support::ecm_lcd_ok(&[
-        "pose-graph",
-        "--odometry",
-        odometry.to_str().unwrap(),
-        "--candidates",
-        candidates.to_str().unwrap(),
-        "--groundtruth",
-        groundtruth.to_str().unwrap(),
-        "-o",
-        corrected.to_str().unwrap(),
-        "--plot",
-        plot.to_str().unwrap(),
-        "--json",
-    ]);
-    let summary: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let summary = pose_graph(&odometry, &candidates, &groundtruth, &corrected, &["--plot", plot.to_str().unwrap()]);
     println!("{summary}");
     let before = summary["ate_rmse_before_m"].as_f64().unwrap();
     let after = summary["ate_rmse_after_m"].as_f64().unwrap();
@@ -194,7 +187,7 @@ fn loops_up_to_scale_correct_a_drifted_odometry_on_real_tum_frames() {
         let odometry: Vec<_> = truth.iter().map(|(s, _)| *s).zip(drift.apply(&poses, seed)).collect();
         let odometry_path = dir.path().join(format!("odometry{seed}.txt"));
         write_trajectory(&odometry_path, &odometry).unwrap();
-        let summary = pose_graph(&odometry_path, &candidates, &groundtruth, &dir.path().join("corrected.txt"));
+        let summary = pose_graph(&odometry_path, &candidates, &groundtruth, &dir.path().join("corrected.txt"), &[]);
         println!("seed {seed}: {summary}");
         let before = summary["ate_rmse_before_m"].as_f64().unwrap();
         let after = summary["ate_rmse_after_m"].as_f64().unwrap();
@@ -220,7 +213,7 @@ fn loops_up_to_scale_remove_the_drift_of_the_synthetic_sequence() {
     let found = read_candidates_csv(&candidates).unwrap();
     assert!(found.iter().all(|c| c.verified.and_then(|v| v.pose).is_some_and(|p| !p.metric)));
     let corrected = dir.path().join("corrected.txt");
-    let summary = pose_graph(&seq.join("odometry.txt"), &candidates, &seq.join("groundtruth.txt"), &corrected);
+    let summary = pose_graph(&seq.join("odometry.txt"), &candidates, &seq.join("groundtruth.txt"), &corrected, &[]);
     println!("{summary}");
     let before = summary["ate_rmse_before_m"].as_f64().unwrap();
     let after = summary["ate_rmse_after_m"].as_f64().unwrap();
@@ -257,23 +250,8 @@ fn wrong_metric_loops_of_look_alike_rooms_do_not_bend_the_map() {
     ]);
     let (odometry, groundtruth) = (seq.join("odometry.txt"), seq.join("groundtruth.txt"));
     for metric_only in [false, true] {
-        let corrected = dir.path().join("corrected.txt");
-        let mut args = vec![
-            "pose-graph",
-            "--odometry",
-            odometry.to_str().unwrap(),
-            "--candidates",
-            candidates.to_str().unwrap(),
-            "--groundtruth",
-            groundtruth.to_str().unwrap(),
-            "-o",
-            corrected.to_str().unwrap(),
-            "--json",
-        ];
-        if metric_only {
-            args.push("--metric-only");
-        }
-        let summary: serde_json::Value = serde_json::from_slice(&support::ecm_lcd_ok(&args).stdout).unwrap();
+        let more: &[&str] = if metric_only { &["--metric-only"] } else { &[] };
+        let summary = pose_graph(&odometry, &candidates, &groundtruth, &dir.path().join("corrected.txt"), more);
         println!("metric only {metric_only}: {summary}");
         let before = summary["ate_rmse_before_m"].as_f64().unwrap();
         let after = summary["ate_rmse_after_m"].as_f64().unwrap();

@@ -251,38 +251,15 @@ fn plots_must_be_png_and_empty_sources_and_foreign_databases_are_refused() {
     refused(&["eval", &d("seq"), "--plot", &d("pr.txt")], &["pr.txt", "PNG", ".png"]);
     std::fs::write(d("odometry.txt"), "1.0 0 0 0 0 0 0 1\n2.0 1 0 0 0 0 0 1\n").unwrap();
     std::fs::write(d("c.csv"), "query_id,query_stamp,match_id,match_stamp,distance,score\n").unwrap();
-    refused(
-        &[
-            "pose-graph",
-            "--odometry",
-            &d("odometry.txt"),
-            "--candidates",
-            &d("c.csv"),
-            "-o",
-            &d("out.txt"),
-            "--plot",
-            &d("f.jpg"),
-        ],
-        &["f.jpg", "PNG"],
-    );
-    refused(
-        &["pose-graph", "--odometry", &d("odometry.txt"), "--candidates", &d("c.csv"), "-o", &d("c.csv")],
-        &["destroy"],
-    );
-    refused(
-        &[
-            "pose-graph",
-            "--odometry",
-            &d("odometry.txt"),
-            "--candidates",
-            &d("c.csv"),
-            "-o",
-            &d("out.txt"),
-            "--robust-rotation-scale",
-            "0",
-        ],
-        &["--robust-rotation-scale", "positive"],
-    );
+    let refused_pose_graph = |output: &str, more: &[&str], expected: &[&str]| {
+        let (odometry, candidates, output) = (d("odometry.txt"), d("c.csv"), d(output));
+        let mut args = vec!["pose-graph", "--odometry", &odometry, "--candidates", &candidates, "-o", &output];
+        args.extend(more);
+        refused(&args, expected);
+    };
+    refused_pose_graph("out.txt", &["--plot", &d("f.jpg")], &["f.jpg", "PNG"]);
+    refused_pose_graph("c.csv", &[], &["destroy"]);
+    refused_pose_graph("out.txt", &["--robust-rotation-scale", "0"], &["--robust-rotation-scale", "positive"]);
 
     // A ROS 2 bag with its image topic and no message in it.
     let bag = dir.path().join("empty_bag");
