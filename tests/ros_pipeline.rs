@@ -409,7 +409,7 @@ fn keyframes_with_depth_and_poses_over_dds_give_the_offline_verified_loops() {
         params.set(name, parse_param_value(value).unwrap()).unwrap();
     }
     let mut pipeline = Pipeline::new(params, Some(&weights())).unwrap();
-    let mut expected = Vec::new();
+    let mut offline_candidates = Vec::new();
     let mut rejected_by_odometry = 0;
     for frame in ecm_lcd::io::open_source(&seq, None).unwrap() {
         let frame = frame.unwrap();
@@ -422,8 +422,9 @@ fn keyframes_with_depth_and_poses_over_dds_give_the_offline_verified_loops() {
             })
             .unwrap();
         rejected_by_odometry += outcome.rejected_by_odometry;
-        expected.extend(outcome.candidates.iter().map(|c| (c.query_id, c.match_id, c.score)));
+        offline_candidates.extend(outcome.candidates);
     }
+    let expected: Vec<Row> = offline_candidates.iter().map(|c| (c.query_id, c.match_id, c.score)).collect();
     assert!(expected.len() >= 10, "the sequence should close loops offline: {expected:?}");
     assert!(expected.iter().all(|r| r.0 < MOVED_FROM as u64), "{expected:?}");
     assert!(rejected_by_odometry >= 10, "{rejected_by_odometry} loops from the moved half rejected");
@@ -438,10 +439,24 @@ fn keyframes_with_depth_and_poses_over_dds_give_the_offline_verified_loops() {
     let played = play(&seq, &["--rate", "20", "--depth-topic", "/depth", "--poses", poses_arg]);
     assert!(played.contains("published 240 frames"), "{played}");
     assert!(played.contains("240 of 240 frames had a tracker pose"), "{played}");
+    let header = listener.header.clone();
     let csv = listener.finish();
     let counters = node.stop("TERM");
     assert_rows_equal(&rows(&csv), &expected, &csv);
-    let types: Vec<&str> = csv.lines().map(|l| l.split(',').nth(7).unwrap()).collect();
+    let types: Vec<&str> = csv.lines().map(|l| l.rsplit(',').next().unwrap()).collect();
     assert!(types.iter().all(|t| *t == "3"), "every loop metric (loop_type 3): {csv}");
+    // What `listen` printed reads back as the replay's CSV does, for `pose-graph`: the same metric
+    // poses and covariances as offline.
+    let listened = dir.path().join("listened.csv");
+    std::fs::write(&listened, format!("{header}{csv}")).unwrap();
+    let read = ecm_lcd::io::candidates::read_candidates_csv(&listened).unwrap();
+    assert_eq!(read.len(), offline_candidates.len());
+    for (got, offline) in read.iter().zip(&offline_candidates) {
+        let (got_pose, offline_pose) = (got.verified.unwrap().pose.unwrap(), offline.verified.unwrap().pose.unwrap());
+        assert!(got_pose.metric && got_pose.covariance.is_some(), "{got:?}");
+        assert!((got_pose.translation - offline_pose.translation).norm() < 1e-5, "{got:?} against {offline:?}");
+        assert!(got_pose.rotation.angle_to(&offline_pose.rotation) < 1e-5, "{got:?} against {offline:?}");
+        assert_eq!(got.verified.unwrap().inliers, offline.verified.unwrap().inliers);
+    }
     println!("INNER-DONE {} metric candidates; node: {counters}", expected.len());
 }

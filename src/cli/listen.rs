@@ -1,14 +1,14 @@
-//! `ecm-lcd listen`: prints the LoopCandidates published on a topic as CSV
-//! (`query_id,query_stamp,match_id,match_stamp,distance,score,rank,loop_type,inliers`; `loop_type` as
-//! in LoopCandidate.msg: 0 appearance only, 1 verified, 2 with a pose up to scale, 3 metric), for checks
-//! and demos.
+//! `ecm-lcd listen`: prints the LoopCandidates published on a topic as CSV: the columns of `replay`'s
+//! candidates CSV (ids, stamps, distance, score, inliers, relative pose, `metric`, covariance), so that
+//! `pose-graph` reads a live run's loops too, then `rank` and `loop_type` (as in LoopCandidate.msg: 0
+//! appearance only, 1 verified, 2 with a pose up to scale, 3 metric).
 
-use anyhow::{Context as _, Result};
-use std::io::Write;
 use std::time::{Duration, Instant};
 
+use anyhow::{Context as _, Result};
+
+use ecm_lcd::io::candidates::{columns, fields};
 use ecm_lcd::ros::peer::CandidateListener;
-use ecm_lcd::types::Stamp;
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
@@ -36,27 +36,16 @@ pub fn run(args: Args) -> Result<()> {
         }
         log::info!("matched a publisher on {}", args.topic);
     }
-    let stdout = std::io::stdout();
-    let mut out = stdout.lock();
-    writeln!(out, "query_id,query_stamp,match_id,match_stamp,distance,score,rank,loop_type,inliers")?;
+    let mut out = csv::WriterBuilder::new().has_headers(false).from_writer(std::io::stdout().lock());
+    let ros_columns = ["rank", "loop_type"].map(String::from);
+    out.write_record(columns().into_iter().chain(ros_columns))?;
     out.flush()?;
     let mut received = 0usize;
     let mut last = Instant::now();
     loop {
         for c in listener.wait(Duration::from_millis(100))? {
-            writeln!(
-                out,
-                "{},{},{},{},{},{},{},{},{}",
-                c.query_id,
-                Stamp::from(c.header.stamp),
-                c.match_id,
-                Stamp::from(c.match_stamp),
-                c.distance,
-                c.score,
-                c.rank,
-                c.loop_type,
-                c.inliers
-            )?;
+            let ros_fields = [c.rank.to_string(), c.loop_type.to_string()];
+            out.write_record(fields(&c.to_candidate()).into_iter().chain(ros_fields))?;
             out.flush()?;
             received += 1;
             last = Instant::now();

@@ -31,8 +31,8 @@ const POSE_HEADER: [&str; 15] = [
     "metric",
 ];
 
-/// Every column's name, in order.
-fn columns() -> Vec<String> {
+/// Every column's name, in order ([`CandidateCsv`]).
+pub fn columns() -> Vec<String> {
     POSE_HEADER.iter().map(|name| name.to_string()).chain(covariance_columns().map(|(name, _, _)| name)).collect()
 }
 
@@ -104,7 +104,7 @@ impl CandidateCsv {
             let mut csv = csv::WriterBuilder::new().has_headers(false).from_writer(out);
             csv.write_record(columns())?;
             for c in candidates {
-                csv.write_record(record(c))?;
+                csv.write_record(fields(c))?;
             }
             Ok(csv.flush()?)
         })?;
@@ -131,14 +131,14 @@ impl CandidateCsv {
     /// Writes `candidates` and flushes.
     pub fn write(&mut self, candidates: &[LoopCandidate]) -> Result<()> {
         for c in candidates {
-            self.out.write_record(record(c))?;
+            self.out.write_record(fields(c))?;
         }
         self.flush()
     }
 }
 
-/// One candidate's CSV fields ([`CandidateCsv`]).
-fn record(c: &LoopCandidate) -> Vec<String> {
+/// One candidate's CSV fields, under [`columns`] ([`CandidateCsv`]).
+pub fn fields(c: &LoopCandidate) -> Vec<String> {
     let mut record = vec![
         c.query_id.to_string(),
         c.query_stamp.to_string(),

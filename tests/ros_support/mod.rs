@@ -67,6 +67,7 @@ pub fn cyclone_peer_script() -> PathBuf {
 pub struct Listener {
     child: Child,
     stdout: BufReader<ChildStdout>,
+    pub header: String,
 }
 
 impl Listener {
@@ -80,17 +81,18 @@ impl Listener {
         let mut stdout = BufReader::new(child.stdout.take().unwrap());
         let mut header = String::new();
         stdout.read_line(&mut header).unwrap();
+        // The replay's candidate columns, then the message's rank and type.
         assert_eq!(
             header.trim(),
-            "query_id,query_stamp,match_id,match_stamp,distance,score,rank,loop_type,inliers",
+            [ecm_lcd::io::candidates::columns(), vec!["rank".into(), "loop_type".into()]].concat().join(","),
             "listener failed to start"
         );
         // The writer side of the match may lag the reader side a little.
         std::thread::sleep(Duration::from_millis(500));
-        Listener { child, stdout }
+        Listener { child, stdout, header }
     }
 
-    /// Waits for the listener to end; returns its CSV rows (no header).
+    /// Waits for the listener to end; returns its CSV rows (no header: that is in `header`).
     pub fn finish(mut self) -> String {
         let mut csv = String::new();
         self.stdout.read_to_string(&mut csv).unwrap();
