@@ -194,8 +194,8 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
         let record = record.with_context(|| format!("{}:{line}: malformed CSV line", path.display()))?;
         let field = |i: usize| record.get(i).unwrap_or("");
         let number = |i: usize| -> Result<f64> {
-            field(i).parse::<f64>().with_context(|| {
-                format!("{}:{line}: `{}` is not a number", path.display(), crate::io::excerpt(field(i), 40))
+            field(i).parse::<f64>().ok().filter(|v| v.is_finite()).with_context(|| {
+                format!("{}:{line}: `{}` is not a finite number", path.display(), crate::io::excerpt(field(i), 40))
             })
         };
         let stamp = |i: usize| -> Result<Stamp> {
@@ -338,5 +338,10 @@ mod tests {
         std::fs::write(&path, "query_id,stamp\n1,2\n").unwrap();
         let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
         assert!(err.contains("query_stamp") && err.contains("c.csv"), "{err}");
+        // A pose that is not a number is refused, not passed on to a pose graph.
+        let line = "1,2.0,0,1.0,0.5,0.9,30,0,0,0,1,NaN,0,1,0";
+        std::fs::write(&path, format!("{}\n{line}\n", POSE_HEADER.join(","))).unwrap();
+        let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
+        assert!(err.contains("c.csv:2: `\"NaN\"` is not a finite number"), "{err}");
     }
 }
