@@ -162,9 +162,9 @@ fn bearing_measurement(constraint: &LoopConstraint, from: &Isometry3<f64>, to: &
     Isometry3::from_parts(Translation3::from(direction * length), constraint.relative.rotation)
 }
 
-/// Stage two, where loops up to scale are in the graph: the node positions for fixed `rotations`, by
-/// linear least squares (module doc). Each edge is `(a, b, projection, offset, weight)`, for the
-/// residual `weight * projection * (p_b - p_a - offset)`; the first node keeps `first`.
+/// Stage two: the node positions for stage one's rotations, by linear least squares (module doc). Each
+/// edge is `(a, b, projection, offset, weight)`, for the residual `weight * projection * (p_b - p_a -
+/// offset)` (`projection` the identity, or `I - u uᵀ` for a bearing); the first node keeps `first`.
 fn positions_for_rotations(
     first: Vector3<f64>,
     nodes: usize,
