@@ -25,8 +25,9 @@
 //!   the kernel's scale starts at the largest loop rotation residual of the odometry and halves each
 //!   round down to [`PoseGraphParams::robust_rotation_scale`], so true loops are not discarded for the
 //!   drift they are there to remove, while a false loop, inconsistent with the others, ends with a
-//!   weight near zero. In stage two at the final scales (translation over
-//!   [`PoseGraphParams::robust_scale`], rotation over `robust_rotation_scale`) until the weights settle.
+//!   weight near zero. In stage two likewise on translation, from half the largest translation
+//!   residual of its first solution down to [`PoseGraphParams::robust_scale`] (rotation over
+//!   `robust_rotation_scale`), then until the weights settle.
 //! - Every odometry pose is then moved with the node before it (its odometry offset from that node
 //!   kept), so the corrected trajectory has the odometry's stamps.
 
@@ -119,8 +120,8 @@ pub struct PoseGraphResult {
     pub nodes: usize,
 }
 
-/// Most rounds of reweighting in stage two (positions), which stops sooner once no weight moves by
-/// more than [`WEIGHT_TOLERANCE`].
+/// Most rounds of reweighting in stage two (positions), which stops sooner once the kernel's scale is
+/// final and no weight moves by more than [`WEIGHT_TOLERANCE`].
 const MAX_POSITION_ROUNDS: usize = 20;
 const WEIGHT_TOLERANCE: f64 = 1e-3;
 
@@ -306,6 +307,8 @@ pub fn optimise(
         let steps: Vec<Vector3<f64>> =
             nodes.windows(2).map(|w| (odometry[w[0]].1.inverse() * odometry[w[1]].1).translation.vector).collect();
         let first = estimate[0].translation.vector;
+        // Graduated as in stage one: from the largest translation residual of the first solution.
+        let mut translation_scale = f64::INFINITY;
         for _ in 0..MAX_POSITION_ROUNDS {
             let mut position_edges: Vec<_> = steps
                 .iter()
@@ -325,13 +328,18 @@ pub fn optimise(
             for (pose, position) in estimate.iter_mut().zip(positions) {
                 pose.translation = Translation3::from(position);
             }
-            let renewed: Vec<f64> = loop_residuals(&estimate, &measured_by(&estimate, bearing_measurement))
+            let residuals = loop_residuals(&estimate, &measured_by(&estimate, bearing_measurement));
+            if translation_scale.is_infinite() {
+                translation_scale = residuals.iter().map(|&(t, _)| t).fold(0.0, f64::max);
+            }
+            translation_scale = (translation_scale / 2.0).max(params.robust_scale);
+            let renewed: Vec<f64> = residuals
                 .iter()
-                .map(|&(t, r)| cauchy((t / params.robust_scale).hypot(r / params.robust_rotation_scale)))
+                .map(|&(t, r)| cauchy((t / translation_scale).hypot(r / params.robust_rotation_scale)))
                 .collect();
             let moved = renewed.iter().zip(&weights).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
             weights = renewed;
-            if moved < WEIGHT_TOLERANCE {
+            if moved < WEIGHT_TOLERANCE && translation_scale <= params.robust_scale {
                 break;
             }
         }
