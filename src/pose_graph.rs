@@ -238,10 +238,9 @@ pub fn optimise(
     let nodes: Vec<usize> = nodes.into_iter().collect();
     let node_of = |index: usize| nodes.binary_search(&index).expect("loop ends are nodes");
 
-    type Measurement = fn(&LoopConstraint, &Isometry3<f64>, &Isometry3<f64>) -> Isometry3<f64>;
-    let measured_by = |estimate: &[Isometry3<f64>], measurement: Measurement| -> Vec<Isometry3<f64>> {
+    let bearing_measurements = |estimate: &[Isometry3<f64>]| -> Vec<Isometry3<f64>> {
         tied.iter()
-            .map(|(q, m, constraint)| measurement(constraint, &estimate[node_of(*q)], &estimate[node_of(*m)]))
+            .map(|(q, m, constraint)| bearing_measurement(constraint, &estimate[node_of(*q)], &estimate[node_of(*m)]))
             .collect()
     };
     let loop_residuals = |estimate: &[Isometry3<f64>], measured: &[Isometry3<f64>]| -> Vec<(f64, f64)> {
@@ -304,31 +303,47 @@ pub fn optimise(
         }
 
         // Stage two, positions for those rotations; loops up to scale as bearings.
-        let steps: Vec<Vector3<f64>> =
-            nodes.windows(2).map(|w| (odometry[w[0]].1.inverse() * odometry[w[1]].1).translation.vector).collect();
+        // The rotations are fixed now, so are the edges; only the loops' weights change between rounds.
+        let odometry_edges: Vec<_> = nodes
+            .windows(2)
+            .enumerate()
+            .map(|(k, w)| {
+                let step = (odometry[w[0]].1.inverse() * odometry[w[1]].1).translation.vector;
+                (k, k + 1, Matrix3::identity(), estimate[k].rotation * step)
+            })
+            .collect();
+        let loop_edges: Vec<_> = tied
+            .iter()
+            .map(|&(q, m, constraint)| {
+                // The measured translation, or direction, turned into the world by the match camera.
+                let in_world = estimate[node_of(m)].rotation * constraint.relative.translation.vector;
+                let (projection, offset) = if constraint.metric {
+                    (Matrix3::identity(), in_world)
+                } else {
+                    (Matrix3::identity() - in_world * in_world.transpose(), Vector3::zeros())
+                };
+                (node_of(m), node_of(q), projection, offset)
+            })
+            .collect();
         let first = estimate[0].translation.vector;
         // Graduated as in stage one: from the largest translation residual of the first solution.
         let mut translation_scale = f64::INFINITY;
         for _ in 0..MAX_POSITION_ROUNDS {
-            let mut position_edges: Vec<_> = steps
+            let weighted: Vec<_> = odometry_edges
                 .iter()
-                .enumerate()
-                .map(|(k, step)| (k, k + 1, Matrix3::identity(), estimate[k].rotation * step, 1.0))
+                .map(|&(a, b, projection, offset)| (a, b, projection, offset, 1.0))
+                .chain(
+                    loop_edges
+                        .iter()
+                        .zip(&weights)
+                        .map(|(&(a, b, projection, offset), w)| (a, b, projection, offset, params.loop_weight * w)),
+                )
                 .collect();
-            for (&(q, m, constraint), w) in tied.iter().zip(&weights) {
-                let offset = estimate[node_of(m)].rotation * constraint.relative.translation.vector;
-                let edge = if constraint.metric {
-                    (Matrix3::identity(), offset)
-                } else {
-                    (Matrix3::identity() - offset * offset.transpose(), Vector3::zeros())
-                };
-                position_edges.push((node_of(m), node_of(q), edge.0, edge.1, params.loop_weight * w));
-            }
-            let positions = positions_for_rotations(first, nodes.len(), &position_edges)?;
+            let positions = positions_for_rotations(first, nodes.len(), &weighted)?;
             for (pose, position) in estimate.iter_mut().zip(positions) {
                 pose.translation = Translation3::from(position);
             }
-            let residuals = loop_residuals(&estimate, &measured_by(&estimate, bearing_measurement));
+            let residuals = loop_residuals(&estimate, &bearing_measurements(&estimate));
             if translation_scale.is_infinite() {
                 translation_scale = residuals.iter().map(|&(t, _)| t).fold(0.0, f64::max);
             }
