@@ -12,9 +12,8 @@ fn a_burst_beyond_what_the_node_processes_keeps_the_queue_and_memory_bounded() {
     let out = Command::new(env!("CARGO_BIN_EXE_ecm-lcd-bench"))
         // A larger input (896 px: about 16x the network cost) and a queue of 2 against 80 keyframes/s
         // (40x the nominal rate), so that the burst exceeds what the node processes on any 2-core
-        // machine: the test is about the overflow policy. (At 20 keyframes/s a 2-core Xeon with
-        // AVX-512 kept up at 46 ms a keyframe.) Frames of 320x240 keep the bytes on the loopback
-        // where 640x480 at 20 Hz had them.
+        // machine: the test is about the overflow policy (at 20 keyframes/s a 2-core Xeon with AVX-512
+        // kept up). Frames of 320x240 keep the bytes on the loopback where 640x480 at 20 Hz had them.
         .args([
             "load-test",
             "--seconds",
