@@ -298,6 +298,14 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "Matches agree when they are at most this many keyframes apart in the database.",
         ),
         ParamSpec {
+            name: "detector.consistency.delayed",
+            kind: ParamKind::Bool,
+            default: ParamValue::Bool(true),
+            range: ParamRange::Any,
+            description: "With consistency on, a match held back for want of earlier agreeing keyframes is reported later, once later keyframes agree with it (true), instead of dropped as DBoW2 does (false).",
+            read_only: false,
+        },
+        ParamSpec {
             name: "detector.centre_on_history",
             kind: ParamKind::Bool,
             default: ParamValue::Bool(false),
@@ -663,6 +671,10 @@ impl Params {
             top_k: self.count("detector.top_k"),
             consistency_queries: self.count("detector.consistency.queries"),
             consistency_window: self.count("detector.consistency.window"),
+            consistency_delayed: matches!(
+                self.values.get("detector.consistency.delayed"),
+                Some(ParamValue::Bool(true))
+            ),
             max_keyframes: self.count("detector.max_keyframes"),
             sequence_length: self.count("detector.sequence.length"),
             centre_on_history: matches!(self.values.get("detector.centre_on_history"), Some(ParamValue::Bool(true))),

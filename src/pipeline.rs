@@ -419,11 +419,23 @@ impl Pipeline {
             self.odometry.keep(id, tracked);
         }
         let after_detector = Instant::now();
+        // Earlier keyframes' loops that temporal consistency held back and this keyframe's confirm.
+        if self.verifier.is_none() {
+            let top_k = self.params.detector().top_k;
+            let confirmed = self.detector.confirm_held_back(id, &outcome.candidates, top_k);
+            outcome.candidates.splice(0..0, confirmed);
+        }
         outcome.timings.detector_ms = (after_detector - after_descriptor).as_secs_f64() * 1e3;
         let mut stored_features = None;
         if self.verifier.is_some() {
             let features = self.local_features(image, depth)?;
             self.verify_outcome(&features, tracked, &nearest, &mut outcome);
+            let confirmed = self.detector.confirm_held_back(id, &outcome.candidates, self.matches_tried());
+            let confirmed = self.verify_confirmed(confirmed, &mut outcome);
+            for c in &confirmed {
+                self.detector.set_reported(c.query_id, c.rank as usize + 1);
+            }
+            outcome.candidates.splice(0..0, confirmed);
             if self.store.is_some() {
                 stored_features = Some(features.to_bytes());
             }
@@ -577,6 +589,45 @@ impl Pipeline {
         for (rank, candidate) in outcome.candidates.iter_mut().enumerate() {
             candidate.rank = rank as u32;
         }
+    }
+
+    /// Verifies loops of earlier keyframes that temporal consistency held back and the current
+    /// keyframe confirmed (grouped by keyframe, each ranked after what it already reported), with the
+    /// local features and tracker pose kept for their own keyframes, best first until a keyframe has
+    /// `detector.top_k`; returns those that pass, ranked on, and counts the failed in `outcome`.
+    fn verify_confirmed(&self, confirmed: Vec<LoopCandidate>, outcome: &mut Outcome) -> Vec<LoopCandidate> {
+        let verifier = self.verifier.as_ref().expect("called with verification on");
+        let wanted = self.params.detector().top_k as u32;
+        let mut kept: Vec<LoopCandidate> = Vec::new();
+        // The rank the next kept candidate of the keyframe being checked gets.
+        let mut next: Option<(u64, u32)> = None;
+        for mut c in confirmed {
+            let rank = match next {
+                Some((query, rank)) if query == c.query_id => rank,
+                _ => c.rank,
+            };
+            next = Some((c.query_id, rank));
+            if rank >= wanted {
+                continue;
+            }
+            let verification = verifier.features(c.query_id).and_then(|features| verifier.verify(features, c.match_id));
+            let Some(v) = verification.filter(|v| v.accepted) else {
+                log::debug!("held-back candidate {} -> {} rejected by verification", c.query_id, c.match_id);
+                outcome.rejected += 1;
+                continue;
+            };
+            if !self.odometry_consistent(self.odometry.tracked(c.query_id), c.match_id, v.pose.as_ref()) {
+                outcome.rejected += 1;
+                outcome.rejected_by_odometry += 1;
+                continue;
+            }
+            log::debug!("held-back candidate {} -> {} confirmed and verified", c.query_id, c.match_id);
+            c.verified = Some(Verified { inliers: v.inliers as u32, pose: v.pose });
+            c.rank = rank;
+            next = Some((c.query_id, rank + 1));
+            kept.push(c);
+        }
+        kept
     }
 
     /// Changes one parameter at run time, validated by [`Params::set_at_runtime`]: a bad value

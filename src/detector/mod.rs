@@ -18,6 +18,11 @@
 //!    [`Detector::process`], including those that found nothing or ran before the minimum history) had a
 //!    match that passed the threshold at a position within `consistency_window` keyframes of `p`.
 //!    Positions (insertion order) rather than ids are compared so that any id scheme works.
+//!    With `consistency_delayed` the check delays a loop rather than losing it: a held-back match of
+//!    one of those `k - 1` queries is reported later, with its query's id and stamp, once a later query
+//!    reports a match within `consistency_window` keyframes of it (each match once, at most `top_k` a
+//!    query). So a revisit `k` or more keyframes long is reported from its first keyframe, not its
+//!    `k`-th; only shorter ones are lost. Without it, held-back matches are dropped, as DBoW2 does.
 //!
 //! Reported candidates are ranked 0, 1, ... in increasing distance among those reported; with the
 //! sequence policy on, in decreasing sequence score.
@@ -85,6 +90,8 @@ pub struct DetectorParams {
     pub consistency_queries: usize,
     /// Matches agree when their database positions differ by at most this many keyframes.
     pub consistency_window: usize,
+    /// Held-back matches are reported once later queries agree with them, not dropped (module doc).
+    pub consistency_delayed: bool,
     /// At most this many keyframes are kept in memory and searched, the newest (0 = unlimited; module doc).
     pub max_keyframes: usize,
     /// Queries whose scores are accumulated along a diagonal (1 = single-image matching; module doc).
@@ -478,14 +485,28 @@ pub struct Match {
     pub score: f32,
 }
 
+/// A recent query as temporal consistency remembers it.
+#[derive(Clone, Debug)]
+struct RecentQuery {
+    id: u64,
+    stamp: Stamp,
+    /// Its threshold-passing matches, best first, as (position, distance, score) and whether
+    /// consistency held the match back: the `top_k` best, which later queries must agree with, then
+    /// the alternatives verification would try (`process_ranked`'s `depth`).
+    matches: Vec<((usize, f32, f32), bool)>,
+    /// Candidates reported for it so far (what verification kept, where [`Detector::set_reported`] says).
+    reported: usize,
+}
+
 /// The loop-closure detector: a keyframe database plus the policy of the module doc.
 #[derive(Clone, Debug)]
 pub struct Detector {
     descriptor: Descriptor,
     params: DetectorParams,
     db: KeyframeDb,
-    /// Positions of the threshold-passing matches of the last `consistency_queries - 1` queries, oldest first.
-    recent_matches: VecDeque<Vec<usize>>,
+    /// The last `consistency_queries` queries' threshold-passing matches, oldest first: the newest is
+    /// the latest query's, the others those it had to agree with.
+    recent_matches: VecDeque<RecentQuery>,
     /// Descriptors of the last `sequence_length - 1` queries, oldest first (the sequence policy).
     recent_queries: sequence::RecentQueries,
     /// Sum of the searched keyframes' descriptors (centring on the history).
@@ -521,7 +542,7 @@ impl Detector {
             self.db = db.into_format(format);
             self.resum_history();
         }
-        let keep = self.params.consistency_queries.saturating_sub(1);
+        let keep = self.params.consistency_queries.max(1);
         while self.recent_matches.len() > keep {
             self.recent_matches.pop_front();
         }
@@ -574,9 +595,9 @@ impl Detector {
             add_into(&mut self.history_sum, &self.db.descriptor(position), -1.0);
         }
         self.db.drop_oldest(excess);
-        for positions in &mut self.recent_matches {
-            positions.retain(|&p| p >= excess);
-            positions.iter_mut().for_each(|p| *p -= excess);
+        for recent in &mut self.recent_matches {
+            recent.matches.retain(|&((p, ..), _)| p >= excess);
+            recent.matches.iter_mut().for_each(|((p, ..), _)| *p -= excess);
         }
     }
 
@@ -689,16 +710,22 @@ impl Detector {
     }
 
     /// Queries the history with a new keyframe, then inserts it; returns the loop candidates reported
-    /// under the full policy (module doc).
+    /// under the full policy (module doc): earlier queries' that it confirmed first (their own
+    /// `query_id`), then its own.
     pub fn process(&mut self, id: u64, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Vec<LoopCandidate>> {
-        Ok(self.process_ranked(id, stamp, descriptor, self.params.top_k)?.1)
+        let own = self.process_ranked(id, stamp, descriptor, self.params.top_k)?.1;
+        let mut candidates = self.confirm_held_back(id, &own, self.params.top_k);
+        candidates.extend(own);
+        Ok(candidates)
     }
 
     /// [`Detector::process`] that also returns the `depth` nearest eligible keyframes, best first, whether
     /// or not they pass (the first is what [`Detector::best_match`] gives), from the same search: one search
     /// per keyframe, not two. With `depth` above `top_k`, up to `depth` candidates are returned: the
     /// alternatives that geometric verification tries in turn when a better one fails
-    /// (`verification.candidates`); consistency still remembers only the `top_k` best.
+    /// (`verification.candidates`); consistency still remembers only the `top_k` best. The candidates
+    /// are the query's own; [`Detector::confirm_held_back`] then gives those of earlier queries
+    /// that the reported ones confirm.
     pub fn process_ranked(
         &mut self,
         id: u64,
@@ -711,37 +738,24 @@ impl Detector {
         let passing: Vec<(usize, f32, f32)> =
             ranked.into_iter().filter(|&(_, distance, score)| self.passes(distance, score)).collect();
         let needed = self.params.consistency_queries.saturating_sub(1);
-        let window = self.params.consistency_window;
+        let (window, top_k) = (self.params.consistency_window, self.params.top_k);
         let consistent = |position: usize| {
             self.recent_matches.len() >= needed
-                && self
-                    .recent_matches
-                    .iter()
-                    .rev()
-                    .take(needed)
-                    .all(|earlier| earlier.iter().any(|&q| q.abs_diff(position) <= window))
+                && self.recent_matches.iter().rev().take(needed).all(|earlier| {
+                    earlier.matches.iter().take(top_k).any(|&((q, ..), _)| q.abs_diff(position) <= window)
+                })
         };
-        let candidates: Vec<LoopCandidate> = passing
-            .iter()
-            .filter(|&&(position, _, _)| consistent(position))
-            .enumerate()
-            .map(|(rank, &(position, distance, score))| LoopCandidate {
-                query_id: id,
-                query_stamp: stamp,
-                match_id: self.db.id(position),
-                match_stamp: self.db.stamp(position),
-                distance,
-                score,
-                rank: rank as u32,
-                verified: None,
-            })
-            .collect();
+        let matches: Vec<((usize, f32, f32), bool)> = passing.iter().map(|&m| (m, !consistent(m.0))).collect();
+        let own: Vec<(usize, f32, f32)> = matches.iter().filter(|(_, held)| !held).map(|&(m, _)| m).collect();
+        let candidates: Vec<LoopCandidate> =
+            own.iter().enumerate().map(|(rank, &m)| self.candidate(id, stamp, m, rank)).collect();
         self.store(id, stamp, descriptor)?;
         self.recent_queries.push(descriptor);
         if needed > 0 {
-            let best = passing.iter().take(self.params.top_k);
-            self.recent_matches.push_back(best.map(|&(position, _, _)| position).collect());
-            while self.recent_matches.len() > needed {
+            let reported = own.len().min(top_k);
+            self.recent_matches.push_back(RecentQuery { id, stamp, matches, reported });
+            // The `needed` before the next query, and this one's own for `confirm_held_back`.
+            while self.recent_matches.len() > needed + 1 {
                 self.recent_matches.pop_front();
             }
         }
@@ -769,6 +783,74 @@ impl Detector {
         let ranked = self.ranked_matches(stamp, descriptor, depth)?;
         self.recent_queries.push(descriptor);
         Ok(ranked.into_iter().map(|m| self.to_match(m)).collect())
+    }
+
+    /// The candidate of query `id` for the match at `position`.
+    fn candidate(
+        &self,
+        id: u64,
+        stamp: Stamp,
+        (position, distance, score): (usize, f32, f32),
+        rank: usize,
+    ) -> LoopCandidate {
+        LoopCandidate {
+            query_id: id,
+            query_stamp: stamp,
+            match_id: self.db.id(position),
+            match_stamp: self.db.stamp(position),
+            distance,
+            score,
+            rank: rank as u32,
+            verified: None,
+        }
+    }
+
+    /// After [`Detector::process_ranked`] for query `id`, given the candidates finally `reported` for it
+    /// (what geometric verification kept of those the detector gave, or all of them): the matches of
+    /// the queries before it that consistency held back and that lie within `consistency_window`
+    /// keyframes of a reported one, oldest query first, each query's best first. Those queries
+    /// agreed with the reported match, so together they make the run of agreeing queries the
+    /// policy asks for (module doc). Each match is released once, and a query gets at most `depth`
+    /// candidates in all (alternatives for verification to try in turn), ranked after those it
+    /// already reported; say what verification kept of them with [`Detector::set_reported`].
+    pub fn confirm_held_back(&mut self, id: u64, reported: &[LoopCandidate], depth: usize) -> Vec<LoopCandidate> {
+        let window = self.params.consistency_window;
+        if !self.params.consistency_delayed {
+            return Vec::new();
+        }
+        let Some(current) = self.recent_matches.back_mut().filter(|r| r.id == id) else { return Vec::new() };
+        current.reported = reported.len();
+        let db = &self.db;
+        let positions: Vec<usize> = current
+            .matches
+            .iter()
+            .map(|&((position, ..), _)| position)
+            .filter(|&position| reported.iter().any(|c| c.match_id == db.id(position)))
+            .collect();
+        let mut confirmed = Vec::new();
+        let earlier = self.recent_matches.len() - 1;
+        for index in 0..earlier {
+            let recent = &self.recent_matches[index];
+            let agrees = |position: usize| positions.iter().any(|&p| position.abs_diff(p) <= window);
+            let released: Vec<usize> = (0..recent.matches.len())
+                .filter(|&i| recent.matches[i].1 && agrees(recent.matches[i].0 .0))
+                .take(depth.saturating_sub(recent.reported))
+                .collect();
+            for (rank, &i) in released.iter().enumerate() {
+                confirmed.push(self.candidate(recent.id, recent.stamp, recent.matches[i].0, recent.reported + rank));
+            }
+            released.iter().for_each(|&i| self.recent_matches[index].matches[i].1 = false);
+        }
+        confirmed
+    }
+
+    /// Tells temporal consistency how many candidates were finally reported for the recent query `id`
+    /// (what geometric verification kept of those [`Detector::confirm_held_back`] released), so that
+    /// its matches confirmed later fill only the places left.
+    pub fn set_reported(&mut self, id: u64, reported: usize) {
+        if let Some(recent) = self.recent_matches.iter_mut().find(|r| r.id == id) {
+            recent.reported = reported;
+        }
     }
 
     fn to_match(&self, (position, distance, score): (usize, f32, f32)) -> Match {

@@ -185,7 +185,8 @@ pub struct KeyframeRecord<'a> {
     pub id: u64,
     pub stamp: Stamp,
     pub descriptor: &'a [f32],
-    /// The loop candidates reported for it.
+    /// The loop candidates reported when it was processed: its own, and those of earlier keyframes
+    /// that temporal consistency held back and it confirmed (their own `query_id`).
     pub candidates: &'a [LoopCandidate],
     /// Its local features, as the verification stage writes them (opaque here).
     pub local_features: Option<&'a [u8]>,

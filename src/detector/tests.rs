@@ -95,6 +95,7 @@ fn params_all_off() -> DetectorParams {
         exclude_recent_secs: 0.0,
         top_k: 1,
         consistency_queries: 1,
+        consistency_delayed: true,
         consistency_window: 0,
         max_keyframes: 0,
         sequence_length: 1,
@@ -228,30 +229,43 @@ fn consistency_off_reports_every_passing_match() {
     assert_eq!(match_ids(&det.process(102, secs(102.0), &unit(20.0)).unwrap()), vec![2]);
 }
 
+/// (query id, match id) of each candidate, in order.
+fn query_and_match(candidates: &[LoopCandidate]) -> Vec<(u64, u64)> {
+    candidates.iter().map(|c| (c.query_id, c.match_id)).collect()
+}
+
 #[test]
 fn consistency_of_three_needs_three_agreeing_queries() {
     let mut det = consistency_detector(3, 1);
     // Revisit places 3, 4, 5 with a window of 1: at the third query |5 - 3| = 2 > 1, so it is not yet
-    // consistent; the fourth (place 5 again, after 4 and 5) is.
+    // consistent; the fourth (place 5 again, after 4 and 5) is, and completes the run 4, 5, 5 of the
+    // three queries before it: the two held back are reported with it, under their own ids.
     assert!(det.process(100, secs(100.0), &unit(30.0)).unwrap().is_empty());
     assert!(det.process(101, secs(101.0), &unit(40.0)).unwrap().is_empty());
     assert!(det.process(102, secs(102.0), &unit(50.0)).unwrap().is_empty());
-    assert_eq!(match_ids(&det.process(103, secs(103.0), &unit(50.0)).unwrap()), vec![5]);
-    assert_eq!(match_ids(&det.process(104, secs(104.0), &unit(60.0)).unwrap()), vec![6]);
+    let reported = det.process(103, secs(103.0), &unit(50.0)).unwrap();
+    assert_eq!(query_and_match(&reported), vec![(101, 4), (102, 5), (103, 5)]);
+    assert_eq!(reported[0].query_stamp, secs(101.0));
+    assert!(reported.iter().all(|c| c.rank == 0));
+    // Each once: the next query reports its own match only.
+    assert_eq!(query_and_match(&det.process(104, secs(104.0), &unit(60.0)).unwrap()), vec![(104, 6)]);
 
     // A window of 2 accepts 3, 4, 5 at the third query.
     let mut det = consistency_detector(3, 2);
     assert!(det.process(100, secs(100.0), &unit(30.0)).unwrap().is_empty());
     assert!(det.process(101, secs(101.0), &unit(40.0)).unwrap().is_empty());
-    assert_eq!(match_ids(&det.process(102, secs(102.0), &unit(50.0)).unwrap()), vec![5]);
+    let reported = det.process(102, secs(102.0), &unit(50.0)).unwrap();
+    assert_eq!(query_and_match(&reported), vec![(100, 3), (101, 4), (102, 5)]);
 
-    // A query without a passing match breaks the chain; two more agreeing queries are needed.
+    // A query without a passing match breaks the chain; two more agreeing queries are needed, and
+    // the match before the break is not reported.
     let mut det = consistency_detector(3, 2);
     det.process(100, secs(100.0), &unit(30.0)).unwrap();
     det.process(101, secs(101.0), &unit(35.0)).unwrap(); // between places: nothing passes
     assert!(det.process(102, secs(102.0), &unit(40.0)).unwrap().is_empty());
     assert!(det.process(103, secs(103.0), &unit(40.0)).unwrap().is_empty());
-    assert_eq!(match_ids(&det.process(104, secs(104.0), &unit(40.0)).unwrap()), vec![4]);
+    let reported = det.process(104, secs(104.0), &unit(40.0)).unwrap();
+    assert_eq!(query_and_match(&reported), vec![(102, 4), (103, 4), (104, 4)]);
 
     // Far-apart matches do not agree.
     let mut det = consistency_detector(3, 2);
@@ -259,9 +273,31 @@ fn consistency_of_three_needs_three_agreeing_queries() {
     det.process(101, secs(101.0), &unit(80.0)).unwrap();
     assert!(det.process(102, secs(102.0), &unit(80.0)).unwrap().is_empty());
 
-    // Lowering the requirement at run time trims the history and takes effect at once.
+    // Lowering the requirement at run time trims the history and takes effect at once: the last
+    // query and this one agree.
     det.set_params(DetectorParams { consistency_queries: 2, ..det.params().clone() });
-    assert_eq!(match_ids(&det.process(103, secs(103.0), &unit(80.0)).unwrap()), vec![8]);
+    assert_eq!(query_and_match(&det.process(103, secs(103.0), &unit(80.0)).unwrap()), vec![(102, 8), (103, 8)]);
+}
+
+#[test]
+fn without_delay_held_back_matches_are_dropped_as_dbow2_does() {
+    let mut det = consistency_detector(3, 1);
+    det.set_params(DetectorParams { consistency_delayed: false, ..det.params().clone() });
+    for (id, degrees) in [(100, 30.0), (101, 40.0), (102, 50.0)] {
+        assert!(det.process(id, secs(id as f64), &unit(degrees)).unwrap().is_empty());
+    }
+    assert_eq!(query_and_match(&det.process(103, secs(103.0), &unit(50.0)).unwrap()), vec![(103, 5)]);
+}
+
+#[test]
+fn a_match_no_later_query_agrees_with_is_never_reported() {
+    let mut det = consistency_detector(2, 1);
+    assert!(det.process(100, secs(100.0), &unit(20.0)).unwrap().is_empty());
+    assert!(det.process(101, secs(101.0), &unit(70.0)).unwrap().is_empty());
+    assert!(det.process(102, secs(102.0), &unit(35.0)).unwrap().is_empty()); // nothing passes
+    let reported = det.process(103, secs(103.0), &unit(40.0)).unwrap();
+    assert!(reported.is_empty(), "{reported:?}");
+    assert_eq!(query_and_match(&det.process(104, secs(104.0), &unit(40.0)).unwrap()), vec![(103, 4), (104, 4)]);
 }
 
 #[test]
@@ -346,8 +382,10 @@ fn memory_budget_keeps_consistency_positions_in_step() {
     det.set_params(DetectorParams { max_keyframes: 10, ..det.params().clone() });
     assert!(det.process(100, secs(100.0), &unit(30.0)).unwrap().is_empty());
     assert_eq!((det.db().len(), det.db().id(0)), (10, 1));
-    // Place 3 moved from position 3 to 2; the ties with keyframe 100 go to the earlier position.
-    assert_eq!(match_ids(&det.process(101, secs(101.0), &unit(30.0)).unwrap()), vec![3]);
+    // Place 3 moved from position 3 to 2; the ties with keyframe 100 go to the earlier position. The
+    // first revisit's match, held back, is reported with the second and still names place 3.
+    let reported = det.process(101, secs(101.0), &unit(30.0)).unwrap();
+    assert_eq!(query_and_match(&reported), vec![(100, 3), (101, 3)]);
 }
 
 /// A place's descriptor: a random unit vector per place index (8-d), so places are unrelated.

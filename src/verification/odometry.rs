@@ -105,6 +105,11 @@ impl OdometryTrack {
         self.keyframes.insert(id, tracked);
     }
 
+    /// Where keyframe `id` was tracked, if it came with a pose.
+    pub fn tracked(&self, id: u64) -> Option<Tracked> {
+        self.keyframes.get(&id).copied()
+    }
+
     /// Keyframes with a tracked position.
     pub fn len(&self) -> usize {
         self.keyframes.len()
