@@ -823,12 +823,12 @@ fn worker_loop(
         let result = processor.process(&input);
         let process_ms = process_start.elapsed().as_secs_f64() * 1e3;
         counters.process_us.fetch_add((process_ms * 1e3) as u64, Ordering::Relaxed);
-        let candidates = match result {
+        let (keyframe, candidates) = match result {
             Ok(Processed { keyframe, candidates }) => {
                 if let (Some(keyframe), false) = (keyframe, had_depth) {
                     depths.wait(stamp, keyframe);
                 }
-                candidates
+                (keyframe, candidates)
             }
             Err(e) => {
                 counters.failed.fetch_add(1, Ordering::Relaxed);
@@ -840,7 +840,7 @@ fn worker_loop(
         if let Some(keyframes) = processor.keyframes() {
             counters.keyframes.store(keyframes, Ordering::Relaxed);
         }
-        if let Some(id) = id.or(candidates.first().map(|c| c.query_id)) {
+        if let Some(id) = id.or(keyframe) {
             frame_ids.insert(id, &header.frame_id);
             if let Some(pose) = tracker_pose {
                 frame_ids.set_position(id, pose.position);
@@ -848,10 +848,14 @@ fn worker_loop(
         }
         // One entry per keyframe the processor keeps: a match can only be one of those.
         frame_ids.keep_newest(processor.keyframes().map_or(FrameIds::DEFAULT_CAPACITY, |n| n as usize));
-        let total = candidates.len() as u32;
         for candidate in &candidates {
+            // Ranks 0.. of this candidate's query published so far (late ones continue its ranks).
+            let total =
+                candidates.iter().filter(|c| c.query_id == candidate.query_id).map(|c| c.rank + 1).max().unwrap_or(1);
+            // A loop temporal consistency reported late belongs to an earlier keyframe and its frame.
+            let query_frame = frame_ids.get(candidate.query_id).unwrap_or(&header.frame_id);
             let match_frame = frame_ids.get(candidate.match_id).unwrap_or(&header.frame_id);
-            let msg = LoopCandidate::from_candidate(candidate, &header.frame_id, match_frame, total, &mode);
+            let msg = LoopCandidate::from_candidate(candidate, query_frame, match_frame, total, &mode);
             match publisher.publish(msg) {
                 Ok(()) => {
                     counters.candidates.fetch_add(1, Ordering::Relaxed);
