@@ -297,6 +297,27 @@ impl<'de> Deserialize<'de> for Covariance {
     }
 }
 
+/// The messages for one keyframe's `candidates`, in order. `frame_of` gives a keyframe's frame id
+/// (`current_frame` where unknown): a loop that temporal consistency reported late carries its own,
+/// earlier keyframe's. `num_candidates` counts each query's ranks published so far.
+pub fn candidate_messages<'a>(
+    candidates: &[types::LoopCandidate],
+    frame_of: impl Fn(u64) -> Option<&'a str>,
+    current_frame: &'a str,
+    descriptor_mode: &str,
+) -> Vec<LoopCandidate> {
+    candidates
+        .iter()
+        .map(|candidate| {
+            let of_query = candidates.iter().filter(|c| c.query_id == candidate.query_id);
+            let total = of_query.map(|c| c.rank + 1).max().unwrap_or(1);
+            let query_frame = frame_of(candidate.query_id).unwrap_or(current_frame);
+            let match_frame = frame_of(candidate.match_id).unwrap_or(current_frame);
+            LoopCandidate::from_candidate(candidate, query_frame, match_frame, total, descriptor_mode)
+        })
+        .collect()
+}
+
 impl LoopCandidate {
     /// `TYPE_APPEARANCE`: appearance-only, not geometrically verified.
     pub const TYPE_APPEARANCE: u8 = 0;
@@ -681,6 +702,41 @@ mod tests {
         assert_eq!(back.to_candidate(), candidate);
         assert_eq!(back.num_candidates, 3);
         assert_eq!(back.loop_type, LoopCandidate::TYPE_APPEARANCE);
+    }
+
+    #[test]
+    fn a_late_loop_carries_its_own_keyframe_s_frame_and_ranks() {
+        let candidate = |query: u64, matched: u64, rank: u32| types::LoopCandidate {
+            query_id: query,
+            query_stamp: Stamp::from_nanos(query as i64),
+            match_id: matched,
+            match_stamp: Stamp::from_nanos(matched as i64),
+            distance: 0.5,
+            score: 0.9,
+            rank,
+            verified: None,
+        };
+        // Keyframe 12 confirms 11's held-back loop (11 had already reported one, rank 0).
+        let candidates = [candidate(11, 4, 1), candidate(12, 5, 0), candidate(12, 6, 1)];
+        let frames = |id: u64| match id {
+            11 => Some("cam_left"),
+            4 => Some("cam_old"),
+            _ => None,
+        };
+        let msgs = candidate_messages(&candidates, frames, "cam_right", "l2");
+        let got: Vec<(u64, &str, &str, u32, u32)> = msgs
+            .iter()
+            .map(|m| (m.query_id, &*m.header.frame_id, &*m.match_frame_id, m.rank, m.num_candidates))
+            .collect();
+        assert_eq!(
+            got,
+            [
+                (11, "cam_left", "cam_old", 1, 2),
+                (12, "cam_right", "cam_right", 0, 2),
+                (12, "cam_right", "cam_right", 1, 2)
+            ]
+        );
+        assert_eq!(msgs[0].header.stamp, Stamp::from_nanos(11).into());
     }
 
     #[test]

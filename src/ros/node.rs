@@ -848,14 +848,8 @@ fn worker_loop(
         }
         // One entry per keyframe the processor keeps: a match can only be one of those.
         frame_ids.keep_newest(processor.keyframes().map_or(FrameIds::DEFAULT_CAPACITY, |n| n as usize));
-        for candidate in &candidates {
-            // Ranks 0.. of this candidate's query published so far (late ones continue its ranks).
-            let total =
-                candidates.iter().filter(|c| c.query_id == candidate.query_id).map(|c| c.rank + 1).max().unwrap_or(1);
-            // A loop temporal consistency reported late belongs to an earlier keyframe and its frame.
-            let query_frame = frame_ids.get(candidate.query_id).unwrap_or(&header.frame_id);
-            let match_frame = frame_ids.get(candidate.match_id).unwrap_or(&header.frame_id);
-            let msg = LoopCandidate::from_candidate(candidate, query_frame, match_frame, total, &mode);
+        let messages = msgs::candidate_messages(&candidates, |id| frame_ids.get(id), &header.frame_id, &mode);
+        for (candidate, msg) in candidates.iter().zip(messages) {
             match publisher.publish(msg) {
                 Ok(()) => {
                     counters.candidates.fetch_add(1, Ordering::Relaxed);
