@@ -388,6 +388,19 @@ fn trying_the_next_best_matches_finds_loops_a_look_alike_hid() {
     );
 }
 
+/// Prints the true and wrong loops reported without temporal consistency, dropping and delaying.
+fn print_true_and_wrong([before, dropped, delayed]: &[&Metrics; 3]) {
+    println!(
+        "true/wrong loops: without consistency {}/{}, dropping {}/{}, delaying {}/{}",
+        before.true_reports,
+        before.false_reports,
+        dropped.true_reports,
+        dropped.false_reports,
+        delayed.true_reports,
+        delayed.false_reports
+    );
+}
+
 /// On the hard preset, equalised ORB with both odometry bounds (the synthetic drifted odometry as the
 /// tracker's poses) still passes a few wrong loops: the same scene just outside the place rule, and
 /// wrong relative poses. Those are seldom consistent with the keyframe before, so temporal consistency
@@ -420,15 +433,7 @@ fn temporal_consistency_removes_the_wrong_loops_that_pass_verification() {
         &PoseLoopCriteria::default(),
         [&plain.reported_results(), &dropping, &delaying],
     );
-    println!(
-        "without consistency: {} true, {} wrong; dropping: {} true, {} wrong; delaying: {} true, {} wrong",
-        before.true_reports,
-        before.false_reports,
-        dropped.true_reports,
-        dropped.false_reports,
-        delayed.true_reports,
-        delayed.false_reports
-    );
+    print_true_and_wrong(&[&before, &dropped, &delayed]);
     assert!(before.false_reports >= 3, "{} wrong loops without consistency", before.false_reports);
     assert!(dropped.false_reports <= 1, "{} wrong loops with consistency", dropped.false_reports);
     assert!(
@@ -475,15 +480,7 @@ fn temporal_consistency_delays_the_first_loop_of_a_revisit_instead_of_losing_it(
         &criteria,
         [&plain.reported_results(), &dropping.reported_results(), &delaying.reported_results()],
     );
-    println!(
-        "true/wrong loops: without consistency {}/{}, dropping {}/{}, delaying {}/{}",
-        before.true_reports,
-        before.false_reports,
-        dropped.true_reports,
-        dropped.false_reports,
-        delayed.true_reports,
-        delayed.false_reports
-    );
+    print_true_and_wrong(&[&before, &dropped, &delayed]);
     assert!(before.false_reports >= 1, "the wrong loop that passes verification is gone: {before:?}");
     assert!(dropped.true_reports < before.true_reports, "dropping lost no loop: {dropped:?}");
     assert_eq!((delayed.true_reports, delayed.false_reports), (before.true_reports, 0), "{delayed:?}");

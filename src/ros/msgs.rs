@@ -706,16 +706,8 @@ mod tests {
 
     #[test]
     fn a_late_loop_carries_its_own_keyframe_s_frame_and_ranks() {
-        let candidate = |query: u64, matched: u64, rank: u32| types::LoopCandidate {
-            query_id: query,
-            query_stamp: Stamp::from_nanos(query as i64),
-            match_id: matched,
-            match_stamp: Stamp::from_nanos(matched as i64),
-            distance: 0.5,
-            score: 0.9,
-            rank,
-            verified: None,
-        };
+        let candidate =
+            |query: u64, matched: u64, rank: u32| types::LoopCandidate { rank, ..edge(query, matched, false) };
         // Keyframe 12 confirms 11's held-back loop (11 had already reported one, rank 0).
         let candidates = [candidate(11, 4, 1), candidate(12, 5, 0), candidate(12, 6, 1)];
         let frames = |id: u64| match id {
@@ -739,9 +731,9 @@ mod tests {
         assert_eq!(msgs[0].header.stamp, Stamp::from_nanos(11).into());
     }
 
-    #[test]
-    fn loop_edges_become_line_markers_that_round_trip_through_cdr() {
-        let candidate = |query: u64, matched: u64, verified: bool| types::LoopCandidate {
+    /// A rank-0 candidate from keyframe `query` to `matched`, stamped with their ids in nanoseconds.
+    fn edge(query: u64, matched: u64, verified: bool) -> types::LoopCandidate {
+        types::LoopCandidate {
             query_id: query,
             query_stamp: Stamp::from_nanos(query as i64),
             match_id: matched,
@@ -750,9 +742,13 @@ mod tests {
             score: 0.9,
             rank: 0,
             verified: verified.then_some(types::Verified { inliers: 30, pose: None }),
-        };
+        }
+    }
+
+    #[test]
+    fn loop_edges_become_line_markers_that_round_trip_through_cdr() {
         let position = |id: u64| (id != 7).then_some(Point { x: id as f64, y: 2.0 * id as f64, z: 0.5 });
-        let candidates = [candidate(10, 2, true), candidate(11, 7, false), candidate(12, 3, false)];
+        let candidates = [edge(10, 2, true), edge(11, 7, false), edge(12, 3, false)];
         let array = loop_edge_markers(&candidates, position, "map", Time::default());
         // The candidate whose match has no position draws nothing.
         assert_eq!(array.markers.len(), 2);
