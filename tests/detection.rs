@@ -132,6 +132,30 @@ fn synthetic_loops_are_detected() {
     assert!(run.candidates.len() as f64 >= 0.8 * metrics.positives as f64, "{} candidates", run.candidates.len());
 }
 
+/// Without verification, temporal consistency that delays rather than drops reports every loop
+/// dropping reports plus each revisit's first, and nothing a plain run would not report.
+#[test]
+fn delayed_consistency_adds_each_revisit_s_first_loop_without_verification() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = synthetic(dir.path(), 240, 2, 4.0);
+    let pairs = |overrides: &[(&str, &str)]| {
+        let mut pipeline = Pipeline::with_weights(params(overrides), weights()).unwrap();
+        assert!(!pipeline.verifies());
+        let run = run_source(&mut pipeline, &seq, &Default::default(), false).unwrap();
+        let mut pairs: Vec<(u64, u64)> = run.candidates.iter().map(|c| (c.query_id, c.match_id)).collect();
+        pairs.sort();
+        pairs
+    };
+    let plain = pairs(&[]);
+    let consistency = ("detector.consistency.queries", "2");
+    let dropped = pairs(&[consistency, ("detector.consistency.delayed", "false")]);
+    let delayed = pairs(&[consistency]);
+    println!("{} loops without consistency, {} dropping, {} delaying", plain.len(), dropped.len(), delayed.len());
+    assert!(dropped.iter().all(|pair| delayed.contains(pair)), "dropping reported what delaying did not");
+    assert!(delayed.iter().all(|pair| plain.contains(pair)), "delaying reported what a plain run did not");
+    assert!(delayed.len() > dropped.len(), "no first loop of a revisit came back");
+}
+
 /// The same frames as a TUM folder, ROS 1 bag and ROS 2 bags give the same candidates
 /// (lossless encodings), and the replay CSV has the documented columns.
 #[test]
