@@ -138,7 +138,20 @@ pub fn run_database_queries(
         let tried = pipeline.matches_tried();
         let nearest = pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), &descriptor, tried)?;
         let features = pipeline.local_features(&image, None)?;
-        let best = nearest.into_iter().find(|m| pipeline.verify(&features, m.id).is_none_or(|v| v.accepted));
+        let best = nearest.into_iter().find(|m| {
+            let verification = pipeline.verify(&features, m.id);
+            if let Some(v) = verification {
+                log::debug!(
+                    "query {index} -> database {} (score {:.3}): {} inliers of {} matches, {}",
+                    m.id,
+                    m.score,
+                    v.inliers,
+                    v.matches,
+                    if v.accepted { "verified" } else { "rejected" }
+                );
+            }
+            verification.is_none_or(|v| v.accepted)
+        });
         results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
     }
     let per_image = started.elapsed().as_secs_f64() * 1e3 / (database.len() + queries.len()).max(1) as f64;
