@@ -418,13 +418,14 @@ impl Pipeline {
         if let Some(tracked) = tracked {
             self.odometry.keep(id, tracked);
         }
-        let after_detector = Instant::now();
-        // Earlier keyframes' loops that temporal consistency held back and this keyframe's confirm.
+        // Earlier keyframes' loops that temporal consistency held back and this keyframe's confirm
+        // (with verification, after it: only verified loops confirm).
         if self.verifier.is_none() {
             let top_k = self.params.detector().top_k;
             let confirmed = self.detector.confirm_held_back(id, &outcome.candidates, top_k);
             outcome.candidates.splice(0..0, confirmed);
         }
+        let after_detector = Instant::now();
         outcome.timings.detector_ms = (after_detector - after_descriptor).as_secs_f64() * 1e3;
         let mut stored_features = None;
         if self.verifier.is_some() {

@@ -814,10 +814,10 @@ impl Detector {
     /// candidates in all (alternatives for verification to try in turn), ranked after those it
     /// already reported; say what verification kept of them with [`Detector::set_reported`].
     pub fn confirm_held_back(&mut self, id: u64, reported: &[LoopCandidate], depth: usize) -> Vec<LoopCandidate> {
-        let window = self.params.consistency_window;
         if !self.params.consistency_delayed {
             return Vec::new();
         }
+        let window = self.params.consistency_window;
         let Some(current) = self.recent_matches.back_mut().filter(|r| r.id == id) else { return Vec::new() };
         current.reported = reported.len();
         let db = &self.db;
