@@ -247,6 +247,7 @@ impl Pipeline {
         let started = Instant::now();
         let limit = Some(self.params.detector().max_keyframes).filter(|&n| n > 0);
         self.detector.replace_history(store.load_db(limit)?)?;
+        self.resume_detector(&store)?;
         if let Some(max_id) = store.max_id() {
             self.next_id = self.next_id.max(max_id + 1);
         }
@@ -273,6 +274,26 @@ impl Pipeline {
             }
         }
         self.restore_local_features()
+    }
+
+    /// Gives the detector what the run that filled `store` left it with: the sequence policy's
+    /// earlier queries (the newest stored descriptors) and temporal consistency's held-back matches,
+    /// where stored after the newest keyframe (a run with consistency off since leaves an older one,
+    /// which no longer applies).
+    fn resume_detector(&mut self, store: &KeyframeStore) -> Result<()> {
+        let earlier_queries = self.params.detector().sequence_length.saturating_sub(1);
+        let newest = store.last_keyframes(earlier_queries.max(1))?;
+        let newest_id = newest.last().map(|k| k.0);
+        let first = newest.len() - earlier_queries.min(newest.len());
+        let recent: Vec<Vec<f32>> = newest[first..].iter().map(|(_, _, descriptor)| descriptor.clone()).collect();
+        let consistency = match store.consistency()? {
+            Some((id, json)) if newest_id == Some(id) => Some(serde_json::from_str(&json).with_context(|| {
+                format!("keyframe {id}'s temporal consistency state in {}", store.path().display())
+            })?),
+            _ => None,
+        };
+        self.detector.resume(&recent, consistency);
+        Ok(())
     }
 
     pub fn store(&self) -> Option<&KeyframeStore> {
@@ -446,6 +467,8 @@ impl Pipeline {
         // The keyframe, its final candidates and its local features in one transaction, before any
         // caller writes the candidates out: a restart finds all or none.
         if let Some(store) = &mut self.store {
+            let consistency =
+                self.detector.consistency_state().map(|state| serde_json::to_string(&state)).transpose()?;
             store.append_keyframe(&KeyframeRecord {
                 id,
                 stamp,
@@ -454,6 +477,7 @@ impl Pipeline {
                 local_features: stored_features.as_deref(),
                 frame_id: input.frame_id,
                 tracker_pose: input.tracker_pose,
+                consistency: consistency.as_deref(),
             })?;
         }
         Ok(outcome)

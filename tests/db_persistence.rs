@@ -515,3 +515,66 @@ fn a_restart_keeps_checking_loops_against_the_stored_tracker_poses() {
     assert_eq!(after, [], "after the restart");
     assert!(found.iter().filter(|(q, _)| *q >= restart_at as u64).count() >= 5, "{found:?}");
 }
+
+/// Temporal consistency (delayed, with verification) and the sequence policy remember the last
+/// keyframes' matches and descriptors; a restart resumes both from the database, so restarts in the
+/// middle of a revisit report exactly the loops of an uninterrupted run, late ones included.
+#[test]
+fn restarts_in_a_revisit_keep_temporal_consistency_and_the_sequence_policy() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("seq");
+    let config = SynthConfig { frames: 240, laps: 2, seed: 5, rate_hz: 5.0, ..SynthConfig::default() };
+    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
+    let frames: Vec<_> = ecm_lcd::io::open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+    let mut params = Params::default();
+    for (name, value) in [
+        ("camera.fx", "262.4"),
+        ("camera.fy", "262.4"),
+        ("camera.cx", "160"),
+        ("camera.cy", "120"),
+        ("detector.consistency.queries", "2"),
+        ("detector.sequence.length", "3"),
+    ] {
+        params.set_from_str(name, value).unwrap();
+    }
+    let weights = resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
+    let pipeline = |db: &Path| {
+        let mut p = Pipeline::with_weights(params.clone(), weights.clone()).unwrap();
+        p.open_store(db).unwrap();
+        p
+    };
+    // (keyframe that reported it, query, match, rank, inliers, score) of every candidate.
+    type Row = (u64, u64, u64, u32, u32, f32);
+    let run = |p: &mut Pipeline, frames: &[ecm_lcd::types::Frame]| -> Vec<Row> {
+        let mut rows = Vec::new();
+        for frame in frames {
+            let outcome = p.process_source_frame(frame, None).unwrap();
+            for c in outcome.candidates {
+                let inliers = c.verified.expect("verification is on").inliers;
+                rows.push((outcome.keyframe.unwrap(), c.query_id, c.match_id, c.rank, inliers, c.score));
+            }
+        }
+        rows
+    };
+    let uninterrupted = run(&mut pipeline(&dir.path().join("whole.db")), &frames);
+    let late = |rows: &[Row]| rows.iter().filter(|r| r.1 != r.0).count();
+    assert!(uninterrupted.len() >= 20 && late(&uninterrupted) >= 1, "{uninterrupted:?}");
+    // A restart before every frame of the second lap, so each late loop's query was held back
+    // before a restart and confirmed after one.
+    let db = dir.path().join("restarted.db");
+    let mut restarted = run(&mut pipeline(&db), &frames[..100]);
+    let mut late_after_restart = 0;
+    for chunk in frames[100..].chunks(1) {
+        let rows = run(&mut pipeline(&db), chunk);
+        // Held back before this restart, confirmed after it (ids are frame indices).
+        late_after_restart += rows.iter().filter(|r| r.1 < chunk[0].index as u64).count();
+        restarted.extend(rows);
+    }
+    assert_eq!(restarted, uninterrupted, "candidates with a restart before every frame");
+    assert_eq!(late_after_restart, late(&uninterrupted));
+    println!(
+        "{} candidates ({} late, {late_after_restart} held back before a restart and confirmed after it)",
+        uninterrupted.len(),
+        late(&uninterrupted)
+    );
+}

@@ -498,6 +498,26 @@ struct RecentQuery {
     reported: usize,
 }
 
+/// What temporal consistency remembers of the last queries ([`Detector::consistency_state`]), by
+/// keyframe id rather than database position, so that a store can keep it with each keyframe and a
+/// restart go on where the stopped run left off ([`Detector::resume`]).
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ConsistencyState {
+    /// Oldest first.
+    pub queries: Vec<RecentQueryState>,
+}
+
+/// One recent query of a [`ConsistencyState`].
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RecentQueryState {
+    pub id: u64,
+    pub stamp: Stamp,
+    /// Its threshold-passing matches, best first: (match id, distance, score, held back).
+    pub matches: Vec<(u64, f32, f32, bool)>,
+    /// Candidates reported for it so far.
+    pub reported: usize,
+}
+
 /// The loop-closure detector: a keyframe database plus the policy of the module doc.
 #[derive(Clone, Debug)]
 pub struct Detector {
@@ -566,6 +586,60 @@ impl Detector {
         self.resum_history();
         self.enforce_budget();
         self.db.defer_index(false).context("indexing the loaded history")
+    }
+
+    /// What temporal consistency remembers after the latest query, for a store to keep beside that
+    /// keyframe; `None` with consistency off.
+    pub fn consistency_state(&self) -> Option<ConsistencyState> {
+        (self.params.consistency_queries > 1).then(|| ConsistencyState {
+            queries: self
+                .recent_matches
+                .iter()
+                .map(|recent| RecentQueryState {
+                    id: recent.id,
+                    stamp: recent.stamp,
+                    matches: recent.matches.iter().map(|&((p, d, s), held)| (self.db.id(p), d, s, held)).collect(),
+                    reported: recent.reported,
+                })
+                .collect(),
+        })
+    }
+
+    /// After [`Detector::replace_history`] with a stored history, goes on as the run that stored it
+    /// would have: `recent` are the descriptors of its newest keyframes, oldest first (the earlier
+    /// queries of the sequence policy), and `consistency` what temporal consistency remembered after
+    /// the newest ([`Detector::consistency_state`]). Matches of keyframes no longer in the history
+    /// (the memory budget) are dropped.
+    pub fn resume(&mut self, recent: &[Vec<f32>], consistency: Option<ConsistencyState>) {
+        for descriptor in recent {
+            self.recent_queries.push(descriptor);
+        }
+        let Some(state) = consistency else { return };
+        let mut wanted: std::collections::HashMap<u64, usize> =
+            state.queries.iter().flat_map(|q| q.matches.iter().map(|m| (m.0, usize::MAX))).collect();
+        for position in 0..self.db.len() {
+            if let Some(slot) = wanted.get_mut(&self.db.id(position)) {
+                *slot = position;
+            }
+        }
+        self.recent_matches = state
+            .queries
+            .into_iter()
+            .map(|query| RecentQuery {
+                id: query.id,
+                stamp: query.stamp,
+                matches: query
+                    .matches
+                    .iter()
+                    .filter_map(|&(id, d, s, held)| Some(((wanted[&id], d, s), held)).filter(|m| m.0 .0 != usize::MAX))
+                    .collect(),
+                reported: query.reported,
+            })
+            .collect();
+        let keep = self.params.consistency_queries.max(1);
+        while self.recent_matches.len() > keep {
+            self.recent_matches.pop_front();
+        }
     }
 
     /// Recomputes the history's sum from the stored descriptors.

@@ -32,6 +32,11 @@
 //! in the tracker's map go into `frames` with it, so a restarted node still names the match's frame
 //! and draws loop edges to keyframes stored before the restart.
 //!
+//! Temporal consistency: where it is on, what it remembers after a keyframe (the last queries'
+//! matches, held back or not) replaces the previous keyframe's in `consistency`, in the keyframe's
+//! transaction, so a restart goes on with it: a loop held back before the restart is reported once a
+//! keyframe after it confirms the loop, as without the restart.
+//!
 //! Identity: a store records the weights' SHA-256, the architecture, the descriptor mode, the input size
 //! and the descriptor length ([`StoreIdentity`]); descriptors from any other combination are not
 //! comparable, so opening a store with a different identity is refused with both identities named.
@@ -194,6 +199,8 @@ pub struct KeyframeRecord<'a> {
     pub frame_id: &'a str,
     /// The camera's pose in the tracker's map (world_T_camera), where the tracker gave one.
     pub tracker_pose: Option<Isometry3<f64>>,
+    /// What temporal consistency remembers after this keyframe, where it is on (opaque here).
+    pub consistency: Option<&'a str>,
 }
 
 impl<'a> KeyframeRecord<'a> {
@@ -207,6 +214,7 @@ impl<'a> KeyframeRecord<'a> {
             local_features: None,
             frame_id: "",
             tracker_pose: None,
+            consistency: None,
         }
     }
 }
@@ -291,7 +299,8 @@ impl KeyframeStore {
                 .execute_batch(
                     "CREATE TABLE IF NOT EXISTS candidates (query_id INTEGER PRIMARY KEY, json TEXT NOT NULL);
                      CREATE TABLE IF NOT EXISTS local_features (id INTEGER PRIMARY KEY, data BLOB NOT NULL);
-                     CREATE TABLE IF NOT EXISTS frames (id INTEGER PRIMARY KEY, frame_id TEXT NOT NULL, pose BLOB);",
+                     CREATE TABLE IF NOT EXISTS frames (id INTEGER PRIMARY KEY, frame_id TEXT NOT NULL, pose BLOB);
+                     CREATE TABLE IF NOT EXISTS consistency (id INTEGER PRIMARY KEY, json TEXT NOT NULL);",
                 )
                 .with_context(context)?;
         }
@@ -387,7 +396,8 @@ impl KeyframeStore {
     /// before it ([`KeyframeStore::stored_candidates`]), and its local features, frame and tracker pose
     /// where given (module doc).
     pub fn append_keyframe(&mut self, record: &KeyframeRecord) -> Result<()> {
-        let KeyframeRecord { id, stamp, descriptor, candidates, local_features, frame_id, tracker_pose } = *record;
+        let KeyframeRecord { id, stamp, descriptor, candidates, local_features, frame_id, tracker_pose, consistency } =
+            *record;
         ensure!(
             descriptor.len() == self.identity.dim,
             "keyframe {id} descriptor has {} values, the database {} holds {}-value descriptors",
@@ -419,6 +429,13 @@ impl KeyframeStore {
                 transaction
                     .prepare("INSERT OR REPLACE INTO frames (id, frame_id, pose) VALUES (?1, ?2, ?3)")?
                     .execute(params![sql_id, frame_id, tracker_pose.map(|p| pose_blob(&p))])?;
+            }
+            if let Some(json) = consistency {
+                // Only the newest keyframe's is worth keeping.
+                transaction.execute("DELETE FROM consistency", [])?;
+                transaction
+                    .prepare("INSERT INTO consistency (id, json) VALUES (?1, ?2)")?
+                    .execute(params![sql_id, json])?;
             }
             transaction.commit()
         })();
@@ -538,14 +555,26 @@ impl KeyframeStore {
 
     /// The newest stored keyframe (id, stamp, descriptor), `None` when the store is empty.
     pub fn last_keyframe(&self) -> Result<Option<(u64, Stamp, Vec<f32>)>> {
-        let mut last = None;
-        if self.count > 0 {
-            self.for_each(self.count - 1, |id, stamp, blob| {
-                last = Some((id, stamp, decode_descriptor(blob).collect()));
-                Ok(())
-            })?;
-        }
+        Ok(self.last_keyframes(1)?.pop())
+    }
+
+    /// The newest `count` stored keyframes (fewer where fewer are stored), oldest first.
+    pub fn last_keyframes(&self, count: usize) -> Result<Vec<(u64, Stamp, Vec<f32>)>> {
+        let mut last = Vec::new();
+        self.for_each(self.count.saturating_sub(count as u64), |id, stamp, blob| {
+            last.push((id, stamp, decode_descriptor(blob).collect()));
+            Ok(())
+        })?;
         Ok(last)
+    }
+
+    /// What temporal consistency remembered after the newest keyframe that stored it, with that
+    /// keyframe's id ([`KeyframeRecord::consistency`]).
+    pub fn consistency(&self) -> Result<Option<(u64, String)>> {
+        self.connection
+            .query_row("SELECT id, json FROM consistency", [], |r| Ok((r.get::<_, i64>(0)? as u64, r.get(1)?)))
+            .optional()
+            .with_context(|| format!("reading keyframe database {}", self.path.display()))
     }
 
     /// Calls `each` with every stored keyframe in insertion order, skipping the first `skip`.
@@ -984,7 +1013,8 @@ fn create_schema(connection: &Connection, identity: &StoreIdentity) -> Result<()
          );
          CREATE TABLE candidates (query_id INTEGER PRIMARY KEY, json TEXT NOT NULL);
          CREATE TABLE local_features (id INTEGER PRIMARY KEY, data BLOB NOT NULL);
-         CREATE TABLE frames (id INTEGER PRIMARY KEY, frame_id TEXT NOT NULL, pose BLOB);",
+         CREATE TABLE frames (id INTEGER PRIMARY KEY, frame_id TEXT NOT NULL, pose BLOB);
+         CREATE TABLE consistency (id INTEGER PRIMARY KEY, json TEXT NOT NULL);",
     )?;
     let entries = [
         // Every keyframe's candidates are stored with it ([`KeyframeStore::append_keyframe`]).

@@ -279,6 +279,43 @@ fn consistency_of_three_needs_three_agreeing_queries() {
     assert_eq!(query_and_match(&det.process(103, secs(103.0), &unit(80.0)).unwrap()), vec![(102, 8), (103, 8)]);
 }
 
+/// A detector rebuilt from its history and its consistency state (through JSON, as a store keeps it)
+/// goes on as the original: held-back matches are released by the next agreeing query, also where a
+/// memory budget drops keyframes. Without the state, they are lost.
+#[test]
+fn consistency_resumes_from_its_state_on_a_reloaded_history() {
+    let mut det = consistency_detector(3, 1);
+    for (id, degrees) in [(100, 30.0), (101, 40.0), (102, 50.0)] {
+        assert!(det.process(id, secs(id as f64), &unit(degrees)).unwrap().is_empty());
+    }
+    let json = serde_json::to_string(&det.consistency_state().expect("consistency is on")).unwrap();
+    let state: ConsistencyState = serde_json::from_str(&json).unwrap();
+    assert_eq!(state.queries.iter().map(|q| q.id).collect::<Vec<_>>(), vec![100, 101, 102]);
+    assert_eq!(state.queries[2].matches, vec![(5, 0.0, 1.0, true)]);
+    let next = |det: &mut Detector| det.process(103, secs(103.0), &unit(50.0)).unwrap();
+    let resumed = |state: Option<ConsistencyState>, max_keyframes: usize| {
+        let mut fresh = l2_detector(DetectorParams { max_keyframes, ..det.params().clone() });
+        fresh.replace_history(det.db().clone()).unwrap();
+        fresh.resume(&[], state);
+        next(&mut fresh)
+    };
+    let expected = next(&mut det.clone());
+    assert_eq!(query_and_match(&expected), vec![(101, 4), (102, 5), (103, 5)]);
+    assert_eq!(resumed(Some(state.clone()), 0), expected);
+    // Without it the restart starts a new run of queries: nothing yet.
+    assert!(resumed(None, 0).is_empty());
+    // A budget of 10 keeps places 4.. once query 103 is stored: query 100's match (place 3) is
+    // forgotten, by the restarted detector as by the running one.
+    let mut budgeted = det.clone();
+    budgeted.set_params(DetectorParams { max_keyframes: 10, ..det.params().clone() });
+    let expected = next(&mut budgeted);
+    assert_eq!(query_and_match(&expected), vec![(101, 4), (102, 5), (103, 5)]);
+    assert_eq!(resumed(Some(state), 10), expected);
+    // Off, there is no state to keep.
+    det.set_params(DetectorParams { consistency_queries: 1, ..det.params().clone() });
+    assert_eq!(det.consistency_state(), None);
+}
+
 #[test]
 fn without_delay_held_back_matches_are_dropped_as_dbow2_does() {
     let mut det = consistency_detector(3, 1);

@@ -356,6 +356,33 @@ fn local_features_are_stored_with_their_keyframe_updated_and_read_newest_first_l
     assert_eq!(reopened.local_features(0).unwrap(), vec![(1, vec![1; 3]), (2, vec![9, 9]), (3, vec![3; 3])]);
 }
 
+/// Only the newest keyframe's consistency state is kept, replaced in each keyframe's transaction; a
+/// keyframe without one leaves the older one (which then belongs to an older keyframe).
+#[test]
+fn the_newest_consistency_state_is_kept_with_its_keyframe() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("s.db");
+    let mut store = store_with(&path, [0], 4);
+    assert_eq!(store.consistency().unwrap(), None);
+    let with_state = |store: &mut KeyframeStore, id: u64, state: Option<&str>| {
+        let d = descriptor(id, 4);
+        store.append_keyframe(&KeyframeRecord { consistency: state, ..KeyframeRecord::new(id, stamp(id), &d) })
+    };
+    with_state(&mut store, 1, Some("one")).unwrap();
+    with_state(&mut store, 2, Some("two")).unwrap();
+    assert_eq!(store.consistency().unwrap(), Some((2, "two".to_string())));
+    // A refused keyframe changes nothing.
+    assert!(with_state(&mut store, 2, Some("again")).is_err());
+    with_state(&mut store, 3, None).unwrap();
+    drop(store);
+    let reopened = KeyframeStore::open_existing(&path).unwrap();
+    assert_eq!(reopened.consistency().unwrap(), Some((2, "two".to_string())));
+    // The newest keyframes, oldest first, as many as there are.
+    let ids = |count: usize| reopened.last_keyframes(count).unwrap().iter().map(|k| k.0).collect::<Vec<_>>();
+    assert_eq!((ids(0), ids(2), ids(9)), (vec![], vec![2, 3], vec![0, 1, 2, 3]));
+    assert_eq!(reopened.last_keyframes(1).unwrap()[0].2, descriptor(3, 4));
+}
+
 #[test]
 fn frames_and_tracker_poses_are_stored_with_their_keyframe() {
     let dir = tempfile::tempdir().unwrap();
