@@ -347,7 +347,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             2,
             1,
             20,
-            "Matches verified per keyframe at most: when the best fails verification the next best are tried in turn, and the first detector.top_k that pass are reported (1 = the best only).",
+            "Matches verified per keyframe: the nearest this many that pass the threshold are checked, and of those verified the detector.top_k with the most inliers are reported (1 = the best only).",
         ),
         integer(
             "verification.min_inliers",

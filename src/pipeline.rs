@@ -9,10 +9,11 @@
 //!
 //! With verification on ([`Params::verification`]), each keyframe's local features are extracted and
 //! kept, and a candidate is reported only when [`crate::verification`] finds one rigid geometry for
-//! the pair. When the best match fails, the next best are tried in turn, up to
-//! `verification.candidates` in all, as ORB-SLAM tries each of its candidate keyframes: a look-alike
-//! that outranks the true place no longer hides it. The best match (for evaluation) is chosen the
-//! same way ([`Outcome::best_verified`]).
+//! the pair. The nearest `verification.candidates` matches are all checked, as ORB-SLAM checks each
+//! of its candidate keyframes, and those verified are reported most inliers first
+//! ([`crate::verification::best_supported`]): a look-alike that outranks the true place no longer
+//! hides it, nor is reported in its place where the true place is verified on more points. The best
+//! match (for evaluation) is chosen the same way ([`Outcome::best_verified`]).
 
 use std::path::Path;
 use std::time::Instant;
@@ -29,7 +30,7 @@ use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::{Arch, Tap};
 use crate::types::{DepthImage, FeatureMap, Frame, LoopCandidate, RelativePose, Stamp, Verified};
-use crate::verification::{Intrinsics, LocalFeatures, OdometryTrack, Tracked, Verification, Verifier};
+use crate::verification::{best_supported, Intrinsics, LocalFeatures, OdometryTrack, Tracked, Verification, Verifier};
 
 /// Milliseconds spent per stage on one frame.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
@@ -494,8 +495,8 @@ impl Pipeline {
         self.verifier.is_some()
     }
 
-    /// How many of a keyframe's nearest matches verification may try, best first, until one passes
-    /// (`verification.candidates`; 1 when verification is off).
+    /// How many of a keyframe's nearest matches verification checks (`verification.candidates`; 1
+    /// when verification is off).
     pub fn matches_tried(&self) -> usize {
         self.verifier.as_ref().map_or(1, |v| v.params().candidates)
     }
@@ -577,10 +578,13 @@ impl Pipeline {
         let best_is_candidate =
             outcome.best.is_some_and(|best| outcome.candidates.iter().any(|c| c.match_id == best.id));
         if self.verify_best {
-            if let Some(verified) = nearest.iter().find(|m| check(m.id).0.accepted) {
-                outcome.best = Some(*verified);
+            if let Some(chosen) = best_supported(nearest.iter().map(|m| Some(check(m.id).0))) {
+                outcome.best = Some(nearest[chosen]);
             }
         }
+        // Every candidate is checked; those verified are reported most inliers first
+        // ([`best_supported`]).
+        outcome.candidates.sort_by_key(|c| std::cmp::Reverse(check(c.match_id).0.support()));
         if self.verify_best || best_is_candidate {
             outcome.best_verified = outcome.best.map(|best| check(best.id).0.accepted);
         }

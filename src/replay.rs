@@ -23,6 +23,7 @@ use crate::io::{open_source_topics, Topics};
 use crate::pipeline::{Pipeline, Timings};
 use crate::preprocess::read_image;
 use crate::types::{LoopCandidate, Stamp};
+use crate::verification::best_supported;
 
 /// One keyframe of a replay.
 #[derive(Clone, Debug)]
@@ -134,24 +135,30 @@ pub fn run_database_queries(
     for (index, path) in queries.iter().enumerate() {
         let image = read_image(path)?;
         let descriptor = pipeline.describe(&image)?;
-        // With verification, the first of the nearest that passes; none passing counts as no match.
+        // With verification, the nearest verified with the most inliers ([`best_supported`]); none
+        // passing counts as no match.
         let tried = pipeline.matches_tried();
         let nearest = pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), &descriptor, tried)?;
         let features = pipeline.local_features(&image, None)?;
-        let best = nearest.into_iter().find(|m| {
-            let verification = pipeline.verify(&features, m.id);
-            if let Some(v) = verification {
-                log::debug!(
-                    "query {index} -> database {} (score {:.3}): {} inliers of {} matches, {}",
-                    m.id,
-                    m.score,
-                    v.inliers,
-                    v.matches,
-                    if v.accepted { "verified" } else { "rejected" }
-                );
-            }
-            verification.is_none_or(|v| v.accepted)
-        });
+        let best = if pipeline.verifies() {
+            let verifications = nearest.iter().map(|m| {
+                let verification = pipeline.verify(&features, m.id);
+                if let Some(v) = verification {
+                    log::debug!(
+                        "query {index} -> database {} (score {:.3}): {} inliers of {} matches, {}",
+                        m.id,
+                        m.score,
+                        v.inliers,
+                        v.matches,
+                        if v.accepted { "verified" } else { "rejected" }
+                    );
+                }
+                verification
+            });
+            best_supported(verifications.collect::<Vec<_>>()).map(|i| nearest[i])
+        } else {
+            nearest.first().copied()
+        };
         results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
     }
     let per_image = started.elapsed().as_secs_f64() * 1e3 / (database.len() + queries.len()).max(1) as f64;

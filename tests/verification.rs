@@ -345,9 +345,9 @@ fn score_against_poses<const N: usize>(
 }
 
 /// On the hard synthetic preset (three identical rooms, night laps, 160x120) a look-alike room often
-/// outranks the true place. Trying the next best matches when the best fails verification
-/// (`verification.candidates`) finds loops the look-alike hid, keeps every loop the best match alone
-/// found, and lets at most one more wrong match through.
+/// outranks the true place. Verifying the next best match too (`verification.candidates` 2, the
+/// default) and reporting the one with the most inliers finds loops the look-alike hid, keeps a true
+/// loop for every keyframe whose best match alone was one, and lets no more wrong matches through.
 #[test]
 fn trying_the_next_best_matches_finds_loops_a_look_alike_hid() {
     let dir = tempfile::tempdir().unwrap();
@@ -357,7 +357,7 @@ fn trying_the_next_best_matches_finds_loops_a_look_alike_hid() {
         overrides.extend(camera.iter().map(|(name, value)| (*name, value.as_str())));
         run_source(&mut pipeline(&overrides), &seq, &Default::default(), false).unwrap()
     };
-    let (best_only, alternatives) = (replay("1"), replay("3"));
+    let (best_only, alternatives) = (replay("1"), replay("2"));
     let [before, after] = score_against_poses(
         &seq,
         &best_only,
@@ -368,11 +368,16 @@ fn trying_the_next_best_matches_finds_loops_a_look_alike_hid() {
         "best only: {} true, {} wrong; with alternatives: {} true, {} wrong ({} positives)",
         before.true_reports, before.false_reports, after.true_reports, after.false_reports, before.positives
     );
-    let pairs =
-        |run: &ReplayRun| -> Vec<(u64, u64)> { run.candidates.iter().map(|c| (c.query_id, c.match_id)).collect() };
-    let with_alternatives = pairs(&alternatives);
-    for pair in pairs(&best_only) {
-        assert!(with_alternatives.contains(&pair), "{pair:?} lost");
+    let groundtruth = read_groundtruth(&seq.join("groundtruth.txt")).unwrap();
+    let truth = loop_truth_from_poses(&best_only.frame_stamps, &groundtruth, &PoseLoopCriteria::default());
+    let true_loops = |run: &ReplayRun| -> Vec<u64> {
+        let is_true = |q: u64, m: u64| truth.matches(q as usize).is_some_and(|ms| ms.contains(&(m as usize)));
+        run.candidates.iter().filter(|c| is_true(c.query_id, c.match_id)).map(|c| c.query_id).collect()
+    };
+    let with_alternatives = true_loops(&alternatives);
+    assert_eq!(true_loops(&best_only).len(), before.true_reports);
+    for query in true_loops(&best_only) {
+        assert!(with_alternatives.contains(&query), "keyframe {query} lost its true loop");
     }
     assert!(
         after.true_reports >= before.true_reports + 5,
@@ -380,12 +385,7 @@ fn trying_the_next_best_matches_finds_loops_a_look_alike_hid() {
         before.true_reports,
         after.true_reports
     );
-    assert!(
-        after.false_reports <= before.false_reports + 1,
-        "{} -> {} wrong",
-        before.false_reports,
-        after.false_reports
-    );
+    assert!(after.false_reports <= before.false_reports, "{} -> {} wrong", before.false_reports, after.false_reports);
 }
 
 /// Prints the true and wrong loops reported without temporal consistency, dropping and delaying.

@@ -12,8 +12,14 @@ use ecm_lcd::model::xfeat::WEIGHTS_SHA256;
 /// `eval` on Gardens Point day/night with verification on (every best match checked), as JSON.
 fn gardens_point(extra: &[&str]) -> serde_json::Value {
     let dir = support::shared_dir().join("data/real/gardens_point_day_night");
-    let path = |name: &str| dir.join(name).to_string_lossy().into_owned();
-    let (reference, queries, loops) = (path("ref"), path("query"), path("loops.csv"));
+    gardens_point_in(&dir.join("ref"), &dir.join("query"), extra)
+}
+
+/// [`gardens_point`] with the images of `reference` and `queries` instead of the shared ones.
+fn gardens_point_in(reference: &Path, queries: &Path, extra: &[&str]) -> serde_json::Value {
+    let loops = support::shared_dir().join("data/real/gardens_point_day_night/loops.csv");
+    let path = |p: &Path| p.to_string_lossy().into_owned();
+    let (reference, queries, loops) = (path(reference), path(queries), path(&loops));
     let mut args = vec!["eval", "--database", &reference, "--queries", &queries, "--loops", &loops, "--json"];
     args.extend(["--param", "detector.min_score=0", "--param", "verification.mode=on"]);
     args.extend(extra);
@@ -43,6 +49,39 @@ fn xfeat_verifies_the_places_orb_cannot_match_across_day_and_night() {
         "verification.features=1500",
     ]);
     assert!(recall(&xfeat) >= 0.9, "{xfeat}");
+}
+
+/// On a 64x48 grayscale copy, retrieval puts a look-alike first for one query, and XFeat verifies
+/// it (15 inliers, the minimum) as well as the true place second (more inliers): of the matches tried,
+/// the one with the most inliers is reported, so every query gets its true place.
+#[test]
+fn of_the_matches_tried_the_one_with_the_most_inliers_is_reported() {
+    let weights = support::xfeat_weights();
+    let weights_param = format!("verification.xfeat_weights={}", weights.display());
+    let shared = support::shared_dir().join("data/real/gardens_point_day_night");
+    let dir = tempfile::tempdir().unwrap();
+    for part in ["ref", "query"] {
+        std::fs::create_dir(dir.path().join(part)).unwrap();
+        for entry in std::fs::read_dir(shared.join(part)).unwrap() {
+            let path = entry.unwrap().path();
+            let small = image::open(&path).unwrap().resize_exact(64, 48, image::imageops::FilterType::Triangle);
+            small
+                .grayscale()
+                .save(dir.path().join(part).join(path.file_name().unwrap()).with_extension("png"))
+                .unwrap();
+        }
+    }
+    let (reference, queries) = (dir.path().join("ref"), dir.path().join("query"));
+    let recall = |report: &serde_json::Value| report["recall_at_1"].as_f64().expect("recall_at_1");
+    let unverified = gardens_point_in(&reference, &queries, &["--param", "verification.mode=off"]);
+    assert_eq!(recall(&unverified), 0.9, "{unverified}");
+    let xfeat = |tried: &str| {
+        let args = ["--param", "verification.local_features=xfeat", "--param", &weights_param, "--param", tried];
+        gardens_point_in(&reference, &queries, &args)
+    };
+    // Trying the best only, the look-alike passes; trying two, the true place wins.
+    assert_eq!(recall(&xfeat("verification.candidates=1")), 0.9);
+    assert_eq!(recall(&xfeat("verification.candidates=2")), 1.0);
 }
 
 #[test]

@@ -492,7 +492,7 @@ struct RecentQuery {
     stamp: Stamp,
     /// Its threshold-passing matches, best first, as (position, distance, score) and whether
     /// consistency held the match back: the `top_k` best, which later queries must agree with, then
-    /// the alternatives verification would try (`process_ranked`'s `depth`).
+    /// the alternatives verification checks (`process_ranked`'s `depth`).
     matches: Vec<((usize, f32, f32), bool)>,
     /// Candidates reported for it so far (what verification kept, where [`Detector::set_reported`] says).
     reported: usize,
@@ -796,8 +796,8 @@ impl Detector {
     /// [`Detector::process`] that also returns the `depth` nearest eligible keyframes, best first, whether
     /// or not they pass (the first is what [`Detector::best_match`] gives), from the same search: one search
     /// per keyframe, not two. With `depth` above `top_k`, up to `depth` candidates are returned: the
-    /// alternatives that geometric verification tries in turn when a better one fails
-    /// (`verification.candidates`); consistency still remembers only the `top_k` best. The candidates
+    /// alternatives geometric verification checks beside the best (`verification.candidates`);
+    /// consistency still remembers only the `top_k` best. The candidates
     /// are the query's own; [`Detector::confirm_held_back`] then gives those of earlier queries
     /// that the reported ones confirm.
     pub fn process_ranked(

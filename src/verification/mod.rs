@@ -87,8 +87,8 @@ impl Intrinsics {
 /// The verification policy.
 #[derive(Clone, Debug, PartialEq)]
 pub struct VerificationParams {
-    /// Matches verified per keyframe at most, best first: the alternatives tried when a better one
-    /// fails (`verification.candidates`).
+    /// Matches verified per keyframe, the nearest: those verified are reported most inliers first
+    /// ([`best_supported`], `verification.candidates`).
     pub candidates: usize,
     /// ORB features extracted per keyframe (at most).
     pub max_features: usize,
@@ -301,6 +301,28 @@ pub struct Verification {
     /// The query camera's pose in the match camera's frame, translation a unit direction; only with
     /// intrinsics, for an accepted pair.
     pub pose: Option<RelativePose>,
+}
+
+impl Verification {
+    /// How strongly the pair is verified, for choosing among the matches tried: its inliers where
+    /// accepted, `None` (below any) where not.
+    pub fn support(&self) -> Option<usize> {
+        self.accepted.then_some(self.inliers)
+    }
+}
+
+/// Which of the matches tried for a keyframe, best ranked first, to report (`verifications`, one
+/// each; `None` where a match could not be checked): the accepted one with the most inliers, the
+/// better ranked on a tie; `None` when none is accepted. Retrieval's order is by appearance alone, and
+/// a look-alike can outrank the place itself; where both pass, the place the images agree on in
+/// more points is the better loop (spatial re-ranking of the nearest matches).
+pub fn best_supported(verifications: impl IntoIterator<Item = Option<Verification>>) -> Option<usize> {
+    verifications
+        .into_iter()
+        .enumerate()
+        .filter_map(|(i, v)| Some((i, v?.support()?)))
+        .min_by_key(|&(i, inliers)| (std::cmp::Reverse(inliers), i))
+        .map(|(i, _)| i)
 }
 
 /// ORB features of `image` (converted to grayscale), at most `max_features`.
@@ -743,6 +765,19 @@ mod tests {
     /// `image` shifted right by `dx` pixels (a camera panning: a homography), edges filled by clamping.
     fn shifted(image: &RgbImage, dx: u32) -> RgbImage {
         RgbImage::from_fn(image.width(), image.height(), |x, y| *image.get_pixel(x.saturating_sub(dx), y))
+    }
+
+    #[test]
+    fn the_verified_match_with_the_most_inliers_is_chosen_the_better_ranked_on_a_tie() {
+        let verdict = |inliers: usize, accepted: bool| {
+            Some(Verification { matches: 40, inliers, model: None, accepted, pose: None })
+        };
+        assert_eq!(best_supported([verdict(15, true), verdict(30, true)]), Some(1));
+        assert_eq!(best_supported([verdict(30, true), verdict(30, true), verdict(20, true)]), Some(0));
+        // A rejected pair does not count, whatever its inliers; nor one that could not be checked.
+        assert_eq!(best_supported([verdict(40, false), None, verdict(16, true)]), Some(2));
+        assert_eq!(best_supported([verdict(40, false), None]), None);
+        assert_eq!(best_supported(std::iter::empty()), None);
     }
 
     #[test]
