@@ -403,6 +403,39 @@ fn a_database_refuses_to_continue_another_source() {
     assert!(run(&a).status.success());
 }
 
+/// A two-lap synthetic sequence (240 frames at 5 Hz, seed 5) written into a folder, its frames, and
+/// pipelines for the renderer's camera (focal 0.82 * width, principal point at the centre) with
+/// some parameters more, each on a given store.
+struct RestartCase {
+    scene: Scene,
+    frames: Vec<ecm_lcd::types::Frame>,
+    params: Params,
+    weights: ecm_lcd::model::weights::resolve::Resolved,
+}
+
+impl RestartCase {
+    fn new(dir: &Path, depth: bool, extra: &[(&str, &str)]) -> Self {
+        let seq = dir.join("seq");
+        let config = SynthConfig { frames: 240, laps: 2, seed: 5, rate_hz: 5.0, depth, ..SynthConfig::default() };
+        let scene = Scene::new(config).unwrap();
+        write_tum_folder(&scene, &seq).unwrap();
+        let frames = ecm_lcd::io::open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
+        let mut params = Params::default();
+        let camera = [("camera.fx", "262.4"), ("camera.fy", "262.4"), ("camera.cx", "160"), ("camera.cy", "120")];
+        for (name, value) in camera.iter().chain(extra) {
+            params.set_from_str(name, value).unwrap();
+        }
+        let weights = resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
+        RestartCase { scene, frames, params, weights }
+    }
+
+    fn pipeline(&self, db: &Path) -> Pipeline {
+        let mut p = Pipeline::with_weights(self.params.clone(), self.weights.clone()).unwrap();
+        p.open_store(db).unwrap();
+        p
+    }
+}
+
 /// With verification on, a pipeline restarted on its database verifies loops to keyframes stored
 /// before the restart as an uninterrupted one does: their local features (with depth) come back from
 /// the database. The candidates after the restart, their inliers and metric poses, equal the
@@ -410,21 +443,8 @@ fn a_database_refuses_to_continue_another_source() {
 #[test]
 fn a_restart_keeps_verifying_loops_to_keyframes_stored_before_it() {
     let dir = tempfile::tempdir().unwrap();
-    let seq = dir.path().join("seq");
-    let config = SynthConfig { frames: 240, laps: 2, seed: 5, rate_hz: 5.0, depth: true, ..SynthConfig::default() };
-    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
-    let frames: Vec<_> = ecm_lcd::io::open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
-    let mut params = Params::default();
-    // The renderer's camera: focal 0.82 * width, principal point at the centre.
-    for (name, value) in [("camera.fx", "262.4"), ("camera.fy", "262.4"), ("camera.cx", "160"), ("camera.cy", "120")] {
-        params.set_from_str(name, value).unwrap();
-    }
-    let weights = resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
-    let pipeline = |db: &Path| {
-        let mut p = Pipeline::with_weights(params.clone(), weights.clone()).unwrap();
-        p.open_store(db).unwrap();
-        p
-    };
+    let case = RestartCase::new(dir.path(), true, &[]);
+    let (frames, pipeline) = (&case.frames, |db: &Path| case.pipeline(db));
     // (query, match, inliers, metric, translation) of every candidate from frame `from` on.
     type Row = (u64, u64, u32, bool, [f64; 3]);
     let run = |p: &mut Pipeline, frames: &[ecm_lcd::types::Frame]| -> Vec<Row> {
@@ -440,7 +460,7 @@ fn a_restart_keeps_verifying_loops_to_keyframes_stored_before_it() {
         rows
     };
     let restart_at = 150; // in the second lap: loops to the first lap from before and after the restart
-    let uninterrupted = run(&mut pipeline(&dir.path().join("whole.db")), &frames);
+    let uninterrupted = run(&mut pipeline(&dir.path().join("whole.db")), frames);
     let db = dir.path().join("restarted.db");
     let before = run(&mut pipeline(&db), &frames[..restart_at]);
     let after = run(&mut pipeline(&db), &frames[restart_at..]);
@@ -462,27 +482,8 @@ fn a_restart_keeps_verifying_loops_to_keyframes_stored_before_it() {
 #[test]
 fn a_restart_keeps_checking_loops_against_the_stored_tracker_poses() {
     let dir = tempfile::tempdir().unwrap();
-    let seq = dir.path().join("seq");
-    let scene =
-        Scene::new(SynthConfig { frames: 240, laps: 2, seed: 5, rate_hz: 5.0, ..SynthConfig::default() }).unwrap();
-    write_tum_folder(&scene, &seq).unwrap();
-    let frames: Vec<_> = ecm_lcd::io::open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
-    let mut params = Params::default();
-    for (name, value) in [
-        ("camera.fx", "262.4"),
-        ("camera.fy", "262.4"),
-        ("camera.cx", "160"),
-        ("camera.cy", "120"),
-        ("verification.max_drift", "0.1"),
-    ] {
-        params.set_from_str(name, value).unwrap();
-    }
-    let weights = resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
-    let pipeline = |db: &Path| {
-        let mut p = Pipeline::with_weights(params.clone(), weights.clone()).unwrap();
-        p.open_store(db).unwrap();
-        p
-    };
+    let case = RestartCase::new(dir.path(), false, &[("verification.max_drift", "0.1")]);
+    let (scene, frames, pipeline) = (&case.scene, &case.frames, |db: &Path| case.pipeline(db));
     let second_lap = frames.len() / 2;
     // Loops from the second lap to the first, with the tracker's pose of each frame from `pose`.
     let loops = |p: &mut Pipeline, frames: &[ecm_lcd::types::Frame], pose: &dyn Fn(usize) -> Isometry3<f64>| {
@@ -496,7 +497,7 @@ fn a_restart_keeps_checking_loops_against_the_stored_tracker_poses() {
         loops
     };
     let truth = |i: usize| scene.pose(i);
-    let found = loops(&mut pipeline(&dir.path().join("truth.db")), &frames, &truth);
+    let found = loops(&mut pipeline(&dir.path().join("truth.db")), frames, &truth);
     assert!(found.len() >= 10, "{found:?}: loops that fit the true trajectory pass");
     // A tracker that put the second lap 10 m away: before and after a restart in that lap, no loop
     // to the first lap passes.
@@ -522,27 +523,9 @@ fn a_restart_keeps_checking_loops_against_the_stored_tracker_poses() {
 #[test]
 fn restarts_in_a_revisit_keep_temporal_consistency_and_the_sequence_policy() {
     let dir = tempfile::tempdir().unwrap();
-    let seq = dir.path().join("seq");
-    let config = SynthConfig { frames: 240, laps: 2, seed: 5, rate_hz: 5.0, ..SynthConfig::default() };
-    write_tum_folder(&Scene::new(config).unwrap(), &seq).unwrap();
-    let frames: Vec<_> = ecm_lcd::io::open_source(&seq, None).unwrap().map(|f| f.unwrap()).collect();
-    let mut params = Params::default();
-    for (name, value) in [
-        ("camera.fx", "262.4"),
-        ("camera.fy", "262.4"),
-        ("camera.cx", "160"),
-        ("camera.cy", "120"),
-        ("detector.consistency.queries", "2"),
-        ("detector.sequence.length", "3"),
-    ] {
-        params.set_from_str(name, value).unwrap();
-    }
-    let weights = resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap();
-    let pipeline = |db: &Path| {
-        let mut p = Pipeline::with_weights(params.clone(), weights.clone()).unwrap();
-        p.open_store(db).unwrap();
-        p
-    };
+    let extra = [("detector.consistency.queries", "2"), ("detector.sequence.length", "3")];
+    let case = RestartCase::new(dir.path(), false, &extra);
+    let (frames, pipeline) = (&case.frames, |db: &Path| case.pipeline(db));
     // (keyframe that reported it, query, match, rank, inliers, score) of every candidate.
     type Row = (u64, u64, u64, u32, u32, f32);
     let run = |p: &mut Pipeline, frames: &[ecm_lcd::types::Frame]| -> Vec<Row> {
@@ -556,7 +539,7 @@ fn restarts_in_a_revisit_keep_temporal_consistency_and_the_sequence_policy() {
         }
         rows
     };
-    let uninterrupted = run(&mut pipeline(&dir.path().join("whole.db")), &frames);
+    let uninterrupted = run(&mut pipeline(&dir.path().join("whole.db")), frames);
     let late = |rows: &[Row]| rows.iter().filter(|r| r.1 != r.0).count();
     assert!(uninterrupted.len() >= 20 && late(&uninterrupted) >= 1, "{uninterrupted:?}");
     // A restart before every frame of the second lap, so each late loop's query was held back
