@@ -622,39 +622,44 @@ impl Pipeline {
 
     /// Verifies loops of earlier keyframes that temporal consistency held back and the current
     /// keyframe confirmed (grouped by keyframe, each ranked after what it already reported), with the
-    /// local features and tracker pose kept for their own keyframes, best first until a keyframe has
-    /// `detector.top_k`; returns those that pass, ranked on, and counts the failed in `outcome`.
+    /// local features and tracker pose kept for their own keyframes; of those that pass, most inliers
+    /// first until a keyframe has `detector.top_k`. Returns those, ranked on, and counts the failed in
+    /// `outcome`.
     fn verify_confirmed(&self, confirmed: Vec<LoopCandidate>, outcome: &mut Outcome) -> Vec<LoopCandidate> {
         let verifier = self.verifier.as_ref().expect("called with verification on");
         let wanted = self.params.detector().top_k as u32;
         let mut kept: Vec<LoopCandidate> = Vec::new();
-        // The rank the next kept candidate of the keyframe being checked gets.
-        let mut next: Option<(u64, u32)> = None;
-        for mut c in confirmed {
-            let rank = match next {
-                Some((query, rank)) if query == c.query_id => rank,
-                _ => c.rank,
-            };
-            next = Some((c.query_id, rank));
-            if rank >= wanted {
+        // A keyframe's released matches come together, ranked after those it already reported.
+        for released in confirmed.chunk_by(|a, b| a.query_id == b.query_id) {
+            let first_rank = released[0].rank;
+            if first_rank >= wanted {
                 continue;
             }
-            let verification = verifier.features(c.query_id).and_then(|features| verifier.verify(features, c.match_id));
-            let Some(v) = verification.filter(|v| v.accepted) else {
-                log::debug!("held-back candidate {} -> {} rejected by verification", c.query_id, c.match_id);
-                outcome.rejected += 1;
-                continue;
-            };
-            if !self.odometry_consistent(self.odometry.tracked(c.query_id), c.match_id, v.pose.as_ref()) {
-                outcome.rejected += 1;
-                outcome.rejected_by_odometry += 1;
-                continue;
+            let mut passed: Vec<LoopCandidate> = Vec::new();
+            for c in released {
+                let verification =
+                    verifier.features(c.query_id).and_then(|features| verifier.verify(features, c.match_id));
+                let Some(v) = verification.filter(|v| v.accepted) else {
+                    log::debug!("held-back candidate {} -> {} rejected by verification", c.query_id, c.match_id);
+                    outcome.rejected += 1;
+                    continue;
+                };
+                if !self.odometry_consistent(self.odometry.tracked(c.query_id), c.match_id, v.pose.as_ref()) {
+                    outcome.rejected += 1;
+                    outcome.rejected_by_odometry += 1;
+                    continue;
+                }
+                log::debug!("held-back candidate {} -> {} confirmed and verified", c.query_id, c.match_id);
+                passed.push(LoopCandidate {
+                    verified: Some(Verified { inliers: v.inliers as u32, pose: v.pose }),
+                    ..c.clone()
+                });
             }
-            log::debug!("held-back candidate {} -> {} confirmed and verified", c.query_id, c.match_id);
-            c.verified = Some(Verified { inliers: v.inliers as u32, pose: v.pose });
-            c.rank = rank;
-            next = Some((c.query_id, rank + 1));
-            kept.push(c);
+            // Most inliers first, as for a keyframe's own candidates ([`best_supported`]).
+            passed.sort_by_key(|c| std::cmp::Reverse(c.verified.map(|v| v.inliers)));
+            for (rank, c) in (first_rank..wanted).zip(passed) {
+                kept.push(LoopCandidate { rank, ..c });
+            }
         }
         kept
     }

@@ -608,13 +608,13 @@ impl Detector {
     /// After [`Detector::replace_history`] with a stored history, goes on as the run that stored it
     /// would have: `recent` are the descriptors of its newest keyframes, oldest first (the earlier
     /// queries of the sequence policy), and `consistency` what temporal consistency remembered after
-    /// the newest ([`Detector::consistency_state`]). Matches of keyframes no longer in the history
-    /// (the memory budget) are dropped.
+    /// the newest ([`Detector::consistency_state`]), which applies only with consistency on. Matches
+    /// of keyframes no longer in the history (the memory budget) are dropped.
     pub fn resume(&mut self, recent: &[Vec<f32>], consistency: Option<ConsistencyState>) {
         for descriptor in recent {
             self.recent_queries.push(descriptor);
         }
-        let Some(state) = consistency else { return };
+        let Some(state) = consistency.filter(|_| self.params.consistency_queries > 1) else { return };
         let mut wanted: std::collections::HashMap<u64, usize> =
             state.queries.iter().flat_map(|q| q.matches.iter().map(|m| (m.0, usize::MAX))).collect();
         for position in 0..self.db.len() {
