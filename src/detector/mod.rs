@@ -25,7 +25,8 @@
 //!    `k`-th; only shorter ones are lost. Without it, held-back matches are dropped, as DBoW2 does.
 //!
 //! Reported candidates are ranked 0, 1, ... in increasing distance among those reported; with the
-//! sequence policy on, in decreasing sequence score.
+//! sequence policy on, in decreasing sequence score. (Geometric verification re-ranks those it keeps
+//! by inliers: [`crate::verification::best_supported`].)
 //!
 //! Centring on the history: with `centre_on_history` (unit-vector descriptor modes; the paper's
 //! descriptor is left as it is), a query and a keyframe are compared by the cosine of their
