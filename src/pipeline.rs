@@ -530,6 +530,21 @@ impl Pipeline {
         }))
     }
 
+    /// [`Pipeline::verify`], then, where the features pass, the odometry check of the query keyframe
+    /// (tracked at `query`): the verification (not accepted where either check failed it) and whether
+    /// the odometry check failed it.
+    fn verify_with_odometry(
+        &self,
+        features: &LocalFeatures,
+        query: Option<Tracked>,
+        matched: u64,
+    ) -> (Verification, bool) {
+        let mut v = self.verify(features, matched).expect("called with verification on");
+        let odometry_failed = v.accepted && !self.odometry_consistent(query, matched, v.pose.as_ref());
+        v.accepted &= !odometry_failed;
+        (v, odometry_failed)
+    }
+
     /// Whether a loop from the query (tracked at `query`) to keyframe `matched`, verified with
     /// relative pose `pose`, fits the tracker's trajectory; true when not checked (no drift bound, or
     /// either keyframe without a pose).
@@ -569,9 +584,7 @@ impl Pipeline {
             if let Some(&(_, v, odometry_failed)) = checked.iter().find(|(seen, ..)| *seen == id) {
                 return (v, odometry_failed);
             }
-            let mut v = self.verify(features, id).expect("called with verification on");
-            let odometry_failed = v.accepted && !self.odometry_consistent(tracked, id, v.pose.as_ref());
-            v.accepted &= !odometry_failed;
+            let (v, odometry_failed) = self.verify_with_odometry(features, tracked, id);
             checked.push((id, v, odometry_failed));
             (v, odometry_failed)
         };
@@ -637,18 +650,15 @@ impl Pipeline {
             }
             let mut passed: Vec<LoopCandidate> = Vec::new();
             for c in released {
-                let verification =
-                    verifier.features(c.query_id).and_then(|features| verifier.verify(features, c.match_id));
-                let Some(v) = verification.filter(|v| v.accepted) else {
+                let checked = verifier
+                    .features(c.query_id)
+                    .map(|features| self.verify_with_odometry(features, self.odometry.tracked(c.query_id), c.match_id));
+                let Some((v, _)) = checked.filter(|(v, _)| v.accepted) else {
                     log::debug!("held-back candidate {} -> {} rejected by verification", c.query_id, c.match_id);
                     outcome.rejected += 1;
+                    outcome.rejected_by_odometry += usize::from(checked.is_some_and(|(_, odometry)| odometry));
                     continue;
                 };
-                if !self.odometry_consistent(self.odometry.tracked(c.query_id), c.match_id, v.pose.as_ref()) {
-                    outcome.rejected += 1;
-                    outcome.rejected_by_odometry += 1;
-                    continue;
-                }
                 log::debug!("held-back candidate {} -> {} confirmed and verified", c.query_id, c.match_id);
                 passed.push(LoopCandidate {
                     verified: Some(Verified { inliers: v.inliers as u32, pose: v.pose }),
