@@ -386,6 +386,17 @@ fn trying_the_next_best_matches_finds_loops_a_look_alike_hid() {
         after.true_reports
     );
     assert!(after.false_reports <= before.false_reports, "{} -> {} wrong", before.false_reports, after.false_reports);
+    // With two reported a keyframe (`detector.top_k` 2), both verified, ranked most inliers first.
+    let mut overrides = vec![PERMISSIVE, ("verification.candidates", "2"), ("detector.top_k", "2")];
+    overrides.extend(camera.iter().map(|(name, value)| (*name, value.as_str())));
+    let both = run_source(&mut pipeline(&overrides), &seq, &Default::default(), false).unwrap();
+    let inliers = |c: &ecm_lcd::types::LoopCandidate| c.verified.expect("verified").inliers;
+    let pairs: Vec<_> = both.candidates.windows(2).filter(|w| w[0].query_id == w[1].query_id).collect();
+    assert!(pairs.len() >= 10, "{} keyframes with two loops", pairs.len());
+    for w in pairs {
+        assert_eq!((w[0].rank, w[1].rank), (0, 1));
+        assert!(inliers(&w[0]) >= inliers(&w[1]), "{:?}", (w[0].query_id, inliers(&w[0]), inliers(&w[1])));
+    }
 }
 
 /// Prints the true and wrong loops reported without temporal consistency, dropping and delaying.
