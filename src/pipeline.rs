@@ -285,12 +285,19 @@ impl Pipeline {
         let earlier_queries = self.params.detector().sequence_length.saturating_sub(1);
         let newest = store.last_keyframes(earlier_queries.max(1))?;
         let newest_id = newest.last().map(|k| k.0);
-        let first = newest.len() - earlier_queries.min(newest.len());
-        let recent: Vec<Vec<f32>> = newest[first..].iter().map(|(_, _, descriptor)| descriptor.clone()).collect();
+        let older = newest.len().saturating_sub(earlier_queries);
+        let recent: Vec<Vec<f32>> = newest.into_iter().skip(older).map(|(_, _, descriptor)| descriptor).collect();
+        // An unreadable state costs only the loops it held back: the keyframes load regardless.
         let consistency = match store.consistency()? {
-            Some((id, json)) if newest_id == Some(id) => Some(serde_json::from_str(&json).with_context(|| {
-                format!("keyframe {id}'s temporal consistency state in {}", store.path().display())
-            })?),
+            Some((id, json)) if newest_id == Some(id) => serde_json::from_str(&json)
+                .map_err(|e| {
+                    log::warn!(
+                        "keyframe database {}: keyframe {id}'s temporal consistency state does not decode ({e}); \
+                         consistency starts afresh",
+                        store.path().display()
+                    )
+                })
+                .ok(),
             _ => None,
         };
         self.detector.resume(&recent, consistency);

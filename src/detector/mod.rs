@@ -563,10 +563,7 @@ impl Detector {
             self.db = db.into_format(format);
             self.resum_history();
         }
-        let keep = self.params.consistency_queries.max(1);
-        while self.recent_matches.len() > keep {
-            self.recent_matches.pop_front();
-        }
+        self.trim_recent_matches();
         self.recent_queries.set_length(self.params.sequence_length);
         self.enforce_budget();
     }
@@ -616,13 +613,10 @@ impl Detector {
             self.recent_queries.push(descriptor);
         }
         let Some(state) = consistency.filter(|_| self.params.consistency_queries > 1) else { return };
-        let mut wanted: std::collections::HashMap<u64, usize> =
-            state.queries.iter().flat_map(|q| q.matches.iter().map(|m| (m.0, usize::MAX))).collect();
-        for position in 0..self.db.len() {
-            if let Some(slot) = wanted.get_mut(&self.db.id(position)) {
-                *slot = position;
-            }
-        }
+        let wanted: std::collections::HashSet<u64> =
+            state.queries.iter().flat_map(|q| q.matches.iter().map(|m| m.0)).collect();
+        let positions: std::collections::HashMap<u64, usize> =
+            (0..self.db.len()).map(|p| (self.db.id(p), p)).filter(|(id, _)| wanted.contains(id)).collect();
         self.recent_matches = state
             .queries
             .into_iter()
@@ -632,11 +626,16 @@ impl Detector {
                 matches: query
                     .matches
                     .iter()
-                    .filter_map(|&(id, d, s, held)| Some(((wanted[&id], d, s), held)).filter(|m| m.0 .0 != usize::MAX))
+                    .filter_map(|&(id, d, s, held)| Some(((*positions.get(&id)?, d, s), held)))
                     .collect(),
                 reported: query.reported,
             })
             .collect();
+        self.trim_recent_matches();
+    }
+
+    /// Keeps the consistency history to the queries the policy needs (module doc).
+    fn trim_recent_matches(&mut self) {
         let keep = self.params.consistency_queries.max(1);
         while self.recent_matches.len() > keep {
             self.recent_matches.pop_front();
