@@ -125,6 +125,10 @@ fn measure(
     for (k, v) in set_overrides.iter().chain(overrides) {
         params.set_from_str(k, v).map_err(anyhow::Error::msg)?;
     }
+    // As `ecm-lcd eval` scores against poses: no match younger than the truth's gap.
+    if let Data::Sequence(s, None) = &set.data {
+        s.criteria.exclude_younger_than_the_gap(&mut params)?;
+    }
     let threshold = params.detector().threshold;
     let consistent_reports_only = params.detector().consistency_queries > 1;
     let mut pipeline = Pipeline::with_weights(params, weights.clone())?;

@@ -97,6 +97,27 @@ fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
     assert!(metrics.recall_at_1.unwrap() >= 0.875, "{metrics:?}");
 }
 
+/// The same real frames one every 2 s (a slower camera, 34 s in all). By `eval`'s default truth (20 s
+/// apart) only the second pass's last queries revisit; the others see places 16 s old or younger, no
+/// loops by that rule. The detector looks back further (`detector.exclude_recent.seconds` 10), so
+/// those matches used to be scored as wrong loops: recall@1 0.75 and recall at 100% precision 0.25
+/// here. `eval` keeps the detector from matching what its truth excludes.
+#[test]
+fn eval_does_not_score_views_younger_than_the_truths_gap_as_wrong_loops() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = dir.path().join("slow_two_pass");
+    write_two_pass(&shared().join("data/tum/fr3_long_office_household"), &seq, 2.0, 0.05).unwrap();
+    let weights = shared().join("models/mobilenet_v2_1.0_224_quant.tflite");
+    let args = ["eval", seq.to_str().unwrap(), "--quiet", "--json", "--weights", weights.to_str().unwrap()];
+    let out = ecm_lcd(&[&args[..], &["--param", "detector.min_history=2"]].concat());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(json["parameters"]["detector.exclude_recent.seconds"], 20.0, "{json}");
+    assert_eq!(json["positives"], 4, "{json}");
+    assert_eq!(json["recall_at_1"], 1.0, "{json}");
+    assert_eq!(json["recall_at_100_precision"], 1.0, "{json}");
+}
+
 fn synthetic(dir: &Path, frames: usize, laps: usize, rate_hz: f64) -> PathBuf {
     let seq = dir.join("synthetic");
     let scene =

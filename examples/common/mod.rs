@@ -112,6 +112,8 @@ pub fn replay_on(
     for (k, v) in set.overrides {
         params.set_from_str(k, v).map_err(anyhow::Error::msg)?;
     }
+    // As `ecm-lcd eval` scores: no match younger than the truth's gap.
+    set.criteria.exclude_younger_than_the_gap(&mut params)?;
     let mut pipeline = Pipeline::with_weights(params, weights.clone())?;
     if let Some(db) = db {
         pipeline.open_store(db)?;

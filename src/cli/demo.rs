@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 
-use super::eval::print_summary;
+use super::eval::{pipeline_for_pose_truth, print_summary};
 use super::replay::{write_candidates_csv, SourceArgs};
 use ecm_lcd::eval::{evaluate, loop_truth_from_poses, plot_pr_curve, write_curve_csv, PoseLoopCriteria};
 use ecm_lcd::io::tum::read_groundtruth;
@@ -43,7 +43,8 @@ fn bundled(path: &Path) -> PathBuf {
 
 pub fn run(args: Args) -> Result<()> {
     let (source, groundtruth) = (bundled(&args.source), bundled(&args.groundtruth));
-    let mut pipeline = args.source_args.pipeline()?;
+    let criteria = PoseLoopCriteria::default();
+    let mut pipeline = pipeline_for_pose_truth(&args.source_args, &criteria)?;
     let run = run_source(&mut pipeline, &source, &args.source_args.topics(), !args.source_args.quiet)?;
     if let Some(error) = &run.error {
         anyhow::bail!("{} broke off after {} frames: {error}", source.display(), run.frames);
@@ -57,7 +58,7 @@ pub fn run(args: Args) -> Result<()> {
         );
     }
     let poses = read_groundtruth(&groundtruth).context("the demo's ground truth")?;
-    let truth = loop_truth_from_poses(&run.frame_stamps, &poses, &PoseLoopCriteria::default());
+    let truth = loop_truth_from_poses(&run.frame_stamps, &poses, &criteria);
     let metrics = evaluate(&run.query_results(), &truth)?;
     let false_loops = run
         .candidates

@@ -11,6 +11,7 @@ use ecm_lcd::eval::{
     evaluate, images_in_name_order, loop_truth_from_poses, plot_pr_curve, read_loops, summary_json, write_curve_csv,
     LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
 };
+use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::replay::{run_database_queries, run_source};
 use ecm_lcd::types::Stamp;
 use std::path::{Path, PathBuf};
@@ -190,7 +191,10 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(plot) = &args.plot {
         ecm_lcd::io::output::ensure_png(plot, "--plot")?;
     }
-    let mut pipeline = args.source_args.pipeline()?;
+    let mut pipeline = match (&args.source, &args.loops) {
+        (Some(_), None) => pipeline_for_pose_truth(&args.source_args, &args.criteria()?)?,
+        _ => args.source_args.pipeline()?,
+    };
     if let Some((database, queries)) = args.database_and_queries()? {
         let truth = load_truth(&args, &[])?;
         truth.check_within(queries.len(), database.len())?;
@@ -210,6 +214,22 @@ pub fn run(args: Args) -> Result<()> {
     timings.push(("wall_s", run.wall_secs));
     run_with_results(&args, &truth, &results, &timings, pipeline.params())?;
     Ok(())
+}
+
+/// The pipeline of `source_args` for scoring against loop truth from poses under `criteria`: it does
+/// not look for matches younger than the truth's gap
+/// ([`PoseLoopCriteria::exclude_younger_than_the_gap`]; logged where that raises the setting).
+pub fn pipeline_for_pose_truth(source_args: &SourceArgs, criteria: &PoseLoopCriteria) -> Result<Pipeline> {
+    let mut params = source_args.params()?;
+    if let Some(configured) = criteria.exclude_younger_than_the_gap(&mut params)? {
+        log::info!(
+            "the loop truth counts no match younger than {} s, so the detector does not look there either \
+             (detector.exclude_recent.seconds {configured} -> {})",
+            criteria.min_gap_s,
+            criteria.min_gap_s
+        );
+    }
+    source_args.pipeline_with(params)
 }
 
 fn display_name(path: &Path) -> String {

@@ -65,7 +65,12 @@ impl SourceArgs {
     }
 
     pub fn pipeline(&self) -> Result<Pipeline> {
-        let mut pipeline = Pipeline::new(self.params()?, self.weights.as_deref())?;
+        self.pipeline_with(self.params()?)
+    }
+
+    /// [`SourceArgs::pipeline`] with `params` in place of the options' own.
+    pub fn pipeline_with(&self, params: Params) -> Result<Pipeline> {
+        let mut pipeline = Pipeline::new(params, self.weights.as_deref())?;
         pipeline.set_reference(self.reference);
         if let Some(db) = &self.db {
             pipeline.open_store(db)?;

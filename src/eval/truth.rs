@@ -95,6 +95,26 @@ impl Default for PoseLoopCriteria {
     }
 }
 
+impl PoseLoopCriteria {
+    /// Raises `params`' `detector.exclude_recent.seconds` to `min_gap_s` where it is lower, and
+    /// returns the value it had if so. The truth counts no frame younger than the gap as a revisit,
+    /// so a detector under evaluation must not look there either: a query's best match would
+    /// otherwise often be the same place seen a few seconds earlier (a slow hand-held camera's
+    /// view), scored as a wrong loop, and the figures would measure how long the camera lingers
+    /// rather than the detector.
+    pub fn exclude_younger_than_the_gap(&self, params: &mut crate::config::Params) -> Result<Option<f64>> {
+        const NAME: &str = "detector.exclude_recent.seconds";
+        let configured = params.detector().exclude_recent_secs;
+        if configured >= self.min_gap_s {
+            return Ok(None);
+        }
+        params
+            .set(NAME, crate::config::ParamValue::Double(self.min_gap_s))
+            .map_err(|e| anyhow::anyhow!("the loop truth's gap of {} s as {NAME}: {e}", self.min_gap_s))?;
+        Ok(Some(configured))
+    }
+}
+
 /// Ground-truth poses of each query stamp: the pose at the nearest ground-truth stamp, or `None`
 /// if that is farther than `max_offset_s`. `groundtruth` need not be sorted.
 pub fn poses_at_stamps(
@@ -232,6 +252,24 @@ mod tests {
 
     fn secs(s: f64) -> Stamp {
         Stamp::from_secs_f64(1000.0 + s)
+    }
+
+    #[test]
+    fn the_detector_under_evaluation_excludes_what_the_gap_excludes() {
+        let criteria = PoseLoopCriteria::default();
+        let mut params = crate::config::Params::default();
+        let configured = params.detector().exclude_recent_secs;
+        assert!(configured < criteria.min_gap_s, "the default detector looks at younger frames than the truth counts");
+        assert_eq!(criteria.exclude_younger_than_the_gap(&mut params).unwrap(), Some(configured));
+        assert_eq!(params.detector().exclude_recent_secs, criteria.min_gap_s);
+        // A longer exclusion is the user's and stays.
+        params.set_from_str("detector.exclude_recent.seconds", "45").unwrap();
+        assert_eq!(criteria.exclude_younger_than_the_gap(&mut params).unwrap(), None);
+        assert_eq!(params.detector().exclude_recent_secs, 45.0);
+        // A gap beyond the parameter's range is refused, not clamped.
+        let huge = PoseLoopCriteria { min_gap_s: 1e7, ..criteria };
+        let err = huge.exclude_younger_than_the_gap(&mut params).unwrap_err();
+        assert!(err.to_string().contains("detector.exclude_recent.seconds"), "{err:#}");
     }
 
     #[test]
