@@ -277,10 +277,11 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
         ),
         double(
             "detector.exclude_recent.seconds",
-            10.0,
+            20.0,
             0.0,
             1.0e6,
-            "Keyframes less than this many seconds older than the query are never matched.",
+            "Keyframes less than this many seconds older than the query are never matched (a revisit is a loop \
+             from this age on: the loop truth's --min-gap).",
         ),
         integer("detector.top_k", 1, 1, 100, "At most this many loop candidates per keyframe."),
         integer(

@@ -99,9 +99,9 @@ fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
 
 /// The same real frames one every 2 s (a slower camera, 34 s in all). By `eval`'s default truth (20 s
 /// apart) only the second pass's last queries revisit; the others see places 16 s old or younger, no
-/// loops by that rule. The detector looks back further (`detector.exclude_recent.seconds` 10), so
-/// those matches used to be scored as wrong loops: recall@1 0.75 and recall at 100% precision 0.25
-/// here. `eval` keeps the detector from matching what its truth excludes.
+/// loops by that rule. A detector that looks back further (`detector.exclude_recent.seconds` 10, the
+/// default before it became 20) had those matches scored as wrong loops: recall@1 0.75 and recall at
+/// 100% precision 0.25 here. `eval` keeps the detector from matching what its truth excludes.
 #[test]
 fn eval_does_not_score_views_younger_than_the_truths_gap_as_wrong_loops() {
     let dir = tempfile::tempdir().unwrap();
@@ -109,7 +109,8 @@ fn eval_does_not_score_views_younger_than_the_truths_gap_as_wrong_loops() {
     write_two_pass(&shared().join("data/tum/fr3_long_office_household"), &seq, 2.0, 0.05).unwrap();
     let weights = shared().join("models/mobilenet_v2_1.0_224_quant.tflite");
     let args = ["eval", seq.to_str().unwrap(), "--quiet", "--json", "--weights", weights.to_str().unwrap()];
-    let out = ecm_lcd(&[&args[..], &["--param", "detector.min_history=2"]].concat());
+    let overrides = ["--param", "detector.min_history=2", "--param", "detector.exclude_recent.seconds=10"];
+    let out = ecm_lcd(&[&args[..], &overrides].concat());
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["parameters"]["detector.exclude_recent.seconds"], 20.0, "{json}");
@@ -201,7 +202,15 @@ fn every_source_kind_replays_to_the_same_candidates() {
     let ros2_mcap = dir.path().join("seq_mcap");
     write_ros2_bag(&ros2_mcap, Ros2Storage::Mcap, "/camera/image", frames(), WireEncoding::Bgr8).unwrap();
 
-    let cli_params = ["--param", "detector.min_history=2", "--param", "detector.min_score=0.9"];
+    // Laps of 15 s: look back from 5 s, not the default 20.
+    let cli_params = [
+        "--param",
+        "detector.min_history=2",
+        "--param",
+        "detector.min_score=0.9",
+        "--param",
+        "detector.exclude_recent.seconds=5",
+    ];
     let mut outputs = Vec::new();
     for source in [&tum, &ros1, &ros2_sqlite, &ros2_mcap] {
         let csv = dir.path().join(format!("{}.csv", source.file_name().unwrap().to_str().unwrap()));

@@ -258,9 +258,11 @@ mod tests {
     fn the_detector_under_evaluation_excludes_what_the_gap_excludes() {
         let criteria = PoseLoopCriteria::default();
         let mut params = crate::config::Params::default();
-        let configured = params.detector().exclude_recent_secs;
-        assert!(configured < criteria.min_gap_s, "the default detector looks at younger frames than the truth counts");
-        assert_eq!(criteria.exclude_younger_than_the_gap(&mut params).unwrap(), Some(configured));
+        assert_eq!(params.detector().exclude_recent_secs, criteria.min_gap_s, "the defaults agree");
+        assert_eq!(criteria.exclude_younger_than_the_gap(&mut params).unwrap(), None);
+        // A detector that looks at younger frames than the truth counts is kept from them.
+        params.set_from_str("detector.exclude_recent.seconds", "10").unwrap();
+        assert_eq!(criteria.exclude_younger_than_the_gap(&mut params).unwrap(), Some(10.0));
         assert_eq!(params.detector().exclude_recent_secs, criteria.min_gap_s);
         // A longer exclusion is the user's and stays.
         params.set_from_str("detector.exclude_recent.seconds", "45").unwrap();
