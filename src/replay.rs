@@ -83,6 +83,30 @@ impl ReplayRun {
         ]
     }
 
+    /// Why no keyframe could be matched at all, where that is so: the recency rules and the minimum
+    /// history (`params`) left no eligible keyframe for any query, most often a sequence shorter than
+    /// `detector.exclude_recent.seconds`. `None` where some keyframe had one, or none was replayed.
+    pub fn why_nothing_could_match(&self, params: &crate::config::Params) -> Option<String> {
+        if self.keyframes.is_empty() || self.keyframes.iter().any(|k| k.best.is_some()) {
+            return None;
+        }
+        let detector = params.detector();
+        let span = match (self.keyframes.first(), self.keyframes.last()) {
+            (Some(first), Some(last)) => (last.stamp.nanos - first.stamp.nanos) as f64 / 1e9,
+            _ => 0.0,
+        };
+        Some(format!(
+            "no keyframe could be matched: a match must be at least detector.exclude_recent.seconds ({} s) and \
+             detector.exclude_recent.count ({}) keyframes older than its query, after detector.min_history ({}) \
+             keyframes, and these {} keyframes span {span:.1} s; for a short sequence lower them (e.g. --param \
+             detector.exclude_recent.seconds=5)",
+            detector.exclude_recent_secs,
+            detector.exclude_recent_count,
+            detector.min_history,
+            self.keyframes.len(),
+        ))
+    }
+
     /// One evaluation result per keyframe: its frame index, and its best match's frame index and score.
     /// A best match that failed geometric verification counts as no match.
     pub fn query_results(&self) -> Vec<QueryResult> {

@@ -119,6 +119,27 @@ fn eval_does_not_score_views_younger_than_the_truths_gap_as_wrong_loops() {
     assert_eq!(json["recall_at_100_precision"], 1.0, "{json}");
 }
 
+/// A sequence too short for the recency rules finds nothing, and `replay` says why instead of
+/// printing an empty list: the 17 real fr3 frames span 16 s, under the default 20 s.
+#[test]
+fn replay_says_why_a_sequence_too_short_for_loops_matched_nothing() {
+    let seq = shared().join("data/tum/fr3_long_office_household");
+    let weights = shared().join("models/mobilenet_v2_1.0_224_quant.tflite");
+    let args = ["replay", seq.to_str().unwrap(), "--quiet", "--weights", weights.to_str().unwrap()];
+    let out = ecm_lcd(&args);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    for piece in ["no keyframe could be matched", "detector.exclude_recent.seconds (20 s)", "17 keyframes span 16.2 s"]
+    {
+        assert!(err.contains(piece), "{piece:?} not in:\n{err}");
+    }
+    // Looking back from 5 s, after 2 keyframes, the later frames have matches: no warning.
+    let shorter = ["--param", "detector.exclude_recent.seconds=5", "--param", "detector.min_history=2"];
+    let out = ecm_lcd(&[&args[..], &shorter].concat());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && !err.contains("no keyframe could be matched"), "{err}");
+}
+
 fn synthetic(dir: &Path, frames: usize, laps: usize, rate_hz: f64) -> PathBuf {
     let seq = dir.join("synthetic");
     let scene =

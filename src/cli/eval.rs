@@ -207,6 +207,9 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(error) = &run.error {
         log::warn!("{} broke off after {} frames; evaluating those: {error}", source.display(), run.frames);
     }
+    if let Some(why) = run.why_nothing_could_match(pipeline.params()) {
+        log::warn!("{}: {why}", source.display());
+    }
     let truth = load_truth(&args, &run.frame_stamps)?;
     truth.check_within(run.frame_stamps.len(), run.frame_stamps.len())?;
     let results = run.query_results();

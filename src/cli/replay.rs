@@ -183,6 +183,9 @@ pub fn run(args: Args) -> Result<()> {
         t.detector_ms,
         args.output.as_ref().map(|p| format!("; wrote {}", p.display())).unwrap_or_default()
     );
+    if let Some(why) = run.why_nothing_could_match(pipeline.params()) {
+        log::warn!("{}: {why}", args.source.display());
+    }
     if let Some(error) = run.error {
         anyhow::bail!(
             "{} broke off after {} frames ({}): {error}",
