@@ -10,7 +10,8 @@
 //! margin over the second-best place, ...). Post-processing: `l2`, `pl2` (power first), a trailing
 //! `c` centres on the database mean, `l2pN` projects on N principal axes learned from synthetic
 //! frames, `l2hN` on N axes learned from the database itself, `l2qK` stores each value with K
-//! levels (`l2qsgn`: its sign); `STUDY_POSTS=l2,l2q8` picks them. `STUDY_PHOTO=equalise` (or
+//! levels (`l2qsgn`: its sign), `l2dK` corrects each score for hubness (less half the reference's and
+//! half the query's mean K best scores, as CSLS does); `STUDY_POSTS=l2,l2q8` picks them. `STUDY_PHOTO=equalise` (or
 //! `stretch`, `gamma`, `standardise`) normalises every image's brightness before the network, and
 //! `STUDY_DUMP=FILE` appends each calibrated query's scores and true matches as JSON lines.
 //! `STUDY_COMBOS="12:grid4-mac+16:grid2-mac;..."` also measures combinations of taps (each part
@@ -413,6 +414,12 @@ fn main() -> Result<()> {
                         let mean = post.ends_with('c').then(|| mean_of(&finish(db_raw.clone(), plain, None)));
                         (finish(db_raw.clone(), plain, mean.as_deref()), finish(q_raw.clone(), plain, mean.as_deref()))
                     };
+                    // The references' scores against each other, for `l2dK`.
+                    let gram: Vec<Vec<f32>> = if ["l2d", "l2r"].iter().any(|p| post.starts_with(p)) {
+                        db.iter().map(|r| cosine_scores(r, &db)).collect()
+                    } else {
+                        Vec::new()
+                    };
                     let mut results = Vec::new();
                     for (qi, qv) in q.iter().enumerate() {
                         let limit = set.eligible[qi].unwrap_or(db.len());
@@ -420,7 +427,39 @@ fn main() -> Result<()> {
                             results.push(QueryResult { query: qi, best: None });
                             continue;
                         }
-                        let scores = cosine_scores(qv, &db[..limit]);
+                        let mut scores = cosine_scores(qv, &db[..limit]);
+                        let hubness = post.strip_prefix("l2d").map(|k| (k, true, true));
+                        let hubness = hubness
+                            .or_else(|| post.strip_prefix("l2r").map(|k| (k, true, false)))
+                            .or_else(|| post.strip_prefix("l2u").map(|k| (k, false, true)));
+                        if let Some((k, reference_side, query_side)) = hubness {
+                            // Hubness: each reference's score less half its density (the mean of its k best
+                            // scores against the other eligible references more than two away), as CSLS
+                            // does with the other domain; and the query's own level, its k best scores.
+                            let k: usize = k.parse().unwrap_or(5);
+                            let top_mean = |mut v: Vec<f32>| -> f32 {
+                                v.sort_by(|a, b| b.total_cmp(a));
+                                let n = k.min(v.len()).max(1);
+                                v.iter().take(n).sum::<f32>() / n as f32
+                            };
+                            let query_level = if query_side { top_mean(scores.clone()) } else { 0.0 };
+                            let densities: Vec<f32> = (0..limit)
+                                .filter(|_| reference_side)
+                                .map(|r| {
+                                    let others: Vec<f32> =
+                                        (0..limit).filter(|&o| o.abs_diff(r) > 2).map(|o| gram[r][o]).collect();
+                                    if others.is_empty() {
+                                        0.0
+                                    } else {
+                                        top_mean(others)
+                                    }
+                                })
+                                .collect();
+                            for (i, s) in scores.iter_mut().enumerate() {
+                                let density = densities.get(i).copied().unwrap_or(0.0);
+                                *s = (2.0 * *s - query_level - density + 2.0) / 4.0;
+                            }
+                        }
                         let (best, score) = scores
                             .iter()
                             .copied()
