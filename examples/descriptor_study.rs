@@ -414,12 +414,26 @@ fn main() -> Result<()> {
                         let mean = post.ends_with('c').then(|| mean_of(&finish(db_raw.clone(), plain, None)));
                         (finish(db_raw.clone(), plain, mean.as_deref()), finish(q_raw.clone(), plain, mean.as_deref()))
                     };
-                    // The references' scores against each other, for `l2dK`.
-                    let gram: Vec<Vec<f32>> = if ["l2d", "l2r"].iter().any(|p| post.starts_with(p)) {
-                        db.iter().map(|r| cosine_scores(r, &db)).collect()
-                    } else {
-                        Vec::new()
+                    // Hubness correction (`l2dK` both sides, `l2rK` the reference's density only, `l2uK`
+                    // the query's level only): K, and which sides count.
+                    let hubness = [("l2d", true, true), ("l2r", true, false), ("l2u", false, true)]
+                        .into_iter()
+                        .find_map(|(prefix, reference, query)| {
+                            post.strip_prefix(prefix).map(|k| (k.parse::<usize>().unwrap_or(5), reference, query))
+                        });
+                    // The mean of the k best of `v`.
+                    let top_mean = |mut v: Vec<f32>, k: usize| -> f32 {
+                        v.sort_by(|a, b| b.total_cmp(a));
+                        let n = k.min(v.len()).max(1);
+                        v.iter().take(n).sum::<f32>() / n as f32
                     };
+                    // The references' scores against each other, and each reference's density among the
+                    // first `limit` references (a sequence's history), worked out once per limit.
+                    let gram: Vec<Vec<f32>> = match hubness {
+                        Some((_, true, _)) => db.iter().map(|r| cosine_scores(r, &db)).collect(),
+                        _ => Vec::new(),
+                    };
+                    let mut densities_by_limit: BTreeMap<usize, Vec<f32>> = BTreeMap::new();
                     let mut results = Vec::new();
                     for (qi, qv) in q.iter().enumerate() {
                         let limit = set.eligible[qi].unwrap_or(db.len());
@@ -428,33 +442,25 @@ fn main() -> Result<()> {
                             continue;
                         }
                         let mut scores = cosine_scores(qv, &db[..limit]);
-                        let hubness = post.strip_prefix("l2d").map(|k| (k, true, true));
-                        let hubness = hubness
-                            .or_else(|| post.strip_prefix("l2r").map(|k| (k, true, false)))
-                            .or_else(|| post.strip_prefix("l2u").map(|k| (k, false, true)));
                         if let Some((k, reference_side, query_side)) = hubness {
-                            // Hubness: each reference's score less half its density (the mean of its k best
-                            // scores against the other eligible references more than two away), as CSLS
-                            // does with the other domain; and the query's own level, its k best scores.
-                            let k: usize = k.parse().unwrap_or(5);
-                            let top_mean = |mut v: Vec<f32>| -> f32 {
-                                v.sort_by(|a, b| b.total_cmp(a));
-                                let n = k.min(v.len()).max(1);
-                                v.iter().take(n).sum::<f32>() / n as f32
-                            };
-                            let query_level = if query_side { top_mean(scores.clone()) } else { 0.0 };
-                            let densities: Vec<f32> = (0..limit)
-                                .filter(|_| reference_side)
-                                .map(|r| {
-                                    let others: Vec<f32> =
-                                        (0..limit).filter(|&o| o.abs_diff(r) > 2).map(|o| gram[r][o]).collect();
-                                    if others.is_empty() {
-                                        0.0
-                                    } else {
-                                        top_mean(others)
-                                    }
-                                })
-                                .collect();
+                            // Each score less half the reference's density (the mean of its k best scores
+                            // against the other eligible references more than two away), as CSLS does with
+                            // the other domain, and less half the query's level (its k best scores).
+                            let query_level = if query_side { top_mean(scores.clone(), k) } else { 0.0 };
+                            let densities = densities_by_limit.entry(limit).or_insert_with(|| {
+                                (0..limit)
+                                    .filter(|_| reference_side)
+                                    .map(|r| {
+                                        let others: Vec<f32> =
+                                            (0..limit).filter(|&o| o.abs_diff(r) > 2).map(|o| gram[r][o]).collect();
+                                        if others.is_empty() {
+                                            0.0
+                                        } else {
+                                            top_mean(others, k)
+                                        }
+                                    })
+                                    .collect()
+                            });
                             for (i, s) in scores.iter_mut().enumerate() {
                                 let density = densities.get(i).copied().unwrap_or(0.0);
                                 *s = (2.0 * *s - query_level - density + 2.0) / 4.0;

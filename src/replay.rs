@@ -87,14 +87,12 @@ impl ReplayRun {
     /// history (`params`) left no eligible keyframe for any query, most often a sequence shorter than
     /// `detector.exclude_recent.seconds`. `None` where some keyframe had one, or none was replayed.
     pub fn why_nothing_could_match(&self, params: &crate::config::Params) -> Option<String> {
-        if self.keyframes.is_empty() || self.keyframes.iter().any(|k| k.best.is_some()) {
+        let (first, last) = (self.keyframes.first()?, self.keyframes.last()?);
+        if self.keyframes.iter().any(|k| k.best.is_some()) {
             return None;
         }
         let detector = params.detector();
-        let span = match (self.keyframes.first(), self.keyframes.last()) {
-            (Some(first), Some(last)) => (last.stamp.nanos - first.stamp.nanos) as f64 / 1e9,
-            _ => 0.0,
-        };
+        let span = (last.stamp.nanos - first.stamp.nanos) as f64 / 1e9;
         Some(format!(
             "no keyframe could be matched: a match must be at least detector.exclude_recent.seconds ({} s) and \
              detector.exclude_recent.count ({}) keyframes older than its query, after detector.min_history ({}) \
