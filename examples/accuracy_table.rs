@@ -9,7 +9,8 @@
 //!
 //! Sets: Gardens Point day/night and the TUM desk orbit from `../shared/data/real`, Gardens Point
 //! again at 64x48 grayscale (degraded here, in a temporary folder: low-resolution cameras), the TUM
-//! fr3 two-pass and the synthetic sequences of `examples/common/mod.rs`; for verification also both
+//! fr3 two-pass and the synthetic sequences of `examples/common/mod.rs`, the hard one's night lap
+//! also as queries against its first lap (database/query mode); for verification also both
 //! synthetic sequences rendered with depth (metric poses, their errors against the covariance, and
 //! those of the loops outside the truth's place rule).
 
@@ -90,18 +91,56 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
             Some(orbit.join("loops.csv")),
         ),
     });
+    let hard = sequences.iter().find(|s| s.name.contains("hard")).map(|s| s.path.clone());
     for set in sequences {
         sets.push(DevSet { name: set.name.to_string(), data: Data::Sequence(set, None) });
     }
+    if let Some(hard) = hard {
+        let (database, queries, loops) = laps_as_database_and_queries(&hard, &tmp.join("synthetic_hard_laps"))?;
+        sets.push(DevSet {
+            name: "synthetic hard preset, night lap against first lap".into(),
+            data: Data::DatabaseQueries { database, queries, loops },
+        });
+    }
     Ok(sets)
+}
+
+/// The database/query mode on the hard preset (a map of one lap, then a relocalisation under other
+/// light): its 3-lap sequence at `sequence`, first lap written to `out/ref`, second lap (at night,
+/// offset) to `out/query`, and `out/loops.csv` listing for each query every first-lap frame within
+/// the default pose rule, however recent (the lap's last frames are where the next one starts).
+fn laps_as_database_and_queries(sequence: &Path, out: &Path) -> Result<(PathBuf, PathBuf, PathBuf)> {
+    let frames: Vec<_> = ecm_lcd::io::open_source(sequence, None)?.collect::<Result<_>>()?;
+    let stamps: Vec<_> = frames.iter().map(|f| f.stamp).collect();
+    let groundtruth = ecm_lcd::io::tum::read_groundtruth(&sequence.join("groundtruth.txt"))?;
+    let any_age = ecm_lcd::eval::PoseLoopCriteria { min_gap_s: 0.0, ..Default::default() };
+    let truth = ecm_lcd::eval::loop_truth_from_poses(&stamps, &groundtruth, &any_age);
+    let lap = frames.len() / 3;
+    let (database, queries) = (out.join("ref"), out.join("query"));
+    std::fs::create_dir_all(&database)?;
+    std::fs::create_dir_all(&queries)?;
+    let mut loops = String::new();
+    for (i, frame) in frames[..2 * lap].iter().enumerate() {
+        let (folder, index) = if i < lap { (&database, i) } else { (&queries, i - lap) };
+        frame.image.save(folder.join(format!("{index:04}.png")))?;
+        if i >= lap {
+            let matches: Vec<String> =
+                truth.matches(i).into_iter().flatten().filter(|&&m| m < lap).map(usize::to_string).collect();
+            loops.push_str(&format!("{index},{}\n", matches.join(" ")));
+        }
+    }
+    let loops_path = out.join("loops.csv");
+    std::fs::write(&loops_path, loops)?;
+    Ok((database, queries, loops_path))
 }
 
 /// What one configuration measured on one set.
 struct Row {
     metrics: Metrics,
     ms_per_keyframe: f64,
-    /// Mean geometric verification time per keyframe (0 when off).
-    verification_ms: f64,
+    /// Mean geometric verification time per keyframe (0 when off; `None` where not timed: the
+    /// database/query mode times whole images).
+    verification_ms: Option<f64>,
     /// The detector's default score threshold.
     min_score: f32,
     /// Candidates of a replayed sequence with its ground-truth poses (none for database/query sets).
@@ -135,7 +174,7 @@ fn measure(
     let mut row = Row {
         metrics: Metrics::default(),
         ms_per_keyframe: 0.0,
-        verification_ms: 0.0,
+        verification_ms: None,
         min_score: 0.0,
         candidates: Vec::new(),
         groundtruth: Vec::new(),
@@ -159,7 +198,7 @@ fn measure(
             };
             let t = run.mean();
             row.ms_per_keyframe = t.network_ms + t.descriptor_ms + t.detector_ms + t.verification_ms;
-            row.verification_ms = t.verification_ms;
+            row.verification_ms = Some(t.verification_ms);
             row.candidates = run.candidates.clone();
             // Evaluation's best match ignores temporal consistency, which acts on reports.
             let results = if consistent_reports_only { run.reported_results() } else { run.query_results() };
@@ -459,7 +498,7 @@ fn print_verification_row(name: &str, before: &Row, after: &Row, tum: bool) {
         "-".into()
     };
     println!(
-        "| {} | {} | {found_before} | {found_after} | {false_before} | {false_after} | {precision} | {:.1} | {} |",
+        "| {} | {} | {found_before} | {found_after} | {false_before} | {false_after} | {precision} | {} | {} |",
         name,
         if tum {
             "TUM fr3"
@@ -468,7 +507,7 @@ fn print_verification_row(name: &str, before: &Row, after: &Row, tum: bool) {
         } else {
             "none"
         },
-        after.verification_ms,
+        after.verification_ms.map_or("-".into(), |ms| format!("{ms:.1}")),
         pose_errors(after)
     );
 }

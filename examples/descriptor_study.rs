@@ -1,6 +1,7 @@
 //! Which network tap and aggregation carry place best: every combination on the real development
-//! sets and the hard synthetic preset, in memory (maps computed once per image). A program that
-//! measures and prints.
+//! sets and the hard synthetic preset (as a sequence, and its second and third laps as queries
+//! against its first, the database/query mode), in memory (maps computed once per image). A
+//! program that measures and prints.
 //!
 //!     cargo run --release --example descriptor_study [-- ARCH SIZE]
 //!
@@ -102,6 +103,27 @@ fn sets(shared: &Path, tmp: &Path) -> Result<Vec<Set>> {
         loop_truth_from_poses(&stamps, &read_groundtruth(&hard.join("groundtruth.txt"))?, &PoseLoopCriteria::default());
     let images: Vec<RgbImage> = frames.into_iter().map(|f| f.image).collect();
     let eligible = (0..images.len()).map(|i| Some(i.saturating_sub(25))).collect::<Vec<_>>();
+    // The same frames as database/query sets (the mode of a map built beforehand): the first lap is
+    // the database, the second lap (at night) or the third (by day, offset) the queries; a query's
+    // truth is every first-lap frame within the pose rule, however recent (the lap's end is its start).
+    let lap = images.len() / 3;
+    let any_age = PoseLoopCriteria { min_gap_s: 0.0, ..PoseLoopCriteria::default() };
+    let any_age = loop_truth_from_poses(&stamps, &read_groundtruth(&hard.join("groundtruth.txt"))?, &any_age);
+    for (name, laps) in [("synth hard db/query night", lap..2 * lap), ("synth hard db/query day", 2 * lap..3 * lap)] {
+        let mut lap_truth = LoopTruth::default();
+        for (q, global) in laps.clone().enumerate() {
+            for &m in any_age.matches(global).into_iter().flatten().filter(|&&m| m < lap) {
+                lap_truth.insert(q, m);
+            }
+        }
+        out.push(Set {
+            name: name.into(),
+            database: images[..lap].to_vec(),
+            queries: images[laps].to_vec(),
+            eligible: vec![None; lap],
+            truth: lap_truth,
+        });
+    }
     out.push(Set { name: "synth hard".into(), database: images.clone(), queries: images, eligible, truth });
     Ok(out)
 }
@@ -236,9 +258,9 @@ fn learn_whitening(vs: &[Vec<f32>], dim: usize) -> Whitening {
     learn_projection(vs, dim, true)
 }
 
-/// PCA onto `dim` axes (at most the sample count minus one); with `whiten`, unit variance per axis.
+/// PCA onto `dim` axes (at most the sample count minus one, and the descriptor's length); with `whiten`, unit variance per axis.
 fn learn_projection(vs: &[Vec<f32>], dim: usize, whiten: bool) -> Whitening {
-    Projection::learn(vs, dim.min(vs.len() - 1), whiten, "study").expect("descriptors to learn from")
+    Projection::learn(vs, dim.min(vs.len() - 1).min(vs[0].len()), whiten, "study").expect("descriptors to learn from")
 }
 
 fn whiten(w: &Whitening, v: &[f32]) -> Vec<f32> {
@@ -263,6 +285,15 @@ fn main() -> Result<()> {
     }
     let weights = resolve::resolve(None)?;
     let mut embedder = Embedder::new(weights.weights.for_arch(arch)?.network(false)?, size)?;
+    // Multi-scale: `STUDY_SCALES=320,160` also runs the network at those input sizes, and each
+    // aggregate becomes the sum of the unit aggregates at every size (the grid's cells cover the
+    // same part of the image at each).
+    let mut more_scales: Vec<Embedder> = std::env::var("STUDY_SCALES")
+        .unwrap_or_default()
+        .split(',')
+        .filter(|s| !s.is_empty())
+        .map(|s| Embedder::new(weights.weights.for_arch(arch)?.network(false)?, s.parse()?))
+        .collect::<Result<_>>()?;
     let blocks = arch.spec().blocks().len();
     let taps_env = std::env::var("STUDY_TAPS")
         .unwrap_or_else(|_| format!("{},{},{},{},{}", blocks - 9, blocks - 6, blocks - 4, blocks - 2, blocks - 1));
@@ -329,6 +360,25 @@ fn main() -> Result<()> {
         };
         let db_maps = maps(&mut embedder, &set.database)?;
         let q_maps = maps(&mut embedder, &set.queries)?;
+        let mut db_scaled = Vec::new();
+        let mut q_scaled = Vec::new();
+        for scale in &mut more_scales {
+            db_scaled.push(maps(scale, &set.database)?);
+            q_scaled.push(maps(scale, &set.queries)?);
+        }
+        // One image's aggregate: `maps` its taps at the first size, `scaled` at the other sizes.
+        let multi_scale = |maps: &[FeatureMap], scaled: &[&Vec<FeatureMap>], t: usize, agg: &str| {
+            let mut total = aggregate(&maps[t], agg);
+            if !scaled.is_empty() {
+                l2_normalise(&mut total);
+                for other in scaled {
+                    let mut v = aggregate(&other[t], agg);
+                    l2_normalise(&mut v);
+                    total.iter_mut().zip(&v).for_each(|(a, b)| *a += b);
+                }
+            }
+            total
+        };
         for combo in &combos {
             let name: Vec<String> = combo.iter().map(|(t, agg, w)| format!("{}:{agg}*{w}", taps[*t])).collect();
             let db = finish(db_maps.iter().map(|m| combined(m, combo)).collect(), "l2", None);
@@ -361,8 +411,16 @@ fn main() -> Result<()> {
         }
         for (t, tap) in taps.iter().enumerate() {
             for &agg in &aggs {
-                let db_raw: Vec<Vec<f32>> = db_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
-                let q_raw: Vec<Vec<f32>> = q_maps.iter().map(|m| aggregate(&m[t], agg)).collect();
+                let per_image = |maps: &[Vec<FeatureMap>], scaled: &[Vec<Vec<FeatureMap>>]| -> Vec<Vec<f32>> {
+                    (0..maps.len())
+                        .map(|i| {
+                            let others: Vec<&Vec<FeatureMap>> = scaled.iter().map(|s| &s[i]).collect();
+                            multi_scale(&maps[i], &others, t, agg)
+                        })
+                        .collect()
+                };
+                let db_raw = per_image(&db_maps, &db_scaled);
+                let q_raw = per_image(&q_maps, &q_scaled);
                 let learned = &whitenings[&(t, agg)];
                 for &post in &posts {
                     let (db, q) = if let Some(dim) = post.strip_prefix("l2p") {
