@@ -222,7 +222,7 @@ fn main() -> Result<()> {
         sets.retain(|set| wanted.split(',').any(|part| set.name.contains(part.trim())));
     }
     let weights = resolve::resolve(None)?;
-    let sequence_length = "3";
+    let sequence_length = "10";
     let defaults = Params::default();
     println!(
         "Defaults: descriptor {}, centring on the history {}, threshold {:?}; sequence rows: detector.sequence.length {sequence_length}.",
