@@ -119,15 +119,15 @@ fn laps_as_database_and_queries(sequence: &Path, out: &Path) -> Result<(PathBuf,
     let (database, queries) = (out.join("ref"), out.join("query"));
     std::fs::create_dir_all(&database)?;
     std::fs::create_dir_all(&queries)?;
-    let mut loops = String::new();
     for (i, frame) in frames[..2 * lap].iter().enumerate() {
         let (folder, index) = if i < lap { (&database, i) } else { (&queries, i - lap) };
         frame.image.save(folder.join(format!("{index:04}.png")))?;
-        if i >= lap {
-            let matches: Vec<String> =
-                truth.matches(i).into_iter().flatten().filter(|&&m| m < lap).map(usize::to_string).collect();
-            loops.push_str(&format!("{index},{}\n", matches.join(" ")));
-        }
+    }
+    let lap_truth = truth.between(lap..2 * lap, 0..lap);
+    let mut loops = String::new();
+    for query in 0..lap {
+        let matches: Vec<String> = lap_truth.matches(query).into_iter().flatten().map(usize::to_string).collect();
+        loops.push_str(&format!("{query},{}\n", matches.join(" ")));
     }
     let loops_path = out.join("loops.csv");
     std::fs::write(&loops_path, loops)?;

@@ -13,6 +13,7 @@ use anyhow::{bail, Context, Result};
 use nalgebra::{Isometry3, Vector3};
 use rayon::prelude::*;
 use std::collections::{BTreeMap, BTreeSet};
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 static NO_MATCHES: BTreeSet<usize> = BTreeSet::new();
@@ -71,6 +72,24 @@ impl LoopTruth {
     /// Marks `query` as having unknown truth; it is then left out of the metrics.
     pub fn mark_unknown(&mut self, query: usize) {
         self.unknown.insert(query);
+    }
+
+    /// The truth of a database/query set cut from one sequence: the frames `queries` against the
+    /// frames `references`, each renumbered from 0. A query keeps only its matches among the
+    /// references, and stays unknown where it was.
+    pub fn between(&self, queries: Range<usize>, references: Range<usize>) -> LoopTruth {
+        let mut cut = LoopTruth::default();
+        for (q, frame) in queries.enumerate() {
+            match self.matches(frame) {
+                None => cut.mark_unknown(q),
+                Some(matched) => {
+                    for m in matched.range(references.clone()) {
+                        cut.insert(q, m - references.start);
+                    }
+                }
+            }
+        }
+        cut
     }
 }
 
@@ -244,6 +263,19 @@ mod tests {
         let mut none = LoopTruth::default();
         (0..3).for_each(|q| none.mark_unknown(q));
         assert!(none.check_within(3, 3).unwrap_err().to_string().contains("covers none of the 3 frames"));
+    }
+
+    #[test]
+    fn a_cut_keeps_the_matches_among_its_references_renumbered() {
+        let mut truth = parse_loops("5,0 3\n6,1 2 4\n7,6\n").unwrap();
+        truth.mark_unknown(8);
+        let cut = truth.between(5..9, 1..4);
+        assert_eq!(cut.matches(0).unwrap().iter().copied().collect::<Vec<_>>(), vec![2]);
+        assert_eq!(cut.matches(1).unwrap().iter().copied().collect::<Vec<_>>(), vec![0, 1]);
+        assert!(cut.matches(2).unwrap().is_empty(), "its only match is outside the references");
+        assert_eq!(cut.matches(3), None, "unknown stays unknown");
+        assert_eq!(cut.positive_queries().collect::<Vec<_>>(), vec![0, 1]);
+        assert!(cut.check_within(4, 3).is_ok());
     }
 
     fn pose(x: f64, y: f64, yaw_deg: f64) -> Isometry3<f64> {
