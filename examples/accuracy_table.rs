@@ -308,14 +308,15 @@ fn main() -> Result<()> {
     if std::env::var_os("ACCURACY_SKIP_VERIFICATION").is_some() {
         return Ok(());
     }
-    verification_table(&sets, &weights)
+    let extra: Vec<(&str, &str)> = extra.iter().map(|(n, v)| (n.as_str(), v.as_str())).collect();
+    verification_table(&sets, &weights, &extra)
 }
 
 /// Geometric verification on each set: retrieval at a permissive threshold (every top-1 match is a
 /// candidate), then the same with verification on. TUM sets use the published fr3 intrinsics and the
 /// synthetic set its renderer's camera (so the relative pose is estimated too); Gardens Point runs
-/// without intrinsics.
-fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
+/// without intrinsics. `extra`: parameters set first on every row.
+fn verification_table(sets: &[DevSet], weights: &Resolved, extra: &[(&str, &str)]) -> Result<()> {
     println!();
     println!("Geometric verification (`verification.mode`), every top-1 match a candidate (`detector.min_score` 0):");
     println!();
@@ -347,8 +348,9 @@ fn verification_table(sets: &[DevSet], weights: &Resolved) -> Result<()> {
         } else {
             &[("verification.mode", "on")]
         };
-        let permissive = [("detector.min_score", "0")];
-        let (before, _) = measure(set, &[permissive[0], ("verification.mode", "off")], None, weights)?;
+        let permissive: Vec<(&str, &str)> = extra.iter().copied().chain([("detector.min_score", "0")]).collect();
+        let unverified: Vec<(&str, &str)> = permissive.iter().copied().chain([("verification.mode", "off")]).collect();
+        let (before, _) = measure(set, &unverified, None, weights)?;
         let overrides: Vec<(&str, &str)> = permissive.iter().chain(verification).copied().collect();
         print_verification_row(&set.name, &before, &measure(set, &overrides, None, weights)?.0, tum);
         // XFeat instead of ORB, where its weights are given: XFEAT_WEIGHTS=.../xfeat.pt.

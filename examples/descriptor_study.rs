@@ -12,7 +12,9 @@
 //! `c` centres on the database mean, `l2pN` projects on N principal axes learned from synthetic
 //! frames, `l2hN` on N axes learned from the database itself, `l2qK` stores each value with K
 //! levels (`l2qsgn`: its sign), `l2dK` corrects each score for hubness (less half the reference's and
-//! half the query's mean K best scores, as CSLS does); `STUDY_POSTS=l2,l2q8` picks them. `STUDY_PHOTO=equalise` (or
+//! half the query's mean K best scores, as CSLS does), `l2xK` scores a grid against the reference
+//! shifted by up to K columns too and keeps the best (`STUDY_SHIFT_FILL=f`: a cell shifted out counts
+//! as cosine f; unset, the overlap's mean); `STUDY_POSTS=l2,l2q8` picks them. `STUDY_PHOTO=equalise` (or
 //! `stretch`, `gamma`, `standardise`) normalises every image's brightness before the network, and
 //! `STUDY_DUMP=FILE` appends each calibrated query's scores and true matches as JSON lines.
 //! `STUDY_COMBOS="12:grid4-mac+16:grid2-mac;..."` also measures combinations of taps (each part
@@ -188,6 +190,39 @@ fn aggregate(fm: &FeatureMap, agg: &str) -> Vec<f32> {
         "grid4" => grid(fm, how, 4),
         _ => unreachable!(),
     }
+}
+
+/// The best over horizontal shifts of up to `shifts` cells of a grid descriptor (`cells` x `cells`
+/// unit cells, the whole L2-normalised): the mean cosine of the cells that overlap.
+/// `fill`: the cosine a cell shifted out counts as (`None`: the mean of those that overlap).
+fn shift_tolerant(query: &[f32], reference: &[f32], cells: usize, shifts: usize, fill: Option<f32>) -> f32 {
+    let channels = query.len() / (cells * cells);
+    let cell = |v: &'_ [f32], gy: usize, gx: usize| {
+        let start = (gy * cells + gx) * channels;
+        v[start..start + channels].to_vec()
+    };
+    let mut best = f32::NEG_INFINITY;
+    for shift in -(shifts as isize)..=shifts as isize {
+        let (mut sum, mut n) = (0.0f32, 0usize);
+        for gy in 0..cells {
+            for gx in 0..cells {
+                let rx = gx as isize + shift;
+                if rx < 0 || rx >= cells as isize {
+                    continue;
+                }
+                let (a, b) = (cell(query, gy, gx), cell(reference, gy, rx as usize));
+                sum += a.iter().zip(&b).map(|(x, y)| x * y).sum::<f32>();
+                n += 1;
+            }
+        }
+        let all = (cells * cells) as f32;
+        let score = match fill {
+            Some(fill) => (sum * all + fill * (all - n as f32)) / all,
+            None => sum * all / n as f32,
+        };
+        best = best.max(score);
+    }
+    best
 }
 
 fn cosine_scores(query: &[f32], database: &[Vec<f32>]) -> Vec<f32> {
@@ -494,6 +529,15 @@ fn main() -> Result<()> {
                             continue;
                         }
                         let mut scores = cosine_scores(qv, &db[..limit]);
+                        if let (Some(shifts), Some(cells)) = (
+                            post.strip_prefix("l2x").and_then(|k| k.parse::<usize>().ok()),
+                            agg.strip_prefix("grid").and_then(|a| a[..1].parse::<usize>().ok()),
+                        ) {
+                            let fill = std::env::var("STUDY_SHIFT_FILL").ok().and_then(|f| f.parse::<f32>().ok());
+                            for (s, r) in scores.iter_mut().zip(&db[..limit]) {
+                                *s = shift_tolerant(qv, r, cells, shifts, fill);
+                            }
+                        }
                         if let Some((k, reference_side, query_side)) = hubness {
                             // Each score less half the reference's density (the mean of its k best scores
                             // against the other eligible references more than two away), as CSLS does with
