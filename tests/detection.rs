@@ -5,14 +5,15 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use ecm_lcd::config::Params;
-use ecm_lcd::eval::{evaluate, loop_truth_from_poses, revisit::write_two_pass, PoseLoopCriteria};
+use ecm_lcd::detector::Threshold;
+use ecm_lcd::eval::{evaluate, images_in_name_order, loop_truth_from_poses, revisit::write_two_pass, PoseLoopCriteria};
 use ecm_lcd::io::image_msg::WireEncoding;
 use ecm_lcd::io::ros1bag::{write_ros1_bag, Ros1Compression};
 use ecm_lcd::io::ros2bag::{write_ros2_bag, Ros2Storage};
 use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::model::weights::resolve;
 use ecm_lcd::pipeline::Pipeline;
-use ecm_lcd::replay::run_source;
+use ecm_lcd::replay::{run_database_queries, run_source};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 
 fn shared() -> PathBuf {
@@ -95,6 +96,32 @@ fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
     );
     assert_eq!(metrics.positives, 8);
     assert!(metrics.recall_at_1.unwrap() >= 0.875, "{metrics:?}");
+}
+
+/// Two real offices that are different places (TUM fr2 desk: a desk in a hall; fr3 long office
+/// household: two desks at a partition), each the database for the other's frames: no query's best
+/// match reaches the default `detector.min_score`, so none would be reported as a loop.
+#[test]
+fn a_real_office_never_seen_is_not_reported_at_the_default_threshold() {
+    let tum = shared().join("data/tum");
+    let fr2 = images_in_name_order(&tum.join("fr2_desk/rgb")).unwrap();
+    let fr3 = images_in_name_order(&tum.join("fr3_long_office_household/rgb")).unwrap();
+    let Threshold::MinScore(min_score) = Params::default().detector().threshold else {
+        panic!("the default threshold is a score")
+    };
+    for (database, queries) in [(&fr3, &fr2), (&fr2, &fr3)] {
+        let mut pipeline = Pipeline::with_weights(Params::default(), weights()).unwrap();
+        let (results, _) = run_database_queries(&mut pipeline, database, queries).unwrap();
+        let scores: Vec<f32> = results.iter().filter_map(|r| r.best.map(|(_, score)| score)).collect();
+        assert_eq!(scores.len(), queries.len(), "every query has a best match");
+        let highest = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        println!(
+            "{} queries against {} references of another office: highest score {highest}",
+            queries.len(),
+            database.len()
+        );
+        assert!(highest < min_score, "an office never seen scores {highest}, the threshold is {min_score}");
+    }
 }
 
 /// The same real frames one every 2 s (a slower camera, 34 s in all). By `eval`'s default truth (20 s
