@@ -197,25 +197,20 @@ fn aggregate(fm: &FeatureMap, agg: &str) -> Vec<f32> {
 /// `fill`: the cosine a cell shifted out counts as (`None`: the mean of those that overlap).
 fn shift_tolerant(query: &[f32], reference: &[f32], cells: usize, shifts: usize, fill: Option<f32>) -> f32 {
     let channels = query.len() / (cells * cells);
-    let cell = |v: &'_ [f32], gy: usize, gx: usize| {
-        let start = (gy * cells + gx) * channels;
-        v[start..start + channels].to_vec()
-    };
+    let (query_cells, reference_cells): (Vec<&[f32]>, Vec<&[f32]>) =
+        (query.chunks_exact(channels).collect(), reference.chunks_exact(channels).collect());
+    let all = (cells * cells) as f32;
     let mut best = f32::NEG_INFINITY;
     for shift in -(shifts as isize)..=shifts as isize {
         let (mut sum, mut n) = (0.0f32, 0usize);
         for gy in 0..cells {
             for gx in 0..cells {
-                let rx = gx as isize + shift;
-                if rx < 0 || rx >= cells as isize {
-                    continue;
-                }
-                let (a, b) = (cell(query, gy, gx), cell(reference, gy, rx as usize));
-                sum += a.iter().zip(&b).map(|(x, y)| x * y).sum::<f32>();
+                let Some(rx) = gx.checked_add_signed(shift).filter(|&rx| rx < cells) else { continue };
+                let (a, b) = (query_cells[gy * cells + gx], reference_cells[gy * cells + rx]);
+                sum += a.iter().zip(b).map(|(x, y)| x * y).sum::<f32>();
                 n += 1;
             }
         }
-        let all = (cells * cells) as f32;
         let score = match fill {
             Some(fill) => (sum * all + fill * (all - n as f32)) / all,
             None => sum * all / n as f32,
@@ -521,6 +516,12 @@ fn main() -> Result<()> {
                         _ => Vec::new(),
                     };
                     let mut densities_by_limit: BTreeMap<usize, Vec<f32>> = BTreeMap::new();
+                    // Shift-tolerant scores (`l2xK` on a `gridN` aggregate): K and N.
+                    let shifted = post
+                        .strip_prefix("l2x")
+                        .and_then(|k| k.parse::<usize>().ok())
+                        .zip(agg.strip_prefix("grid").and_then(|a| a.get(..1)?.parse::<usize>().ok()));
+                    let fill = std::env::var("STUDY_SHIFT_FILL").ok().and_then(|f| f.parse::<f32>().ok());
                     let mut results = Vec::new();
                     for (qi, qv) in q.iter().enumerate() {
                         let limit = set.eligible[qi].unwrap_or(db.len());
@@ -529,11 +530,7 @@ fn main() -> Result<()> {
                             continue;
                         }
                         let mut scores = cosine_scores(qv, &db[..limit]);
-                        if let (Some(shifts), Some(cells)) = (
-                            post.strip_prefix("l2x").and_then(|k| k.parse::<usize>().ok()),
-                            agg.strip_prefix("grid").and_then(|a| a[..1].parse::<usize>().ok()),
-                        ) {
-                            let fill = std::env::var("STUDY_SHIFT_FILL").ok().and_then(|f| f.parse::<f32>().ok());
+                        if let Some((shifts, cells)) = shifted {
                             for (s, r) in scores.iter_mut().zip(&db[..limit]) {
                                 *s = shift_tolerant(qv, r, cells, shifts, fill);
                             }

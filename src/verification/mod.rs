@@ -333,7 +333,7 @@ pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
 
 /// ORB's pyramid and patches need a frame at least this many pixels on its shorter side; a smaller
 /// one has no ORB features.
-pub const ORB_MIN_SIDE: u32 = 64;
+const ORB_MIN_SIDE: u32 = 64;
 
 /// ORB features of a grayscale image, at most `max_features`.
 fn extract_gray(gray: image::GrayImage, max_features: usize) -> Result<LocalFeatures> {
