@@ -10,10 +10,12 @@
 //!
 //! Backward (with `x̂ = (x - mean) / sqrt(var + eps)`): `dbeta = Σ dy`, `dgamma = Σ dy x̂`,
 //! `dx = gamma / sqrt(var + eps) (dy - dbeta / M - x̂ dgamma / M)`. Statistics are recomputed
-//! in each pass (a read of `x`) rather than cached, so the ops stay stateless. Sums are in f64.
+//! rather than cached, so the ops stay stateless: in the forward pass once for the running
+//! statistics and once for `y`, in the backward pass once with both gradient sums. Each plane is
+//! summed in `f32` lanes, the planes in `f64`.
 //! Tests compare values and gradients with candle-nn's BatchNorm.
 
-use candle_core::{CpuStorage, CustomOp2, CustomOp3, InplaceOp2, Layout, Result, Shape, Tensor};
+use candle_core::{CpuStorage, CustomOp1, CustomOp2, CustomOp3, InplaceOp2, Layout, Result, Shape, Tensor};
 use candle_nn::BatchNorm;
 use rayon::prelude::*;
 
@@ -38,30 +40,85 @@ struct ChannelStats {
     sum_dy_xhat: f64,
 }
 
+/// Independent partial sums: the compiler keeps them in vector registers, where one running
+/// `f64` sum is a chain of dependent scalar additions.
+const LANES: usize = 16;
+
+/// `Σ f(i)` over `0..len` in [`LANES`] independent `f32` sums, totalled in `f64`.
+#[inline(always)]
+fn lane_sum(len: usize, f: impl Fn(usize) -> f32) -> f64 {
+    let mut lanes = [0f32; LANES];
+    let whole = len / LANES * LANES;
+    for start in (0..whole).step_by(LANES) {
+        for (l, lane) in lanes.iter_mut().enumerate() {
+            *lane += f(start + l);
+        }
+    }
+    lanes.iter().map(|&v| v as f64).sum::<f64>() + (whole..len).map(|i| f(i) as f64).sum::<f64>()
+}
+
+/// Per channel, the sum over the batch of `per_plane(channel, plane)` for each `[B, C]` plane.
+/// The planes are visited in memory order, many to a task: the deep layers' planes hold only a
+/// few values each, and visiting them channel by channel strode across the whole batch.
+fn channel_sums(
+    (batch, channels, plane): (usize, usize, usize),
+    per_plane: impl Fn(usize, usize) -> f64 + Sync,
+) -> Vec<f64> {
+    let per_task = (4096 / plane.max(1)).max(1);
+    let sums: Vec<f64> =
+        (0..batch * channels).into_par_iter().with_min_len(per_task).map(|p| per_plane(p % channels, p)).collect();
+    let mut totals = vec![0f64; channels];
+    for row in sums.chunks(channels) {
+        for (t, s) in totals.iter_mut().zip(row) {
+            *t += s;
+        }
+    }
+    totals
+}
+
 fn channel_stats(
     x: &[f32],
     dy: Option<&[f32]>,
-    (batch, channels, plane): (usize, usize, usize),
+    dims @ (batch, channels, plane): (usize, usize, usize),
     eps: f64,
 ) -> Vec<ChannelStats> {
+    let m = (batch * plane) as f64;
+    let values = |p: usize| &x[p * plane..(p + 1) * plane];
+    let mean: Vec<f64> = channel_sums(dims, |_, p| {
+        let x = values(p);
+        lane_sum(x.len(), |i| x[i])
+    })
+    .into_iter()
+    .map(|s| s / m)
+    .collect();
+    let var: Vec<f64> = channel_sums(dims, |c, p| {
+        let (x, mean) = (values(p), mean[c] as f32);
+        lane_sum(x.len(), |i| (x[i] - mean) * (x[i] - mean))
+    })
+    .into_iter()
+    .map(|s| s / m)
+    .collect();
+    let (sum_dy, sum_dy_centred) = match dy {
+        Some(dy) => {
+            let gradients = |p: usize| &dy[p * plane..(p + 1) * plane];
+            let sum_dy = channel_sums(dims, |_, p| {
+                let g = gradients(p);
+                lane_sum(g.len(), |i| g[i])
+            });
+            let centred = channel_sums(dims, |c, p| {
+                let (g, x, mean) = (gradients(p), values(p), mean[c] as f32);
+                lane_sum(g.len(), |i| g[i] * (x[i] - mean))
+            });
+            (sum_dy, centred)
+        }
+        None => (vec![0.0; channels], vec![0.0; channels]),
+    };
     (0..channels)
-        .into_par_iter()
-        .map(|c| {
-            let planes = || (0..batch).map(move |b| (b * channels + c) * plane..(b * channels + c + 1) * plane);
-            let m = (batch * plane) as f64;
-            let mean = planes().map(|r| x[r].iter().map(|&v| v as f64).sum::<f64>()).sum::<f64>() / m;
-            let var = planes().map(|r| x[r].iter().map(|&v| (v as f64 - mean).powi(2)).sum::<f64>()).sum::<f64>() / m;
-            let (mut sum_dy, mut sum_dy_xhat) = (0.0, 0.0);
-            if let Some(dy) = dy {
-                let inv_std = 1.0 / (var + eps).sqrt();
-                for r in planes() {
-                    for (&g, &v) in dy[r.clone()].iter().zip(&x[r]) {
-                        sum_dy += g as f64;
-                        sum_dy_xhat += g as f64 * (v as f64 - mean) * inv_std;
-                    }
-                }
-            }
-            ChannelStats { mean, var, sum_dy, sum_dy_xhat }
+        .map(|c| ChannelStats {
+            mean: mean[c],
+            var: var[c],
+            sum_dy: sum_dy[c],
+            sum_dy_xhat: sum_dy_centred[c] / (var[c] + eps).sqrt(),
         })
         .collect()
 }
@@ -119,16 +176,32 @@ impl CustomOp3 for BatchNormTrain {
         dy: &Tensor,
     ) -> Result<(Option<Tensor>, Option<Tensor>, Option<Tensor>)> {
         let dy = dy.contiguous()?;
-        let dx = x.apply_op3_no_bwd(&dy, gamma, &InputGradient { eps: self.eps })?;
-        let params = x.apply_op2_no_bwd(&dy, &ParamGradients { eps: self.eps })?;
+        // One read of `x` and `dy` gives both parameter gradients and the statistics, from which
+        // the input gradient is a per-channel affine map of `dy` and `x`.
+        let stats = x.apply_op2_no_bwd(&dy, &BackwardStats { eps: self.eps })?;
+        let rows = stats.to_vec2::<f64>()?;
+        let (sum_dy_xhat, sum_dy, mean, var) = (&rows[0], &rows[1], &rows[2], &rows[3]);
+        let channels = gamma.elem_count();
+        let m = (x.elem_count() / channels.max(1)) as f64;
+        let mut coefficients = vec![0f32; 3 * channels];
+        for (c, &g) in gamma.to_vec1::<f32>()?.iter().enumerate() {
+            let inv_std = 1.0 / (var[c] + self.eps).sqrt();
+            // dx = a dy + b x + d, expanded so the inner loop is two multiply-adds.
+            let a = g as f64 * inv_std;
+            let b = -a * sum_dy_xhat[c] / m * inv_std;
+            let d = -a * sum_dy[c] / m - b * mean[c];
+            (coefficients[c], coefficients[channels + c], coefficients[2 * channels + c]) =
+                (a as f32, b as f32, d as f32);
+        }
+        let coefficients = Tensor::from_vec(coefficients, (3, channels), x.device())?;
+        let dx = x.apply_op3_no_bwd(&dy, &coefficients, &InputGradient)?;
+        let params = stats.narrow(0, 0, 2)?.to_dtype(candle_core::DType::F32)?;
         Ok((Some(dx), Some(params.get(0)?), Some(params.get(1)?)))
     }
 }
 
-/// `(x, dy, gamma) -> dx`.
-struct InputGradient {
-    eps: f64,
-}
+/// `(x, dy, [a; b; d]) -> dx = a dy + b x + d`, with `[3, C]` per-channel coefficients.
+struct InputGradient;
 
 impl CustomOp3 for InputGradient {
     fn name(&self) -> &'static str {
@@ -141,30 +214,25 @@ impl CustomOp3 for InputGradient {
         l_x: &Layout,
         s_d: &CpuStorage,
         l_d: &Layout,
-        s_g: &CpuStorage,
-        l_g: &Layout,
+        s_c: &CpuStorage,
+        l_c: &Layout,
     ) -> Result<(CpuStorage, Shape)> {
         let dims = split_shape(l_x.shape())?;
         if l_d.shape() != l_x.shape() {
             candle_core::bail!("batch norm gradient {:?} for input {:?}", l_d.shape(), l_x.shape());
         }
-        let (x, dy, gamma) =
-            (contiguous(s_x, l_x, "input")?, contiguous(s_d, l_d, "gradient")?, contiguous(s_g, l_g, "gamma")?);
+        let (x, dy, coefficients) =
+            (contiguous(s_x, l_x, "input")?, contiguous(s_d, l_d, "gradient")?, contiguous(s_c, l_c, "coefficients")?);
         let channels = dims.1;
-        let m = (dims.0 * dims.2) as f64;
-        let stats = channel_stats(x, Some(dy), dims, self.eps);
+        if coefficients.len() != 3 * channels {
+            candle_core::bail!("batch norm: {} gradient coefficients for {channels} channels", coefficients.len());
+        }
         let plane = dims.2.max(1);
         let mut out = vec![0f32; x.len()];
         out.par_chunks_mut(plane).zip(x.par_chunks(plane).zip(dy.par_chunks(plane))).enumerate().for_each(
             |(p, (dx, (x, dy)))| {
-                let (c, s) = (p % channels, &stats[p % channels]);
-                let inv_std = 1.0 / (s.var + self.eps).sqrt();
-                // dx = a dy + b x + d, expanded so the inner loop is two multiply-adds.
-                let k = gamma[c] as f64 * inv_std;
-                let a = k;
-                let b = -k * s.sum_dy_xhat / m * inv_std;
-                let d = -k * s.sum_dy / m - b * s.mean;
-                let (a, b, d) = (a as f32, b as f32, d as f32);
+                let c = p % channels;
+                let (a, b, d) = (coefficients[c], coefficients[channels + c], coefficients[2 * channels + c]);
                 for ((o, &x), &g) in dx.iter_mut().zip(x).zip(dy) {
                     *o = a * g + b * x + d;
                 }
@@ -174,14 +242,14 @@ impl CustomOp3 for InputGradient {
     }
 }
 
-/// `(x, dy) -> [[dgamma...], [dbeta...]]`.
-struct ParamGradients {
+/// `(x, dy) -> [[dgamma...], [dbeta...], [mean...], [var...]]` in `f64`.
+struct BackwardStats {
     eps: f64,
 }
 
-impl CustomOp2 for ParamGradients {
+impl CustomOp2 for BackwardStats {
     fn name(&self) -> &'static str {
-        "batch-norm-train-param-grad"
+        "batch-norm-train-backward-stats"
     }
 
     fn cpu_fwd(&self, s_x: &CpuStorage, l_x: &Layout, s_d: &CpuStorage, l_d: &Layout) -> Result<(CpuStorage, Shape)> {
@@ -191,15 +259,31 @@ impl CustomOp2 for ParamGradients {
         }
         let stats =
             channel_stats(contiguous(s_x, l_x, "input")?, Some(contiguous(s_d, l_d, "gradient")?), dims, self.eps);
-        let out: Vec<f32> =
-            stats.iter().map(|s| s.sum_dy_xhat as f32).chain(stats.iter().map(|s| s.sum_dy as f32)).collect();
-        Ok((CpuStorage::F32(out), Shape::from_dims(&[2, dims.1])))
+        let fields: [fn(&ChannelStats) -> f64; 4] = [|s| s.sum_dy_xhat, |s| s.sum_dy, |s| s.mean, |s| s.var];
+        let out: Vec<f64> = fields.iter().flat_map(|field| stats.iter().map(field)).collect();
+        Ok((CpuStorage::F64(out), Shape::from_dims(&[4, dims.1])))
+    }
+}
+
+/// `x -> [[mean...], [biased var...]]` in `f64`, read by [`RunningUpdate`].
+struct BatchStats;
+
+impl CustomOp1 for BatchStats {
+    fn name(&self) -> &'static str {
+        "batch-norm-batch-stats"
+    }
+
+    fn cpu_fwd(&self, s_x: &CpuStorage, l_x: &Layout) -> Result<(CpuStorage, Shape)> {
+        let dims = split_shape(l_x.shape())?;
+        let stats = channel_stats(contiguous(s_x, l_x, "input")?, None, dims, 0.0);
+        let out: Vec<f64> = stats.iter().map(|s| s.mean).chain(stats.iter().map(|s| s.var)).collect();
+        Ok((CpuStorage::F64(out), Shape::from_dims(&[2, dims.1])))
     }
 }
 
 /// Moves running statistics in place: `running = (1 - momentum) running + momentum batch`,
 /// where `batch` is the mean (`variance_count == None`) or, for `Some(M)`, the biased variance
-/// times `M / (M - 1)`.
+/// times `M / (M - 1)`, both read from [`BatchStats`]' rows.
 struct RunningUpdate {
     momentum: f64,
     variance_count: Option<usize>,
@@ -210,21 +294,24 @@ impl InplaceOp2 for RunningUpdate {
         "batch-norm-running-update"
     }
 
-    fn cpu_fwd(&self, s_r: &mut CpuStorage, l_r: &Layout, s_x: &CpuStorage, l_x: &Layout) -> Result<()> {
-        let dims = split_shape(l_x.shape())?;
-        let stats = channel_stats(contiguous(s_x, l_x, "input")?, None, dims, 0.0);
+    fn cpu_fwd(&self, s_r: &mut CpuStorage, l_r: &Layout, s_s: &CpuStorage, l_s: &Layout) -> Result<()> {
+        let channels = l_s.shape().dims2()?.1;
+        let (start, end) = l_s
+            .contiguous_offsets()
+            .ok_or_else(|| candle_core::Error::Msg("batch norm: batch statistics must be contiguous".into()))?;
+        let stats = &s_s.as_slice::<f64>()?[start..end];
         let (start, end) = l_r
             .contiguous_offsets()
             .ok_or_else(|| candle_core::Error::Msg("batch norm: running statistics must be contiguous".into()))?;
         let CpuStorage::F32(running) = s_r else { candle_core::bail!("batch norm: f32 running statistics only") };
         let running = &mut running[start..end];
-        if running.len() != dims.1 {
-            candle_core::bail!("batch norm: {} running values for {} channels", running.len(), dims.1);
+        if running.len() != channels {
+            candle_core::bail!("batch norm: {} running values for {channels} channels", running.len());
         }
-        for (r, s) in running.iter_mut().zip(&stats) {
+        for (c, r) in running.iter_mut().enumerate() {
             let batch = match self.variance_count {
-                None => s.mean,
-                Some(m) => s.var * m as f64 / (m as f64 - 1.0),
+                None => stats[c],
+                Some(m) => stats[channels + c] * m as f64 / (m as f64 - 1.0),
             };
             *r = ((1.0 - self.momentum) * *r as f64 + self.momentum * batch) as f32;
         }
@@ -247,9 +334,9 @@ pub fn batch_norm_train(bn: &BatchNorm, x: &Tensor) -> Result<Tensor> {
     if gamma.elem_count() != channels {
         candle_core::bail!("batch norm: {} features for input {:?}", gamma.elem_count(), x.shape());
     }
-    let detached = x.detach();
-    bn.running_mean().inplace_op2(&detached, &RunningUpdate { momentum: bn.momentum(), variance_count: None })?;
-    bn.running_var().inplace_op2(&detached, &RunningUpdate { momentum: bn.momentum(), variance_count: Some(count) })?;
+    let stats = x.detach().apply_op1_no_bwd(&BatchStats)?;
+    bn.running_mean().inplace_op2(&stats, &RunningUpdate { momentum: bn.momentum(), variance_count: None })?;
+    bn.running_var().inplace_op2(&stats, &RunningUpdate { momentum: bn.momentum(), variance_count: Some(count) })?;
     x.apply_op3(&gamma.contiguous()?, &beta.contiguous()?, BatchNormTrain { eps: bn.eps() })
 }
 
