@@ -10,7 +10,7 @@
 //!   weight it is, per channel and tap, the correlation of the input with the output gradient,
 //!   summed over the batch.
 //!
-//! All three walk the same list of row spans ([`Geometry::for_each_span`]): one output row
+//! All three walk the same list of row spans ([`Geometry::spans`]): one output row
 //! segment, the input row segment it reads (every `stride`-th pixel), and the kernel tap. Work
 //! is split over batch x channel planes with rayon. Tests check the gradients by finite
 //! differences and against the gradients of candle's grouped convolution.
@@ -41,12 +41,12 @@ impl Geometry {
         Geometry { height, width, kh, kw, stride, oh, ow, pad_top, pad_left }
     }
 
-    /// Calls `f(out_start, in_start, tap, len)` for every run of outputs `out_start..out_start+len`
-    /// (plane offsets) that read input pixels `in_start, in_start + stride, ...` through kernel tap
-    /// `tap` (`ky * kw + kx`); taps that fall into the padding are skipped.
-    #[inline(always)]
-    fn for_each_span(&self, mut f: impl FnMut(usize, usize, usize, usize)) {
+    /// Every run of outputs `out..out + len` (plane offsets) that reads input pixels `input,
+    /// input + stride, ...` through kernel tap `tap` (`ky * kw + kx`); taps that fall into the
+    /// padding are skipped. The list is the same for every plane, so each op makes it once.
+    fn spans(&self) -> Vec<Span> {
         let s = self.stride;
+        let mut spans = Vec::new();
         for oy in 0..self.oh {
             for ky in 0..self.kh {
                 let iy = (oy * s + ky) as isize - self.pad_top as isize;
@@ -60,12 +60,26 @@ impl Geometry {
                     if first >= last {
                         continue;
                     }
-                    let in_start = iy as usize * self.width + first * s + kx - self.pad_left;
-                    f(oy * self.ow + first, in_start, ky * self.kw + kx, last - first);
+                    let len = last - first;
+                    let input = iy as usize * self.width + first * s + kx - self.pad_left;
+                    spans.push(Span {
+                        out: oy * self.ow + first..oy * self.ow + last,
+                        input: input..input + (len - 1) * s + 1,
+                        tap: ky * self.kw + kx,
+                    });
                 }
             }
         }
+        spans
     }
+}
+
+/// One run of a plane's outputs, the input pixels it reads (every `stride`-th of `input`) and
+/// the kernel tap between them.
+struct Span {
+    out: std::ops::Range<usize>,
+    input: std::ops::Range<usize>,
+    tap: usize,
 }
 
 fn contiguous<'a>(storage: &'a CpuStorage, layout: &Layout, what: &str) -> Result<&'a [f32]> {
@@ -92,16 +106,17 @@ impl CustomOp2 for DepthwiseForward {
         let g = Geometry::new(height, width, kh, kw, self.stride);
         let s = g.stride;
         let mut out = vec![0f32; batch * channels * g.oh * g.ow];
+        let spans = g.spans();
         out.par_chunks_mut((g.oh * g.ow).max(1)).enumerate().for_each(|(plane, out_plane)| {
             let c = plane % channels;
             let src = &x[plane * height * width..(plane + 1) * height * width];
             let taps = &w[c * kh * kw..(c + 1) * kh * kw];
-            g.for_each_span(|o, i, k, len| {
-                let wv = taps[k];
-                for (j, y) in out_plane[o..o + len].iter_mut().enumerate() {
-                    *y += wv * src[i + j * s];
+            for span in &spans {
+                let wv = taps[span.tap];
+                for (y, &x) in out_plane[span.out.clone()].iter_mut().zip(src[span.input.clone()].iter().step_by(s)) {
+                    *y += wv * x;
                 }
-            });
+            }
         });
         Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, channels, g.oh, g.ow])))
     }
@@ -150,16 +165,17 @@ impl CustomOp2 for InputGradient {
         let (grad, w) = (contiguous(s_g, l_g, "gradient")?, contiguous(s_w, l_w, "weight")?);
         let (s, plane_in) = (g.stride, self.height * self.width);
         let mut out = vec![0f32; batch * channels * plane_in];
+        let spans = g.spans();
         out.par_chunks_mut(plane_in.max(1)).enumerate().for_each(|(plane, gx)| {
             let c = plane % channels;
             let gy = &grad[plane * oh * ow..(plane + 1) * oh * ow];
             let taps = &w[c * kh * kw..(c + 1) * kh * kw];
-            g.for_each_span(|o, i, k, len| {
-                let wv = taps[k];
-                for (j, gyv) in gy[o..o + len].iter().enumerate() {
-                    gx[i + j * s] += wv * gyv;
+            for span in &spans {
+                let wv = taps[span.tap];
+                for (gx, &gy) in gx[span.input.clone()].iter_mut().step_by(s).zip(&gy[span.out.clone()]) {
+                    *gx += wv * gy;
                 }
-            });
+            }
         });
         Ok((CpuStorage::F32(out), Shape::from_dims(&[batch, channels, self.height, self.width])))
     }
@@ -191,16 +207,18 @@ impl CustomOp2 for WeightGradient {
         // Per plane partial sums (accumulated in f64: a plane can have thousands of terms), then
         // a sum over the batch.
         let mut partial = vec![0f64; batch * channels * taps];
+        let spans = g.spans();
         partial.par_chunks_mut(taps).enumerate().for_each(|(plane, acc)| {
             let src = &x[plane * plane_in..(plane + 1) * plane_in];
             let gy = &grad[plane * plane_out..(plane + 1) * plane_out];
-            g.for_each_span(|o, i, k, len| {
-                let mut sum = 0f32;
-                for (j, gyv) in gy[o..o + len].iter().enumerate() {
-                    sum += gyv * src[i + j * s];
-                }
-                acc[k] += sum as f64;
-            });
+            for span in &spans {
+                let sum: f32 = gy[span.out.clone()]
+                    .iter()
+                    .zip(src[span.input.clone()].iter().step_by(s))
+                    .map(|(g, x)| g * x)
+                    .sum();
+                acc[span.tap] += sum as f64;
+            }
         });
         let mut out = vec![0f32; channels * taps];
         for (c, dst) in out.chunks_mut(taps).enumerate() {
