@@ -703,7 +703,17 @@ impl Params {
             "off" => false,
             _ => intrinsics.is_some(),
         };
-        on.then(|| VerificationParams {
+        on.then(|| self.verification_with(intrinsics))
+    }
+
+    /// The verification policy that applies now or will once intrinsics come (`auto`); `None` only
+    /// with `verification.mode` off.
+    pub fn verification_when_calibrated(&self) -> Option<VerificationParams> {
+        (self.string("verification.mode") != "off").then(|| self.verification_with(self.intrinsics()))
+    }
+
+    fn verification_with(&self, intrinsics: Option<Intrinsics>) -> VerificationParams {
+        VerificationParams {
             candidates: self.count("verification.candidates"),
             min_inliers: self.count("verification.min_inliers"),
             min_inlier_ratio: self.double("verification.min_inlier_ratio"),
@@ -727,7 +737,7 @@ impl Params {
                 .filter(|path| !path.is_empty())
                 .map(std::path::PathBuf::from),
             ..VerificationParams::default()
-        })
+        }
     }
 
     /// Selection rules; the novelty score is turned into a distance with the descriptor mode's mapping.

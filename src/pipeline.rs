@@ -30,7 +30,9 @@ use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::{Arch, Tap};
 use crate::types::{DepthImage, FeatureMap, Frame, LoopCandidate, RelativePose, Stamp, Verified};
-use crate::verification::{best_supported, Intrinsics, LocalFeatures, OdometryTrack, Tracked, Verification, Verifier};
+use crate::verification::{
+    best_supported, Intrinsics, LocalFeatureKind, LocalFeatures, OdometryTrack, Tracked, Verification, Verifier,
+};
 
 /// Milliseconds spent per stage on one frame.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
@@ -160,6 +162,12 @@ impl Pipeline {
         let verifier = params.verification(None).map(Verifier::new).transpose()?;
         if let Some(verifier) = &verifier {
             log::info!("geometric verification on: {:?}", verifier.params());
+        } else if let Some(later) = params.verification_when_calibrated() {
+            // Verification starts with the first camera intrinsics: XFeat's weights are found (or
+            // fetched) now, so that neither the error nor the download comes in the middle of a run.
+            if later.local_features == LocalFeatureKind::XFeat {
+                crate::model::xfeat::resolve_weights(later.xfeat_weights.as_deref())?;
+            }
         }
         let pipeline = Pipeline {
             embedder,

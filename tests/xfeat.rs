@@ -132,4 +132,19 @@ fn xfeat_without_weights_or_with_a_wrong_file_fails_with_a_message() {
     }
     let wrong = run(&["--param", &format!("verification.xfeat_weights={}", bogus.display())]);
     assert!(wrong.contains(&Path::new(&bogus).display().to_string()), "{wrong}");
+    // With `verification.mode` auto and no intrinsics yet (a node waiting for camera_info, here a
+    // folder of images), the weights are still looked for at the start, not when verification turns on.
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+        .arg("replay")
+        .arg(support::shared_dir().join("data/real/gardens_point_day_night/ref"))
+        .arg("-o")
+        .arg(dir.path().join("candidates.csv"))
+        .args(["--param", "verification.local_features=xfeat"])
+        .env("ECM_LCD_CACHE", dir.path())
+        .env("ECM_LCD_OFFLINE", "1")
+        .env_remove("ECM_LCD_WEIGHTS")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success() && stderr.contains("ECM_LCD_OFFLINE"), "{stderr}");
 }
