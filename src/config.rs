@@ -419,7 +419,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             "verification.local_features",
             "orb",
             &["orb", "xfeat"],
-            "Local features of verification: orb, or xfeat (learned, matches across day and night, about 7x slower; weights: verification.xfeat_weights).",
+            "Local features of verification: orb, or xfeat (learned, matches across day and night, about 4x slower; weights: verification.xfeat_weights).",
         ),
         ParamSpec {
             name: "verification.xfeat_weights",

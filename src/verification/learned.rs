@@ -14,6 +14,7 @@ use anyhow::Result;
 use image::GrayImage;
 
 use super::{Descriptors, LocalFeatures};
+use crate::model::kernels::matmul::{matmul, View};
 use crate::model::xfeat::{XFeat, CELL, SIDE_MULTIPLE};
 
 pub use crate::model::xfeat::FEATURE_DIM;
@@ -96,32 +97,60 @@ impl XFeatExtractor {
     }
 }
 
-/// Index pairs (query, match) of mutual most-similar features above [`MIN_COSINE`].
+/// Index pairs (query, match) of mutual most-similar features above [`MIN_COSINE`]; of equally
+/// similar features, the first.
 pub fn mutual_nearest(query: &[[i8; FEATURE_DIM]], matched: &[[i8; FEATURE_DIM]]) -> Vec<(usize, usize)> {
     if query.is_empty() || matched.is_empty() {
         return Vec::new();
     }
-    let dot = |a: &[i8; FEATURE_DIM], b: &[i8; FEATURE_DIM]| -> i32 {
-        a.iter().zip(b).map(|(&x, &y)| x as i32 * y as i32).sum()
-    };
-    let mut best_of_query = vec![(i32::MIN, 0usize); query.len()];
-    let mut best_of_match = vec![(i32::MIN, 0usize); matched.len()];
-    for (i, q) in query.iter().enumerate() {
-        for (j, m) in matched.iter().enumerate() {
-            let d = dot(q, m);
-            if d > best_of_query[i].0 {
-                best_of_query[i] = (d, j);
-            }
-            if d > best_of_match[j].0 {
-                best_of_match[j] = (d, i);
+    // Every pair's dot product as one matrix product, a block of query rows at a time. `f32` holds
+    // them exactly: integers of at most 64 * 127² < 2^24.
+    const ROWS_PER_BLOCK: usize = 256;
+    let as_f32 =
+        |features: &[[i8; FEATURE_DIM]]| -> Vec<f32> { features.iter().flatten().map(|&v| v as f32).collect() };
+    let (query_values, matched_values) = (as_f32(query), as_f32(matched));
+    let columns = matched.len();
+    let mut dots = vec![0f32; ROWS_PER_BLOCK.min(query.len()) * columns];
+    let mut best_of_query = Vec::with_capacity(query.len());
+    let (mut best_of_match, mut match_argmax) = (vec![f32::NEG_INFINITY; columns], vec![0u32; columns]);
+    for (block, rows) in query_values.chunks(ROWS_PER_BLOCK * FEATURE_DIM).enumerate() {
+        let count = rows.len() / FEATURE_DIM;
+        matmul(
+            count,
+            columns,
+            FEATURE_DIM,
+            &mut dots,
+            false,
+            View::rows(rows, FEATURE_DIM),
+            View::transposed(&matched_values, FEATURE_DIM),
+        );
+        for (r, row) in dots.chunks(columns).take(count).enumerate() {
+            let i = block * ROWS_PER_BLOCK + r;
+            let first_best =
+                row.iter().enumerate().fold(
+                    (f32::NEG_INFINITY, 0),
+                    |best, (j, &d)| {
+                        if d > best.0 {
+                            (d, j)
+                        } else {
+                            best
+                        }
+                    },
+                );
+            best_of_query.push(first_best);
+            for ((best, argmax), &d) in best_of_match.iter_mut().zip(&mut match_argmax).zip(row) {
+                if d > *best {
+                    *best = d;
+                    *argmax = i as u32;
+                }
             }
         }
     }
-    let min_dot = (MIN_COSINE * SCALE * SCALE) as i32;
+    let min_dot = (MIN_COSINE * SCALE * SCALE).trunc();
     best_of_query
         .iter()
         .enumerate()
-        .filter(|&(i, &(d, j))| d > min_dot && best_of_match[j].1 == i)
+        .filter(|&(i, &(d, j))| d > min_dot && match_argmax[j] as usize == i)
         .map(|(i, &(_, j))| (i, j))
         .collect()
 }
@@ -145,6 +174,52 @@ mod tests {
         // unit(2) has no equal: its nearest is below the cosine threshold (or not mutual).
         assert!(!pairs.iter().any(|&(i, _)| i == 1), "{pairs:?}");
         assert!(mutual_nearest(&[], &matched).is_empty());
+    }
+
+    /// The plain definition: every pair's integer dot product, the first best of each side.
+    fn mutual_nearest_reference(query: &[[i8; FEATURE_DIM]], matched: &[[i8; FEATURE_DIM]]) -> Vec<(usize, usize)> {
+        let dot = |a: &[i8; FEATURE_DIM], b: &[i8; FEATURE_DIM]| -> i32 {
+            a.iter().zip(b).map(|(&x, &y)| x as i32 * y as i32).sum()
+        };
+        let first_best = |scores: Vec<i32>| {
+            scores.iter().enumerate().fold((i32::MIN, 0), |best, (j, &d)| if d > best.0 { (d, j) } else { best })
+        };
+        let min_dot = (MIN_COSINE * SCALE * SCALE) as i32;
+        (0..query.len())
+            .filter_map(|i| {
+                let (d, j) = first_best(matched.iter().map(|m| dot(&query[i], m)).collect());
+                let (_, back) = first_best(query.iter().map(|q| dot(q, &matched[j])).collect());
+                (d > min_dot && back == i).then_some((i, j))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn mutual_nearest_equals_the_plain_definition_with_ties_and_many_blocks() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut random = |range: i64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state % (2 * range as u64 + 1)) as i64 - range
+        };
+        // Coarse values make equal dot products common; features near a few centres make mutual pairs.
+        let centres: Vec<[i8; FEATURE_DIM]> =
+            (0..40).map(|_| std::array::from_fn(|_| (random(3) * 30) as i8)).collect();
+        let mut features = |n: usize, spread: i64| -> Vec<[i8; FEATURE_DIM]> {
+            (0..n)
+                .map(|k| {
+                    let centre = centres[k % centres.len()];
+                    std::array::from_fn(|d| (centre[d] as i64 + random(spread)).clamp(-127, 127) as i8)
+                })
+                .collect()
+        };
+        let (query, matched) = (features(600, 2), features(333, 2));
+        let pairs = mutual_nearest(&query, &matched);
+        assert!(pairs.len() >= 20, "{}", pairs.len());
+        assert_eq!(pairs, mutual_nearest_reference(&query, &matched));
+        let (query, matched) = (features(7, 40), features(5, 40));
+        assert_eq!(mutual_nearest(&query, &matched), mutual_nearest_reference(&query, &matched));
     }
 
     #[test]

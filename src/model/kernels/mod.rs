@@ -9,6 +9,7 @@ pub mod batch_norm_train;
 pub mod depthwise;
 pub mod depthwise_grad;
 pub mod fused;
+pub mod matmul;
 pub mod simd;
 pub mod train_ops;
 
