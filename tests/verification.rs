@@ -474,12 +474,13 @@ fn temporal_consistency_removes_the_wrong_loops_that_pass_verification() {
     );
 }
 
-/// On the real TUM two-pass, dropping what temporal consistency holds back costs a true loop: the
-/// first keyframe of a revisit, which the keyframe before did not support. Delayed (the default), it
-/// is reported once the next keyframe agrees, so every true loop verification keeps stays, and the
-/// wrong one that passed verification still goes.
+/// On the real TUM two-pass, temporal consistency removes the wrong loop that passes verification and
+/// keeps every true loop verification keeps, dropped or delayed (the default). (The revisit's first
+/// keyframe, which only delaying kept, is no longer verified: its fundamental matrix fitted 20
+/// matches of which the camera motion it gives explains only 7, and that pose was 27 degrees off. Delaying
+/// against dropping is checked on the synthetic sequence above.)
 #[test]
-fn temporal_consistency_delays_the_first_loop_of_a_revisit_instead_of_losing_it() {
+fn temporal_consistency_removes_the_wrong_verified_loop_of_the_real_two_pass() {
     let dir = tempfile::tempdir().unwrap();
     let (seq, _, overrides) = two_pass(dir.path());
     let replay = |queries: &'static str, delayed: &'static str| {
@@ -497,6 +498,6 @@ fn temporal_consistency_delays_the_first_loop_of_a_revisit_instead_of_losing_it(
     );
     print_true_and_wrong(&[&before, &dropped, &delayed]);
     assert!(before.false_reports >= 1, "the wrong loop that passes verification is gone: {before:?}");
-    assert!(dropped.true_reports < before.true_reports, "dropping lost no loop: {dropped:?}");
+    assert_eq!((dropped.true_reports, dropped.false_reports), (before.true_reports, 0), "{dropped:?}");
     assert_eq!((delayed.true_reports, delayed.false_reports), (before.true_reports, 0), "{delayed:?}");
 }

@@ -13,8 +13,12 @@
 //!    fundamental matrix (the 8-point-then-lift route kornia's own two-view estimator takes; the
 //!    5-point solver is several times slower when the pair does not match, which is most pairs),
 //!    or the homography's decomposition, whichever won; of the candidate motions, the one that puts
-//!    the most inliers in front of both cameras. Two views fix the translation's direction, not its
-//!    length.
+//!    the most inliers in front of both cameras, refined. Two views fix the translation's direction,
+//!    not its length. With intrinsics a candidate is verified only if at least
+//!    [`VerificationParams::min_inliers`] of the inliers, and most of them, also fit that calibrated
+//!    motion within the pixel threshold (their Sampson distance to the epipolar geometry
+//!    `K⁻ᵀ [t]ₓ R K⁻¹`): a fundamental matrix has two more degrees of freedom than a camera motion,
+//!    and a few dozen matches can fit one that no motion explains, whose pose would then be wrong.
 //! 5. With a depth image of the match keyframe, a metric pose: the inliers whose match keypoint has a
 //!    depth are lifted to 3-D points in the match camera, and AP3P inside RANSAC (kornia-3d) finds the
 //!    query camera that sees them where its keypoints are, refined to the least-squares pose on the
@@ -43,7 +47,8 @@ use kornia_3d::pnp::{
 };
 use kornia_3d::pose::{
     decompose_essential, decompose_homography, enforce_essential_constraints, essential_from_fundamental,
-    ransac_fundamental, ransac_homography, refine_pose_lm, triangulate_midpoint_known_pose, LmPoseConfig, RansacParams,
+    ransac_fundamental, ransac_homography, refine_pose_lm, sampson_distance, triangulate_midpoint_known_pose,
+    LmPoseConfig, RansacParams,
 };
 use kornia_algebra::{Mat3AF32, Mat3F64, Vec2F32, Vec2F64, Vec3AF32, Vec3F64};
 use nalgebra::{Matrix3, Rotation3, UnitQuaternion, Vector3};
@@ -601,16 +606,20 @@ fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams, threshold: f
     let accepted = inliers >= params.min_inliers && inliers as f64 >= params.min_inlier_ratio * x1.len() as f64;
     let pose = match (best, &params.intrinsics) {
         (Some((model, fit)), Some(intrinsics)) if accepted => {
-            relative_pose(model, &fit.model, &intrinsics.matrix(), x1, x2, &fit.inliers)
+            relative_pose(model, &fit.model, &intrinsics.matrix(), x1, x2, &fit.inliers, threshold, params.min_inliers)
         }
         _ => None,
     };
+    // With intrinsics, a camera motion must explain the matches, not only a fundamental matrix.
+    let accepted = accepted && (params.intrinsics.is_none() || pose.is_some());
     let mask = best.map_or_else(|| vec![false; x1.len()], |(_, fit)| fit.inliers.clone());
     (Verification { matches: x1.len(), inliers, model: best.map(|(model, _)| model), accepted, pose }, mask)
 }
 
 /// Step 4 of the module doc: the motion, among those `model` allows, that puts the most inliers in
-/// front of both cameras.
+/// front of both cameras; `None` unless `min_support` inliers, and most of them, fit it within
+/// `threshold` pixels.
+#[allow(clippy::too_many_arguments)]
 fn relative_pose(
     model: GeometricModel,
     fit: &Mat3F64,
@@ -618,6 +627,8 @@ fn relative_pose(
     x1: &[Vec2F64],
     x2: &[Vec2F64],
     inliers: &[bool],
+    threshold: f64,
+    min_support: usize,
 ) -> Option<RelativePose> {
     let motions: Vec<(Mat3F64, Vec3F64)> = match model {
         GeometricModel::Fundamental => {
@@ -640,6 +651,16 @@ fn relative_pose(
         let (y1, y2): (Vec<Vec2F64>, Vec<Vec2F64>) =
             (0..x1.len()).filter(|&i| inliers[i]).map(|i| (x1[i], x2[i])).unzip();
         (r, t) = refine_pose_lm(r, t, &y1, &y2, k, k, &LmPoseConfig::default());
+    }
+    let cross =
+        Mat3F64::from_cols(Vec3F64::new(0.0, t.z, -t.y), Vec3F64::new(-t.z, 0.0, t.x), Vec3F64::new(t.y, -t.x, 0.0));
+    let epipolar = k_inv.transpose() * cross * r * k_inv;
+    let support = (0..x1.len())
+        .filter(|&i| inliers[i] && sampson_distance(&epipolar, &x1[i], &x2[i]) < threshold * threshold)
+        .count();
+    let fitted = inliers.iter().filter(|&&inlier| inlier).count();
+    if support < min_support || 2 * support < fitted {
+        return None;
     }
     let columns: [f64; 9] = r.into();
     let rotation = Matrix3::from_column_slice(&columns);
@@ -875,6 +896,19 @@ mod tests {
         let ratio = |min_inlier_ratio| VerificationParams { min_inlier_ratio, ..params.clone() };
         assert!(fit_geometry(&x1, &x2, &ratio(0.7)).accepted);
         assert!(!fit_geometry(&x1, &x2, &ratio(0.8)).accepted);
+        // A pair that only a fundamental matrix explains (the query's pixels stretched 1.6x
+        // sideways and shrunk 0.7x upright, which no camera motion does) verifies without
+        // intrinsics and not with them.
+        let zoomed = Intrinsics { fx: 1.6 * k.fx, fy: 0.7 * k.fy, ..k };
+        let (y1, y2) = two_views(&r, &t, &k, 120, 0);
+        let (z1, _) = two_views(&r, &t, &zoomed, 120, 0);
+        let (z1, y2): (Vec<Vec2F64>, Vec<Vec2F64>) =
+            z1.into_iter().zip(y2).filter(|(p, _)| p.x.abs() < 2000.0 && p.y.abs() < 2000.0).unzip();
+        assert!(y1.len() == 120 && z1.len() >= 100);
+        let uncalibrated = fit_geometry(&z1, &y2, &VerificationParams::default());
+        assert!(uncalibrated.accepted && uncalibrated.inliers >= 100, "{uncalibrated:?}");
+        let calibrated = fit_geometry(&z1, &y2, &params);
+        assert!(!calibrated.accepted && calibrated.pose.is_none(), "{calibrated:?}");
         // Outliers alone do not.
         let (_, noise) = two_views(&r, &t, &k, 0, 160);
         let shuffled: Vec<Vec2F64> = noise.iter().rev().copied().collect();
