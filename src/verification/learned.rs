@@ -126,17 +126,12 @@ pub fn mutual_nearest(query: &[[i8; FEATURE_DIM]], matched: &[[i8; FEATURE_DIM]]
         );
         for (r, row) in dots.chunks(columns).take(count).enumerate() {
             let i = block * ROWS_PER_BLOCK + r;
-            let first_best =
-                row.iter().enumerate().fold(
-                    (f32::NEG_INFINITY, 0),
-                    |best, (j, &d)| {
-                        if d > best.0 {
-                            (d, j)
-                        } else {
-                            best
-                        }
-                    },
-                );
+            let mut first_best = (f32::NEG_INFINITY, 0);
+            for (j, &d) in row.iter().enumerate() {
+                if d > first_best.0 {
+                    first_best = (d, j);
+                }
+            }
             best_of_query.push(first_best);
             for ((best, argmax), &d) in best_of_match.iter_mut().zip(&mut match_argmax).zip(row) {
                 if d > *best {

@@ -606,7 +606,9 @@ fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams, threshold: f
     let accepted = inliers >= params.min_inliers && inliers as f64 >= params.min_inlier_ratio * x1.len() as f64;
     let pose = match (best, &params.intrinsics) {
         (Some((model, fit)), Some(intrinsics)) if accepted => {
-            relative_pose(model, &fit.model, &intrinsics.matrix(), x1, x2, &fit.inliers, threshold, params.min_inliers)
+            let pairs: Vec<(Vec2F64, Vec2F64)> =
+                (0..x1.len()).filter(|&i| fit.inliers[i]).map(|i| (x1[i], x2[i])).collect();
+            relative_pose(model, &fit.model, &intrinsics.matrix(), &pairs, threshold, params.min_inliers)
         }
         _ => None,
     };
@@ -616,17 +618,14 @@ fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams, threshold: f
     (Verification { matches: x1.len(), inliers, model: best.map(|(model, _)| model), accepted, pose }, mask)
 }
 
-/// Step 4 of the module doc: the motion, among those `model` allows, that puts the most inliers in
-/// front of both cameras; `None` unless `min_support` inliers, and most of them, fit it within
-/// `threshold` pixels.
-#[allow(clippy::too_many_arguments)]
+/// Step 4 of the module doc: the motion, among those `model` allows, that puts the most of
+/// `inliers` in front of both cameras; `None` unless `min_support` of them, and most, fit it
+/// within `threshold` pixels.
 fn relative_pose(
     model: GeometricModel,
     fit: &Mat3F64,
     k: &Mat3F64,
-    x1: &[Vec2F64],
-    x2: &[Vec2F64],
-    inliers: &[bool],
+    inliers: &[(Vec2F64, Vec2F64)],
     threshold: f64,
     min_support: usize,
 ) -> Option<RelativePose> {
@@ -640,26 +639,20 @@ fn relative_pose(
     let k_inv = k.inverse();
     let ray = |p: &Vec2F64| k_inv * Vec3F64::new(p.x, p.y, 1.0);
     let in_front = |(r, t): &(Mat3F64, Vec3F64)| {
-        (0..x1.len())
-            .filter(|&i| inliers[i] && triangulate_midpoint_known_pose(&ray(&x1[i]), &ray(&x2[i]), r, t).is_some())
-            .count()
+        inliers.iter().filter(|(a, b)| triangulate_midpoint_known_pose(&ray(a), &ray(b), r, t).is_some()).count()
     };
     let (mut r, mut t) = *motions.iter().max_by_key(|motion| in_front(motion))?;
     if model == GeometricModel::Fundamental {
         // The lift from F loses accuracy; a Levenberg-Marquardt pass on the inliers' Sampson errors
         // (kornia's two-view refinement) recovers it.
-        let (y1, y2): (Vec<Vec2F64>, Vec<Vec2F64>) =
-            (0..x1.len()).filter(|&i| inliers[i]).map(|i| (x1[i], x2[i])).unzip();
+        let (y1, y2): (Vec<Vec2F64>, Vec<Vec2F64>) = inliers.iter().copied().unzip();
         (r, t) = refine_pose_lm(r, t, &y1, &y2, k, k, &LmPoseConfig::default());
     }
     let cross =
         Mat3F64::from_cols(Vec3F64::new(0.0, t.z, -t.y), Vec3F64::new(-t.z, 0.0, t.x), Vec3F64::new(t.y, -t.x, 0.0));
     let epipolar = k_inv.transpose() * cross * r * k_inv;
-    let support = (0..x1.len())
-        .filter(|&i| inliers[i] && sampson_distance(&epipolar, &x1[i], &x2[i]) < threshold * threshold)
-        .count();
-    let fitted = inliers.iter().filter(|&&inlier| inlier).count();
-    if support < min_support || 2 * support < fitted {
+    let support = inliers.iter().filter(|(a, b)| sampson_distance(&epipolar, a, b) < threshold * threshold).count();
+    if support < min_support || 2 * support < inliers.len() {
         return None;
     }
     let columns: [f64; 9] = r.into();
