@@ -14,7 +14,11 @@
 //! levels (`l2qsgn`: its sign), `l2dK` corrects each score for hubness (less half the reference's and
 //! half the query's mean K best scores, as CSLS does), `l2xK` scores a grid against the reference
 //! shifted by up to K columns too and keeps the best (`STUDY_SHIFT_FILL=f`: a cell shifted out counts
-//! as cosine f; unset, the overlap's mean); `STUDY_POSTS=l2,l2q8` picks them. `STUDY_PHOTO=equalise` (or
+//! as cosine f; unset, the overlap's mean), `l2eK` expands the query with its K best references
+//! weighted by cosine^alpha (alpha-QE; `STUDY_QE_ALPHA`, default 3) and scores again, `l2fK` lets
+//! the expanded query pick among the `STUDY_QE_SHORTLIST` (10) best but keeps the raw score, `l2bK`
+//! adds to each reference its K nearest others the same way (database-side augmentation) and
+//! `l2tK` its K neighbours in time on each side; `STUDY_POSTS=l2,l2q8` picks them. `STUDY_PHOTO=equalise` (or
 //! `stretch`, `gamma`, `standardise`) normalises every image's brightness before the network, and
 //! `STUDY_DUMP=FILE` appends each calibrated query's scores and true matches as JSON lines.
 //! `STUDY_COMBOS="12:grid4-mac+16:grid2-mac;..."` also measures combinations of taps (each part
@@ -511,8 +515,22 @@ fn main() -> Result<()> {
                     };
                     // The references' scores against each other, and each reference's density among the
                     // first `limit` references (a sequence's history), worked out once per limit.
+                    // Database-side augmentation (`l2bK`: each reference plus its K nearest other
+                    // references weighted by cosine cubed, as alpha-DBA does; `l2tK`: plus its K
+                    // neighbours on each side in time) and query expansion (`l2eK`: the query plus its K
+                    // best references, weighted the same way, scored again).
+                    let parsed = |prefix: &str| post.strip_prefix(prefix).and_then(|k| k.parse::<usize>().ok());
+                    let (nearest, temporal) = (parsed("l2b"), parsed("l2t"));
+                    // `l2fK`: the expanded query ranks, but the best match keeps its raw score.
+                    let (expansion, raw_score) = match (parsed("l2e"), parsed("l2f")) {
+                        (Some(k), _) => (Some(k), false),
+                        (None, k) => (k, k.is_some()),
+                    };
+                    let alpha: f32 = std::env::var("STUDY_QE_ALPHA").ok().and_then(|a| a.parse().ok()).unwrap_or(3.0);
+                    let mut augmented_by_limit: BTreeMap<usize, Vec<Vec<f32>>> = BTreeMap::new();
                     let gram: Vec<Vec<f32>> = match hubness {
                         Some((_, true, _)) => db.iter().map(|r| cosine_scores(r, &db)).collect(),
+                        _ if nearest.is_some() => db.iter().map(|r| cosine_scores(r, &db)).collect(),
                         _ => Vec::new(),
                     };
                     let mut densities_by_limit: BTreeMap<usize, Vec<f32>> = BTreeMap::new();
@@ -529,7 +547,37 @@ fn main() -> Result<()> {
                             results.push(QueryResult { query: qi, best: None });
                             continue;
                         }
-                        let mut scores = cosine_scores(qv, &db[..limit]);
+                        let refs: &[Vec<f32>] = if nearest.is_some() || temporal.is_some() {
+                            augmented_by_limit
+                                .entry(limit)
+                                .or_insert_with(|| augment(&db[..limit], &gram, nearest, temporal))
+                        } else {
+                            &db[..limit]
+                        };
+                        let mut scores = cosine_scores(qv, refs);
+                        if let Some(k) = expansion {
+                            let mut order: Vec<usize> = (0..scores.len()).collect();
+                            order.sort_by(|&a, &b| scores[b].total_cmp(&scores[a]));
+                            let mut expanded = qv.clone();
+                            for &r in order.iter().take(k) {
+                                let w = scores[r].max(0.0).powf(alpha);
+                                expanded.iter_mut().zip(&refs[r]).for_each(|(a, b)| *a += w * b);
+                            }
+                            l2_normalise(&mut expanded);
+                            let raw = std::mem::replace(&mut scores, cosine_scores(&expanded, refs));
+                            if raw_score {
+                                let shortlist: usize =
+                                    std::env::var("STUDY_QE_SHORTLIST").ok().and_then(|a| a.parse().ok()).unwrap_or(10);
+                                let best = order
+                                    .iter()
+                                    .take(shortlist)
+                                    .copied()
+                                    .max_by(|&a, &b| scores[a].total_cmp(&scores[b]));
+                                let best = best.unwrap_or(0);
+                                scores = raw.iter().map(|s| s - 1.0).collect();
+                                scores[best] = raw[best];
+                            }
+                        }
                         if let Some((shifts, cells)) = shifted {
                             for (s, r) in scores.iter_mut().zip(&db[..limit]) {
                                 *s = shift_tolerant(qv, r, cells, shifts, fill);
@@ -614,6 +662,34 @@ fn main() -> Result<()> {
         println!("{tap:10} {agg:11} {post:5} {}", cells.join("  "));
     }
     Ok(())
+}
+
+/// `db` with each reference plus its `nearest` most similar other references (weighted by cosine
+/// cubed; `gram` holds the cosines) and its `temporal` neighbours on each side, L2-normalised.
+fn augment(db: &[Vec<f32>], gram: &[Vec<f32>], nearest: Option<usize>, temporal: Option<usize>) -> Vec<Vec<f32>> {
+    (0..db.len())
+        .map(|i| {
+            let mut v = db[i].clone();
+            let mut add = |j: usize, w: f32| v.iter_mut().zip(&db[j]).for_each(|(a, b)| *a += w * b);
+            if let Some(k) = nearest {
+                let mut others: Vec<(usize, f32)> =
+                    (0..db.len()).filter(|&j| j != i).map(|j| (j, gram[i][j])).collect();
+                others.sort_by(|a, b| b.1.total_cmp(&a.1));
+                for &(j, s) in others.iter().take(k) {
+                    add(j, s.max(0.0).powi(3));
+                }
+            }
+            if let Some(k) = temporal {
+                for j in i.saturating_sub(k)..(i + k + 1).min(db.len()) {
+                    if j != i {
+                        add(j, 1.0);
+                    }
+                }
+            }
+            l2_normalise(&mut v);
+            v
+        })
+        .collect()
 }
 
 /// A photometric normalisation of the whole image before the network (study only).
