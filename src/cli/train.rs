@@ -32,6 +32,10 @@ pub struct Args {
     pub size: usize,
     #[arg(long, default_value_t = 30)]
     pub epochs: usize,
+    /// Stop after the first epoch whose validation accuracy reaches this fraction (0-1]; the
+    /// schedule still spans --epochs, so --resume continues it.
+    #[arg(long, value_parser = accuracy_fraction)]
+    pub target_accuracy: Option<f64>,
     #[arg(long, default_value_t = 32)]
     pub batch: usize,
     #[arg(long, value_enum, default_value_t = OptimizerKind::Sgd)]
@@ -76,6 +80,14 @@ pub struct Args {
     pub device: String,
 }
 
+/// A fraction in (0, 1], for `--target-accuracy`.
+fn accuracy_fraction(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(value) if value > 0.0 && value <= 1.0 => Ok(value),
+        _ => Err(format!("'{text}' is not a fraction in (0, 1]")),
+    }
+}
+
 pub fn run(args: Args) -> Result<()> {
     check_device(&args.device)?;
     let classes = match args.classes.as_str() {
@@ -117,6 +129,7 @@ pub fn run(args: Args) -> Result<()> {
         resume: args.resume,
         progress: true,
         stop_after: None,
+        target_accuracy: args.target_accuracy,
     };
     let record = train(&config)?;
     let files = RunFiles::new(&args.out);

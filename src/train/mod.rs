@@ -487,6 +487,9 @@ pub struct TrainConfig {
     pub progress: bool,
     /// Stop after this many epochs of this invocation (the schedule still spans `hyper.opt.epochs`).
     pub stop_after: Option<usize>,
+    /// Stop after the first epoch whose validation accuracy reaches this (the schedule still spans
+    /// `hyper.opt.epochs`, so `resume` continues it).
+    pub target_accuracy: Option<f64>,
 }
 
 /// Runs (or resumes) a classification training; returns the record also written as JSON.
@@ -669,6 +672,9 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
         }
         .save(&files.training)?;
         write_json(&files.json, &record)?;
+        if config.target_accuracy.is_some_and(|target| val_accuracy >= target) {
+            break;
+        }
     }
     Ok(record)
 }
