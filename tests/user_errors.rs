@@ -172,6 +172,7 @@ fn numbers_far_out_of_range_are_refused_at_once() {
     refused(&["classify", "--size", "100", image], &["100", "multiple of 32"]);
     refused(&["--threads", "100000", "classify", image], &["100000", "--threads"]);
     refused(&["--threads", "0", "classify", image], &["--threads"]);
+    refused(&["train", "--data", image, "-o", "x.safetensors", "--target-accuracy", "90"], &["'90'", "(0, 1]"]);
     #[cfg(unix)]
     refused(&["embed", image, "-o", "/dev/full"], &["cannot write /dev/full"]);
     #[cfg(unix)]
