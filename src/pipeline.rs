@@ -37,12 +37,14 @@ use crate::verification::{
 /// Milliseconds spent per stage on one frame.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
 pub struct Timings {
-    /// Resize, normalise and network forward.
+    /// Resize, normalise and network forward (with verification, until the local features extracted
+    /// beside it are ready too).
     pub network_ms: f64,
     pub descriptor_ms: f64,
     /// Database query and insertion.
     pub detector_ms: f64,
-    /// Local features and geometric verification (0 when verification is off).
+    /// Local features and geometric verification (0 when verification is off). The extraction may
+    /// overlap the forward pass, so the stages can add up to more than the frame took.
     pub verification_ms: f64,
 }
 
@@ -435,7 +437,24 @@ impl Pipeline {
         let Input { stamp, image, depth, .. } = *input;
         let mut outcome = Outcome::default();
         let start = Instant::now();
-        let feature_map = self.embedder.feature_map(image)?;
+        // With verification, the local features are extracted beside the forward pass: its parallel
+        // regions leave a worker idle between them, and the features need only the image. Not when
+        // the selector may still reject the keyframe by its descriptor.
+        let overlap = !(select && self.selector.needs_descriptor());
+        let (feature_map, mut early_features) = match (&self.verifier, overlap) {
+            (Some(verifier), true) => {
+                let embedder = &mut self.embedder;
+                let (map, (features, ms)) = rayon::join(
+                    || embedder.feature_map(image),
+                    || {
+                        let started = Instant::now();
+                        (verifier.extract(image, depth), started.elapsed().as_secs_f64() * 1e3)
+                    },
+                );
+                (map?, Some((features?, ms)))
+            }
+            _ => (self.embedder.feature_map(image)?, None),
+        };
         let after_network = Instant::now();
         let descriptor = self.compute_descriptor(&feature_map)?;
         let after_descriptor = Instant::now();
@@ -466,7 +485,10 @@ impl Pipeline {
         outcome.timings.detector_ms = (after_detector - after_descriptor).as_secs_f64() * 1e3;
         let mut stored_features = None;
         if self.verifier.is_some() {
-            let features = self.local_features(image, depth)?;
+            let (features, extraction_ms) = match early_features.take() {
+                Some(early) => early,
+                None => (self.local_features(image, depth)?, 0.0),
+            };
             self.verify_outcome(&features, tracked, &nearest, &mut outcome);
             let confirmed = self.detector.confirm_held_back(id, &outcome.candidates, self.matches_tried());
             let confirmed = self.verify_confirmed(confirmed, &mut outcome);
@@ -478,7 +500,7 @@ impl Pipeline {
                 stored_features = Some(features.to_bytes());
             }
             self.remember_features(id, features);
-            outcome.timings.verification_ms = after_detector.elapsed().as_secs_f64() * 1e3;
+            outcome.timings.verification_ms = extraction_ms + after_detector.elapsed().as_secs_f64() * 1e3;
         }
         // The keyframe, its final candidates and its local features in one transaction, before any
         // caller writes the candidates out: a restart finds all or none.
