@@ -17,7 +17,7 @@
 //! as cosine f; unset, the overlap's mean), `l2eK` expands the query with its K best references
 //! weighted by cosine^alpha (alpha-QE; `STUDY_QE_ALPHA`, default 3) and scores again, `l2fK` lets
 //! the expanded query pick among the `STUDY_QE_SHORTLIST` (10) best but keeps the raw score, `l2bK`
-//! adds to each reference its K nearest others the same way (database-side augmentation) and
+//! adds to each reference its K nearest others weighted the same way (database-side augmentation) and
 //! `l2tK` its K neighbours in time on each side; `STUDY_POSTS=l2,l2q8` picks them. `STUDY_PHOTO=equalise` (or
 //! `stretch`, `gamma`, `standardise`) normalises every image's brightness before the network, and
 //! `STUDY_DUMP=FILE` appends each calibrated query's scores and true matches as JSON lines.
@@ -337,6 +337,10 @@ fn main() -> Result<()> {
     let aggs: Vec<&str> = aggs.iter().map(String::as_str).collect();
     let posts_env = std::env::var("STUDY_POSTS").unwrap_or_else(|_| "l2,l2c,l2p128,l2p256,l2h64,l2h128".into());
     let posts: Vec<&str> = posts_env.split(',').collect();
+    // Query expansion's and database-side augmentation's weight exponent, and the expanded query's
+    // shortlist (`l2fK`).
+    let alpha: f32 = std::env::var("STUDY_QE_ALPHA").ok().and_then(|a| a.parse().ok()).unwrap_or(3.0);
+    let shortlist: usize = std::env::var("STUDY_QE_SHORTLIST").ok().and_then(|a| a.parse().ok()).unwrap_or(10);
     let learning = learning_images()?;
     let learning_maps: Vec<Vec<FeatureMap>> =
         learning.iter().map(|i| embedder.tapped_maps(i, &taps)).collect::<Result<_>>()?;
@@ -513,10 +517,8 @@ fn main() -> Result<()> {
                         let n = k.min(v.len()).max(1);
                         v.iter().take(n).sum::<f32>() / n as f32
                     };
-                    // The references' scores against each other, and each reference's density among the
-                    // first `limit` references (a sequence's history), worked out once per limit.
                     // Database-side augmentation (`l2bK`: each reference plus its K nearest other
-                    // references weighted by cosine cubed, as alpha-DBA does; `l2tK`: plus its K
+                    // references weighted by cosine^alpha, as alpha-DBA does; `l2tK`: plus its K
                     // neighbours on each side in time) and query expansion (`l2eK`: the query plus its K
                     // best references, weighted the same way, scored again).
                     let parsed = |prefix: &str| post.strip_prefix(prefix).and_then(|k| k.parse::<usize>().ok());
@@ -526,12 +528,13 @@ fn main() -> Result<()> {
                         (Some(k), _) => (Some(k), false),
                         (None, k) => (k, k.is_some()),
                     };
-                    let alpha: f32 = std::env::var("STUDY_QE_ALPHA").ok().and_then(|a| a.parse().ok()).unwrap_or(3.0);
                     let mut augmented_by_limit: BTreeMap<usize, Vec<Vec<f32>>> = BTreeMap::new();
-                    let gram: Vec<Vec<f32>> = match hubness {
-                        Some((_, true, _)) => db.iter().map(|r| cosine_scores(r, &db)).collect(),
-                        _ if nearest.is_some() => db.iter().map(|r| cosine_scores(r, &db)).collect(),
-                        _ => Vec::new(),
+                    // The references' scores against each other, and each reference's density among the
+                    // first `limit` references (a sequence's history), worked out once per limit.
+                    let gram: Vec<Vec<f32>> = if matches!(hubness, Some((_, true, _))) || nearest.is_some() {
+                        db.iter().map(|r| cosine_scores(r, &db)).collect()
+                    } else {
+                        Vec::new()
                     };
                     let mut densities_by_limit: BTreeMap<usize, Vec<f32>> = BTreeMap::new();
                     // Shift-tolerant scores (`l2xK` on a `gridN` aggregate): K and N.
@@ -550,7 +553,7 @@ fn main() -> Result<()> {
                         let refs: &[Vec<f32>] = if nearest.is_some() || temporal.is_some() {
                             augmented_by_limit
                                 .entry(limit)
-                                .or_insert_with(|| augment(&db[..limit], &gram, nearest, temporal))
+                                .or_insert_with(|| augment(&db[..limit], &gram, nearest, temporal, alpha))
                         } else {
                             &db[..limit]
                         };
@@ -566,8 +569,6 @@ fn main() -> Result<()> {
                             l2_normalise(&mut expanded);
                             let raw = std::mem::replace(&mut scores, cosine_scores(&expanded, refs));
                             if raw_score {
-                                let shortlist: usize =
-                                    std::env::var("STUDY_QE_SHORTLIST").ok().and_then(|a| a.parse().ok()).unwrap_or(10);
                                 let best = order
                                     .iter()
                                     .take(shortlist)
@@ -664,9 +665,16 @@ fn main() -> Result<()> {
     Ok(())
 }
 
-/// `db` with each reference plus its `nearest` most similar other references (weighted by cosine
-/// cubed; `gram` holds the cosines) and its `temporal` neighbours on each side, L2-normalised.
-fn augment(db: &[Vec<f32>], gram: &[Vec<f32>], nearest: Option<usize>, temporal: Option<usize>) -> Vec<Vec<f32>> {
+/// `db` with each reference plus its `nearest` most similar other references (weighted by cosine to
+/// the power `alpha`; `gram` holds the cosines) and its `temporal` neighbours on each side,
+/// L2-normalised.
+fn augment(
+    db: &[Vec<f32>],
+    gram: &[Vec<f32>],
+    nearest: Option<usize>,
+    temporal: Option<usize>,
+    alpha: f32,
+) -> Vec<Vec<f32>> {
     (0..db.len())
         .map(|i| {
             let mut v = db[i].clone();
@@ -676,7 +684,7 @@ fn augment(db: &[Vec<f32>], gram: &[Vec<f32>], nearest: Option<usize>, temporal:
                     (0..db.len()).filter(|&j| j != i).map(|j| (j, gram[i][j])).collect();
                 others.sort_by(|a, b| b.1.total_cmp(&a.1));
                 for &(j, s) in others.iter().take(k) {
-                    add(j, s.max(0.0).powi(3));
+                    add(j, s.max(0.0).powf(alpha));
                 }
             }
             if let Some(k) = temporal {

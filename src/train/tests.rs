@@ -142,10 +142,10 @@ fn cuda_is_refused_clearly() {
 /// From scratch: ECMobileNet at 64 px (the textures' own size) learns the 4 texture classes to at
 /// least 90% validation accuracy. 200 images per class (640 training, 160 validation), batch 64,
 /// AdamW 8e-3 (3 warm-up epochs, cosine over 30 epochs = 300 steps), stopping at the first epoch
-/// that reaches 90% (`target_accuracy`), so the test stops once the goal is shown. At 32 px (1x1 last maps, whose
-/// BatchNorm normalises over the batch only) 400 steps reached 85.6-93.8% over three data seeds,
-/// and at 64 px 200 steps 85.0-94.4%: the network was still underfitting (training accuracy
-/// below 90%). Measured on the 2-core machine: see docs/training.md.
+/// that reaches 90% (`target_accuracy`), so the test stops once the goal is shown. At 32 px (1x1
+/// last maps, whose BatchNorm normalises over the batch only) 400 steps reached 85.6-93.8% over three
+/// data seeds, and at 64 px 200 steps 85.0-94.4%: the network was still underfitting (training
+/// accuracy below 90%). Measured on the 2-core machine: see docs/training.md.
 #[test]
 fn textures_are_learned_from_scratch() -> Result<()> {
     crate::runtime::keep_freed_memory();
