@@ -564,6 +564,13 @@ impl Params {
         self.set(name, value)
     }
 
+    /// Applies one `NAME=VALUE` (a command line's `--param`); the error names the assignment.
+    pub fn set_assignment(&mut self, assignment: &str) -> anyhow::Result<()> {
+        let (name, value) =
+            assignment.split_once('=').with_context(|| format!("--param {assignment}: expected NAME=VALUE"))?;
+        self.set_from_str(name.trim(), value.trim()).map_err(|e| anyhow::anyhow!("--param {assignment}: {e}"))
+    }
+
     /// The current value of a parameter; `None` for an unknown name.
     pub fn get(&self, name: &str) -> Option<ParamValue> {
         self.values.get(name).cloned()

@@ -8,7 +8,7 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 
 use ecm_lcd::config::{Params, NODE_NAME};
 pub use ecm_lcd::io::candidates::write_candidates_csv;
@@ -86,9 +86,7 @@ pub fn params_from(config: Option<&Path>, assignments: &[String]) -> Result<Para
         None => Params::default(),
     };
     for assignment in assignments {
-        let (name, value) =
-            assignment.split_once('=').with_context(|| format!("--param {assignment}: expected NAME=VALUE"))?;
-        params.set_from_str(name.trim(), value.trim()).map_err(|e| anyhow::anyhow!("--param {assignment}: {e}"))?;
+        params.set_assignment(assignment)?;
     }
     Ok(params)
 }

@@ -34,6 +34,7 @@
 //! Where keyframes carry tracker poses, a verified candidate must also be consistent with the
 //! tracker's trajectory ([`odometry`]): look-alike rooms pass any two-view check.
 
+mod hamming;
 pub mod learned;
 pub mod odometry;
 
@@ -61,7 +62,7 @@ pub use odometry::{DriftBound, OdometryTrack, Tracked};
 /// PnP inliers a metric pose needs (below that, the pose stays up to scale).
 pub const MIN_METRIC_INLIERS: usize = 10;
 use kornia_image::{Image, ImageSize};
-use kornia_imgproc::features::{match_descriptors, OrbDetector};
+use kornia_imgproc::features::OrbDetector;
 
 /// Pinhole camera intrinsics in pixels, for the image size the keyframes arrive in.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -379,7 +380,7 @@ fn equalise_histogram(gray: &mut image::GrayImage) {
 pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &VerificationParams) -> Verification {
     let (pairs, threshold) = match (&query.descriptors, &matched.descriptors) {
         (Descriptors::Orb(q), Descriptors::Orb(m)) => {
-            (match_descriptors(q, m, None, true, Some(params.ratio)), params.pixel_threshold)
+            (hamming::mutual_matches(q, m, params.ratio), params.pixel_threshold)
         }
         (Descriptors::XFeat(q), Descriptors::XFeat(m)) => {
             // The threshold holds in the network's input pixels.

@@ -111,6 +111,10 @@ pub struct BenchArgs {
     /// Neighbours per query (recall is recall@k).
     #[arg(long, default_value_t = 10)]
     pub k: usize,
+    /// A pipeline parameter for the end-to-end and verification sections: `--param
+    /// verification.features=1000` (repeatable).
+    #[arg(long = "param", value_name = "NAME=VALUE")]
+    pub params: Vec<String>,
     /// Descriptors stored before the end-to-end runs.
     #[arg(long, default_value_t = 100_000)]
     pub e2e_stored: usize,
@@ -763,6 +767,9 @@ fn end_to_end(args: &BenchArgs, frame: &(RgbImage, String), verify: bool) -> Res
     if verify {
         params.set_from_str("camera.preset", "tum_fr3").map_err(anyhow::Error::msg)?;
     }
+    for assignment in &args.params {
+        params.set_assignment(assignment)?;
+    }
     let mut pipeline = Pipeline::new(params, args.weights.as_deref())?;
     let dim = pipeline.descriptor().dim();
     let stored = args.e2e_stored;
@@ -819,11 +826,14 @@ fn end_to_end(args: &BenchArgs, frame: &(RgbImage, String), verify: bool) -> Res
 }
 
 fn verification(args: &BenchArgs, frame: &(RgbImage, String)) -> Result<VerificationTiming> {
-    use ecm_lcd::verification::{extract, verify, VerificationParams};
-    let params = VerificationParams {
-        intrinsics: ecm_lcd::verification::Intrinsics::preset("tum_fr3"),
-        ..VerificationParams::default()
-    };
+    use ecm_lcd::verification::{verify, Verifier};
+    let mut pipeline_params = Params::default();
+    pipeline_params.set_from_str("camera.preset", "tum_fr3").map_err(anyhow::Error::msg)?;
+    for assignment in &args.params {
+        pipeline_params.set_assignment(assignment)?;
+    }
+    let params = pipeline_params.verification(None).context("the verification section needs verification.mode on")?;
+    let verifier = Verifier::new(params.clone())?;
     let mut paths: Vec<PathBuf> = ecm_lcd::runtime::shared_dirs()
         .into_iter()
         .filter_map(|dir| std::fs::read_dir(dir.join("data/tum/fr3_long_office_household/rgb")).ok())
@@ -841,13 +851,13 @@ fn verification(args: &BenchArgs, frame: &(RgbImage, String)) -> Result<Verifica
     let mut features = None;
     for _ in 0..runs {
         let start = Instant::now();
-        features = Some(extract(&frame.0, params.max_features)?);
+        features = Some(verifier.extract(&frame.0, None)?);
         samples.push(start.elapsed().as_secs_f64() * 1e3);
     }
     let features = features.expect("at least one run");
     let extract_stats = Stats::of(&mut samples);
     let check = |other: &RgbImage| -> Result<(Stats, usize)> {
-        let theirs = extract(other, params.max_features)?;
+        let theirs = verifier.extract(other, None)?;
         let mut samples = Vec::new();
         let mut inliers = 0;
         for _ in 0..runs {
