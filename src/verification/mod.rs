@@ -97,7 +97,8 @@ pub struct VerificationParams {
     /// Matches verified per keyframe, the nearest: those verified are reported most inliers first
     /// ([`best_supported`], `verification.candidates`).
     pub candidates: usize,
-    /// ORB features extracted per keyframe (at most).
+    /// Local features extracted per keyframe (at most); 0: by the frame's size
+    /// ([`VerificationParams::features_for`]).
     pub max_features: usize,
     /// A match's Hamming distance must be below this fraction of the second best's.
     pub ratio: f32,
@@ -134,7 +135,7 @@ impl Default for VerificationParams {
     fn default() -> Self {
         VerificationParams {
             candidates: 2,
-            max_features: 500,
+            max_features: 0,
             ratio: 0.8,
             pixel_threshold: 2.0,
             min_inliers: 15,
@@ -146,6 +147,27 @@ impl Default for VerificationParams {
             local_features: LocalFeatureKind::Orb,
             xfeat_weights: None,
         }
+    }
+}
+
+/// Features per keyframe by frame size ([`VerificationParams::features_for`]): ORB-SLAM's setting
+/// for TUM RGB-D's 640x480 frames, its floor and its ceiling.
+const FEATURES_AT_640X480: f64 = 1000.0;
+const FEWEST_FEATURES: usize = 500;
+const MOST_FEATURES: usize = 2000;
+
+impl VerificationParams {
+    /// The features a `width` x `height` keyframe gets: `max_features`, or where that is 0, 1000 at
+    /// 640x480 (ORB-SLAM's setting for TUM RGB-D) in proportion to the pixel count, from 500 to 2000.
+    /// Why by size: a small frame has fewer distinct corners, so more features only add weak ones
+    /// (1000 ORB features on 160x120 frames verified fewer loops than 500), while at 640x480 500 are
+    /// too few for some real revisits that 1000 verify.
+    pub fn features_for(&self, width: u32, height: u32) -> usize {
+        if self.max_features > 0 {
+            return self.max_features;
+        }
+        let pixels = width as f64 * height as f64;
+        ((FEATURES_AT_640X480 * pixels / (640.0 * 480.0)).round() as usize).clamp(FEWEST_FEATURES, MOST_FEATURES)
     }
 }
 
@@ -683,7 +705,6 @@ pub struct Verifier {
 
 impl Verifier {
     pub fn new(params: VerificationParams) -> Result<Self> {
-        ensure!(params.max_features > 0, "verification needs at least one feature per keyframe");
         ensure!(
             params.ratio > 0.0 && params.ratio <= 1.0,
             "the ratio test's ratio must be in (0, 1], got {}",
@@ -720,8 +741,9 @@ impl Verifier {
         if self.params.equalise {
             equalise_histogram(&mut gray);
         }
+        let features = self.params.features_for(gray.width(), gray.height());
         let mut features = match &self.xfeat {
-            Some(xfeat) => xfeat.extract(&gray, self.params.max_features)?,
+            Some(xfeat) => xfeat.extract(&gray, features)?,
             None => {
                 let (width, height) = gray.dimensions();
                 if width.min(height) < ORB_MIN_SIDE && !self.told_frames_too_small.swap(true, Ordering::Relaxed) {
@@ -731,7 +753,7 @@ impl Verifier {
                          verification.local_features xfeat (which works on small frames) or verification.mode off"
                     );
                 }
-                extract_gray(gray, self.params.max_features)?
+                extract_gray(gray, features)?
             }
         };
         if let Some(depth) = depth {
@@ -819,12 +841,12 @@ mod tests {
     fn the_same_scene_is_verified_and_another_is_not() {
         let params = VerificationParams::default();
         let scene = blocks(1, 320, 240);
-        let a = extract(&scene, params.max_features).unwrap();
+        let a = extract(&scene, 500).unwrap();
         assert!(a.len() > 100, "{} features", a.len());
-        let same = verify(&a, &extract(&shifted(&scene, 12), params.max_features).unwrap(), &params);
+        let same = verify(&a, &extract(&shifted(&scene, 12), 500).unwrap(), &params);
         assert!(same.accepted, "{same:?}");
         assert!(same.inliers >= 50, "{same:?}");
-        let other = verify(&a, &extract(&blocks(2, 320, 240), params.max_features).unwrap(), &params);
+        let other = verify(&a, &extract(&blocks(2, 320, 240), 500).unwrap(), &params);
         assert!(!other.accepted, "{other:?}");
         assert!(other.inliers < params.min_inliers, "{other:?}");
     }
@@ -921,7 +943,18 @@ mod tests {
         assert!(verifier.verify(&features, 0).is_none(), "keyframe 0 was dropped");
         assert!(verifier.verify(&features, 2).is_some_and(|v| v.accepted));
         assert!(verifier.verify(&features, 9).is_none());
-        assert!(Verifier::new(VerificationParams { max_features: 0, ..VerificationParams::default() }).is_err());
+    }
+
+    #[test]
+    fn the_feature_count_follows_the_frame_size_unless_it_is_set() {
+        let by_size = VerificationParams::default();
+        assert_eq!(by_size.features_for(640, 480), 1000);
+        assert_eq!(by_size.features_for(752, 480), 1175);
+        assert_eq!(by_size.features_for(320, 240), 500);
+        assert_eq!(by_size.features_for(160, 120), 500);
+        assert_eq!(by_size.features_for(1920, 1080), 2000);
+        let fixed = VerificationParams { max_features: 300, ..VerificationParams::default() };
+        assert_eq!(fixed.features_for(640, 480), 300);
     }
 
     #[test]
