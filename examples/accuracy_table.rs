@@ -16,16 +16,18 @@
 
 mod common;
 
+use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use ecm_lcd::config::Params;
-use ecm_lcd::eval::{evaluate, images_in_name_order, read_loops, Metrics};
+use ecm_lcd::eval::{evaluate, images_in_name_order, read_loops, LoopTruth, Metrics};
 use ecm_lcd::model::weights::resolve::{self, Resolved};
 use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::preprocess::read_image;
 use ecm_lcd::replay::{run_database_queries, run_source};
 use ecm_lcd::synth::SynthConfig;
+use rand::{rngs::StdRng, seq::SliceRandom, SeedableRng};
 
 /// A development set: a sequence replayed (truth from poses or a loops file) or a database/query pair.
 enum Data {
@@ -102,49 +104,113 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
             }
             let name = "TUM fr3 two-pass 64x48 gray (real, degraded)";
             let degraded = common::EvalSet { name, path: degraded, ..set };
+            // The same revisit as a map and a relocalisation: the first pass the database, the
+            // second pass, walked the other way, the queries.
+            let frames = ecm_lcd::io::open_source(&set.path, None)?.count();
+            let first_pass = frames / 2;
+            let second_pass: Vec<usize> = (first_pass..frames).collect();
+            let mut cuts = Vec::new();
+            for (label, source) in [("", &set.path), (" 64x48 gray", &degraded.path)] {
+                let folder = tmp.join(format!("fr3_passes{}", label.replace(' ', "_")));
+                let (database, queries, loops) =
+                    cut_database_and_queries(source, 0..first_pass, &second_pass, &folder)?;
+                cuts.push(DevSet {
+                    name: format!("TUM fr3 second pass against first{label} (real)"),
+                    data: Data::DatabaseQueries { database, queries, loops },
+                });
+            }
             sets.push(DevSet { name: set.name.to_string(), data: Data::Sequence(set, None) });
             sets.push(DevSet { name: name.to_string(), data: Data::Sequence(degraded, None) });
+            sets.extend(cuts);
             continue;
         }
         sets.push(DevSet { name: set.name.to_string(), data: Data::Sequence(set, None) });
     }
     if let Some(hard) = hard {
-        let (database, queries, loops) = laps_as_database_and_queries(&hard, &tmp.join("synthetic_hard_laps"))?;
-        sets.push(DevSet {
-            name: "synthetic hard preset, night lap against first lap".into(),
-            data: Data::DatabaseQueries { database, queries, loops },
-        });
+        let lap = ecm_lcd::io::open_source(&hard, None)?.count() / 3;
+        for (name, laps) in [("night", lap..2 * lap), ("day", 2 * lap..3 * lap)] {
+            let queries: Vec<usize> = laps.collect();
+            let folder = tmp.join(format!("synthetic_hard_{name}_lap"));
+            let (database, queries, loops) = cut_database_and_queries(&hard, 0..lap, &queries, &folder)?;
+            sets.push(DevSet {
+                name: format!("synthetic hard preset, {name} lap against first lap"),
+                data: Data::DatabaseQueries { database, queries, loops },
+            });
+        }
     }
+    // Queries that are not a walk (photos in no order): what the sequence rows cost there.
+    let mut shuffled = Vec::new();
+    for set in &sets {
+        if set.name.starts_with("Gardens Point 64x48") || set.name.starts_with("synthetic hard preset, night") {
+            let folder = tmp.join(format!("shuffled_{}", shuffled.len()));
+            let data = with_shuffled_queries(&set.data, 7, &folder)?;
+            shuffled.push(DevSet { name: format!("{}, queries shuffled", set.name), data });
+        }
+    }
+    sets.extend(shuffled);
     Ok(sets)
 }
 
-/// The database/query mode on the hard preset (a map of one lap, then a relocalisation under other
-/// light): its 3-lap sequence at `sequence`, first lap written to `out/ref`, second lap (at night,
-/// offset) to `out/query`, and `out/loops.csv` listing for each query every first-lap frame within
-/// the default pose rule, however recent (the lap's last frames are where the next one starts).
-fn laps_as_database_and_queries(sequence: &Path, out: &Path) -> Result<(PathBuf, PathBuf, PathBuf)> {
+/// A database/query set cut from the sequence at `sequence` (replay order): its frames `database`
+/// written to `out/ref` and its frames `queries`, in the order given, to `out/query`, each numbered
+/// from 0 (but those without a pose), and `out/loops.csv` listing for each query every database
+/// frame within the default pose rule, however recent (a lap's last frames are where the next one
+/// starts).
+fn cut_database_and_queries(
+    sequence: &Path,
+    database: Range<usize>,
+    queries: &[usize],
+    out: &Path,
+) -> Result<(PathBuf, PathBuf, PathBuf)> {
     let frames: Vec<_> = ecm_lcd::io::open_source(sequence, None)?.collect::<Result<_>>()?;
     let stamps: Vec<_> = frames.iter().map(|f| f.stamp).collect();
     let groundtruth = ecm_lcd::io::tum::read_groundtruth(&sequence.join("groundtruth.txt"))?;
     let any_age = ecm_lcd::eval::PoseLoopCriteria { min_gap_s: 0.0, ..Default::default() };
     let truth = ecm_lcd::eval::loop_truth_from_poses(&stamps, &groundtruth, &any_age);
-    let lap = frames.len() / 3;
-    let (database, queries) = (out.join("ref"), out.join("query"));
-    std::fs::create_dir_all(&database)?;
-    std::fs::create_dir_all(&queries)?;
-    for (i, frame) in frames[..2 * lap].iter().enumerate() {
-        let (folder, index) = if i < lap { (&database, i) } else { (&queries, i - lap) };
-        frame.image.save(folder.join(format!("{index:04}.png")))?;
+    // A loops file cannot say "unknown": frames without a pose are left out of the queries.
+    let queries: Vec<usize> = queries.iter().copied().filter(|&q| truth.matches(q).is_some()).collect();
+    let (database_dir, queries_dir) = (out.join("ref"), out.join("query"));
+    std::fs::create_dir_all(&database_dir)?;
+    std::fs::create_dir_all(&queries_dir)?;
+    for (index, frame) in database.clone().enumerate() {
+        frames[frame].image.save(database_dir.join(format!("{index:04}.png")))?;
     }
-    let lap_truth = truth.between(lap..2 * lap, 0..lap);
-    let mut loops = String::new();
-    for query in 0..lap {
-        let matches: Vec<String> = lap_truth.matches(query).into_iter().flatten().map(usize::to_string).collect();
-        loops.push_str(&format!("{query},{}\n", matches.join(" ")));
+    for (index, &frame) in queries.iter().enumerate() {
+        frames[frame].image.save(queries_dir.join(format!("{index:04}.png")))?;
     }
     let loops_path = out.join("loops.csv");
-    std::fs::write(&loops_path, loops)?;
-    Ok((database, queries, loops_path))
+    write_loops(&truth.between(queries.iter().copied(), database), queries.len(), &loops_path)?;
+    Ok((database_dir, queries_dir, loops_path))
+}
+
+/// The loops file of `truth` for `queries` queries.
+fn write_loops(truth: &LoopTruth, queries: usize, path: &Path) -> Result<()> {
+    let mut loops = String::new();
+    for query in 0..queries {
+        let matches: Vec<String> = truth.matches(query).into_iter().flatten().map(usize::to_string).collect();
+        loops.push_str(&format!("{query},{}\n", matches.join(" ")));
+    }
+    Ok(std::fs::write(path, loops)?)
+}
+
+/// The database/query set `data` with its queries in a seeded random order (copied to `out/query`
+/// under new names, the loops file renumbered to `out/loops.csv`): queries that are not a walk.
+fn with_shuffled_queries(data: &Data, seed: u64, out: &Path) -> Result<Data> {
+    let Data::DatabaseQueries { database, queries, loops } = data else {
+        anyhow::bail!("only a database/query set has queries to shuffle");
+    };
+    let paths = images_in_name_order(queries)?;
+    let mut order: Vec<usize> = (0..paths.len()).collect();
+    order.shuffle(&mut StdRng::seed_from_u64(seed));
+    let queries_dir = out.join("query");
+    std::fs::create_dir_all(&queries_dir)?;
+    for (index, &from) in order.iter().enumerate() {
+        let extension = paths[from].extension().context("image extension")?;
+        std::fs::copy(&paths[from], queries_dir.join(format!("{index:04}")).with_extension(extension))?;
+    }
+    let loops_path = out.join("loops.csv");
+    write_loops(&read_loops(loops)?.between(order, 0..usize::MAX), paths.len(), &loops_path)?;
+    Ok(Data::DatabaseQueries { database: database.clone(), queries: queries_dir, loops: loops_path })
 }
 
 /// What one configuration measured on one set.
@@ -339,6 +405,9 @@ fn verification_table(sets: &[DevSet], weights: &Resolved, extra: &[(&str, &str)
         if set.name.starts_with("TUM") && set.name.contains("64x48") {
             // Too small for ORB, and TUM's intrinsics are those of its 640x480 frames.
             continue;
+        }
+        if set.name.ends_with("queries shuffled") {
+            continue; // the walk's images in another order
         }
         let tum = set.name.starts_with("TUM");
         // The synthetic camera: focal length from the scene, principal point at the image centre

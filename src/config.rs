@@ -325,10 +325,10 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
         },
         integer(
             "detector.sequence.length",
-            1,
-            1,
+            0,
+            0,
             100,
-            "Scores are averaged along the diagonal of the last this-many keyframes against the history (sequence matching; 1 = off).",
+            "Scores are averaged along the diagonal of the last this-many keyframes against the history (sequence matching; 1 = off). 0 = auto: 10 for queries matched against a database (eval --database --queries), 1 for keyframes as they come.",
         ),
         integer(
             "detector.max_keyframes",
@@ -690,7 +690,8 @@ impl Params {
                 Some(ParamValue::Bool(true))
             ),
             max_keyframes: self.count("detector.max_keyframes"),
-            sequence_length: self.count("detector.sequence.length"),
+            // 0 (auto) is single-image matching here; the database/query mode sets its own length.
+            sequence_length: self.count("detector.sequence.length").max(1),
             centre_on_history: matches!(self.values.get("detector.centre_on_history"), Some(ParamValue::Bool(true))),
             // The table's allowed strings are exactly the storage names.
             storage: self.string("detector.storage").parse().unwrap_or_default(),

@@ -16,7 +16,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::config::ParamValue;
-use crate::detector::Match;
+use crate::detector::{sequence, Match};
 use crate::eval::QueryResult;
 use crate::io::tum::TrackerPoses;
 use crate::io::{open_source_topics, Topics};
@@ -135,7 +135,8 @@ impl ReplayRun {
 
 /// Database/query mode: every database image is stored, then each query is matched against
 /// them all (no recency rules: the two sets are different visits). Both folders are sequences in
-/// name order, which the sequence policy (`detector.sequence.length`) follows.
+/// name order, which the sequence policy (`detector.sequence.length`) follows; its automatic
+/// setting is [`sequence::ROUTE_LENGTH`] here.
 pub fn run_database_queries(
     pipeline: &mut Pipeline,
     database: &[PathBuf],
@@ -145,6 +146,10 @@ pub fn run_database_queries(
         pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
     }
     pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
+    if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
+        let route = ParamValue::Integer(sequence::ROUTE_LENGTH as i64);
+        pipeline.set_param("detector.sequence.length", route).map_err(anyhow::Error::msg)?;
+    }
     let started = Instant::now();
     for (index, path) in database.iter().enumerate() {
         let image = read_image(path)?;

@@ -1,6 +1,8 @@
 //! Loop-closure detection end to end, offline: real TUM frames, synthetic sequences, every
 //! source kind giving the same answers, the replay/eval/demo commands, and bad input.
 
+mod support;
+
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
@@ -16,18 +18,8 @@ use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::replay::{run_database_queries, run_source};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 
-fn shared() -> PathBuf {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
-    assert!(
-        dir.join("data/tum").is_dir(),
-        "shared data missing at {}: tests need ../shared (see README)",
-        dir.display()
-    );
-    dir
-}
-
 fn weights() -> resolve::Resolved {
-    resolve::load_file(&shared().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap()
+    resolve::load_file(&support::shared_dir().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap()
 }
 
 fn params(overrides: &[(&str, &str)]) -> Params {
@@ -54,7 +46,10 @@ fn ecm_lcd(args: &[&str]) -> Output {
 fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
     let dir = tempfile::tempdir().unwrap();
     let seq = dir.path().join("two_pass");
-    assert_eq!(write_two_pass(&shared().join("data/tum/fr3_long_office_household"), &seq, 1.0, 0.05).unwrap(), 17);
+    assert_eq!(
+        write_two_pass(&support::shared_dir().join("data/tum/fr3_long_office_household"), &seq, 1.0, 0.05).unwrap(),
+        17
+    );
     // A 17-frame sequence: start matching after 2 keyframes, skip only the previous one.
     let overrides = [
         ("detector.min_history", "2"),
@@ -103,7 +98,7 @@ fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
 /// match reaches the default `detector.min_score`, so none would be reported as a loop.
 #[test]
 fn a_real_office_never_seen_is_not_reported_at_the_default_threshold() {
-    let tum = shared().join("data/tum");
+    let tum = support::shared_dir().join("data/tum");
     let fr2 = images_in_name_order(&tum.join("fr2_desk/rgb")).unwrap();
     let fr3 = images_in_name_order(&tum.join("fr3_long_office_household/rgb")).unwrap();
     let Threshold::MinScore(min_score) = Params::default().detector().threshold else {
@@ -133,8 +128,8 @@ fn a_real_office_never_seen_is_not_reported_at_the_default_threshold() {
 fn eval_does_not_score_views_younger_than_the_truths_gap_as_wrong_loops() {
     let dir = tempfile::tempdir().unwrap();
     let seq = dir.path().join("slow_two_pass");
-    write_two_pass(&shared().join("data/tum/fr3_long_office_household"), &seq, 2.0, 0.05).unwrap();
-    let weights = shared().join("models/mobilenet_v2_1.0_224_quant.tflite");
+    write_two_pass(&support::shared_dir().join("data/tum/fr3_long_office_household"), &seq, 2.0, 0.05).unwrap();
+    let weights = support::shared_dir().join("models/mobilenet_v2_1.0_224_quant.tflite");
     let args = ["eval", seq.to_str().unwrap(), "--quiet", "--json", "--weights", weights.to_str().unwrap()];
     let overrides = ["--param", "detector.min_history=2", "--param", "detector.exclude_recent.seconds=10"];
     let out = ecm_lcd(&[&args[..], &overrides].concat());
@@ -150,8 +145,8 @@ fn eval_does_not_score_views_younger_than_the_truths_gap_as_wrong_loops() {
 /// printing an empty list: the 17 real fr3 frames span 16 s, under the default 20 s.
 #[test]
 fn replay_says_why_a_sequence_too_short_for_loops_matched_nothing() {
-    let seq = shared().join("data/tum/fr3_long_office_household");
-    let weights = shared().join("models/mobilenet_v2_1.0_224_quant.tflite");
+    let seq = support::shared_dir().join("data/tum/fr3_long_office_household");
+    let weights = support::shared_dir().join("models/mobilenet_v2_1.0_224_quant.tflite");
     let args = ["replay", seq.to_str().unwrap(), "--quiet", "--weights", weights.to_str().unwrap()];
     let out = ecm_lcd(&args);
     let err = String::from_utf8_lossy(&out.stderr);
@@ -300,6 +295,7 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
         assert!(json.get(key).is_some(), "no {key} in {json}");
     }
     assert_eq!(json["queries"], 120);
+    assert_eq!(json["policy"], "single-image", "keyframes as they come are matched one by one");
     assert!(json["recall_at_1"].as_f64().unwrap() > 0.9, "{json}");
     assert!(plot.is_file() && curve.is_file());
 
@@ -337,6 +333,38 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["queries"], 60);
     assert!(json["recall_at_1"].as_f64().unwrap() > 0.8, "{json}");
+    assert_eq!(json["policy"], "sequence", "queries against a database are a walk");
+}
+
+/// A real route seen by a low-resolution camera (Gardens Point, 64x48 grayscale): queries against a
+/// database are matched as a walk by default, ten at a time, which finds every place and puts no
+/// wrong match above a right one; single images put a look-alike first and score wrong matches
+/// above right ones.
+#[test]
+fn queries_against_a_database_are_matched_as_a_walk_by_default() {
+    let dir = tempfile::tempdir().unwrap();
+    let (reference, queries) = support::gardens_point_64x48_gray(dir.path());
+    let loops = support::shared_dir().join("data/real/gardens_point_day_night/loops.csv");
+    let eval = |extra: &[&str]| -> serde_json::Value {
+        let path = |p: &Path| p.to_string_lossy().into_owned();
+        let (reference, queries, loops) = (path(&reference), path(&queries), path(&loops));
+        let mut args = vec!["eval", "--database", &reference, "--queries", &queries, "--loops", &loops, "--json"];
+        args.extend(extra);
+        let out = ecm_lcd(&args);
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let figures = |json: &serde_json::Value| {
+        (json["recall_at_1"].as_f64().unwrap(), json["recall_at_100_precision"].as_f64().unwrap())
+    };
+    let walk = eval(&[]);
+    assert_eq!(walk["policy"], "sequence", "{walk}");
+    assert_eq!(walk["parameters"]["detector.sequence.length"], 10, "{walk}");
+    assert_eq!(figures(&walk), (1.0, 1.0), "{walk}");
+    let single = eval(&["--param", "detector.sequence.length=1"]);
+    assert_eq!(single["policy"], "single-image", "{single}");
+    let (recall_at_1, at_full_precision) = figures(&single);
+    assert!(recall_at_1 < 1.0 && at_full_precision < 1.0, "{single}");
 }
 
 #[test]
@@ -441,7 +469,7 @@ fn a_learned_projection_shrinks_descriptors_and_names_itself_in_the_store() {
         Scene::new(SynthConfig { frames: 40, laps: 1, width: 160, height: 120, ..SynthConfig::default() }).unwrap();
     write_tum_folder(&scene, &seq).unwrap();
     let projection = dir.path().join("pca.safetensors");
-    let weights_file = shared().join("models/mobilenet_v2_1.0_224_quant.tflite");
+    let weights_file = support::shared_dir().join("models/mobilenet_v2_1.0_224_quant.tflite");
     let out = ecm_lcd(&[
         "learn-projection",
         seq.to_str().unwrap(),

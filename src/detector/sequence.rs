@@ -16,11 +16,20 @@
 //!   from before it, which match nothing there; sequence matching pays off from the `L`-th on.
 //! - **Candidates.** Only the nearest [`CANDIDATES`] keyframes of the current query are scored, so the
 //!   index still bounds the work: `CANDIDATES * L * 3` distances per query.
+//! - **When it is on.** `detector.sequence.length` 0, the default, means: [`ROUTE_LENGTH`] where
+//!   queries are matched against a database made beforehand (`eval --database --queries`: a route
+//!   travelled again, the queries a walk along it), single images where keyframes come one by one
+//!   and a revisit may be a single keyframe (a tracker's stream, a replay). Queries that are not a
+//!   walk, photos in no order, want 1.
 
 use std::collections::VecDeque;
 
 /// Keyframes nearest to the current query that the sequence score re-ranks.
 pub const CANDIDATES: usize = 10;
+
+/// The sequence length of a route travelled again (module doc: when it is on); SeqSLAM's usual
+/// length.
+pub const ROUTE_LENGTH: usize = 10;
 
 /// The descriptors of the last `length - 1` queries, oldest first.
 #[derive(Clone, Debug, Default)]

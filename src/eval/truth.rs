@@ -74,12 +74,12 @@ impl LoopTruth {
         self.unknown.insert(query);
     }
 
-    /// The truth of a database/query set cut from one sequence: the frames `queries` against the
-    /// frames `references`, each renumbered from 0. A query keeps only its matches among the
-    /// references, and stays unknown where it was.
-    pub fn between(&self, queries: Range<usize>, references: Range<usize>) -> LoopTruth {
+    /// The truth of a database/query set cut from one sequence: the frames `queries`, in the order
+    /// given, against the frames `references`, each renumbered from 0. A query keeps only its
+    /// matches among the references, and stays unknown where it was.
+    pub fn between(&self, queries: impl IntoIterator<Item = usize>, references: Range<usize>) -> LoopTruth {
         let mut cut = LoopTruth::default();
-        for (q, frame) in queries.enumerate() {
+        for (q, frame) in queries.into_iter().enumerate() {
             match self.matches(frame) {
                 None => cut.mark_unknown(q),
                 Some(matched) => {
@@ -276,6 +276,9 @@ mod tests {
         assert_eq!(cut.matches(3), None, "unknown stays unknown");
         assert_eq!(cut.positive_queries().collect::<Vec<_>>(), vec![0, 1]);
         assert!(cut.check_within(4, 3).is_ok());
+        let backwards = truth.between((5..9).rev(), 1..4);
+        assert_eq!(backwards.matches(0), None, "frame 8 first");
+        assert_eq!(backwards.matches(3).unwrap().iter().copied().collect::<Vec<_>>(), vec![2]);
     }
 
     fn pose(x: f64, y: f64, yaw_deg: f64) -> Isometry3<f64> {
