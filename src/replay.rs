@@ -136,7 +136,7 @@ impl ReplayRun {
 /// Database/query mode: every database image is stored, then each query is matched against
 /// them all (no recency rules: the two sets are different visits). Both folders are sequences in
 /// name order, which the sequence policy (`detector.sequence.length`) follows; its automatic
-/// setting is [`sequence::ROUTE_LENGTH`] here.
+/// setting is [`sequence::route_length`] here.
 pub fn run_database_queries(
     pipeline: &mut Pipeline,
     database: &[PathBuf],
@@ -147,8 +147,18 @@ pub fn run_database_queries(
     }
     pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
     if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
-        let route = ParamValue::Integer(sequence::ROUTE_LENGTH as i64);
-        pipeline.set_param("detector.sequence.length", route).map_err(anyhow::Error::msg)?;
+        let length = sequence::route_length(database.len(), queries.len());
+        if length == 1 {
+            log::info!(
+                "{} database images and {} queries are not sampled alike, so the queries are matched as \
+                 single images, not as a walk (detector.sequence.length 0)",
+                database.len(),
+                queries.len()
+            );
+        }
+        pipeline
+            .set_param("detector.sequence.length", ParamValue::Integer(length as i64))
+            .map_err(anyhow::Error::msg)?;
     }
     let started = Instant::now();
     for (index, path) in database.iter().enumerate() {

@@ -339,7 +339,7 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
 /// A real route seen by a low-resolution camera (Gardens Point, 64x48 grayscale): queries against a
 /// database are matched as a walk by default, ten at a time, which finds every place and puts no
 /// wrong match above a right one; single images put a look-alike first and score wrong matches
-/// above right ones.
+/// above right ones. Queries sampled unlike the database are matched as single images.
 #[test]
 fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let dir = tempfile::tempdir().unwrap();
@@ -365,6 +365,29 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     assert_eq!(single["policy"], "single-image", "{single}");
     let (recall_at_1, at_full_precision) = figures(&single);
     assert!(recall_at_1 < 1.0 && at_full_precision < 1.0, "{single}");
+
+    // Every second query only: the queries are not sampled like the database (5 against 10), so they
+    // are matched as single images.
+    let sparse = dir.path().join("every_second_query");
+    std::fs::create_dir(&sparse).unwrap();
+    let mut sparse_loops = String::new();
+    for (index, path) in images_in_name_order(&queries).unwrap().iter().step_by(2).enumerate() {
+        std::fs::copy(path, sparse.join(format!("{index:02}.png"))).unwrap();
+        let original = 2 * index;
+        let matches: Vec<String> =
+            (original.saturating_sub(1)..=(original + 1).min(9)).map(|m| m.to_string()).collect();
+        sparse_loops.push_str(&format!("{index},{}\n", matches.join(" ")));
+    }
+    let sparse_loops_file = dir.path().join("every_second_query.csv");
+    std::fs::write(&sparse_loops_file, sparse_loops).unwrap();
+    let path = |p: &Path| p.to_string_lossy().into_owned();
+    let (reference, sparse, sparse_loops_file) = (path(&reference), path(&sparse), path(&sparse_loops_file));
+    let out =
+        ecm_lcd(&["eval", "--database", &reference, "--queries", &sparse, "--loops", &sparse_loops_file, "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(json["policy"], "single-image", "{json}");
+    assert_eq!(json["queries"], 5, "{json}");
 }
 
 #[test]

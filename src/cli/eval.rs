@@ -31,8 +31,8 @@ pub struct Args {
     #[arg(long, requires_all = ["queries", "loops"], conflicts_with = "source")]
     pub database: Option<PathBuf>,
     /// Database/query mode: folder of query images (name order), a walk along the database's route,
-    /// matched 10 at a time (`detector.sequence.length` 0); for photos in no order give
-    /// `--param detector.sequence.length=1`.
+    /// matched 10 at a time where the two counts are within 1.5x (`detector.sequence.length` 0); for
+    /// photos in no order give `--param detector.sequence.length=1`.
     #[arg(long, requires = "database")]
     pub queries: Option<PathBuf>,
     /// Print the summary as JSON (keys `queries`, `recall_at_1`, `recall_at_100_precision`,

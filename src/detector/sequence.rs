@@ -19,8 +19,10 @@
 //! - **When it is on.** `detector.sequence.length` 0, the default, means: [`ROUTE_LENGTH`] where
 //!   queries are matched against a database made beforehand (`eval --database --queries`: a route
 //!   travelled again, the queries a walk along it), single images where keyframes come one by one
-//!   and a revisit may be a single keyframe (a tracker's stream, a replay). Queries that are not a
-//!   walk, photos in no order, want 1.
+//!   and a revisit may be a single keyframe (a tracker's stream, a replay). The diagonal takes one
+//!   database keyframe per query, so the walk is only assumed where both are sampled alike: where
+//!   their counts differ by more than [`MAX_COUNT_RATIO`], single images ([`route_length`]).
+//!   Queries that are not a walk, photos in no order, want 1.
 
 use std::collections::VecDeque;
 
@@ -30,6 +32,21 @@ pub const CANDIDATES: usize = 10;
 /// The sequence length of a route travelled again (module doc: when it is on); SeqSLAM's usual
 /// length.
 pub const ROUTE_LENGTH: usize = 10;
+
+/// The largest ratio of database to query count (either way) at which queries are taken as a walk
+/// sampled like the database.
+pub const MAX_COUNT_RATIO: f64 = 1.5;
+
+/// The automatic sequence length for `queries` queries against a database of `database` keyframes
+/// (module doc: when it is on).
+pub fn route_length(database: usize, queries: usize) -> usize {
+    let (fewer, more) = (database.min(queries), database.max(queries));
+    if fewer > 0 && more as f64 <= MAX_COUNT_RATIO * fewer as f64 {
+        ROUTE_LENGTH
+    } else {
+        1
+    }
+}
 
 /// The descriptors of the last `length - 1` queries, oldest first.
 #[derive(Clone, Debug, Default)]
@@ -148,5 +165,15 @@ mod tests {
         let mut off = RecentQueries::new(1);
         off.push(&unit(0.0));
         assert!(off.queries.is_empty());
+    }
+
+    #[test]
+    fn a_walk_is_assumed_only_where_both_sets_are_sampled_alike() {
+        assert_eq!(route_length(111, 111), ROUTE_LENGTH);
+        assert_eq!(route_length(200, 134), ROUTE_LENGTH, "within 1.5x either way");
+        assert_eq!(route_length(134, 200), ROUTE_LENGTH);
+        assert_eq!(route_length(200, 100), 1, "twice as many keyframes as queries");
+        assert_eq!(route_length(67, 200), 1);
+        assert_eq!(route_length(0, 10), 1);
     }
 }
