@@ -9,10 +9,11 @@
 //!
 //! Sets: Gardens Point day/night and the TUM desk orbit from `../shared/data/real`, Gardens Point
 //! again at 64x48 grayscale (degraded here, in a temporary folder: low-resolution cameras), the TUM
-//! fr3 two-pass and the synthetic sequences of `examples/common/mod.rs`, the hard one's night lap
-//! also as queries against its first lap (database/query mode); for verification also both
-//! synthetic sequences rendered with depth (metric poses, their errors against the covariance, and
-//! those of the loops outside the truth's place rule).
+//! fr3 two-pass and the synthetic sequences of `examples/common/mod.rs`; in the database/query mode
+//! the two-pass's second pass against its first (also at 64x48 gray), the hard one's night and day
+//! laps against its first, and the Gardens Point gray copy and the night lap with their queries
+//! shuffled; for verification also both synthetic sequences rendered with depth (metric poses, their
+//! errors against the covariance, and those of the loops outside the truth's place rule).
 
 mod common;
 
