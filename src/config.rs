@@ -328,7 +328,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             0,
             0,
             100,
-            "Scores are averaged along the diagonal of the last this-many keyframes against the history (sequence matching; 1 = off). 0 = auto: 10 for queries matched against a database of a like count (eval --database --queries), 1 for keyframes as they come.",
+            "Scores are averaged along the diagonal of the last this-many keyframes against the history (sequence matching; 1 = off). 0 = auto: 10 for queries that look like a walk against a database of a like count (eval --database --queries), 1 for keyframes as they come.",
         ),
         integer(
             "detector.max_keyframes",

@@ -136,7 +136,9 @@ impl ReplayRun {
 /// Database/query mode: every database image is stored, then each query is matched against
 /// them all (no recency rules: the two sets are different visits). Both folders are sequences in
 /// name order, which the sequence policy (`detector.sequence.length`) follows; its automatic
-/// setting is [`sequence::route_length`] here.
+/// setting is a walk here unless [`sequence::why_not_a_walk`] says otherwise, which is why every
+/// query is described before any is matched (their descriptors are kept meanwhile, 11.25 KiB each
+/// for the default).
 pub fn run_database_queries(
     pipeline: &mut Pipeline,
     database: &[PathBuf],
@@ -146,20 +148,6 @@ pub fn run_database_queries(
         pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
     }
     pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
-    if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
-        let length = sequence::route_length(database.len(), queries.len());
-        if length == 1 {
-            log::info!(
-                "{} database images and {} queries are not sampled alike, so the queries are matched as \
-                 single images, not as a walk (detector.sequence.length 0)",
-                database.len(),
-                queries.len()
-            );
-        }
-        pipeline
-            .set_param("detector.sequence.length", ParamValue::Integer(length as i64))
-            .map_err(anyhow::Error::msg)?;
-    }
     let started = Instant::now();
     for (index, path) in database.iter().enumerate() {
         let image = read_image(path)?;
@@ -168,16 +156,29 @@ pub fn run_database_queries(
         let features = pipeline.local_features(&image, None)?;
         pipeline.remember_features(index as u64, features);
     }
+    let descriptors: Vec<Vec<f32>> =
+        queries.iter().map(|path| pipeline.describe(&read_image(path)?)).collect::<Result<_>>()?;
+    if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
+        let length = match sequence::why_not_a_walk(database.len(), &descriptors) {
+            None => sequence::ROUTE_LENGTH,
+            Some(why) => {
+                log::info!("{why}, so they are matched as single images (detector.sequence.length 0)");
+                1
+            }
+        };
+        pipeline
+            .set_param("detector.sequence.length", ParamValue::Integer(length as i64))
+            .map_err(anyhow::Error::msg)?;
+    }
     let mut results = Vec::with_capacity(queries.len());
-    for (index, path) in queries.iter().enumerate() {
-        let image = read_image(path)?;
-        let descriptor = pipeline.describe(&image)?;
+    for (index, (path, descriptor)) in queries.iter().zip(&descriptors).enumerate() {
         // With verification, the nearest verified with the most inliers ([`best_supported`]); none
         // passing counts as no match.
         let tried = pipeline.matches_tried();
-        let nearest = pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), &descriptor, tried)?;
-        let features = pipeline.local_features(&image, None)?;
+        let nearest = pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), descriptor, tried)?;
         let best = if pipeline.verifies() {
+            // Read again: the query images are not all kept while their descriptors are.
+            let features = pipeline.local_features(&read_image(path)?, None)?;
             let verifications = nearest.iter().map(|m| {
                 let verification = pipeline.verify(&features, m.id);
                 if let Some(v) = verification {

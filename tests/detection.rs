@@ -366,6 +366,28 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let (recall_at_1, at_full_precision) = figures(&single);
     assert!(recall_at_1 < 1.0 && at_full_precision < 1.0, "{single}");
 
+    // The same queries in no order (photos, not a walk) are matched as single images.
+    let photos = dir.path().join("photos");
+    std::fs::create_dir(&photos).unwrap();
+    let mut photo_loops = String::new();
+    let originals = images_in_name_order(&queries).unwrap();
+    for (index, original) in [3, 8, 1, 6, 0, 9, 4, 2, 7, 5].into_iter().enumerate() {
+        std::fs::copy(&originals[original], photos.join(format!("{index:02}.png"))).unwrap();
+        let matches: Vec<String> =
+            (original.saturating_sub(1)..=(original + 1).min(9)).map(|m| m.to_string()).collect();
+        photo_loops.push_str(&format!("{index},{}\n", matches.join(" ")));
+    }
+    let photo_loops_file = dir.path().join("photos.csv");
+    std::fs::write(&photo_loops_file, photo_loops).unwrap();
+    let path = |p: &Path| p.to_string_lossy().into_owned();
+    let (reference_arg, photos, photo_loops_file) = (path(&reference), path(&photos), path(&photo_loops_file));
+    let out =
+        ecm_lcd(&["eval", "--database", &reference_arg, "--queries", &photos, "--loops", &photo_loops_file, "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(json["policy"], "single-image", "{json}");
+    assert_eq!(figures(&json), (recall_at_1, at_full_precision), "single images do not depend on the order");
+
     // Every second query only: the queries are not sampled like the database (5 against 10), so they
     // are matched as single images.
     let sparse = dir.path().join("every_second_query");

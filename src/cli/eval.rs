@@ -30,9 +30,9 @@ pub struct Args {
     /// Database/query mode: folder of database images (name order); needs --queries and --loops.
     #[arg(long, requires_all = ["queries", "loops"], conflicts_with = "source")]
     pub database: Option<PathBuf>,
-    /// Database/query mode: folder of query images (name order), a walk along the database's route,
-    /// matched 10 at a time where the two counts are within 1.5x (`detector.sequence.length` 0); for
-    /// photos in no order give `--param detector.sequence.length=1`.
+    /// Database/query mode: folder of query images (name order). Where they look like a walk along
+    /// the database's route and number within 1.5x of it, they are matched 10 at a time, else one by
+    /// one (`detector.sequence.length` 0; 1 or more sets it).
     #[arg(long, requires = "database")]
     pub queries: Option<PathBuf>,
     /// Print the summary as JSON (keys `queries`, `recall_at_1`, `recall_at_100_precision`,

@@ -20,11 +20,13 @@
 //!   queries are matched against a database made beforehand (`eval --database --queries`: a route
 //!   travelled again, the queries a walk along it), single images where keyframes come one by one
 //!   and a revisit may be a single keyframe (a tracker's stream, a replay). The diagonal takes one
-//!   database keyframe per query, so the walk is only assumed where both are sampled alike: where
-//!   their counts differ by more than [`MAX_COUNT_RATIO`], single images ([`route_length`]).
-//!   Queries that are not a walk, photos in no order, want 1.
+//!   database keyframe per query, so the walk is only assumed where both are sampled alike and the
+//!   queries look like one ([`why_not_a_walk`]): counts within [`MAX_COUNT_RATIO`] of each other,
+//!   and for [`WALK_EVIDENCE`] of the queries the next is nearer than the one half the set away.
 
 use std::collections::VecDeque;
+
+use crate::descriptor::distance;
 
 /// Keyframes nearest to the current query that the sequence score re-ranks.
 pub const CANDIDATES: usize = 10;
@@ -37,15 +39,32 @@ pub const ROUTE_LENGTH: usize = 10;
 /// sampled like the database.
 pub const MAX_COUNT_RATIO: f64 = 1.5;
 
-/// The automatic sequence length for `queries` queries against a database of `database` keyframes
-/// (module doc: when it is on).
-pub fn route_length(database: usize, queries: usize) -> usize {
-    let (fewer, more) = (database.min(queries), database.max(queries));
-    if fewer > 0 && more as f64 <= MAX_COUNT_RATIO * fewer as f64 {
-        ROUTE_LENGTH
-    } else {
-        1
+/// The share of queries, at least, whose successor must be nearer to them than the query half the
+/// set away for the queries to be taken as a walk: about all of them in a walk, about half in a set
+/// in no order.
+pub const WALK_EVIDENCE: f64 = 0.75;
+
+/// Why `queries` (descriptors in their order) against a database of `database` keyframes are not a
+/// walk sampled like it, or `None` when they are (module doc: when it is on).
+pub fn why_not_a_walk(database: usize, queries: &[Vec<f32>]) -> Option<String> {
+    let n = queries.len();
+    let (fewer, more) = (database.min(n), database.max(n));
+    if fewer == 0 || more as f64 > MAX_COUNT_RATIO * fewer as f64 {
+        return Some(format!("{database} database images and {n} queries are not sampled alike"));
     }
+    if n < 4 {
+        return None;
+    }
+    let nearer = (0..n - 1)
+        .filter(|&t| {
+            let far = (t + n / 2) % n;
+            distance(&queries[t], &queries[t + 1]) < distance(&queries[t], &queries[far])
+        })
+        .count();
+    let share = nearer as f64 / (n - 1) as f64;
+    (share < WALK_EVIDENCE).then(|| {
+        format!("the queries do not look like a walk (for {:.0}% of them the next one is nearer than one half the set away)", 100.0 * share)
+    })
 }
 
 /// The descriptors of the last `length - 1` queries, oldest first.
@@ -168,12 +187,19 @@ mod tests {
     }
 
     #[test]
-    fn a_walk_is_assumed_only_where_both_sets_are_sampled_alike() {
-        assert_eq!(route_length(111, 111), ROUTE_LENGTH);
-        assert_eq!(route_length(200, 134), ROUTE_LENGTH, "within 1.5x either way");
-        assert_eq!(route_length(134, 200), ROUTE_LENGTH);
-        assert_eq!(route_length(200, 100), 1, "twice as many keyframes as queries");
-        assert_eq!(route_length(67, 200), 1);
-        assert_eq!(route_length(0, 10), 1);
+    fn a_walk_is_assumed_only_where_both_sets_are_sampled_alike_and_the_queries_look_like_one() {
+        // A walk: each query a small step from the last along a turning route.
+        let walk: Vec<Vec<f32>> = (0..40).map(|i| unit(i as f32 * 0.05)).collect();
+        assert_eq!(why_not_a_walk(40, &walk), None);
+        assert_eq!(why_not_a_walk(60, &walk), None, "within 1.5x either way");
+        assert_eq!(why_not_a_walk(27, &walk), None);
+        let why = why_not_a_walk(80, &walk).expect("twice as many keyframes as queries");
+        assert!(why.contains("not sampled alike"), "{why}");
+        assert!(why_not_a_walk(26, &walk).is_some());
+        assert!(why_not_a_walk(0, &walk).is_some());
+        // The same queries in no order (a fixed permutation).
+        let shuffled: Vec<Vec<f32>> = (0..40).map(|i| walk[(i * 17) % 40].clone()).collect();
+        let why = why_not_a_walk(40, &shuffled).expect("photos in no order");
+        assert!(why.contains("do not look like a walk"), "{why}");
     }
 }
