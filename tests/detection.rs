@@ -345,9 +345,9 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let dir = tempfile::tempdir().unwrap();
     let (reference, queries) = support::gardens_point_64x48_gray(dir.path());
     let loops = support::shared_dir().join("data/real/gardens_point_day_night/loops.csv");
-    let eval = |extra: &[&str]| -> serde_json::Value {
+    let eval = |queries: &Path, loops: &Path, extra: &[&str]| -> serde_json::Value {
         let path = |p: &Path| p.to_string_lossy().into_owned();
-        let (reference, queries, loops) = (path(&reference), path(&queries), path(&loops));
+        let (reference, queries, loops) = (path(&reference), path(queries), path(loops));
         let mut args = vec!["eval", "--database", &reference, "--queries", &queries, "--loops", &loops, "--json"];
         args.extend(extra);
         let out = ecm_lcd(&args);
@@ -357,57 +357,41 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let figures = |json: &serde_json::Value| {
         (json["recall_at_1"].as_f64().unwrap(), json["recall_at_100_precision"].as_f64().unwrap())
     };
-    let walk = eval(&[]);
+    let walk = eval(&queries, &loops, &[]);
     assert_eq!(walk["policy"], "sequence", "{walk}");
     assert_eq!(walk["parameters"]["detector.sequence.length"], 10, "{walk}");
     assert_eq!(figures(&walk), (1.0, 1.0), "{walk}");
-    let single = eval(&["--param", "detector.sequence.length=1"]);
+    let single = eval(&queries, &loops, &["--param", "detector.sequence.length=1"]);
     assert_eq!(single["policy"], "single-image", "{single}");
     let (recall_at_1, at_full_precision) = figures(&single);
     assert!(recall_at_1 < 1.0 && at_full_precision < 1.0, "{single}");
 
-    // The same queries in no order (photos, not a walk) are matched as single images.
-    let photos = dir.path().join("photos");
-    std::fs::create_dir(&photos).unwrap();
-    let mut photo_loops = String::new();
+    // The queries `originals`, in that order, as the folder `name` with their loops file (each true
+    // at its own index and the neighbours, as in the shared loops).
     let originals = images_in_name_order(&queries).unwrap();
-    for (index, original) in [3, 8, 1, 6, 0, 9, 4, 2, 7, 5].into_iter().enumerate() {
-        std::fs::copy(&originals[original], photos.join(format!("{index:02}.png"))).unwrap();
-        let matches: Vec<String> =
-            (original.saturating_sub(1)..=(original + 1).min(9)).map(|m| m.to_string()).collect();
-        photo_loops.push_str(&format!("{index},{}\n", matches.join(" ")));
-    }
-    let photo_loops_file = dir.path().join("photos.csv");
-    std::fs::write(&photo_loops_file, photo_loops).unwrap();
-    let path = |p: &Path| p.to_string_lossy().into_owned();
-    let (reference_arg, photos, photo_loops_file) = (path(&reference), path(&photos), path(&photo_loops_file));
-    let out =
-        ecm_lcd(&["eval", "--database", &reference_arg, "--queries", &photos, "--loops", &photo_loops_file, "--json"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let subset = |name: &str, chosen: &[usize]| -> (PathBuf, PathBuf) {
+        let folder = dir.path().join(name);
+        std::fs::create_dir(&folder).unwrap();
+        let mut loops = String::new();
+        for (index, &original) in chosen.iter().enumerate() {
+            std::fs::copy(&originals[original], folder.join(format!("{index:02}.png"))).unwrap();
+            let matches: Vec<String> =
+                (original.saturating_sub(1)..=(original + 1).min(9)).map(|m| m.to_string()).collect();
+            loops.push_str(&format!("{index},{}\n", matches.join(" ")));
+        }
+        let loops_file = dir.path().join(format!("{name}.csv"));
+        std::fs::write(&loops_file, loops).unwrap();
+        (folder, loops_file)
+    };
+    // The same queries in no order (photos, not a walk) are matched as single images.
+    let (photos, photo_loops) = subset("photos", &[3, 8, 1, 6, 0, 9, 4, 2, 7, 5]);
+    let json = eval(&photos, &photo_loops, &[]);
     assert_eq!(json["policy"], "single-image", "{json}");
     assert_eq!(figures(&json), (recall_at_1, at_full_precision), "single images do not depend on the order");
-
     // Every second query only: the queries are not sampled like the database (5 against 10), so they
     // are matched as single images.
-    let sparse = dir.path().join("every_second_query");
-    std::fs::create_dir(&sparse).unwrap();
-    let mut sparse_loops = String::new();
-    for (index, path) in images_in_name_order(&queries).unwrap().iter().step_by(2).enumerate() {
-        std::fs::copy(path, sparse.join(format!("{index:02}.png"))).unwrap();
-        let original = 2 * index;
-        let matches: Vec<String> =
-            (original.saturating_sub(1)..=(original + 1).min(9)).map(|m| m.to_string()).collect();
-        sparse_loops.push_str(&format!("{index},{}\n", matches.join(" ")));
-    }
-    let sparse_loops_file = dir.path().join("every_second_query.csv");
-    std::fs::write(&sparse_loops_file, sparse_loops).unwrap();
-    let path = |p: &Path| p.to_string_lossy().into_owned();
-    let (reference, sparse, sparse_loops_file) = (path(&reference), path(&sparse), path(&sparse_loops_file));
-    let out =
-        ecm_lcd(&["eval", "--database", &reference, "--queries", &sparse, "--loops", &sparse_loops_file, "--json"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let (sparse, sparse_loops) = subset("every_second_query", &[0, 2, 4, 6, 8]);
+    let json = eval(&sparse, &sparse_loops, &[]);
     assert_eq!(json["policy"], "single-image", "{json}");
     assert_eq!(json["queries"], 5, "{json}");
 }
