@@ -136,9 +136,9 @@ impl ReplayRun {
 /// Database/query mode: every database image is stored, then each query is matched against
 /// them all (no recency rules: the two sets are different visits). Both folders are sequences in
 /// name order, which the sequence policy (`detector.sequence.length`) follows; its automatic
-/// setting is a walk here unless [`sequence::why_not_a_walk`] says otherwise, which is why every
-/// query is described before any is matched (their descriptors are kept meanwhile, 11.25 KiB each
-/// for the default).
+/// setting is a walk here unless [`sequence::why_not_a_walk`] says otherwise, and a walk's window
+/// is centred on each query ([`sequence::queries_ahead`]), which is why every query is described
+/// before any is matched (their descriptors are kept meanwhile, 11.25 KiB each for the default).
 pub fn run_database_queries(
     pipeline: &mut Pipeline,
     database: &[PathBuf],
@@ -159,7 +159,12 @@ pub fn run_database_queries(
     let descriptors: Vec<Vec<f32>> =
         queries.iter().map(|path| pipeline.describe(&read_image(path)?)).collect::<Result<_>>()?;
     if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
-        let length = match sequence::why_not_a_walk(database.len(), &descriptors) {
+        // Still single images here (0 means 1 until resolved): each query's nearest keyframe.
+        let nearest: Vec<usize> = descriptors
+            .iter()
+            .map(|d| Ok(pipeline.detector().best_match(Stamp::from_nanos(i64::MAX), d)?.map_or(0, |m| m.id as usize)))
+            .collect::<Result<_>>()?;
+        let length = match sequence::why_not_a_walk(database.len(), &nearest, &descriptors) {
             None => sequence::ROUTE_LENGTH,
             Some(why) => {
                 log::info!("{why}, so they are matched as single images (detector.sequence.length 0)");
@@ -170,12 +175,17 @@ pub fn run_database_queries(
             .set_param("detector.sequence.length", ParamValue::Integer(length as i64))
             .map_err(anyhow::Error::msg)?;
     }
+    let length = match pipeline.params().get("detector.sequence.length") {
+        Some(ParamValue::Integer(length)) => length.max(1) as usize,
+        _ => 1,
+    };
     let mut results = Vec::with_capacity(queries.len());
     for (index, (path, descriptor)) in queries.iter().zip(&descriptors).enumerate() {
+        let ahead = &descriptors[index + 1..][..sequence::queries_ahead(length, index, queries.len())];
         // With verification, the nearest verified with the most inliers ([`best_supported`]); none
         // passing counts as no match.
         let tried = pipeline.matches_tried();
-        let nearest = pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), descriptor, tried)?;
+        let nearest = pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), descriptor, ahead, tried)?;
         let best = if pipeline.verifies() {
             // Read again: the query images are not all kept while their descriptors are.
             let features = pipeline.local_features(&read_image(path)?, None)?;

@@ -339,7 +339,8 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
 /// A real route seen by a low-resolution camera (Gardens Point, 64x48 grayscale): queries against a
 /// database are matched as a walk by default, ten at a time, which finds every place and puts no
 /// wrong match above a right one; single images put a look-alike first and score wrong matches
-/// above right ones. Queries sampled unlike the database are matched as single images.
+/// above right ones. Queries sampled unlike the database are matched as single images, a walk
+/// along a part of its route as a walk.
 #[test]
 fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let dir = tempfile::tempdir().unwrap();
@@ -394,6 +395,15 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let json = eval(&sparse, &sparse_loops, &[]);
     assert_eq!(json["policy"], "single-image", "{json}");
     assert_eq!(json["queries"], 5, "{json}");
+    // As few queries, but a walk along half of the database's route: matched as a walk, which finds
+    // every place (single images put a look-alike first in the first half).
+    for (name, half) in [("first_half", [0, 1, 2, 3, 4]), ("second_half", [5, 6, 7, 8, 9])] {
+        let (part, part_loops) = subset(name, &half);
+        let json = eval(&part, &part_loops, &[]);
+        assert_eq!(json["policy"], "sequence", "{json}");
+        assert_eq!(json["queries"], 5, "{json}");
+        assert_eq!(figures(&json), (1.0, 1.0), "{json}");
+    }
 }
 
 #[test]

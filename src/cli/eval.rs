@@ -31,8 +31,8 @@ pub struct Args {
     #[arg(long, requires_all = ["queries", "loops"], conflicts_with = "source")]
     pub database: Option<PathBuf>,
     /// Database/query mode: folder of query images (name order). Where they look like a walk along
-    /// the database's route and number within 1.5x of it, they are matched 10 at a time, else one by
-    /// one (`detector.sequence.length` 0; 1 or more sets it).
+    /// the database's route, or part of it, sampled alike (within 1.5x), they are matched 10 at a
+    /// time, else one by one (`detector.sequence.length` 0; 1 or more sets it).
     #[arg(long, requires = "database")]
     pub queries: Option<PathBuf>,
     /// Print the summary as JSON (keys `queries`, `recall_at_1`, `recall_at_100_precision`,

@@ -726,7 +726,14 @@ impl Detector {
 
     /// The eligible matches of a query, best first: the `top_k` nearest, or with the sequence policy the
     /// nearest [`sequence::CANDIDATES`] re-ranked by sequence score. Each is (position, distance, score).
-    fn ranked_matches(&self, stamp: Stamp, descriptor: &[f32], top_k: usize) -> anyhow::Result<Vec<(usize, f32, f32)>> {
+    /// `ahead` are the queries after this one that join its sequence window (database/query mode).
+    fn ranked_matches(
+        &self,
+        stamp: Stamp,
+        descriptor: &[f32],
+        ahead: &[Vec<f32>],
+        top_k: usize,
+    ) -> anyhow::Result<Vec<(usize, f32, f32)>> {
         let centring = self.centring();
         if self.params.sequence_length <= 1 && centring.is_none() {
             let neighbours = self.eligible_nearest(stamp, descriptor, top_k)?;
@@ -740,18 +747,27 @@ impl Detector {
         }
         let neighbours = self.eligible_nearest(stamp, descriptor, top_k.max(sequence::CANDIDATES))?;
         let eligible = self.eligibility(stamp);
-        // The current query, then the kept earlier ones (by age), each prepared once for the rows.
-        let queries: Vec<&[f32]> = std::iter::once(descriptor).chain(self.recent_queries.newest_first()).collect();
+        // The window's queries: the current one, the kept earlier ones (by age), then the later ones;
+        // each prepared once for the rows.
+        let ahead = &ahead[..ahead.len().min(self.params.sequence_length.saturating_sub(1))];
+        let behind = self.recent_queries.behind(ahead.len());
+        let queries: Vec<&[f32]> = std::iter::once(descriptor)
+            .chain(self.recent_queries.newest_first().take(behind))
+            .chain(ahead.iter().map(Vec::as_slice))
+            .collect();
+        let index = |offset: isize| if offset <= 0 { offset.unsigned_abs() } else { behind + offset as usize };
         let prepared: Vec<PreparedQuery> = match centring {
             Some(_) => Vec::new(),
             None => queries.iter().map(|q| self.db.prepare(q)).collect(),
         };
-        // (distance, score) of the query `age` steps back against keyframe `p`, centred or not.
-        let compare = |age: usize, p: usize| -> (f32, f32) {
+        // (distance, score) of the query `offset` steps from the current one against keyframe `p`,
+        // centred or not.
+        let compare = |offset: isize, p: usize| -> (f32, f32) {
+            let q = index(offset);
             match &centring {
-                Some(mean) => centred_comparison(queries[age], &self.db.descriptor(p), mean),
+                Some(mean) => centred_comparison(queries[q], &self.db.descriptor(p), mean),
                 None => {
-                    let distance = self.db.prepared_distance_to(&prepared[age], p).sqrt();
+                    let distance = self.db.prepared_distance_to(&prepared[q], p).sqrt();
                     (distance, self.descriptor.score(distance))
                 }
             }
@@ -761,7 +777,13 @@ impl Detector {
             .map(|n| {
                 let (distance, single) = compare(0, n.position);
                 let score = if self.params.sequence_length > 1 {
-                    self.recent_queries.sequence_score(n.position, self.db.len(), |age, p| compare(age, p).1, &eligible)
+                    self.recent_queries.sequence_score(
+                        ahead.len(),
+                        n.position,
+                        self.db.len(),
+                        |offset, p| compare(offset, p).1,
+                        &eligible,
+                    )
                 } else {
                     single
                 };
@@ -807,7 +829,7 @@ impl Detector {
         descriptor: &[f32],
         depth: usize,
     ) -> anyhow::Result<(Vec<Match>, Vec<LoopCandidate>)> {
-        let ranked = self.ranked_matches(stamp, descriptor, depth.max(self.params.top_k))?;
+        let ranked = self.ranked_matches(stamp, descriptor, &[], depth.max(self.params.top_k))?;
         let nearest = ranked.iter().map(|&m| self.to_match(m)).collect();
         let passing: Vec<(usize, f32, f32)> =
             ranked.into_iter().filter(|&(_, distance, score)| self.passes(distance, score)).collect();
@@ -843,18 +865,26 @@ impl Detector {
     /// With the sequence policy the score is the sequence score over this query and the earlier ones
     /// that went through [`Detector::process`] or [`Detector::query`].
     pub fn best_match(&self, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Option<Match>> {
-        Ok(self.ranked_matches(stamp, descriptor, 1)?.first().map(|&m| self.to_match(m)))
+        Ok(self.ranked_matches(stamp, descriptor, &[], 1)?.first().map(|&m| self.to_match(m)))
     }
 
     /// [`Detector::best_match`] for a query that is not inserted (database/query evaluation), which
     /// joins the sequence of recent queries.
     pub fn query(&mut self, stamp: Stamp, descriptor: &[f32]) -> anyhow::Result<Option<Match>> {
-        Ok(self.query_ranked(stamp, descriptor, 1)?.into_iter().next())
+        Ok(self.query_ranked(stamp, descriptor, &[], 1)?.into_iter().next())
     }
 
-    /// [`Detector::query`] with the `depth` nearest eligible keyframes, best first.
-    pub fn query_ranked(&mut self, stamp: Stamp, descriptor: &[f32], depth: usize) -> anyhow::Result<Vec<Match>> {
-        let ranked = self.ranked_matches(stamp, descriptor, depth)?;
+    /// [`Detector::query`] with the `depth` nearest eligible keyframes, best first. With the sequence
+    /// policy, `ahead` are the queries after this one (nearest first) that join its window, where
+    /// they are known beforehand ([`sequence::queries_ahead`]); up to `length - 1` are used.
+    pub fn query_ranked(
+        &mut self,
+        stamp: Stamp,
+        descriptor: &[f32],
+        ahead: &[Vec<f32>],
+        depth: usize,
+    ) -> anyhow::Result<Vec<Match>> {
+        let ranked = self.ranked_matches(stamp, descriptor, ahead, depth)?;
         self.recent_queries.push(descriptor);
         Ok(ranked.into_iter().map(|m| self.to_match(m)).collect())
     }
