@@ -17,7 +17,6 @@
 
 mod common;
 
-use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
@@ -114,7 +113,7 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
             for (label, source) in [("", &set.path), (" 64x48 gray", &degraded.path)] {
                 let folder = tmp.join(format!("fr3_passes{}", label.replace(' ', "_")));
                 let (database, queries, loops) =
-                    cut_database_and_queries(source, 0..first_pass, &second_pass, &folder)?;
+                    cut_database_and_queries(source, &(0..first_pass).collect::<Vec<_>>(), &second_pass, &folder)?;
                 cuts.push(DevSet {
                     name: format!("TUM fr3 second pass against first{label} (real)"),
                     data: Data::DatabaseQueries { database, queries, loops },
@@ -129,12 +128,40 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
     }
     if let Some(hard) = hard {
         let lap = ecm_lcd::io::open_source(&hard, None)?.count() / 3;
-        for (name, laps) in [("night", lap..2 * lap), ("day", 2 * lap..3 * lap)] {
-            let queries: Vec<usize> = laps.collect();
-            let folder = tmp.join(format!("synthetic_hard_{name}_lap"));
-            let (database, queries, loops) = cut_database_and_queries(&hard, 0..lap, &queries, &folder)?;
+        let first: Vec<usize> = (0..lap).collect();
+        let (night, day): (Vec<usize>, Vec<usize>) = ((lap..2 * lap).collect(), (2 * lap..3 * lap).collect());
+        let mut cuts = vec![
+            ("night lap against first lap".to_string(), first.clone(), night.clone()),
+            ("day lap against first lap".to_string(), first.clone(), day.clone()),
+        ];
+        if extra_cuts() {
+            // Walks along a part of the database: 30 queries every 40 of each lap.
+            for (name, queries) in [("night", &night), ("day", &day)] {
+                for from in (0..queries.len().saturating_sub(30)).step_by(40) {
+                    let part = queries[from..from + 30].to_vec();
+                    cuts.push((
+                        format!("{name} lap's queries {from}-{} against first lap", from + 29),
+                        first.clone(),
+                        part,
+                    ));
+                }
+            }
+            // Sampled unlike the database: queries or references left out.
+            for (step, nth) in [(2, "second"), (3, "third"), (4, "fourth")] {
+                let every = |frames: &[usize]| frames.iter().copied().step_by(step).collect::<Vec<_>>();
+                cuts.push((format!("night lap, every {nth} query, against first lap"), first.clone(), every(&night)));
+                cuts.push((format!("night lap against every {nth} frame of first lap"), every(&first), night.clone()));
+            }
+            for (name, kept) in [("4 of every 5", 5), ("2 of every 3", 3)] {
+                let queries = night.iter().copied().filter(|q| q % kept != kept - 1).collect();
+                cuts.push((format!("night lap, {name} queries, against first lap"), first.clone(), queries));
+            }
+        }
+        for (index, (name, database, queries)) in cuts.into_iter().enumerate() {
+            let folder = tmp.join(format!("synthetic_hard_cut_{index}"));
+            let (database, queries, loops) = cut_database_and_queries(&hard, &database, &queries, &folder)?;
             sets.push(DevSet {
-                name: format!("synthetic hard preset, {name} lap against first lap"),
+                name: format!("synthetic hard preset, {name}"),
                 data: Data::DatabaseQueries { database, queries, loops },
             });
         }
@@ -142,7 +169,9 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
     // Queries that are not a walk (photos in no order): what the sequence rows cost there.
     let mut shuffled = Vec::new();
     for set in &sets {
-        if set.name.starts_with("Gardens Point 64x48") || set.name.starts_with("synthetic hard preset, night") {
+        if set.name.starts_with("Gardens Point 64x48")
+            || set.name == "synthetic hard preset, night lap against first lap"
+        {
             let folder = tmp.join(format!("shuffled_{}", shuffled.len()));
             let data = with_shuffled_queries(&set.data, 7, &folder)?;
             shuffled.push(DevSet { name: format!("{}, queries shuffled", set.name), data });
@@ -159,7 +188,7 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
 /// starts).
 fn cut_database_and_queries(
     sequence: &Path,
-    database: Range<usize>,
+    database: &[usize],
     queries: &[usize],
     out: &Path,
 ) -> Result<(PathBuf, PathBuf, PathBuf)> {
@@ -173,15 +202,31 @@ fn cut_database_and_queries(
     let (database_dir, queries_dir) = (out.join("ref"), out.join("query"));
     std::fs::create_dir_all(&database_dir)?;
     std::fs::create_dir_all(&queries_dir)?;
-    for (index, frame) in database.clone().enumerate() {
+    for (index, &frame) in database.iter().enumerate() {
         frames[frame].image.save(database_dir.join(format!("{index:04}.png")))?;
     }
     for (index, &frame) in queries.iter().enumerate() {
         frames[frame].image.save(queries_dir.join(format!("{index:04}.png")))?;
     }
+    // Each query's true matches among the database frames, numbered as written.
+    let mut cut = LoopTruth::default();
+    for (q, &frame) in queries.iter().enumerate() {
+        for matched in truth.matches(frame).into_iter().flatten() {
+            if let Some(index) = database.iter().position(|d| d == matched) {
+                cut.insert(q, index);
+            }
+        }
+    }
     let loops_path = out.join("loops.csv");
-    write_loops(&truth.between(queries.iter().copied(), database), queries.len(), &loops_path)?;
+    write_loops(&cut, queries.len(), &loops_path)?;
     Ok((database_dir, queries_dir, loops_path))
+}
+
+/// `ACCURACY_CUTS=1`: more database/query cuts of the hard preset (walks along a part of the
+/// database, and laps sampled unlike it), and on every database/query set a `default` row, the
+/// policy the default `detector.sequence.length` 0 chooses there.
+fn extra_cuts() -> bool {
+    std::env::var_os("ACCURACY_CUTS").is_some()
 }
 
 /// The loops file of `truth` for `queries` queries.
@@ -337,7 +382,9 @@ fn main() -> Result<()> {
                 if mode == "paper" && centred == "true" {
                     continue; // centring leaves the paper's descriptor alone
                 }
-                for (policy, length) in [("single", "1"), ("sequence", sequence_length)] {
+                let default_row = extra_cuts() && matches!(set.data, Data::DatabaseQueries { .. });
+                let policies = [("single", "1"), ("sequence", sequence_length), ("default", "0")];
+                for (policy, length) in policies.into_iter().take(if default_row { 3 } else { 2 }) {
                     let mut overrides = vec![
                         ("arch", arch),
                         ("descriptor.mode", mode),
