@@ -48,6 +48,7 @@ pub struct Args {
     /// Use at most this many images, evenly spread over the source.
     #[arg(long, default_value_t = 20000)]
     pub max_images: usize,
+    /// Seeds the split, the order and the augmentation.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Compute device; only `cpu` is built in.

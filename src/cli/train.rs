@@ -62,6 +62,8 @@ pub struct Args {
     /// Held-out fraction per class when the folder has no split lists.
     #[arg(long, default_value_t = 0.2)]
     pub val_fraction: f64,
+    /// Seeds the split, the order, the augmentation and the weights drawn afresh: the same seed
+    /// and data repeat a run exactly.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Keep BatchNorm's loaded statistics while training (the default with --init: pretrained

@@ -61,6 +61,7 @@ pub struct Args {
     pub min_crop_area: f64,
     #[arg(long, default_value_t = 0.3)]
     pub colour_jitter: f64,
+    /// Seeds the order, the augmentation and the weights drawn afresh.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// No progress bar (progress is logged instead).

@@ -122,7 +122,7 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
     let student_init = teacher.for_arch(Arch::EcMobileNet)?;
     let mut init = training_form(&student_init.tensors)?;
     init.retain(|n, _| !n.starts_with("classifier."));
-    let student = Trainable::new(Arch::EcMobileNet, None, &init)?;
+    let student = Trainable::new(Arch::EcMobileNet, None, &init, config.opt.seed)?;
 
     let mut images = load_unlabelled(&config.data, (config.size as u32 * 5).div_ceil(4), config.max_images)?;
     images.shuffle(&mut StdRng::seed_from_u64(config.opt.seed));

@@ -296,10 +296,74 @@ pub struct Trainable {
     pub network: Network,
 }
 
+/// The variables of a network being built: those already in `varmap` as they are, the others
+/// drawn from `rng` with the distribution the layer asks for (candle's `VarMap` draws them from an
+/// unseeded generator, so a run from scratch could not be repeated).
+struct SeededVariables {
+    varmap: VarMap,
+    rng: std::sync::Mutex<rand::rngs::StdRng>,
+}
+
+impl candle_nn::var_builder::SimpleBackend for SeededVariables {
+    fn get(
+        &self,
+        shape: candle_core::Shape,
+        name: &str,
+        init: candle_nn::Init,
+        dtype: DType,
+        device: &Device,
+    ) -> candle_core::Result<Tensor> {
+        use candle_nn::init::{Init, NormalOrUniform};
+        use rand_distr::{Distribution, Normal, Uniform};
+        let mut data = self.varmap.data().lock().expect("VarMap lock");
+        if let Some(var) = data.get(name) {
+            if var.shape() != &shape {
+                candle_core::bail!("{name} has the shape {:?}, not {shape:?}", var.shape());
+            }
+            return Ok(var.as_tensor().clone());
+        }
+        let count = shape.elem_count();
+        let mut rng = self.rng.lock().expect("generator lock");
+        let uniform = |lo: f64, up: f64, rng: &mut rand::rngs::StdRng| -> candle_core::Result<Vec<f32>> {
+            let uniform = Uniform::new(lo, up).map_err(candle_core::Error::wrap)?;
+            Ok((0..count).map(|_| uniform.sample(rng) as f32).collect())
+        };
+        let normal = |mean: f64, stdev: f64, rng: &mut rand::rngs::StdRng| -> candle_core::Result<Vec<f32>> {
+            let normal = Normal::new(mean, stdev).map_err(candle_core::Error::wrap)?;
+            Ok((0..count).map(|_| normal.sample(rng) as f32).collect())
+        };
+        let values = match init {
+            Init::Const(value) => vec![value as f32; count],
+            Init::Uniform { lo, up } => uniform(lo, up, &mut rng)?,
+            Init::Randn { mean, stdev } => normal(mean, stdev, &mut rng)?,
+            Init::Kaiming { dist, fan, non_linearity } => {
+                let stdev = non_linearity.gain() / (fan.for_shape(&shape) as f64).sqrt();
+                match dist {
+                    NormalOrUniform::Uniform => uniform(-(3f64.sqrt()) * stdev, 3f64.sqrt() * stdev, &mut rng)?,
+                    NormalOrUniform::Normal => normal(0.0, stdev, &mut rng)?,
+                }
+            }
+        };
+        let var = Var::from_tensor(&Tensor::from_vec(values, shape, device)?.to_dtype(dtype)?)?;
+        data.insert(name.to_string(), var.clone());
+        Ok(var.as_tensor().clone())
+    }
+
+    fn get_unchecked(&self, name: &str, _dtype: DType, _device: &Device) -> candle_core::Result<Tensor> {
+        candle_core::bail!("{name}: a variable needs its shape")
+    }
+
+    fn contains_tensor(&self, name: &str) -> bool {
+        self.varmap.data().lock().expect("VarMap lock").contains_key(name)
+    }
+}
+
 impl Trainable {
     /// `arch` with `classes` outputs (or none), its variables taken from `init` where present
-    /// (in training form: see [`training_form`]) and freshly initialised otherwise.
-    pub fn new(arch: Arch, classes: Option<usize>, init: &HashMap<String, Tensor>) -> Result<Self> {
+    /// (in training form: see [`training_form`]) and drawn afresh otherwise, from a generator
+    /// seeded with `seed`: the same seed gives the same network.
+    pub fn new(arch: Arch, classes: Option<usize>, init: &HashMap<String, Tensor>, seed: u64) -> Result<Self> {
+        use rand::SeedableRng;
         let varmap = VarMap::new();
         {
             let mut data = varmap.data().lock().expect("VarMap lock");
@@ -307,7 +371,11 @@ impl Trainable {
                 data.insert(name.clone(), Var::from_tensor(&t.to_dtype(DType::F32)?.contiguous()?)?);
             }
         }
-        let vb = VarBuilder::from_varmap(&varmap, DType::F32, &Device::Cpu);
+        let variables = SeededVariables {
+            varmap: varmap.clone(),
+            rng: std::sync::Mutex::new(rand::rngs::StdRng::seed_from_u64(seed)),
+        };
+        let vb = VarBuilder::from_backend(Box::new(variables), DType::F32, Device::Cpu);
         let network = Network::load(arch.spec(), vb, classes, true)
             .with_context(|| format!("the initial weights do not fit {arch}"))?;
         Ok(Trainable { varmap, network })
@@ -558,7 +626,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
         }
         (None, None) => HashMap::new(),
     };
-    let model = Trainable::new(config.arch, Some(classes), &init_tensors)?;
+    let model = Trainable::new(config.arch, Some(classes), &init_tensors, hyper.opt.seed)?;
     let mut params = trainable_params(&model.varmap);
     for p in params.iter_mut().filter(|p| !p.name.starts_with("classifier.")) {
         p.lr_scale = hyper.body_lr_scale;

@@ -241,7 +241,7 @@ pub fn train_place(
     ensure!(!config.data.is_empty(), "no training sequences");
     let mut tensors = training_form(&init.for_arch(config.arch)?.tensors)?;
     tensors.retain(|n, _| !n.starts_with("classifier."));
-    let model = Trainable::new(config.arch, None, &tensors)?;
+    let model = Trainable::new(config.arch, None, &tensors, config.opt.seed)?;
 
     let frames =
         load_posed(&config.data, (config.size as u32 * 5).div_ceil(4), PoseLoopCriteria::default().max_stamp_offset_s)?;

@@ -111,7 +111,7 @@ fn smoothed_cross_entropy_matches_the_formula() -> Result<()> {
 #[test]
 fn training_form_of_folded_weights_computes_the_folded_network() -> Result<()> {
     // Random folded weights with non-trivial biases.
-    let random = Trainable::new(Arch::EcMobileNet, Some(3), &HashMap::new())?;
+    let random = Trainable::new(Arch::EcMobileNet, Some(3), &HashMap::new(), 3)?;
     let mut folded = inference_tensors(&random.network)?;
     for (name, t) in folded.iter_mut() {
         if name.ends_with(".bias") || name.ends_with("eca.weight") {
@@ -121,7 +121,7 @@ fn training_form_of_folded_weights_computes_the_folded_network() -> Result<()> {
     let weights = Weights { arch: Arch::EcMobileNet, classes: Some(3), source: "test".into(), tensors: folded.clone() };
     let x = Tensor::randn(0f32, 1.0, (2, 3, 64, 64), &Device::Cpu)?;
     let expected = weights.network(true)?.logits(&x, Mode::Reference)?;
-    let trainable = Trainable::new(Arch::EcMobileNet, Some(3), &training_form(&folded)?)?;
+    let trainable = Trainable::new(Arch::EcMobileNet, Some(3), &training_form(&folded)?, 3)?;
     let got = trainable.network.logits(&x, Mode::Reference)?;
     let scale = expected.abs()?.max_keepdim(1)?.max(0)?.to_vec1::<f32>()?[0].max(1.0);
     assert!(max_abs_diff(&expected, &got) <= 1e-4 * scale, "{} (scale {scale})", max_abs_diff(&expected, &got));
@@ -130,6 +130,21 @@ fn training_form_of_folded_weights_computes_the_folded_network() -> Result<()> {
     for (name, t) in &folded {
         assert!(max_abs_diff(t, &refolded.tensors[name]) < 1e-5, "{name}");
     }
+    Ok(())
+}
+
+#[test]
+fn fresh_weights_follow_the_seed() -> Result<()> {
+    let tensors = |seed| -> Result<HashMap<String, Tensor>> {
+        Ok(Trainable::new(Arch::EcMobileNet, Some(3), &HashMap::new(), seed)?.tensors())
+    };
+    let (first, again, other) = (tensors(5)?, tensors(5)?, tensors(6)?);
+    let name = "classifier.weight";
+    assert!(first.contains_key(name), "{:?}", first.keys().collect::<Vec<_>>());
+    for (name, t) in &first {
+        assert_eq!(max_abs_diff(t, &again[name]), 0.0, "{name}");
+    }
+    assert!(max_abs_diff(&first[name], &other[name]) > 0.0);
     Ok(())
 }
 
@@ -194,9 +209,9 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     let mut h = hyper(32, 2, 8);
     h.opt.optimizer = OptimizerKind::Sgd;
     h.opt.lr = 0.01;
-    // Both runs start from the same weights (candle's random init is not seeded).
+    // Both runs start from the same weights, saved once.
     let init = dir.path().join("init.safetensors");
-    Trainable::new(Arch::EcMobileNet, Some(4), &HashMap::new())?.inference_weights("random")?.save(&init)?;
+    Trainable::new(Arch::EcMobileNet, Some(4), &HashMap::new(), 4)?.inference_weights("random")?.save(&init)?;
     // Uninterrupted run.
     let mut uninterrupted = config(&data, &dir.path().join("full/run.safetensors"), Arch::EcMobileNet, h.clone());
     uninterrupted.init = Some(init.clone());
@@ -247,6 +262,7 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
             .filter(|(n, _)| !n.starts_with("optimizer."))
             .map(|(n, t)| (n.clone(), t.clone()))
             .collect(),
+        0,
     )?;
     let in_memory = model.inference_weights("test")?.network(true)?.logits(&x, Mode::Inference)?;
     let from_last = b.network(true)?.logits(&x, Mode::Inference)?;
@@ -317,7 +333,7 @@ fn distillation_halves_the_heldout_descriptor_error() -> Result<()> {
 #[ignore = "a profile, not a check"]
 fn profile_training_step() -> Result<()> {
     for (arch, size, batch) in [(Arch::EcMobileNet, 32, 16), (Arch::EcMobileNet, 64, 16), (Arch::MobileNetV2, 64, 16)] {
-        let model = Trainable::new(arch, Some(4), &HashMap::new())?;
+        let model = Trainable::new(arch, Some(4), &HashMap::new(), 4)?;
         let mut optimizer = Optimizer::new(OptimizerKind::Adamw, trainable_params(&model.varmap), 0.9, 1e-4)?;
         let x = Tensor::randn(0f32, 1.0, (batch, 3, size, size), &Device::Cpu)?;
         let labels = Tensor::new((0..batch as u32).map(|i| i % 4).collect::<Vec<_>>().as_slice(), &Device::Cpu)?;
