@@ -136,9 +136,10 @@ impl ReplayRun {
 /// Database/query mode: every database image is stored, then each query is matched against
 /// them all (no recency rules: the two sets are different visits). Both folders are sequences in
 /// name order, which the sequence policy (`detector.sequence.length`) follows; its automatic
-/// setting is a walk here unless [`sequence::why_not_a_walk`] says otherwise, and a walk's window
-/// is centred on each query ([`sequence::queries_ahead`]), which is why every query is described
-/// before any is matched (their descriptors are kept meanwhile, 11.25 KiB each for the default).
+/// setting is a walk here unless [`sequence::why_not_a_walk`] says otherwise, and a walk's first
+/// queries take later ones into their window ([`sequence::queries_ahead`]), which is why every query
+/// is described before any is matched (their descriptors are kept meanwhile, 11.25 KiB each for the
+/// default).
 pub fn run_database_queries(
     pipeline: &mut Pipeline,
     database: &[PathBuf],
