@@ -223,8 +223,7 @@ fn cut_database_and_queries(
 }
 
 /// `ACCURACY_CUTS=1`: more database/query cuts of the hard preset (walks along a part of the
-/// database, and laps sampled unlike it), and on every database/query set a `default` row, the
-/// policy the default `detector.sequence.length` 0 chooses there.
+/// database, and laps sampled unlike it).
 fn extra_cuts() -> bool {
     std::env::var_os("ACCURACY_CUTS").is_some()
 }
@@ -382,7 +381,7 @@ fn main() -> Result<()> {
                 if mode == "paper" && centred == "true" {
                     continue; // centring leaves the paper's descriptor alone
                 }
-                let default_row = extra_cuts() && matches!(set.data, Data::DatabaseQueries { .. });
+                let default_row = matches!(set.data, Data::DatabaseQueries { .. });
                 let policies = [("single", "1"), ("sequence", sequence_length), ("default", "0")];
                 for (policy, length) in policies.into_iter().take(if default_row { 3 } else { 2 }) {
                     let mut overrides = vec![

@@ -16,7 +16,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::config::ParamValue;
-use crate::detector::{sequence, Match};
+use crate::detector::{sequence, walk, Detector, Match};
 use crate::eval::QueryResult;
 use crate::io::tum::TrackerPoses;
 use crate::io::{open_source_topics, Topics};
@@ -135,11 +135,13 @@ impl ReplayRun {
 
 /// Database/query mode: every database image is stored, then each query is matched against
 /// them all (no recency rules: the two sets are different visits). Both folders are sequences in
-/// name order, which the sequence policy (`detector.sequence.length`) follows; its automatic
-/// setting is a walk here unless [`sequence::why_not_a_walk`] says otherwise, and a walk's first
-/// queries take later ones into their window ([`sequence::queries_ahead`]), which is why every query
-/// is described before any is matched (their descriptors are kept meanwhile, 11.25 KiB each for the
-/// default).
+/// name order. With the default `detector.sequence.length` 0, queries that look like a walk
+/// ([`walk::why_not_a_walk`]) are aligned with the database as a whole walk ([`walk::align`]; a
+/// match's score then also weighs how sure the place is, and `detector.sequence.length` stays 0),
+/// others matched as single images (the length is set to 1); a length
+/// set above 1 scores windows of that many queries ([`sequence`]), a walk's first queries taking
+/// later ones into their window ([`sequence::queries_ahead`]). Either way every query is described
+/// before any is matched (their descriptors are kept meanwhile, 11.25 KiB each for the default).
 pub fn run_database_queries(
     pipeline: &mut Pipeline,
     database: &[PathBuf],
@@ -159,23 +161,17 @@ pub fn run_database_queries(
     }
     let descriptors: Vec<Vec<f32>> =
         queries.iter().map(|path| pipeline.describe(&read_image(path)?)).collect::<Result<_>>()?;
-    if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
-        // Still single images here (0 means 1 until resolved): each query's nearest keyframe.
-        let nearest: Vec<usize> = descriptors
-            .iter()
-            .map(|d| Ok(pipeline.detector().best_match(Stamp::from_nanos(i64::MAX), d)?.map_or(0, |m| m.id as usize)))
-            .collect::<Result<_>>()?;
-        let length = match sequence::why_not_a_walk(database.len(), &nearest, &descriptors) {
-            None => sequence::ROUTE_LENGTH,
-            Some(why) => {
-                log::info!("{why}, so they are matched as single images (detector.sequence.length 0)");
-                1
-            }
-        };
-        pipeline
-            .set_param("detector.sequence.length", ParamValue::Integer(length as i64))
-            .map_err(anyhow::Error::msg)?;
-    }
+    let tried = pipeline.matches_tried();
+    let aligned = if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
+        let aligned = align_walk(pipeline.detector(), &descriptors, tried)?;
+        if aligned.is_none() {
+            // Single images: the length stays 0 only where the walk was aligned.
+            pipeline.set_param("detector.sequence.length", ParamValue::Integer(1)).map_err(anyhow::Error::msg)?;
+        }
+        aligned
+    } else {
+        None
+    };
     let length = match pipeline.params().get("detector.sequence.length") {
         Some(ParamValue::Integer(length)) => length.max(1) as usize,
         _ => 1,
@@ -185,8 +181,10 @@ pub fn run_database_queries(
         let ahead = &descriptors[index + 1..][..sequence::queries_ahead(length, index, queries.len())];
         // With verification, the nearest verified with the most inliers ([`best_supported`]); none
         // passing counts as no match.
-        let tried = pipeline.matches_tried();
-        let nearest = pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), descriptor, ahead, tried)?;
+        let nearest = match &aligned {
+            Some(aligned) => aligned[index].clone(),
+            None => pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), descriptor, ahead, tried)?,
+        };
         let best = if pipeline.verifies() {
             // Read again: the query images are not all kept while their descriptors are.
             let features = pipeline.local_features(&read_image(path)?, None)?;
@@ -212,6 +210,55 @@ pub fn run_database_queries(
     }
     let per_image = started.elapsed().as_secs_f64() * 1e3 / (database.len() + queries.len()).max(1) as f64;
     Ok((results, vec![("per_image_ms", per_image)]))
+}
+
+/// The default's walk alignment of `queries` (descriptors in their order) with every keyframe of
+/// `detector`, each query's up to `depth` matches with the walk's score ([`walk`]); `None` where
+/// the queries do not look like a walk or are too many to align (logged: they are matched as single
+/// images).
+fn align_walk(detector: &Detector, queries: &[Vec<f32>], depth: usize) -> Result<Option<Vec<Vec<Match>>>> {
+    let db = detector.db();
+    if let Some(why) = walk::why_not_a_walk(queries) {
+        log::info!("{why}, so they are matched as single images (detector.sequence.length 0)");
+        return Ok(None);
+    }
+    if queries.len() * db.len() > walk::MAX_CELLS {
+        log::info!(
+            "{} queries against {} database images are too many to align as a walk (at most {} pairs), so they are matched as single images (detector.sequence.length 0)",
+            queries.len(),
+            db.len(),
+            walk::MAX_CELLS
+        );
+        return Ok(None);
+    }
+    let nearest: Vec<usize> = queries
+        .iter()
+        .map(|d| Ok(detector.best_match(Stamp::from_nanos(i64::MAX), d)?.map_or(0, |m| m.id as usize)))
+        .collect::<Result<_>>()?;
+    let speed = walk::walk_speed(&nearest).unwrap_or(1.0);
+    let scores: Vec<Vec<f32>> = queries
+        .iter()
+        .map(|q| (0..db.len()).map(|p| detector.descriptor().score(db.squared_distance_to(q, p).sqrt())).collect())
+        .collect();
+    let aligned = walk::align(&scores, speed, depth);
+    log::info!("{} queries aligned as a walk moving {speed:.2} database images per query", queries.len());
+    Ok(Some(
+        aligned
+            .into_iter()
+            .zip(queries)
+            .map(|(places, query)| {
+                places
+                    .into_iter()
+                    .map(|(p, score)| Match {
+                        id: db.id(p),
+                        stamp: db.stamp(p),
+                        distance: db.squared_distance_to(query, p).sqrt(),
+                        score,
+                    })
+                    .collect()
+            })
+            .collect(),
+    ))
 }
 
 /// Replays `source` (its `topics`, for a bag) through `pipeline`: keyframe selection applies,

@@ -6,7 +6,7 @@
 
 use super::replay::SourceArgs;
 use anyhow::{bail, Result};
-use ecm_lcd::config::Params;
+use ecm_lcd::config::{ParamValue, Params};
 use ecm_lcd::eval::{
     evaluate, images_in_name_order, loop_truth_from_poses, plot_pr_curve, read_loops, summary_json, write_curve_csv,
     LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
@@ -30,9 +30,9 @@ pub struct Args {
     /// Database/query mode: folder of database images (name order); needs --queries and --loops.
     #[arg(long, requires_all = ["queries", "loops"], conflicts_with = "source")]
     pub database: Option<PathBuf>,
-    /// Database/query mode: folder of query images (name order). Where they look like a walk along
-    /// the database's route, or part of it, sampled alike (within 1.5x), they are matched 10 at a
-    /// time, else one by one (`detector.sequence.length` 0; 1 or more sets it).
+    /// Database/query mode: folder of query images (name order). Where they look like a walk, they
+    /// are aligned with the database as a whole walk (at any speed, along all or part of its route,
+    /// either way), else matched one by one (`detector.sequence.length` 0; 1 or more sets it).
     #[arg(long, requires = "database")]
     pub queries: Option<PathBuf>,
     /// Print the summary as JSON (keys `queries`, `recall_at_1`, `recall_at_100_precision`,
@@ -138,18 +138,20 @@ pub fn run_with_results(
     Ok(metrics)
 }
 
-/// `sequence` or `single-image`: how a query is matched under `params`.
-pub fn policy_name(params: &Params) -> &'static str {
-    if params.detector().sequence_length > 1 {
-        "sequence"
-    } else {
-        "single-image"
+/// `walk`, `sequence` or `single-image`: how a query was matched under `params`. `database_mode`:
+/// queries against a database (`--database`), where `detector.sequence.length` still 0 after the
+/// run means that the queries were aligned as a walk (`run_database_queries`).
+pub fn policy_name(params: &Params, database_mode: bool) -> &'static str {
+    match params.get("detector.sequence.length") {
+        Some(ParamValue::Integer(0)) if database_mode => "walk",
+        Some(ParamValue::Integer(length)) if length > 1 => "sequence",
+        _ => "single-image",
     }
 }
 
 fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)], params: &Params) -> Result<()> {
     let mut summary = summary_json(metrics, timings_ms);
-    summary["policy"] = serde_json::json!(policy_name(params));
+    summary["policy"] = serde_json::json!(policy_name(params, args.database.is_some()));
     summary["parameters"] = params.to_json();
     if let Some(path) = &args.output {
         write_curve_csv(metrics, path)?;
@@ -159,11 +161,13 @@ fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)], par
     } else {
         print_summary(metrics, timings_ms);
         let detector = params.detector();
+        let policy = match policy_name(params, args.database.is_some()) {
+            "sequence" => format!("sequence of {}", detector.sequence_length),
+            other => other.to_string(),
+        };
         println!(
-            "policy                  {} (descriptor {}, sequence length {}, threshold {:?})",
-            policy_name(params),
+            "policy                  {policy} (descriptor {}, threshold {:?})",
             params.descriptor_mode(),
-            detector.sequence_length,
             detector.threshold
         );
     }

@@ -55,6 +55,7 @@ pub mod rows;
 pub mod selection;
 pub mod sequence;
 pub mod store;
+pub mod walk;
 
 use crate::descriptor::Descriptor;
 use crate::types::{LoopCandidate, Stamp};

@@ -23,87 +23,16 @@
 //!   from before it, which match nothing there; sequence matching pays off from the `L`-th on.
 //! - **Candidates.** Only the nearest [`CANDIDATES`] keyframes of the current query are scored, so the
 //!   index still bounds the work: `CANDIDATES * L * 3` distances per query.
-//! - **When it is on.** `detector.sequence.length` 0, the default, means: [`ROUTE_LENGTH`] where
-//!   queries are matched against a database made beforehand (`eval --database --queries`: a route
-//!   travelled again, the queries a walk along it), single images where keyframes come one by one
-//!   and a revisit may be a single keyframe (a tracker's stream, a replay). The diagonal takes one
-//!   database keyframe per query, so the walk is only assumed where both are sampled alike and the
-//!   queries look like one ([`why_not_a_walk`]): as many queries as keyframes, or single-image
-//!   matches that move along the database at one keyframe per query ([`walk_speed`]: a walk along
-//!   part of the route), either within [`MAX_SAMPLING_RATIO`]; and for [`WALK_EVIDENCE`] of the
-//!   queries the next is nearer than the one half the set away.
+//! - **When it is on.** Where `detector.sequence.length` is set above 1. Its default 0 means single
+//!   images where keyframes come one by one and a revisit may be a single keyframe (a tracker's
+//!   stream, a replay), and where queries are matched against a database made beforehand (`eval
+//!   --database --queries`) the whole walk's alignment ([`super::walk`]), which sees later queries
+//!   too, where the queries look like a walk.
 
 use std::collections::VecDeque;
 
-use crate::descriptor::distance;
-
 /// Keyframes nearest to the current query that the sequence score re-ranks.
 pub const CANDIDATES: usize = 10;
-
-/// The sequence length of a route travelled again (module doc: when it is on); SeqSLAM's usual
-/// length.
-pub const ROUTE_LENGTH: usize = 10;
-
-/// The largest ratio, either way, of the database's count to the queries', or of a walk's speed
-/// (database keyframes per query, [`walk_speed`]) to 1, at which the queries are taken as a walk
-/// sampled like the database.
-pub const MAX_SAMPLING_RATIO: f64 = 1.5;
-
-/// The share of queries, at least, whose successor must be nearer to them than the query half the
-/// set away for the queries to be taken as a walk: about all of them in a walk, about half in a set
-/// in no order.
-pub const WALK_EVIDENCE: f64 = 0.75;
-
-/// How fast a walk of queries moves along the database, in database keyframes per query, from the
-/// database position of each query's single-image nearest keyframe (`nearest`, in query order): the
-/// Theil-Sen slope of position against query (the median of the slopes between every two queries
-/// at most [`ROUTE_LENGTH`] apart), either way. Robust to the wrong single-image matches, up to
-/// about a quarter of them, that sequence matching is there to correct. About 1 where both are
-/// sampled alike, whatever part of the route the queries cover; `None` for fewer than 2 queries.
-pub fn walk_speed(nearest: &[usize]) -> Option<f64> {
-    let mut slopes: Vec<f64> = (0..nearest.len())
-        .flat_map(|i| {
-            (i + 1..nearest.len().min(i + ROUTE_LENGTH + 1))
-                .map(move |j| (nearest[j] as f64 - nearest[i] as f64) / (j - i) as f64)
-        })
-        .collect();
-    if slopes.is_empty() {
-        return None;
-    }
-    slopes.sort_by(f64::total_cmp);
-    Some(slopes[slopes.len() / 2].abs())
-}
-
-/// Why `queries` (descriptors in their order), against a database of `database` keyframes in which
-/// their single-image nearest are at the positions `nearest`, are not a walk sampled like the
-/// database, or `None` when they are (module doc: when it is on). Sampled alike means: as many
-/// queries as keyframes, or a speed of one keyframe per query (a walk along part of the route),
-/// each within [`MAX_SAMPLING_RATIO`]. The count alone serves where the single-image matches are
-/// too often wrong for the speed to be measured.
-pub fn why_not_a_walk(database: usize, nearest: &[usize], queries: &[Vec<f32>]) -> Option<String> {
-    let n = queries.len();
-    let alike = |ratio: f64| (1.0 / MAX_SAMPLING_RATIO..=MAX_SAMPLING_RATIO).contains(&ratio);
-    let counts_alike = n > 0 && alike(database as f64 / n as f64);
-    let speed = walk_speed(nearest);
-    if !counts_alike && !speed.is_some_and(alike) {
-        let speed =
-            speed.map_or(String::new(), |s| format!(" (their single-image matches move {s:.2} images per query)"));
-        return Some(format!("{database} database images and {n} queries are not sampled alike{speed}"));
-    }
-    if n < 4 {
-        return None;
-    }
-    let nearer = (0..n - 1)
-        .filter(|&t| {
-            let far = (t + n / 2) % n;
-            distance(&queries[t], &queries[t + 1]) < distance(&queries[t], &queries[far])
-        })
-        .count();
-    let share = nearer as f64 / (n - 1) as f64;
-    (share < WALK_EVIDENCE).then(|| {
-        format!("the queries do not look like a walk (for {:.0}% of them the next one is nearer than one half the set away)", 100.0 * share)
-    })
-}
 
 /// The descriptors of the last `length - 1` queries, oldest first.
 #[derive(Clone, Debug, Default)]
@@ -293,44 +222,5 @@ mod tests {
             let behind = (10 - 1 - ahead).min(index);
             assert_eq!(behind + 1 + ahead, 10, "query {index}");
         }
-    }
-
-    #[test]
-    fn a_walk_is_assumed_only_where_both_sets_are_sampled_alike_and_the_queries_look_like_one() {
-        // A walk: each query a small step from the last along a turning route.
-        let walk: Vec<Vec<f32>> = (0..40).map(|i| unit(i as f32 * 0.05)).collect();
-        let along =
-            |speed: f64, from: usize| -> Vec<usize> { (0..40).map(|i| from + (i as f64 * speed) as usize).collect() };
-        assert_eq!(walk_speed(&along(1.0, 0)), Some(1.0));
-        assert_eq!(why_not_a_walk(40, &along(1.0, 0), &walk), None);
-        assert_eq!(why_not_a_walk(1000, &along(1.0, 500), &walk), None, "a walk along a part of a longer route");
-        let backwards: Vec<usize> = along(1.0, 0).into_iter().rev().collect();
-        assert_eq!(why_not_a_walk(1000, &backwards, &walk), None, "the route the other way");
-        assert_eq!(why_not_a_walk(1000, &along(1.5, 0), &walk), None, "within 1.5x either way");
-        assert_eq!(why_not_a_walk(1000, &along(0.7, 0), &walk), None);
-        let why = why_not_a_walk(80, &along(2.0, 0), &walk).expect("every second database keyframe queried");
-        assert!(why.contains("not sampled alike (their single-image matches move 2.00 images per query)"), "{why}");
-        assert!(why_not_a_walk(1000, &along(1.6, 0), &walk).is_some());
-        assert!(why_not_a_walk(20, &along(0.5, 0), &walk).is_some(), "two queries per database keyframe");
-        // As many queries as keyframes: a walk, whatever the single-image matches (too often wrong
-        // for a speed) say; within 1.5x either way.
-        let wrong: Vec<usize> = (0..40).map(|i| (i * 7) % 40).collect();
-        assert_eq!(why_not_a_walk(40, &wrong, &walk), None);
-        assert_eq!(why_not_a_walk(60, &wrong, &walk), None);
-        assert_eq!(why_not_a_walk(27, &wrong, &walk), None);
-        assert!(why_not_a_walk(61, &wrong, &walk).is_some());
-        assert!(why_not_a_walk(26, &wrong, &walk).is_some());
-        assert!(why_not_a_walk(0, &[], &walk).is_some());
-        // Wrong single-image matches, one query in four, do not move the median.
-        let mut noisy = along(1.0, 0);
-        for (i, n) in noisy.iter_mut().enumerate().filter(|(i, _)| i % 4 == 1) {
-            *n = (i * 37) % 400;
-        }
-        assert_eq!(walk_speed(&noisy), Some(1.0));
-        // The same queries in no order (a fixed permutation).
-        let shuffled: Vec<Vec<f32>> = (0..40).map(|i| walk[(i * 17) % 40].clone()).collect();
-        let why = why_not_a_walk(40, &along(1.0, 0), &shuffled).expect("photos in no order");
-        assert!(why.contains("do not look like a walk"), "{why}");
-        assert_eq!(walk_speed(&[3]), None);
     }
 }
