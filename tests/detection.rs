@@ -400,6 +400,34 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
         assert_eq!(json["queries"], 5, "{name}: {json}");
         assert_eq!(figures(&json), (1.0, 1.0), "{name}: {json}");
     }
+    // A walk that goes on where the database never went: the first half of the route, then five
+    // real office frames (TUM fr2 desk) seen by the same camera, which match nothing. The walk is
+    // sure of some place for them too, so their scores are their own images' (about 0.8 here, where
+    // every 64x48 gray image looks much alike to the network): every stored place is found, and
+    // fewer office frames are scored above a true match than with single images.
+    let (mixed, _) = subset("walk_then_office", &[0, 1, 2, 3, 4]);
+    let office = images_in_name_order(&support::shared_dir().join("data/tum/fr2_desk/rgb")).unwrap();
+    for (index, frame) in office.iter().step_by(4).take(5).enumerate() {
+        let small = image::open(frame).unwrap().resize_exact(64, 48, image::imageops::FilterType::Triangle);
+        small.grayscale().save(mixed.join(format!("{:02}.png", index + 5))).unwrap();
+    }
+    let mixed_loops = dir.path().join("walk_then_office.csv");
+    let truth: String = (0..10)
+        .map(|q: usize| {
+            let places: Vec<String> = (q.saturating_sub(1)..=q + 1).filter(|_| q < 5).map(|p| p.to_string()).collect();
+            format!("{q},{}\n", places.join(" "))
+        })
+        .collect();
+    std::fs::write(&mixed_loops, truth).unwrap();
+    let walk = eval(&mixed, &mixed_loops, &[]);
+    assert_eq!(
+        (walk["policy"].as_str(), walk["queries"].as_u64(), walk["positives"].as_u64()),
+        (Some("walk"), Some(10), Some(5))
+    );
+    let single = eval(&mixed, &mixed_loops, &["--param", "detector.sequence.length=1"]);
+    let ((walk_at_1, walk_at_full), (single_at_1, single_at_full)) = (figures(&walk), figures(&single));
+    assert_eq!(walk_at_1, 1.0, "{walk}");
+    assert!(single_at_1 < 1.0 && walk_at_full > single_at_full, "walk {walk}\nsingle {single}");
 }
 
 #[test]

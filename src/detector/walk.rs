@@ -18,12 +18,12 @@
 //! - **Answer.** Each query's keyframes ranked by their posterior probability (forward-backward, both
 //!   directions summed). A match's score must say both that the place is certain and that the
 //!   images agree, so it is the smaller of two values in `[0, 1]`: the probability that the query is
-//!   within one largest move (`K` keyframes, the walk's own resolution) of the keyframe, and the mean
-//!   single-image score of the aligned pairs of the [`AGREEMENT_SPAN`] queries around it (the query
-//!   paired with this keyframe, the others with their own best). The probability alone is relative
-//!   to the stored route: a walk somewhere never stored is still sure of its best copy, and its low
-//!   scores are what keep it under `detector.min_score`; a route that repeats itself (two identical
-//!   corridors) leaves the probability split between its copies, under any usual threshold.
+//!   within one largest move (`K` keyframes, the walk's own resolution) of the keyframe, and the
+//!   query's own single-image score against it. The probability alone is relative to the stored
+//!   route: a walk somewhere never stored is still sure of its best copy, and its low scores are what
+//!   keep it under `detector.min_score` (its own, not its neighbours': a walk may leave the route); a
+//!   route that repeats itself (two identical corridors) leaves the probability split between its
+//!   copies, under any usual threshold.
 
 use crate::descriptor::distance;
 
@@ -33,10 +33,6 @@ pub const SHARPNESS: f32 = 0.5;
 
 /// The probability, per query, that the walk goes anywhere rather than along the route.
 pub const JUMP: f32 = 1e-3;
-
-/// The queries around each query (half before, half after) whose aligned single-image scores are
-/// averaged into its match's score: SeqSLAM's usual sequence length.
-pub const AGREEMENT_SPAN: usize = 10;
 
 /// The largest walk, in queries times keyframes, that is aligned: four `f32` per pair are kept, the
 /// caller's scores included (256 MiB at the bound).
@@ -100,20 +96,10 @@ pub fn largest_move(speed: f64) -> usize {
 /// to `depth` keyframe positions, most probable first (ties: the earlier position), each with its
 /// match's score (module doc: answer).
 pub fn align(scores: &[Vec<f32>], speed: f64, depth: usize) -> Vec<Vec<(usize, f32)>> {
-    let probable = most_probable(scores, speed, depth);
-    let best: Vec<f32> =
-        probable.iter().zip(scores).map(|(places, row)| places.first().map_or(0.0, |&(p, _)| row[p])).collect();
-    probable
-        .iter()
-        .enumerate()
-        .map(|(t, places)| {
-            let span = t.saturating_sub(AGREEMENT_SPAN / 2)..(t + AGREEMENT_SPAN / 2).min(scores.len());
-            let others: f32 = best[span.clone()].iter().sum::<f32>() - best[t];
-            places
-                .iter()
-                .map(|&(p, probability)| (p, probability.min((others + scores[t][p]) / span.len() as f32)))
-                .collect()
-        })
+    most_probable(scores, speed, depth)
+        .into_iter()
+        .zip(scores)
+        .map(|(places, row)| places.into_iter().map(|(p, probability)| (p, probability.min(row[p]))).collect())
         .collect()
 }
 
@@ -292,7 +278,7 @@ mod tests {
             assert!(answer[0].1 > 0.9 && answer[0].1 <= 1.0, "{answer:?}");
             assert!(answer[1].1 <= answer[0].1 + 1e-6);
         }
-        // Sure of every place: the score is the aligned pairs' mean, 0.9 here.
+        // Sure of every place: the score is the query's own, 0.9 here.
         let answers = align(&scores, 1.0, 3);
         assert_eq!(best(&answers), walk);
         assert!(answers.iter().all(|a| (a[0].1 - 0.9).abs() < 1e-5), "{answers:?}");
