@@ -231,15 +231,19 @@ fn align_walk(detector: &Detector, queries: &[Vec<f32>], depth: usize) -> Result
         );
         return Ok(None);
     }
-    let nearest: Vec<usize> = queries
-        .iter()
-        .map(|d| Ok(detector.best_match(Stamp::from_nanos(i64::MAX), d)?.map_or(0, |m| m.id as usize)))
-        .collect::<Result<_>>()?;
-    let speed = walk::walk_speed(&nearest).unwrap_or(1.0);
     let scores: Vec<Vec<f32>> = queries
         .iter()
-        .map(|q| (0..db.len()).map(|p| detector.descriptor().score(db.squared_distance_to(q, p).sqrt())).collect())
+        .map(|q| {
+            let prepared = db.prepare(q);
+            (0..db.len()).map(|p| detector.descriptor().score(db.prepared_distance_to(&prepared, p).sqrt())).collect()
+        })
         .collect();
+    // Each query's single-image nearest keyframe (the first of equal scores), for the walk's speed.
+    let nearest: Vec<usize> = scores
+        .iter()
+        .map(|row| row.iter().enumerate().fold(0, |best, (p, &s)| if s > row[best] { p } else { best }))
+        .collect();
+    let speed = walk::walk_speed(&nearest).unwrap_or(1.0);
     let aligned = walk::align(&scores, speed, depth);
     log::info!("{} queries aligned as a walk moving {speed:.2} database images per query", queries.len());
     Ok(Some(
