@@ -404,7 +404,8 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     // real office frames (TUM fr2 desk) seen by the same camera, which match nothing. The walk is
     // sure of some place for them too, so their scores are their own images' (about 0.8 here, where
     // every 64x48 gray image looks much alike to the network): every stored place is found, and
-    // fewer office frames are scored above a true match than with single images.
+    // more true matches are scored above every wrong one than with single images (which put a
+    // look-alike first).
     let (mixed, _) = subset("walk_then_office", &[0, 1, 2, 3, 4]);
     let office = images_in_name_order(&support::shared_dir().join("data/tum/fr2_desk/rgb")).unwrap();
     for (index, frame) in office.iter().step_by(4).take(5).enumerate() {
