@@ -27,10 +27,11 @@ pub struct Args {
     /// Explicit loop truth instead of poses: lines `query_index,match_index match_index ...`.
     #[arg(long)]
     pub loops: Option<PathBuf>,
-    /// Database/query mode: folder of database images (name order); needs --queries and --loops.
+    /// Database/query mode: folder of database images (name order, numbers by value: `2` before
+    /// `10`); needs --queries and --loops.
     #[arg(long, requires_all = ["queries", "loops"], conflicts_with = "source")]
     pub database: Option<PathBuf>,
-    /// Database/query mode: folder of query images (name order). Where they look like a walk, they
+    /// Database/query mode: folder of query images (name order, numbers by value). Where they look like a walk, they
     /// are aligned with the database as a whole walk (at any speed, along all or part of its route,
     /// either way), else matched one by one (`detector.sequence.length` 0; 1 or more sets it).
     #[arg(long, requires = "database")]
@@ -295,7 +296,7 @@ mod tests {
         let (db, queries) = (dir.path().join("db"), dir.path().join("q"));
         std::fs::create_dir_all(&db).unwrap();
         std::fs::create_dir_all(&queries).unwrap();
-        for name in ["b.png", "a.JPG", "c.txt", "10.bmp"] {
+        for name in ["b.png", "a.JPG", "c.txt", "10.bmp", "9.png"] {
             std::fs::write(db.join(name), b"x").unwrap();
         }
         let args = parse(&["--database", db.to_str().unwrap(), "--queries", queries.to_str().unwrap(), "--loops", "l"])
@@ -308,7 +309,7 @@ mod tests {
         std::fs::write(queries.join("q0.png"), b"x").unwrap();
         let (database, query_images) = args.database_and_queries().unwrap().unwrap();
         let names: Vec<_> = database.iter().map(|p| p.file_name().unwrap().to_str().unwrap().to_string()).collect();
-        assert_eq!(names, ["10.bmp", "a.JPG", "b.png"]);
+        assert_eq!(names, ["9.png", "10.bmp", "a.JPG", "b.png"]);
         assert_eq!(query_images.len(), 1);
     }
 

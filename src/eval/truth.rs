@@ -225,21 +225,12 @@ pub fn read_loops(path: &Path) -> Result<LoopTruth> {
     parse_loops(&text).with_context(|| format!("in loops file {}", path.display()))
 }
 
-/// Image files (png, jpg, jpeg, bmp; any case) directly in `dir`, in file-name order: how the
-/// database and query folders of database/query mode are indexed.
+/// Image files directly in `dir`, in name order (numbers by value:
+/// [`crate::io::tum::image_files_in_name_order`]): how the database and query folders of
+/// database/query mode are indexed.
 pub fn images_in_name_order(dir: &Path) -> Result<Vec<PathBuf>> {
-    let mut images = Vec::new();
-    for entry in std::fs::read_dir(dir).with_context(|| format!("listing image folder {}", dir.display()))? {
-        let path = entry.with_context(|| format!("listing image folder {}", dir.display()))?.path();
-        let is_image = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .is_some_and(|e| ["png", "jpg", "jpeg", "bmp"].contains(&e.to_ascii_lowercase().as_str()));
-        if is_image && path.is_file() {
-            images.push(path);
-        }
-    }
-    images.sort_by(|a, b| a.file_name().cmp(&b.file_name()));
+    let images = crate::io::tum::image_files_in_name_order(dir)
+        .with_context(|| format!("listing image folder {}", dir.display()))?;
     if images.is_empty() {
         bail!("image folder {} holds no png, jpg or bmp files", dir.display());
     }

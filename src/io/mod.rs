@@ -108,7 +108,7 @@ impl Topics {
 /// Detection: a directory with `rgb.txt` is a TUM folder; a directory with `metadata.yaml` is a
 /// ROS 2 bag (its `.db3` or `.mcap` file is read); `*.bag` is a ROS 1 bag, `*.db3` a ROS 2
 /// sqlite3 bag, `*.mcap` an MCAP file; any other directory with png/jpg/jpeg/bmp files is an
-/// image folder replayed in file-name order.
+/// image folder replayed in name order (numbers by value).
 pub fn open_source(path: &Path, topic: Option<&str>) -> Result<Box<dyn FrameSource>> {
     open_source_topics(path, &Topics::image(topic))
 }

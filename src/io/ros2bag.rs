@@ -46,7 +46,7 @@ pub fn storage_file_of_bag_dir(dir: &Path) -> Result<PathBuf> {
             );
         }
     }
-    files.sort();
+    alphanumeric_sort::sort_path_slice(&mut files);
     match files.as_slice() {
         [one] => Ok(one.clone()),
         [] => bail!("ROS 2 bag folder {} has metadata.yaml but no .db3 or .mcap file", dir.display()),

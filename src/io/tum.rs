@@ -6,7 +6,8 @@
 //! `timestamp tx ty tz qx qy qz qw`. An optional `depth.txt` (same form as `rgb.txt`) lists 16-bit
 //! depth PNGs (5000 units per metre); each colour image takes the depth image nearest in time, within
 //! [`DEPTH_ASSOCIATION`] (the benchmark's `associate.py` rule). A plain image folder (no `rgb.txt`) replays its
-//! `png`/`jpg`/`jpeg`/`bmp` files in file-name order with stamp = index seconds.
+//! `png`/`jpg`/`jpeg`/`bmp` files in name order ([`image_files_in_name_order`]) with stamp = index
+//! seconds.
 
 use anyhow::{bail, ensure, Context, Result};
 use image::RgbImage;
@@ -119,11 +120,10 @@ impl ImageFilesSource {
         Ok(ImageFilesSource { description, entries, next: 0, intrinsics: intrinsics_from_folder_name(dir) })
     }
 
-    /// A folder of image files in file-name order; stamps are the index in seconds.
+    /// A folder of image files in name order; stamps are the index in seconds.
     pub fn open_image_folder(dir: &Path) -> Result<ImageFilesSource> {
-        let mut paths = image_files_in(dir)?;
+        let paths = image_files_in_name_order(dir)?;
         ensure!(!paths.is_empty(), "{} has no rgb.txt and no png/jpg/jpeg/bmp images", dir.display());
-        paths.sort();
         let entries: Vec<ImageEntry> = paths
             .into_iter()
             .enumerate()
@@ -196,8 +196,10 @@ fn load_depth(path: &Path, width: u32, height: u32) -> Result<DepthImage> {
     Ok(DepthImage::from_tum(&depth))
 }
 
-/// The image files (by extension, case-insensitive) directly inside `dir`.
-pub(crate) fn image_files_in(dir: &Path) -> Result<Vec<PathBuf>> {
+/// The image files (png, jpg, jpeg, bmp; any case) directly inside `dir`, in name order with
+/// numbers compared by value (`frame2` before `frame10`), as cameras and tools that number their
+/// frames without leading zeros mean them; zero-padded names keep their plain order.
+pub(crate) fn image_files_in_name_order(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut paths = Vec::new();
     for entry in fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))? {
         let path = entry.with_context(|| format!("cannot list {}", dir.display()))?.path();
@@ -206,6 +208,7 @@ pub(crate) fn image_files_in(dir: &Path) -> Result<Vec<PathBuf>> {
             paths.push(path);
         }
     }
+    alphanumeric_sort::sort_path_slice(&mut paths);
     Ok(paths)
 }
 
@@ -569,5 +572,25 @@ mod tests {
         assert_eq!(frames[0].image.get_pixel(0, 0).0, [50; 3]);
         assert_eq!(frames[1].image.get_pixel(0, 0).0, [100; 3]);
         assert!(frames[2].image.get_pixel(0, 0).0[0].abs_diff(150) < 4);
+    }
+    #[test]
+    fn frames_numbered_without_leading_zeros_keep_their_numeric_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let names = ["frame9.png", "frame10.png", "frame100.png", "frame2.png", "frame1.png", "frame11.png"];
+        for name in names {
+            fs::write(dir.path().join(name), b"x").unwrap();
+        }
+        let listed: Vec<_> = image_files_in_name_order(dir.path())
+            .unwrap()
+            .iter()
+            .map(|p| p.file_name().unwrap().to_str().unwrap().to_string())
+            .collect();
+        assert_eq!(listed, ["frame1.png", "frame2.png", "frame9.png", "frame10.png", "frame11.png", "frame100.png"]);
+        let padded = tempfile::tempdir().unwrap();
+        for name in ["0000010.jpg", "0000002.jpg", "0000001.jpg"] {
+            fs::write(padded.path().join(name), b"x").unwrap();
+        }
+        let listed: Vec<_> = image_files_in_name_order(padded.path()).unwrap();
+        assert_eq!(listed, ["0000001.jpg", "0000002.jpg", "0000010.jpg"].map(|n| padded.path().join(n)));
     }
 }
