@@ -38,31 +38,43 @@ pub const JUMP: f32 = 1e-3;
 /// caller's scores included (256 MiB at the bound).
 pub const MAX_CELLS: usize = 1 << 24;
 
-/// The share of queries, at least, whose successor must be nearer to them than the query half the
-/// set away for the queries to be taken as a walk: about all of them in a walk, about half in a set
-/// in no order.
+/// The share of queries, at least, whose successor must be nearer to them than half of the
+/// queries spread over the set ([`SPREAD_COMPARISONS`]) for the queries to be taken as a walk: about
+/// all of them in a walk, under half in a set in no order.
 pub const WALK_EVIDENCE: f64 = 0.75;
+
+/// How many queries, spread evenly over the set, each query's successor is compared with. More than
+/// one, because a walk that covers its route twice or more passes its own places again: the query
+/// half the set away may be the same place.
+pub const SPREAD_COMPARISONS: usize = 8;
 
 /// The farthest apart, in queries, that two queries' single-image matches are compared to measure
 /// the walk's speed.
 pub const SPEED_SPAN: usize = 10;
 
 /// Why `queries` (descriptors in their order) do not look like a walk, or `None` when they do: for
-/// at least [`WALK_EVIDENCE`] of them the next query is nearer than the one half the set away.
+/// at least [`WALK_EVIDENCE`] of them the next query is nearer than at least half of the queries
+/// [`SPREAD_COMPARISONS`] evenly spread offsets away (each offset once, never the query itself or
+/// its successor).
 pub fn why_not_a_walk(queries: &[Vec<f32>]) -> Option<String> {
     let n = queries.len();
     if n < 4 {
         return None;
     }
+    let mut offsets: Vec<usize> = (1..=SPREAD_COMPARISONS).map(|j| j * n / (SPREAD_COMPARISONS + 1)).collect();
+    offsets.dedup();
+    offsets.retain(|&offset| offset > 1);
     let nearer = (0..n - 1)
         .filter(|&t| {
-            let far = (t + n / 2) % n;
-            distance(&queries[t], &queries[t + 1]) < distance(&queries[t], &queries[far])
+            let next = distance(&queries[t], &queries[t + 1]);
+            let farther =
+                offsets.iter().filter(|&&offset| next < distance(&queries[t], &queries[(t + offset) % n])).count();
+            2 * farther >= offsets.len()
         })
         .count();
     let share = nearer as f64 / (n - 1) as f64;
     (share < WALK_EVIDENCE).then(|| {
-        format!("the queries do not look like a walk (for {:.0}% of them the next one is nearer than one half the set away)", 100.0 * share)
+        format!("the queries do not look like a walk (for {:.0}% of them the next one is nearer than half of the queries spread over the set)", 100.0 * share)
     })
 }
 
@@ -338,6 +350,14 @@ mod tests {
         let shuffled: Vec<Vec<f32>> = (0..40).map(|i| walk[(i * 17) % 40].clone()).collect();
         let why = why_not_a_walk(&shuffled).expect("photos in no order");
         assert!(why.contains("do not look like a walk"), "{why}");
+        // A walk that covers its route twice, or three times, passes its own places again: the
+        // query half (a third) of the set away is the same place, yet it is a walk.
+        for laps in [2, 3] {
+            let again: Vec<Vec<f32>> = (0..40 * laps).map(|i| walk[i % 40].clone()).collect();
+            assert_eq!(why_not_a_walk(&again), None, "{laps} laps");
+            let shuffled: Vec<Vec<f32>> = (0..40 * laps).map(|i| again[(i * 17) % (40 * laps)].clone()).collect();
+            assert!(why_not_a_walk(&shuffled).is_some(), "{laps} laps in no order");
+        }
         let along =
             |speed: f64, from: usize| -> Vec<usize> { (0..40).map(|i| from + (i as f64 * speed) as usize).collect() };
         assert_eq!(walk_speed(&along(1.0, 500)), Some(1.0));
