@@ -8,7 +8,8 @@
 //!     cargo run --release --example accuracy_table
 //!
 //! Sets: Gardens Point day/night and the TUM desk orbit from `../shared/data/real`, Gardens Point
-//! again at 64x48 grayscale (degraded here, in a temporary folder: low-resolution cameras), the TUM
+//! again at 64x48 and 32x24 grayscale (degraded here, in a temporary folder: low-resolution
+//! cameras; `ACCURACY_CUTS=1` adds the hard night lap's cut at 32x24 too), the TUM
 //! fr3 two-pass and the synthetic sequences of `examples/common/mod.rs`; in the database/query mode
 //! the two-pass's second pass against its first (also at 64x48 gray), the hard one's night and day
 //! laps against its first, and the Gardens Point gray copy and the night lap with their queries
@@ -40,12 +41,13 @@ struct DevSet {
     data: Data,
 }
 
-/// The images of `from`, shrunk to 64x48 grayscale, written to `to` under the same names.
-fn degrade_folder(from: &Path, to: &Path) -> Result<()> {
+/// The images of `from`, shrunk to `width`x`height` grayscale (a low-resolution camera), written
+/// to `to` under the same names.
+fn degrade_folder(from: &Path, to: &Path, (width, height): (u32, u32)) -> Result<()> {
     std::fs::create_dir_all(to)?;
     for path in images_in_name_order(from)? {
         let image = read_image(&path)?;
-        let small = image::imageops::resize(&image, 64, 48, image::imageops::FilterType::Triangle);
+        let small = image::imageops::resize(&image, width, height, image::imageops::FilterType::Triangle);
         let gray = image::DynamicImage::ImageLuma8(image::imageops::grayscale(&small));
         gray.save(to.join(path.file_name().context("image name")?).with_extension("png"))?;
     }
@@ -65,17 +67,19 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
             loops: gp.join("loops.csv"),
         },
     }];
-    let degraded = tmp.join("gardens_point_64x48_gray");
-    degrade_folder(&gp.join("ref"), &degraded.join("ref"))?;
-    degrade_folder(&gp.join("query"), &degraded.join("query"))?;
-    sets.push(DevSet {
-        name: "Gardens Point 64x48 gray (real, degraded)".into(),
-        data: Data::DatabaseQueries {
-            database: degraded.join("ref"),
-            queries: degraded.join("query"),
-            loops: gp.join("loops.csv"),
-        },
-    });
+    for (width, height) in [(64, 48), (32, 24)] {
+        let degraded = tmp.join(format!("gardens_point_{width}x{height}_gray"));
+        degrade_folder(&gp.join("ref"), &degraded.join("ref"), (width, height))?;
+        degrade_folder(&gp.join("query"), &degraded.join("query"), (width, height))?;
+        sets.push(DevSet {
+            name: format!("Gardens Point {width}x{height} gray (real, degraded)"),
+            data: Data::DatabaseQueries {
+                database: degraded.join("ref"),
+                queries: degraded.join("query"),
+                loops: gp.join("loops.csv"),
+            },
+        });
+    }
     let orbit = real.join("tum_fr3_desk_orbit");
     sets.push(DevSet {
         name: "TUM desk orbit (real)".into(),
@@ -98,7 +102,7 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
         if set.name.starts_with("TUM") {
             // The real indoor revisit at a low-resolution grayscale camera's 64x48.
             let degraded = tmp.join("fr3_two_pass_64x48_gray");
-            degrade_folder(&set.path.join("rgb"), &degraded.join("rgb"))?;
+            degrade_folder(&set.path.join("rgb"), &degraded.join("rgb"), (64, 48))?;
             for file in ["rgb.txt", "groundtruth.txt"] {
                 std::fs::copy(set.path.join(file), degraded.join(file))?;
             }
@@ -160,10 +164,21 @@ fn dev_sets(tmp: &Path, sequences: Vec<common::EvalSet>) -> Result<Vec<DevSet>> 
         for (index, (name, database, queries)) in cuts.into_iter().enumerate() {
             let folder = tmp.join(format!("synthetic_hard_cut_{index}"));
             let (database, queries, loops) = cut_database_and_queries(&hard, &database, &queries, &folder)?;
+            let night_lap = (index == 0 && extra_cuts()).then(|| (database.clone(), queries.clone(), loops.clone()));
             sets.push(DevSet {
                 name: format!("synthetic hard preset, {name}"),
                 data: Data::DatabaseQueries { database, queries, loops },
             });
+            if let Some((database, queries, loops)) = night_lap {
+                // The night lap seen by a 32x24 camera, where some keyframes look like every query.
+                let small = tmp.join("synthetic_hard_night_32x24");
+                degrade_folder(&database, &small.join("ref"), (32, 24))?;
+                degrade_folder(&queries, &small.join("query"), (32, 24))?;
+                sets.push(DevSet {
+                    name: format!("synthetic hard preset, {name}, 32x24"),
+                    data: Data::DatabaseQueries { database: small.join("ref"), queries: small.join("query"), loops },
+                });
+            }
         }
     }
     // Queries that are not a walk (photos in no order): what the sequence rows cost there.
@@ -449,8 +464,9 @@ fn verification_table(sets: &[DevSet], weights: &Resolved, extra: &[(&str, &str)
     println!("| data | intrinsics | true top-1 matches of retrieval | true loops after verification | false top-1 matches | false loops after verification | precision after | verification ms/keyframe | relative pose: median rotation error (deg) / translation direction error (deg) / metric translation error, pairs |");
     println!("|---|---|---|---|---|---|---|---|---|");
     for set in sets {
-        if set.name.starts_with("TUM") && set.name.contains("64x48") {
-            // Too small for ORB, and TUM's intrinsics are those of its 640x480 frames.
+        if (set.name.starts_with("TUM") && set.name.contains("64x48")) || set.name.contains("32x24") {
+            // Too small for ORB, and the intrinsics (TUM's, the renderer's) are those of the
+            // full-size frames.
             continue;
         }
         if set.name.ends_with("queries shuffled") {

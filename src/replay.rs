@@ -136,7 +136,7 @@ impl ReplayRun {
 /// Database/query mode: every database image is stored, then each query is matched against
 /// them all (no recency rules: the two sets are different visits). Both folders are sequences in
 /// name order. With the default `detector.sequence.length` 0, queries that look like a walk
-/// ([`walk::why_not_a_walk`]) are aligned with the database as a whole walk ([`walk::align`]; a
+/// ([`walk::why_not_a_walk`]) are aligned with the database as a whole walk ([`walk::align_walk`]; a
 /// match's score then also weighs how sure the place is, and `detector.sequence.length` stays 0),
 /// others matched as single images (the length is set to 1); a length
 /// set above 1 scores windows of that many queries ([`sequence`]), a walk's first queries taking
@@ -163,7 +163,7 @@ pub fn run_database_queries(
         queries.iter().map(|path| pipeline.describe(&read_image(path)?)).collect::<Result<_>>()?;
     let tried = pipeline.matches_tried();
     let aligned = if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
-        let aligned = align_walk(pipeline.detector(), &descriptors, tried)?;
+        let aligned = walk_matches(pipeline.detector(), &descriptors, tried)?;
         if aligned.is_none() {
             // Single images: the length stays 0 only where the walk was aligned.
             pipeline.set_param("detector.sequence.length", ParamValue::Integer(1)).map_err(anyhow::Error::msg)?;
@@ -216,7 +216,7 @@ pub fn run_database_queries(
 /// `detector`, each query's up to `depth` matches with the walk's score ([`walk`]); `None` where
 /// the queries do not look like a walk or are too many to align (logged: they are matched as single
 /// images).
-fn align_walk(detector: &Detector, queries: &[Vec<f32>], depth: usize) -> Result<Option<Vec<Vec<Match>>>> {
+fn walk_matches(detector: &Detector, queries: &[Vec<f32>], depth: usize) -> Result<Option<Vec<Vec<Match>>>> {
     let db = detector.db();
     if let Some(why) = walk::why_not_a_walk(queries) {
         log::info!("{why}, so they are matched as single images (detector.sequence.length 0)");
@@ -238,13 +238,7 @@ fn align_walk(detector: &Detector, queries: &[Vec<f32>], depth: usize) -> Result
             (0..db.len()).map(|p| detector.descriptor().score(db.prepared_distance_to(&prepared, p).sqrt())).collect()
         })
         .collect();
-    // Each query's single-image nearest keyframe (the first of equal scores), for the walk's speed.
-    let nearest: Vec<usize> = scores
-        .iter()
-        .map(|row| row.iter().enumerate().fold(0, |best, (p, &s)| if s > row[best] { p } else { best }))
-        .collect();
-    let speed = walk::walk_speed(&nearest).unwrap_or(1.0);
-    let aligned = walk::align(&scores, speed, depth);
+    let (aligned, speed) = walk::align_walk(&scores, depth);
     log::info!("{} queries aligned as a walk moving {speed:.2} database images per query", queries.len());
     Ok(Some(
         aligned

@@ -344,7 +344,7 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
 #[test]
 fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let dir = tempfile::tempdir().unwrap();
-    let (reference, queries) = support::gardens_point_64x48_gray(dir.path());
+    let (reference, queries) = support::gardens_point_gray(dir.path(), 64, 48);
     let loops = support::shared_dir().join("data/real/gardens_point_day_night/loops.csv");
     let eval = |queries: &Path, loops: &Path, extra: &[&str]| -> serde_json::Value {
         let path = |p: &Path| p.to_string_lossy().into_owned();
@@ -429,6 +429,34 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let ((walk_at_1, walk_at_full), (single_at_1, single_at_full)) = (figures(&walk), figures(&single));
     assert_eq!(walk_at_1, 1.0, "{walk}");
     assert!(single_at_1 < 1.0 && walk_at_full > single_at_full, "walk {walk}\nsingle {single}");
+}
+
+/// The same real route seen by cameras of even lower resolution (48x36 and 24x18 grayscale). There
+/// some keyframes score high against every query, whatever the place, and a walk that held on one
+/// of them would collect its scores all along; the walk weighs each keyframe's scores against its
+/// baseline over all the queries (`detector::walk`), and finds every place with no wrong match
+/// above a right one. Single images do not.
+#[test]
+fn a_low_resolution_walk_is_not_held_by_keyframes_that_look_like_every_query() {
+    let loops = support::shared_dir().join("data/real/gardens_point_day_night/loops.csv");
+    for (width, height) in [(48, 36), (24, 18)] {
+        let dir = tempfile::tempdir().unwrap();
+        let (reference, queries) = support::gardens_point_gray(dir.path(), width, height);
+        let eval = |extra: &[&str]| -> (f64, f64) {
+            let path = |p: &Path| p.to_string_lossy().into_owned();
+            let (reference, queries, loops) = (path(&reference), path(&queries), path(&loops));
+            let mut args = vec!["eval", "--database", &reference, "--queries", &queries, "--loops", &loops, "--json"];
+            args.extend(extra);
+            let out = ecm_lcd(&args);
+            assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+            let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+            assert_eq!(json["policy"], if extra.is_empty() { "walk" } else { "single-image" }, "{json}");
+            (json["recall_at_1"].as_f64().unwrap(), json["recall_at_100_precision"].as_f64().unwrap())
+        };
+        assert_eq!(eval(&[]), (1.0, 1.0), "{width}x{height}");
+        let single = eval(&["--param", "detector.sequence.length=1"]);
+        assert!(single.0 < 1.0 && single.1 < 1.0, "{width}x{height}: single images {single:?}");
+    }
 }
 
 #[test]

@@ -62,7 +62,7 @@ fn of_the_matches_tried_the_one_with_the_most_inliers_is_reported() {
     let weights = support::xfeat_weights();
     let weights_param = format!("verification.xfeat_weights={}", weights.display());
     let dir = tempfile::tempdir().unwrap();
-    let (reference, queries) = support::gardens_point_64x48_gray(dir.path());
+    let (reference, queries) = support::gardens_point_gray(dir.path(), 64, 48);
     let recall = |report: &serde_json::Value| report["recall_at_1"].as_f64().expect("recall_at_1");
     let unverified = gardens_point_in(&reference, &queries, &["--param", "verification.mode=off"]);
     assert_eq!(recall(&unverified), 0.9, "{unverified}");

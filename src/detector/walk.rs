@@ -11,10 +11,14 @@
 //!   ([`walk_speed`]) and at least 2: queries and keyframes need not be sampled
 //!   alike. With probability [`JUMP`] it goes to any state instead (it left the route and came back
 //!   elsewhere, or turned round).
-//! - **Observations.** A query's single-image scores against every keyframe, standardised over the
-//!   database (minus their mean, over their standard deviation), weigh keyframe `p` by
-//!   `exp(SHARPNESS * z_p)`: the scale of the scores differs from camera to camera and from query to
-//!   query, their order and spread within one query is what tells.
+//! - **Observations.** A query's single-image scores against every keyframe, each less that
+//!   keyframe's baseline ([`keyframe_baselines`]), standardised over the database (minus their mean,
+//!   over their standard deviation), weigh keyframe `p` by `exp(SHARPNESS * z_p)`: the scale of the
+//!   scores differs from camera to camera and from query to query, their order and spread within one
+//!   query is what tells. The baseline is how well a keyframe scores against every query, whatever
+//!   the place: at low resolution and across light some keyframes (a dark or plain view) score high
+//!   against all of them, and a walk that holds on such a hub collects its scores all along. The
+//!   queries' nearest keyframes that measure the walk's speed are taken with the baselines removed too.
 //! - **Answer.** Each query's keyframes ranked by their posterior probability (forward-backward, both
 //!   directions summed). A match's score must say both that the place is certain and that the
 //!   images agree, so it is the smaller of two values in `[0, 1]`: the probability that the query is
@@ -84,7 +88,7 @@ pub fn why_not_a_walk(queries: &[Vec<f32>]) -> Option<String> {
 /// at most [`SPEED_SPAN`] apart), either way. Robust to the wrong single-image matches, up to about a
 /// quarter of them, that the alignment is there to correct. About 1 where both are sampled alike,
 /// whatever part of the route the queries cover; `None` for fewer than 2 queries.
-pub fn walk_speed(nearest: &[usize]) -> Option<f64> {
+fn walk_speed(nearest: &[usize]) -> Option<f64> {
     let mut slopes: Vec<f64> = (0..nearest.len())
         .flat_map(|i| {
             (i + 1..nearest.len().min(i + SPEED_SPAN + 1))
@@ -99,16 +103,100 @@ pub fn walk_speed(nearest: &[usize]) -> Option<f64> {
 }
 
 /// The largest move between two queries, in keyframes, for a walk of `speed` keyframes per query.
-pub fn largest_move(speed: f64) -> usize {
+fn largest_move(speed: f64) -> usize {
     ((2.0 * speed).ceil() as usize).max(2)
 }
 
+/// Each keyframe's baseline in single-image `scores` (one row per query, one column per keyframe;
+/// module doc: observations), `seen_by` the most queries that can truly see one keyframe. Two
+/// estimates, each biased its own way, and the one both support: the smaller of the two where they
+/// agree in sign, else none.
+/// - Over every query: counts the queries that see the keyframe, so a short walk along part of the
+///   route makes each keyframe it passes look like a hub.
+/// - Over all but each keyframe's `seen_by` highest scores: leaves those out, but then speaks only
+///   for the queries farthest from the keyframe (in a walk that leaves the route, the ones from
+///   elsewhere).
+fn keyframe_baselines(scores: &[Vec<f32>], seen_by: usize) -> Vec<f32> {
+    let every = shrunk_means(scores, 0);
+    let far = shrunk_means(scores, seen_by);
+    every
+        .iter()
+        .zip(&far)
+        .map(|(&a, &b)| {
+            if a * b > 0.0 {
+                if a.abs() < b.abs() {
+                    a
+                } else {
+                    b
+                }
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// Each keyframe's mean score over the queries but its `dropped` highest, less the mean of all
+/// keyframes' such means, shrunk by the share of the spread of those means that is the keyframes' own
+/// rather than the noise of averaging so few scores (empirical Bayes, `tau² / (tau² + sigma² / n)`:
+/// `tau²` the spread of the means less that noise, `sigma²` the mean variance within a keyframe, `n`
+/// the scores averaged). Few scores tell little about a keyframe, and the baselines are then near 0;
+/// with many, a hub's shows. All 0 where fewer than two scores a keyframe are left.
+fn shrunk_means(scores: &[Vec<f32>], dropped: usize) -> Vec<f32> {
+    let keyframes = scores.first().map_or(0, Vec::len);
+    let kept = scores.len().saturating_sub(dropped);
+    if kept < 2 || keyframes < 2 {
+        return vec![0.0; keyframes];
+    }
+    let mut column = Vec::with_capacity(scores.len());
+    let (mut means, mut variance) = (Vec::with_capacity(keyframes), 0.0);
+    for p in 0..keyframes {
+        column.clear();
+        column.extend(scores.iter().map(|row| row[p] as f64));
+        column.sort_unstable_by(f64::total_cmp);
+        let lowest = &column[..kept];
+        let mean = lowest.iter().sum::<f64>() / kept as f64;
+        variance += lowest.iter().map(|s| (s - mean).powi(2)).sum::<f64>() / (kept - 1) as f64;
+        means.push(mean);
+    }
+    let noise = variance / keyframes as f64 / kept as f64;
+    let overall = means.iter().sum::<f64>() / keyframes as f64;
+    let spread = means.iter().map(|m| (m - overall).powi(2)).sum::<f64>() / (keyframes - 1) as f64;
+    let own = (spread - noise).max(0.0);
+    let shrink = if own + noise > 0.0 { own / (own + noise) } else { 0.0 };
+    means.iter().map(|m| (shrink * (m - overall)) as f32).collect()
+}
+
+/// The whole alignment of a walk from its single-image `scores` (as [`align`] takes them): the
+/// keyframes' baselines, with the queries that can see one keyframe counted from the speed of the
+/// plain single-image matches; the walk's speed from the matches with the baselines removed; then
+/// [`align`]. Returns each query's matches and that speed.
+pub fn align_walk(scores: &[Vec<f32>], depth: usize) -> (Vec<Vec<(usize, f32)>>, f64) {
+    let keyframes = scores.first().map_or(0, Vec::len);
+    let plain = walk_speed(&nearest_keyframes(scores, &vec![0.0; keyframes])).unwrap_or(1.0);
+    let baselines = keyframe_baselines(scores, 2 * largest_move(plain) + 1);
+    let speed = walk_speed(&nearest_keyframes(scores, &baselines)).unwrap_or(1.0);
+    (align(scores, &baselines, speed, depth), speed)
+}
+
+/// Each query's nearest keyframe by its single-image `scores` less the keyframes' `baselines` (the
+/// first of equal ones), for [`walk_speed`].
+fn nearest_keyframes(scores: &[Vec<f32>], baselines: &[f32]) -> Vec<usize> {
+    scores
+        .iter()
+        .map(|row| {
+            let relative = |p: usize| row[p] - baselines[p];
+            (0..row.len()).fold(0, |best, p| if relative(p) > relative(best) { p } else { best })
+        })
+        .collect()
+}
+
 /// Aligns the walk whose single-image `scores` (one row per query, in walk order, one column per
-/// keyframe in database order) are given, moving `speed` keyframes per query. Returns for each query up
-/// to `depth` keyframe positions, most probable first (ties: the earlier position), each with its
-/// match's score (module doc: answer).
-pub fn align(scores: &[Vec<f32>], speed: f64, depth: usize) -> Vec<Vec<(usize, f32)>> {
-    most_probable(scores, speed, depth)
+/// keyframe in database order) are given, with the keyframes' `baselines` ([`keyframe_baselines`]),
+/// moving `speed` keyframes per query. Returns for each query up to `depth` keyframe positions, most
+/// probable first (ties: the earlier position), each with its match's score (module doc: answer).
+fn align(scores: &[Vec<f32>], baselines: &[f32], speed: f64, depth: usize) -> Vec<Vec<(usize, f32)>> {
+    most_probable(scores, baselines, speed, depth)
         .into_iter()
         .zip(scores)
         .map(|(places, row)| places.into_iter().map(|(p, probability)| (p, probability.min(row[p]))).collect())
@@ -117,7 +205,7 @@ pub fn align(scores: &[Vec<f32>], speed: f64, depth: usize) -> Vec<Vec<(usize, f
 
 /// Up to `depth` keyframe positions of each query, most probable first, each with the probability
 /// that the query is within one largest move ([`largest_move`]) of it.
-fn most_probable(scores: &[Vec<f32>], speed: f64, depth: usize) -> Vec<Vec<(usize, f32)>> {
+fn most_probable(scores: &[Vec<f32>], baselines: &[f32], speed: f64, depth: usize) -> Vec<Vec<(usize, f32)>> {
     let queries = scores.len();
     let keyframes = scores.first().map_or(0, Vec::len);
     if keyframes == 0 {
@@ -125,6 +213,7 @@ fn most_probable(scores: &[Vec<f32>], speed: f64, depth: usize) -> Vec<Vec<(usiz
     }
     let mut scores = scores.to_vec();
     for row in &mut scores {
+        row.iter_mut().zip(baselines).for_each(|(s, b)| *s -= b);
         observe(row);
     }
     let moves = Moves { keyframes, largest: largest_move(speed) };
@@ -250,6 +339,15 @@ impl Moves {
 mod tests {
     use super::*;
 
+    /// [`align`] with the baselines the scores give for a walk of `speed`.
+    fn aligned(scores: &[Vec<f32>], speed: f64, depth: usize) -> Vec<Vec<(usize, f32)>> {
+        align(scores, &keyframe_baselines(scores, 2 * largest_move(speed) + 1), speed, depth)
+    }
+
+    fn probable(scores: &[Vec<f32>], speed: f64, depth: usize) -> Vec<Vec<(usize, f32)>> {
+        most_probable(scores, &keyframe_baselines(scores, 2 * largest_move(speed) + 1), speed, depth)
+    }
+
     /// Scores of a walk over `route` (the place seen at each keyframe) for queries at the places
     /// `walk`: 0.9 where the places agree, 0.5 elsewhere, with the places in `misleading` (query
     /// index, keyframe) scored 0.95 instead: single images that point elsewhere.
@@ -283,7 +381,7 @@ mod tests {
             .map(|row| (0..row.len()).max_by(|&a, &b| row[a].total_cmp(&row[b]).then(b.cmp(&a))).unwrap())
             .collect();
         assert_eq!(single.iter().zip(&walk).filter(|(s, w)| s != w).count(), 4);
-        let probable = most_probable(&scores, 1.0, 3);
+        let probable = probable(&scores, 1.0, 3);
         assert_eq!(best(&probable), walk);
         for answer in &probable {
             assert_eq!(answer.len(), 3);
@@ -291,9 +389,48 @@ mod tests {
             assert!(answer[1].1 <= answer[0].1 + 1e-6);
         }
         // Sure of every place: the score is the query's own, 0.9 here.
-        let answers = align(&scores, 1.0, 3);
+        let answers = aligned(&scores, 1.0, 3);
         assert_eq!(best(&answers), walk);
         assert!(answers.iter().all(|a| (a[0].1 - 0.9).abs() < 1e-5), "{answers:?}");
+    }
+
+    #[test]
+    fn a_keyframe_that_scores_high_against_every_query_does_not_hold_the_walk() {
+        // Keyframe 5 scores 0.93 against every query, above the true places' 0.9: a hub.
+        let route: Vec<usize> = (0..40).collect();
+        let walk: Vec<usize> = (10..30).collect();
+        let mut with_hub = scores(&route, &walk, &[]);
+        with_hub.iter_mut().for_each(|row| row[5] = 0.93);
+        let none = vec![0.0; route.len()];
+        assert!(nearest_keyframes(&with_hub, &none).iter().all(|&p| p == 5));
+        let held = align(&with_hub, &none, 1.0, 1);
+        assert!(best(&held).iter().filter(|&&p| p == 5).count() >= 10, "the walk holds on the hub: {held:?}");
+        let baselines = keyframe_baselines(&with_hub, 5);
+        assert!(baselines[5] > 0.3, "{baselines:?}");
+        assert!(baselines.iter().enumerate().all(|(p, b)| p == 5 || b.abs() < 0.05), "{baselines:?}");
+        assert_eq!(nearest_keyframes(&with_hub, &baselines), walk);
+        let (answers, speed) = align_walk(&with_hub, 1);
+        assert_eq!((best(&answers), speed), (walk, 1.0));
+        // Nothing to tell keyframes apart by: no baselines.
+        assert_eq!(keyframe_baselines(&vec![vec![0.7; 12]; 5], 0), vec![0.0; 12]);
+        assert_eq!(keyframe_baselines(&[vec![0.2, 0.9, 0.4]], 0), vec![0.0; 3], "one query tells nothing");
+    }
+
+    #[test]
+    fn a_short_walk_along_part_of_the_route_is_not_taken_for_hubs() {
+        // Five queries along the first half of ten keyframes, each also alike to its neighbours:
+        // over every query, the keyframes passed score higher than the others, as hubs would.
+        let walk: Vec<usize> = (0..5).collect();
+        let scores: Vec<Vec<f32>> = walk
+            .iter()
+            .map(|&place| {
+                (0..10).map(|p: usize| [0.9, 0.8, 0.7].get(p.abs_diff(place)).copied().unwrap_or(0.5)).collect()
+            })
+            .collect();
+        assert!(shrunk_means(&scores, 0)[2] > 0.1, "every query: {:?}", shrunk_means(&scores, 0));
+        assert_eq!(keyframe_baselines(&scores, 5), vec![0.0; 10], "none is left once the five highest are dropped");
+        let (answers, _) = align_walk(&scores, 1);
+        assert_eq!(best(&answers), walk);
     }
 
     #[test]
@@ -303,8 +440,8 @@ mod tests {
         let walk: Vec<usize> = (10..30).collect();
         let look_alike: Vec<Vec<f32>> =
             scores(&route, &walk, &[]).into_iter().map(|row| row.into_iter().map(|s| s.min(0.6)).collect()).collect();
-        assert!(most_probable(&look_alike, 1.0, 1).iter().all(|a| a[0].1 > 0.9));
-        let answers = align(&look_alike, 1.0, 1);
+        assert!(probable(&look_alike, 1.0, 1).iter().all(|a| a[0].1 > 0.9));
+        let answers = aligned(&look_alike, 1.0, 1);
         assert!(answers.iter().all(|a| (a[0].1 - 0.6).abs() < 1e-5), "{answers:?}");
     }
 
@@ -312,12 +449,12 @@ mod tests {
     fn walks_backwards_and_faster_than_the_route_are_followed() {
         let route: Vec<usize> = (0..40).collect();
         let backwards: Vec<usize> = (5..35).rev().collect();
-        assert_eq!(best(&align(&scores(&route, &backwards, &[(7, 1)]), 1.0, 1)), backwards);
+        assert_eq!(best(&aligned(&scores(&route, &backwards, &[(7, 1)]), 1.0, 1)), backwards);
         // Every third keyframe: the speed sets the largest move.
         let fast: Vec<usize> = (0..40).step_by(3).collect();
         assert_eq!(largest_move(3.0), 6);
         assert_eq!(largest_move(0.4), 2);
-        assert_eq!(best(&align(&scores(&route, &fast, &[(5, 30)]), 3.0, 1)), fast);
+        assert_eq!(best(&aligned(&scores(&route, &fast, &[(5, 30)]), 3.0, 1)), fast);
     }
 
     #[test]
@@ -325,7 +462,7 @@ mod tests {
         // Two identical halves: places 0..20, then the same places again.
         let route: Vec<usize> = (0..40).map(|p| p % 20).collect();
         let walk: Vec<usize> = (3..15).collect();
-        let answers = align(&scores(&route, &walk, &[]), 1.0, 2);
+        let answers = aligned(&scores(&route, &walk, &[]), 1.0, 2);
         for (answer, place) in answers.iter().zip(&walk) {
             // Both copies are found, each with about half of the probability.
             let mut found = [answer[0].0, answer[1].0];
@@ -376,13 +513,13 @@ mod tests {
 
     #[test]
     fn degenerate_walks() {
-        assert_eq!(align(&[], 1.0, 3), Vec::<Vec<(usize, f32)>>::new());
-        assert_eq!(align(&[Vec::new(), Vec::new()], 1.0, 3), vec![Vec::new(); 2]);
+        assert_eq!(aligned(&[], 1.0, 3), Vec::<Vec<(usize, f32)>>::new());
+        assert_eq!(aligned(&[Vec::new(), Vec::new()], 1.0, 3), vec![Vec::new(); 2]);
         // One query: its own scores decide; equal scores everywhere leave the walk unsure of every
         // keyframe (the edges, with fewer neighbours, a little less likely).
-        let one = align(&[vec![0.5, 0.9, 0.5]], 1.0, 3);
+        let one = aligned(&[vec![0.5, 0.9, 0.5]], 1.0, 3);
         assert_eq!(one[0][0].0, 1);
-        let flat = align(&vec![vec![0.7; 12]; 3], 1.0, 12);
+        let flat = aligned(&vec![vec![0.7; 12]; 3], 1.0, 12);
         assert!(flat.iter().all(|a| a.iter().all(|&(_, p)| (0.15..0.6).contains(&p))), "{flat:?}");
     }
 }

@@ -121,15 +121,15 @@ pub fn xfeat_cache() -> PathBuf {
     target_dir().join("xfeat-cache")
 }
 
-/// Gardens Point day/night (`../shared/data/real`) shrunk to 64x48 grayscale, a low-resolution
-/// camera's view of a real route, written to `dir/ref` and `dir/query`; the two folders.
-pub fn gardens_point_64x48_gray(dir: &Path) -> (PathBuf, PathBuf) {
+/// Gardens Point day/night (`../shared/data/real`) shrunk to `width`x`height` grayscale, a
+/// low-resolution camera's view of a real route, written to `dir/ref` and `dir/query`; the two folders.
+pub fn gardens_point_gray(dir: &Path, width: u32, height: u32) -> (PathBuf, PathBuf) {
     let shared = shared_dir().join("data/real/gardens_point_day_night");
     for part in ["ref", "query"] {
         std::fs::create_dir_all(dir.join(part)).unwrap();
         for entry in std::fs::read_dir(shared.join(part)).unwrap() {
             let path = entry.unwrap().path();
-            let small = image::open(&path).unwrap().resize_exact(64, 48, image::imageops::FilterType::Triangle);
+            let small = image::open(&path).unwrap().resize_exact(width, height, image::imageops::FilterType::Triangle);
             small.grayscale().save(dir.join(part).join(path.file_name().unwrap()).with_extension("png")).unwrap();
         }
     }
