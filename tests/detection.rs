@@ -459,6 +459,39 @@ fn a_low_resolution_walk_is_not_held_by_keyframes_that_look_like_every_query() {
     }
 }
 
+/// `match` writes each query's place without ground truth: the real Gardens Point day queries
+/// against the night references, aligned as a walk, each matched within one frame of its own (as
+/// `eval` scores it), with the threshold's verdict; options that only a replayed source uses are
+/// refused.
+#[test]
+fn match_writes_each_querys_place_without_ground_truth() {
+    let gp = support::shared_dir().join("data/real/gardens_point_day_night");
+    let (reference, queries) = (gp.join("ref"), gp.join("query"));
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("matches.csv");
+    let (reference, queries, csv_arg) =
+        (reference.to_str().unwrap(), queries.to_str().unwrap(), csv.to_str().unwrap().to_string());
+    let out = ecm_lcd(&["match", "--database", reference, "--queries", queries, "-o", &csv_arg]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("query,query_image,match,match_image,score,accepted"));
+    let rows: Vec<Vec<&str>> = lines.map(|line| line.split(',').collect()).collect();
+    assert_eq!(rows.len(), 10, "{text}");
+    for (index, row) in rows.iter().enumerate() {
+        assert_eq!((row[0], row[1]), (index.to_string().as_str(), format!("{index:02}.jpg").as_str()), "{text}");
+        let matched: usize = row[2].parse().unwrap();
+        assert!(matched.abs_diff(index) <= 1, "query {index} matched {matched}: {text}");
+        assert_eq!(row[3], format!("{matched:02}.jpg"));
+        let score: f32 = row[4].parse().unwrap();
+        assert!((0.0..=1.0).contains(&score));
+        assert_eq!(row[5], if score >= 0.91 { "1" } else { "0" }, "the default threshold decides: {text}");
+    }
+    let out = ecm_lcd(&["match", "--database", reference, "--queries", queries, "--poses", "odometry.txt"]);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--poses applies to a replayed SOURCE"));
+}
+
 #[test]
 fn demo_replays_the_bundled_sample() {
     let out_dir = tempfile::tempdir().unwrap();

@@ -80,15 +80,7 @@ impl Args {
     pub fn database_and_queries(&self) -> Result<Option<(Vec<PathBuf>, Vec<PathBuf>)>> {
         match (&self.database, &self.queries) {
             (Some(database), Some(queries)) => {
-                let a = &self.source_args;
-                let source_only = [
-                    ("--topic", a.topic.is_some()),
-                    ("--depth-topic", a.depth_topic.is_some()),
-                    ("--poses", a.poses.is_some()),
-                ];
-                if let Some((flag, _)) = source_only.iter().find(|(_, given)| *given) {
-                    bail!("{flag} applies to a replayed SOURCE, not to --database/--queries");
-                }
+                self.source_args.refuse_source_only()?;
                 Ok(Some((images_in_name_order(database)?, images_in_name_order(queries)?)))
             }
             (None, None) => Ok(None),

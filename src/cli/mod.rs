@@ -8,6 +8,7 @@ pub mod eval;
 mod launch_file;
 pub mod learn_projection;
 pub mod listen;
+pub mod matching;
 pub mod model;
 pub mod node;
 pub mod param;
@@ -53,6 +54,8 @@ pub enum Command {
     Replay(replay::Args),
     /// Replay a source and score the detector against ground truth (precision-recall).
     Eval(eval::Args),
+    /// Find each query image's place among database images (no ground truth needed); CSV.
+    Match(matching::Args),
     /// Get or set a parameter of a running node (like `ros2 param get|set`).
     Param(param::Args),
     /// Render a synthetic looping indoor sequence (TUM folder with exact ground truth).
@@ -98,6 +101,7 @@ fn run(command: Command) -> anyhow::Result<()> {
         Command::Synth(args) => synth::run(args),
         Command::Replay(args) => replay::run(args),
         Command::Eval(args) => eval::run(args),
+        Command::Match(args) => matching::run(args),
         Command::PoseGraph(args) => pose_graph::run(args),
         Command::LearnProjection(args) => learn_projection::run(args),
         Command::Db(args) => db::run(args),

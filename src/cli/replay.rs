@@ -64,6 +64,21 @@ impl SourceArgs {
         params_from(self.config.as_deref(), &self.params)
     }
 
+    /// An error naming the first option given that only a replayed SOURCE uses, for commands that
+    /// read database and query folders instead.
+    pub fn refuse_source_only(&self) -> Result<()> {
+        let source_only = [
+            ("--topic", self.topic.is_some()),
+            ("--depth-topic", self.depth_topic.is_some()),
+            ("--poses", self.poses.is_some()),
+            ("--db", self.db.is_some()),
+        ];
+        match source_only.iter().find(|(_, given)| *given) {
+            Some((flag, _)) => anyhow::bail!("{flag} applies to a replayed SOURCE, not to --database/--queries"),
+            None => Ok(()),
+        }
+    }
+
     pub fn pipeline(&self) -> Result<Pipeline> {
         self.pipeline_with(self.params()?)
     }

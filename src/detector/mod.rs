@@ -697,6 +697,14 @@ impl Detector {
         }
     }
 
+    /// The threshold as a score: matches scoring at least this pass.
+    pub fn min_score(&self) -> f32 {
+        match self.params.threshold {
+            Threshold::MaxDistance(d) => self.descriptor.score(d),
+            Threshold::MinScore(s) => s,
+        }
+    }
+
     fn passes(&self, distance: f32, score: f32) -> bool {
         match self.params.threshold {
             Threshold::MaxDistance(d) => distance <= d,
