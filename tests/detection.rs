@@ -336,6 +336,23 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
     assert_eq!(json["policy"], "walk", "queries against a database are a walk");
 }
 
+/// `eval --database reference --queries queries --loops loops --json` with `extra` options: its
+/// summary.
+fn eval_database(reference: &Path, queries: &Path, loops: &Path, extra: &[&str]) -> serde_json::Value {
+    let path = |p: &Path| p.to_string_lossy().into_owned();
+    let (reference, queries, loops) = (path(reference), path(queries), path(loops));
+    let mut args = vec!["eval", "--database", &reference, "--queries", &queries, "--loops", &loops, "--json"];
+    args.extend(extra);
+    let out = ecm_lcd(&args);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// Recall@1 and recall at 100% precision of an `eval --json` summary.
+fn figures(json: &serde_json::Value) -> (f64, f64) {
+    (json["recall_at_1"].as_f64().unwrap(), json["recall_at_100_precision"].as_f64().unwrap())
+}
+
 /// A real route seen by a low-resolution camera (Gardens Point, 64x48 grayscale): queries against a
 /// database are aligned as a walk by default, which finds every place and puts no wrong match above
 /// a right one; single images put a look-alike first and score wrong matches above right ones.
@@ -346,18 +363,7 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let dir = tempfile::tempdir().unwrap();
     let (reference, queries) = support::gardens_point_gray(dir.path(), 64, 48);
     let loops = support::shared_dir().join("data/real/gardens_point_day_night/loops.csv");
-    let eval = |queries: &Path, loops: &Path, extra: &[&str]| -> serde_json::Value {
-        let path = |p: &Path| p.to_string_lossy().into_owned();
-        let (reference, queries, loops) = (path(&reference), path(queries), path(loops));
-        let mut args = vec!["eval", "--database", &reference, "--queries", &queries, "--loops", &loops, "--json"];
-        args.extend(extra);
-        let out = ecm_lcd(&args);
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-        serde_json::from_slice(&out.stdout).unwrap()
-    };
-    let figures = |json: &serde_json::Value| {
-        (json["recall_at_1"].as_f64().unwrap(), json["recall_at_100_precision"].as_f64().unwrap())
-    };
+    let eval = |queries: &Path, loops: &Path, extra: &[&str]| eval_database(&reference, queries, loops, extra);
     let walk = eval(&queries, &loops, &[]);
     assert_eq!(walk["policy"], "walk", "{walk}");
     assert_eq!(walk["parameters"]["detector.sequence.length"], 0, "{walk}");
@@ -443,15 +449,9 @@ fn a_low_resolution_walk_is_not_held_by_keyframes_that_look_like_every_query() {
         let dir = tempfile::tempdir().unwrap();
         let (reference, queries) = support::gardens_point_gray(dir.path(), width, height);
         let eval = |extra: &[&str]| -> (f64, f64) {
-            let path = |p: &Path| p.to_string_lossy().into_owned();
-            let (reference, queries, loops) = (path(&reference), path(&queries), path(&loops));
-            let mut args = vec!["eval", "--database", &reference, "--queries", &queries, "--loops", &loops, "--json"];
-            args.extend(extra);
-            let out = ecm_lcd(&args);
-            assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-            let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+            let json = eval_database(&reference, &queries, &loops, extra);
             assert_eq!(json["policy"], if extra.is_empty() { "walk" } else { "single-image" }, "{json}");
-            (json["recall_at_1"].as_f64().unwrap(), json["recall_at_100_precision"].as_f64().unwrap())
+            figures(&json)
         };
         assert_eq!(eval(&[]), (1.0, 1.0), "{width}x{height}");
         let single = eval(&["--param", "detector.sequence.length=1"]);

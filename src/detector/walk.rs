@@ -153,7 +153,10 @@ fn shrunk_means(scores: &[Vec<f32>], dropped: usize) -> Vec<f32> {
     for p in 0..keyframes {
         column.clear();
         column.extend(scores.iter().map(|row| row[p] as f64));
-        column.sort_unstable_by(f64::total_cmp);
+        if dropped > 0 {
+            // The `kept` lowest first, in no order: no full sort is needed for a mean.
+            column.select_nth_unstable_by(kept - 1, f64::total_cmp);
+        }
         let lowest = &column[..kept];
         let mean = lowest.iter().sum::<f64>() / kept as f64;
         variance += lowest.iter().map(|s| (s - mean).powi(2)).sum::<f64>() / (kept - 1) as f64;
