@@ -328,7 +328,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             0,
             0,
             100,
-            "Scores are averaged along the diagonal of the last this-many keyframes against the history (sequence matching; 1 = off). 0 = auto: 1 for keyframes as they come; queries against a database (eval --database --queries) that look like a walk are aligned as a whole walk instead.",
+            "Scores are averaged along the diagonal of the last this-many keyframes against the history (sequence matching; 1 = off). 0 = auto: 1 for keyframes as they come; queries against a database (eval --database, match) that look like a walk are aligned as a whole walk instead.",
         ),
         integer(
             "detector.max_keyframes",
