@@ -320,10 +320,9 @@ fn measure(
     };
     let (results, truth) = match &set.data {
         Data::DatabaseQueries { database, queries, loops } => {
-            let (results, timings) =
-                run_database_queries(&mut pipeline, &images_in_name_order(database)?, &images_in_name_order(queries)?)?;
-            row.ms_per_keyframe = timings[0].1;
-            (results, read_loops(loops)?)
+            let run = run_database_queries(&mut pipeline, database, queries, None)?;
+            row.ms_per_keyframe = run.per_image_ms;
+            (run.results, read_loops(loops)?)
         }
         Data::Sequence(s, loops) => {
             let topics = ecm_lcd::io::Topics { poses: tracker_poses.map(Path::to_path_buf), ..Default::default() };

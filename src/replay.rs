@@ -9,7 +9,7 @@
 //! The newest stored keyframe must be the source's frame of the same index, stamp and image: a
 //! database is continued only with the source it was built from.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
@@ -21,7 +21,6 @@ use crate::eval::QueryResult;
 use crate::io::tum::TrackerPoses;
 use crate::io::{open_source_topics, Topics};
 use crate::pipeline::{Pipeline, Timings};
-use crate::preprocess::read_image;
 use crate::types::{LoopCandidate, Stamp};
 use crate::verification::best_supported;
 
@@ -133,34 +132,77 @@ impl ReplayRun {
     }
 }
 
-/// Database/query mode: every database image is stored, then each query is matched against
-/// them all (no recency rules: the two sets are different visits). Both folders are sequences in
-/// name order. With the default `detector.sequence.length` 0, queries that look like a walk
+/// What the database/query mode produced ([`run_database_queries`]).
+#[derive(Debug, Default)]
+pub struct DatabaseQueriesRun {
+    /// One result per query, in query order.
+    pub results: Vec<QueryResult>,
+    /// The stamps of the database's frames and of the queries, in their order (a frame's index is
+    /// its position here).
+    pub database_stamps: Vec<Stamp>,
+    pub query_stamps: Vec<Stamp>,
+    /// Milliseconds per frame, database and queries together.
+    pub per_image_ms: f64,
+}
+
+impl DatabaseQueriesRun {
+    /// The timings by name (for summaries and JSON).
+    pub fn timings(&self) -> Vec<(&'static str, f64)> {
+        vec![("per_image_ms", self.per_image_ms)]
+    }
+}
+
+/// The topics to open `source` with in the database/query mode: the image topic `topic` applies to
+/// bags only (the same camera's topic in both), and neither side pairs depth or poses.
+fn database_query_topics(source: &Path, topic: Option<&str>) -> Topics {
+    let bag = !crate::io::is_image_folder(source) && !source.join("rgb.txt").is_file();
+    Topics { image: topic.filter(|_| bag).map(str::to_string), ..Default::default() }
+}
+
+/// Database/query mode: every frame of `database` is stored, then each frame of `queries` is
+/// matched against them all (no recency rules: the two are different visits). Each is any source
+/// [`open_source_topics`] opens (image folder in name order, TUM folder, ROS 1 or ROS 2 bag;
+/// `topic` the image topic of bags), a frame's index its position in its source. The database's
+/// depth images (a TUM folder's `depth.txt`) give verified matches metric poses, and the camera
+/// intrinsics a source carries (the database's, else the queries') turn verification on as in a
+/// replay. With the default `detector.sequence.length` 0, queries that look like a walk
 /// ([`walk::why_not_a_walk`]) are aligned with the database as a whole walk ([`walk::align_walk`]; a
 /// match's score then also weighs how sure the place is, and `detector.sequence.length` stays 0),
 /// others matched as single images (the length is set to 1); a length
 /// set above 1 scores windows of that many queries ([`sequence`]), a walk's first queries taking
 /// later ones into their window ([`sequence::queries_ahead`]). Either way every query is described
-/// before any is matched (their descriptors are kept meanwhile, 11.25 KiB each for the default).
+/// before any is matched (their descriptors are kept meanwhile, 11.25 KiB each for the default); with
+/// verification the queries are read a second time for their local features.
 pub fn run_database_queries(
     pipeline: &mut Pipeline,
-    database: &[PathBuf],
-    queries: &[PathBuf],
-) -> Result<(Vec<QueryResult>, Vec<(&'static str, f64)>)> {
+    database: &Path,
+    queries: &Path,
+    topic: Option<&str>,
+) -> Result<DatabaseQueriesRun> {
     for rule in ["detector.min_history", "detector.exclude_recent.count"] {
         pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
     }
     pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
+    let open = |source: &Path| open_source_topics(source, &database_query_topics(source, topic));
+    let (database_frames, query_frames) = (open(database)?, open(queries)?);
+    log::info!("database: {}; queries: {}", database_frames.describe(), query_frames.describe());
+    adopt_carried_intrinsics(pipeline, database_frames.intrinsics().or_else(|| query_frames.intrinsics()))?;
     let started = Instant::now();
-    for (index, path) in database.iter().enumerate() {
-        let image = read_image(path)?;
-        let descriptor = pipeline.describe(&image)?;
-        pipeline.detector_mut().insert(index as u64, Stamp::from_nanos(index as i64), &descriptor)?;
-        let features = pipeline.local_features(&image, None)?;
-        pipeline.remember_features(index as u64, features);
+    let mut run = DatabaseQueriesRun::default();
+    for frame in database_frames {
+        let frame = frame.with_context(|| format!("reading the database {}", database.display()))?;
+        let descriptor = pipeline.describe(&frame.image)?;
+        pipeline.detector_mut().insert(frame.index as u64, Stamp::from_nanos(frame.index as i64), &descriptor)?;
+        let features = pipeline.local_features(&frame.image, frame.depth.as_ref())?;
+        pipeline.remember_features(frame.index as u64, features);
+        run.database_stamps.push(frame.stamp);
     }
-    let descriptors: Vec<Vec<f32>> =
-        queries.iter().map(|path| pipeline.describe(&read_image(path)?)).collect::<Result<_>>()?;
+    let mut descriptors = Vec::new();
+    for frame in query_frames {
+        let frame = frame.with_context(|| format!("reading the queries {}", queries.display()))?;
+        descriptors.push(pipeline.describe(&frame.image)?);
+        run.query_stamps.push(frame.stamp);
+    }
     let tried = pipeline.matches_tried();
     let aligned = if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
         let aligned = walk_matches(pipeline.detector(), &descriptors, tried)?;
@@ -176,40 +218,61 @@ pub fn run_database_queries(
         Some(ParamValue::Integer(length)) => length.max(1) as usize,
         _ => 1,
     };
-    let mut results = Vec::with_capacity(queries.len());
-    for (index, (path, descriptor)) in queries.iter().zip(&descriptors).enumerate() {
-        let ahead = &descriptors[index + 1..][..sequence::queries_ahead(length, index, queries.len())];
+    // Read again for their local features: the query images are not all kept while their
+    // descriptors are.
+    let mut again = if pipeline.verifies() { Some(open(queries)?) } else { None };
+    for (index, descriptor) in descriptors.iter().enumerate() {
+        let ahead = &descriptors[index + 1..][..sequence::queries_ahead(length, index, descriptors.len())];
         // With verification, the nearest verified with the most inliers ([`best_supported`]); none
         // passing counts as no match.
         let nearest = match &aligned {
             Some(aligned) => aligned[index].clone(),
             None => pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), descriptor, ahead, tried)?,
         };
-        let best = if pipeline.verifies() {
-            // Read again: the query images are not all kept while their descriptors are.
-            let features = pipeline.local_features(&read_image(path)?, None)?;
-            let verifications = nearest.iter().map(|m| {
-                let verification = pipeline.verify(&features, m.id);
-                if let Some(v) = verification {
-                    log::debug!(
-                        "query {index} -> database {} (score {:.3}): {} inliers of {} matches, {}",
-                        m.id,
-                        m.score,
-                        v.inliers,
-                        v.matches,
-                        if v.accepted { "verified" } else { "rejected" }
-                    );
-                }
-                verification
-            });
-            best_supported(verifications.collect::<Vec<_>>()).map(|i| nearest[i])
-        } else {
-            nearest.first().copied()
+        let best = match again.as_mut() {
+            Some(frames) => {
+                let frame = frames
+                    .next()
+                    .with_context(|| format!("{} ended early when read again", queries.display()))?
+                    .with_context(|| format!("reading the queries {} again", queries.display()))?;
+                let features = pipeline.local_features(&frame.image, None)?;
+                let verifications = nearest.iter().map(|m| {
+                    let verification = pipeline.verify(&features, m.id);
+                    if let Some(v) = verification {
+                        log::debug!(
+                            "query {index} -> database {} (score {:.3}): {} inliers of {} matches, {}",
+                            m.id,
+                            m.score,
+                            v.inliers,
+                            v.matches,
+                            if v.accepted { "verified" } else { "rejected" }
+                        );
+                    }
+                    verification
+                });
+                best_supported(verifications.collect::<Vec<_>>()).map(|i| nearest[i])
+            }
+            None => nearest.first().copied(),
         };
-        results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
+        run.results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
     }
-    let per_image = started.elapsed().as_secs_f64() * 1e3 / (database.len() + queries.len()).max(1) as f64;
-    Ok((results, vec![("per_image_ms", per_image)]))
+    let frames = run.database_stamps.len() + run.query_stamps.len();
+    run.per_image_ms = started.elapsed().as_secs_f64() * 1e3 / frames.max(1) as f64;
+    Ok(run)
+}
+
+/// Hands the camera intrinsics a source carries to `pipeline`, unless the `camera.*` parameters
+/// give them (logged either way).
+fn adopt_carried_intrinsics(pipeline: &mut Pipeline, carried: Option<crate::io::SourceIntrinsics>) -> Result<()> {
+    if let Some(carried) = carried {
+        if pipeline.params().intrinsics().is_some() {
+            log::info!("camera intrinsics from the camera.* parameters; {} not used", carried.origin);
+        } else {
+            log::info!("camera intrinsics from {}: {:?}", carried.origin, carried.intrinsics);
+            pipeline.set_camera_info(carried.intrinsics)?;
+        }
+    }
+    Ok(())
 }
 
 /// The default's walk alignment of `queries` (descriptors in their order) with every keyframe of
@@ -301,14 +364,7 @@ fn replay_frames(
         None => None,
     };
     log::info!("replaying {}", frames.describe());
-    if let Some(carried) = frames.intrinsics() {
-        if pipeline.params().intrinsics().is_some() {
-            log::info!("camera intrinsics from the camera.* parameters; {} not used", carried.origin);
-        } else {
-            log::info!("camera intrinsics from {}: {:?}", carried.origin, carried.intrinsics);
-            pipeline.set_camera_info(carried.intrinsics)?;
-        }
-    }
+    adopt_carried_intrinsics(pipeline, frames.intrinsics())?;
     let bar = if progress { ProgressBar::new(frames.len_hint().unwrap_or(0) as u64) } else { ProgressBar::hidden() };
     bar.set_style(
         ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} frames, {per_sec}, {msg}")

@@ -95,25 +95,27 @@ fn real_tum_two_pass_sequence_yields_correct_loop_candidates() {
 
 /// Two real offices that are different places (TUM fr2 desk: a desk in a hall; fr3 long office
 /// household: two desks at a partition), each the database for the other's frames: no query's best
-/// match reaches the default `detector.min_score`, so none would be reported as a loop.
+/// match reaches the default `detector.min_score`, so none would be reported as a loop. The
+/// database is read as a TUM folder, the queries as a folder of images.
 #[test]
 fn a_real_office_never_seen_is_not_reported_at_the_default_threshold() {
     let tum = support::shared_dir().join("data/tum");
-    let fr2 = images_in_name_order(&tum.join("fr2_desk/rgb")).unwrap();
-    let fr3 = images_in_name_order(&tum.join("fr3_long_office_household/rgb")).unwrap();
+    let (fr2, fr3) = (tum.join("fr2_desk"), tum.join("fr3_long_office_household"));
     let Threshold::MinScore(min_score) = Params::default().detector().threshold else {
         panic!("the default threshold is a score")
     };
     for (database, queries) in [(&fr3, &fr2), (&fr2, &fr3)] {
         let mut pipeline = Pipeline::with_weights(Params::default(), weights()).unwrap();
-        let (results, _) = run_database_queries(&mut pipeline, database, queries).unwrap();
-        let scores: Vec<f32> = results.iter().filter_map(|r| r.best.map(|(_, score)| score)).collect();
-        assert_eq!(scores.len(), queries.len(), "every query has a best match");
+        let run = run_database_queries(&mut pipeline, database, &queries.join("rgb"), None).unwrap();
+        let scores: Vec<f32> = run.results.iter().filter_map(|r| r.best.map(|(_, score)| score)).collect();
+        let frames = |dir: &std::path::Path| images_in_name_order(&dir.join("rgb")).unwrap().len();
+        assert_eq!((run.database_stamps.len(), run.query_stamps.len()), (frames(database), frames(queries)));
+        assert_eq!(scores.len(), run.query_stamps.len(), "every query has a best match");
         let highest = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
         println!(
             "{} queries against {} references of another office: highest score {highest}",
-            queries.len(),
-            database.len()
+            run.query_stamps.len(),
+            run.database_stamps.len()
         );
         assert!(highest < min_score, "an office never seen scores {highest}, the threshold is {min_score}");
     }
@@ -461,32 +463,61 @@ fn a_low_resolution_walk_is_not_held_by_keyframes_that_look_like_every_query() {
 
 /// `match` writes each query's place without ground truth: the real Gardens Point day queries
 /// against the night references, aligned as a walk, each matched within one frame of its own (as
-/// `eval` scores it), with the threshold's verdict; options that only a replayed source uses are
-/// refused.
+/// `eval` scores it), with the threshold's verdict. The same frames recorded as bags (the database
+/// a ROS 2 MCAP bag, the queries a ROS 1 bag, both on the topic `--topic` names) give the same
+/// matches, their frames named by stamp. Options that only a replayed source uses are refused.
 #[test]
 fn match_writes_each_querys_place_without_ground_truth() {
     let gp = support::shared_dir().join("data/real/gardens_point_day_night");
     let (reference, queries) = (gp.join("ref"), gp.join("query"));
     let dir = tempfile::tempdir().unwrap();
-    let csv = dir.path().join("matches.csv");
-    let (reference, queries, csv_arg) =
-        (reference.to_str().unwrap(), queries.to_str().unwrap(), csv.to_str().unwrap().to_string());
-    let out = ecm_lcd(&["match", "--database", reference, "--queries", queries, "-o", &csv_arg]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let text = std::fs::read_to_string(&csv).unwrap();
-    let mut lines = text.lines();
-    assert_eq!(lines.next(), Some("query,query_image,match,match_image,score,accepted"));
-    let rows: Vec<Vec<&str>> = lines.map(|line| line.split(',').collect()).collect();
-    assert_eq!(rows.len(), 10, "{text}");
+    let matches = |database: &Path, queries: &Path, extra: &[&str]| -> Vec<Vec<String>> {
+        let csv = dir.path().join("matches.csv");
+        let (database, queries, csv_arg) =
+            (database.to_str().unwrap(), queries.to_str().unwrap(), csv.to_str().unwrap());
+        let out = ecm_lcd(&[&["match", "--database", database, "--queries", queries, "-o", csv_arg], extra].concat());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        let text = std::fs::read_to_string(&csv).unwrap();
+        let mut lines = text.lines();
+        assert_eq!(lines.next(), Some("query,query_frame,match,match_frame,score,accepted"));
+        lines.map(|line| line.split(',').map(str::to_string).collect()).collect()
+    };
+    let rows = matches(&reference, &queries, &[]);
+    assert_eq!(rows.len(), 10, "{rows:?}");
     for (index, row) in rows.iter().enumerate() {
-        assert_eq!((row[0], row[1]), (index.to_string().as_str(), format!("{index:02}.jpg").as_str()), "{text}");
+        assert_eq!(
+            (row[0].as_str(), row[1].as_str()),
+            (index.to_string().as_str(), format!("{index:02}.jpg").as_str())
+        );
         let matched: usize = row[2].parse().unwrap();
-        assert!(matched.abs_diff(index) <= 1, "query {index} matched {matched}: {text}");
+        assert!(matched.abs_diff(index) <= 1, "query {index} matched {matched}: {rows:?}");
         assert_eq!(row[3], format!("{matched:02}.jpg"));
         let score: f32 = row[4].parse().unwrap();
         assert!((0.0..=1.0).contains(&score));
-        assert_eq!(row[5], if score >= 0.91 { "1" } else { "0" }, "the default threshold decides: {text}");
+        assert_eq!(row[5], if score >= 0.91 { "1" } else { "0" }, "the default threshold decides: {rows:?}");
     }
+
+    let stamped = |folder: &Path, first: i64| {
+        images_in_name_order(folder).unwrap().into_iter().enumerate().map(move |(i, path)| {
+            (ecm_lcd::types::Stamp::from_sec_nsec(first + i as i64, 0), ecm_lcd::preprocess::read_image(&path).unwrap())
+        })
+    };
+    let (reference_bag, query_bag) = (dir.path().join("night"), dir.path().join("day.bag"));
+    write_ros2_bag(&reference_bag, Ros2Storage::Mcap, "/camera/image", stamped(&reference, 100), WireEncoding::Rgb8)
+        .unwrap();
+    write_ros1_bag(&query_bag, "/camera/image", stamped(&queries, 200), WireEncoding::Rgb8, Ros1Compression::Lz4)
+        .unwrap();
+    let from_bags = matches(&reference_bag, &query_bag, &["--topic", "/camera/image"]);
+    assert_eq!(from_bags.len(), rows.len());
+    for (index, (bag_row, folder_row)) in from_bags.iter().zip(&rows).enumerate() {
+        assert_eq!(bag_row[1], format!("{}.000000000", 200 + index));
+        assert_eq!(bag_row[3], format!("{}.000000000", 100 + folder_row[2].parse::<i64>().unwrap()));
+        for column in [0, 2, 4, 5] {
+            assert_eq!(bag_row[column], folder_row[column], "query {index}: {from_bags:?} against {rows:?}");
+        }
+    }
+
+    let (reference, queries) = (reference.to_str().unwrap(), queries.to_str().unwrap());
     let out = ecm_lcd(&["match", "--database", reference, "--queries", queries, "--poses", "odometry.txt"]);
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--poses applies to a replayed SOURCE"));

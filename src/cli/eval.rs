@@ -8,8 +8,8 @@ use super::replay::SourceArgs;
 use anyhow::{bail, Result};
 use ecm_lcd::config::{ParamValue, Params};
 use ecm_lcd::eval::{
-    evaluate, images_in_name_order, loop_truth_from_poses, plot_pr_curve, read_loops, summary_json, write_curve_csv,
-    LoopTruth, Metrics, PoseLoopCriteria, QueryResult,
+    evaluate, loop_truth_from_poses, plot_pr_curve, read_loops, summary_json, write_curve_csv, LoopTruth, Metrics,
+    PoseLoopCriteria, QueryResult,
 };
 use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::replay::{run_database_queries, run_source};
@@ -27,13 +27,14 @@ pub struct Args {
     /// Explicit loop truth instead of poses: lines `query_index,match_index match_index ...`.
     #[arg(long)]
     pub loops: Option<PathBuf>,
-    /// Database/query mode: folder of database images (name order, numbers by value: `2` before
-    /// `10`); needs --queries and --loops.
+    /// Database/query mode: the database, an image folder (name order, numbers by value: `2` before
+    /// `10`), a TUM folder or a ROS 1 / ROS 2 bag (`--topic` names a bag's image topic); needs
+    /// --queries and --loops, whose indexes count the frames of each from 0.
     #[arg(long, requires_all = ["queries", "loops"], conflicts_with = "source")]
     pub database: Option<PathBuf>,
-    /// Database/query mode: folder of query images (name order, numbers by value). Where they look like a walk, they
-    /// are aligned with the database as a whole walk (at any speed, along all or part of its route,
-    /// either way), else matched one by one (`detector.sequence.length` 0; 1 or more sets it).
+    /// Database/query mode: the queries, from the same kinds of source. Where they look like a walk,
+    /// they are aligned with the database as a whole walk (at any speed, along all or part of its
+    /// route, either way), else matched one by one (`detector.sequence.length` 0; 1 or more sets it).
     #[arg(long, requires = "database")]
     pub queries: Option<PathBuf>,
     /// Print the summary as JSON (keys `queries`, `recall_at_1`, `recall_at_100_precision`,
@@ -76,12 +77,12 @@ impl Args {
         })
     }
 
-    /// Database and query image paths in database/query mode, else `None`.
-    pub fn database_and_queries(&self) -> Result<Option<(Vec<PathBuf>, Vec<PathBuf>)>> {
+    /// The database and query sources in database/query mode, else `None`.
+    pub fn database_and_queries(&self) -> Result<Option<(&Path, &Path)>> {
         match (&self.database, &self.queries) {
             (Some(database), Some(queries)) => {
                 self.source_args.refuse_source_only()?;
-                Ok(Some((images_in_name_order(database)?, images_in_name_order(queries)?)))
+                Ok(Some((database, queries)))
             }
             (None, None) => Ok(None),
             _ => bail!("--database and --queries go together"),
@@ -196,9 +197,9 @@ pub fn run(args: Args) -> Result<()> {
     };
     if let Some((database, queries)) = args.database_and_queries()? {
         let truth = load_truth(&args, &[])?;
-        truth.check_within(queries.len(), database.len())?;
-        let (results, timings) = run_database_queries(&mut pipeline, &database, &queries)?;
-        run_with_results(&args, &truth, &results, &timings, pipeline.params())?;
+        let run = run_database_queries(&mut pipeline, database, queries, args.source_args.topic.as_deref())?;
+        truth.check_within(run.query_stamps.len(), run.database_stamps.len())?;
+        run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params())?;
         return Ok(());
     }
     let Some(source) = &args.source else { bail!("give a SOURCE to replay, or --database and --queries") };
@@ -280,29 +281,17 @@ mod tests {
     }
 
     #[test]
-    fn database_mode_needs_queries_and_loops_and_lists_images_in_name_order() {
+    fn database_mode_needs_queries_and_loops_and_refuses_what_only_a_replay_uses() {
         assert!(parse(&["--database", "db"]).is_err());
         assert!(parse(&["--database", "db", "--queries", "q"]).is_err(), "needs --loops");
         assert!(parse(&["seq", "--database", "db", "--queries", "q", "--loops", "l"]).is_err(), "not with SOURCE");
-        let dir = tempfile::tempdir().unwrap();
-        let (db, queries) = (dir.path().join("db"), dir.path().join("q"));
-        std::fs::create_dir_all(&db).unwrap();
-        std::fs::create_dir_all(&queries).unwrap();
-        for name in ["b.png", "a.JPG", "c.txt", "10.bmp", "9.png"] {
-            std::fs::write(db.join(name), b"x").unwrap();
-        }
-        let args = parse(&["--database", db.to_str().unwrap(), "--queries", queries.to_str().unwrap(), "--loops", "l"])
-            .unwrap();
-        let err = args.database_and_queries().unwrap_err();
-        assert!(err.to_string().contains("holds no png, jpg or bmp files"), "{err:#}");
+        let args = parse(&["--database", "db", "--queries", "q", "--loops", "l", "--topic", "/camera/image"]).unwrap();
+        let (database, queries) = args.database_and_queries().unwrap().unwrap();
+        assert_eq!((database, queries), (Path::new("db"), Path::new("q")));
         let with_poses = ["--database", "db", "--queries", "q", "--loops", "l", "--poses", "odometry.txt"];
         let err = parse(&with_poses).unwrap().database_and_queries().unwrap_err();
         assert!(err.to_string().contains("--poses applies to a replayed SOURCE"), "{err:#}");
-        std::fs::write(queries.join("q0.png"), b"x").unwrap();
-        let (database, query_images) = args.database_and_queries().unwrap().unwrap();
-        let names: Vec<_> = database.iter().map(|p| p.file_name().unwrap().to_str().unwrap().to_string()).collect();
-        assert_eq!(names, ["9.png", "10.bmp", "a.JPG", "b.png"]);
-        assert_eq!(query_images.len(), 1);
+        assert!(parse(&["seq"]).unwrap().database_and_queries().unwrap().is_none());
     }
 
     #[test]

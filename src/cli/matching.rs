@@ -1,4 +1,4 @@
-//! `ecm-lcd match`: each query image's place among database images, with no ground truth needed
+//! `ecm-lcd match`: each query frame's place among database frames, with no ground truth needed
 //! (relocalising a new session against a map, merging two sessions): the database/query mode of
 //! `eval`, its matches written as CSV instead of scored.
 
@@ -6,16 +6,18 @@ use super::replay::SourceArgs;
 use anyhow::{Context, Result};
 use ecm_lcd::eval::images_in_name_order;
 use ecm_lcd::replay::run_database_queries;
+use ecm_lcd::types::Stamp;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// Folder of database images (name order, numbers by value: `2` before `10`).
+    /// The map: an image folder (name order, numbers by value: `2` before `10`), a TUM folder or a
+    /// ROS 1 / ROS 2 bag (`--topic` names the image topic where a bag has several).
     #[arg(long)]
     pub database: PathBuf,
-    /// Folder of query images (name order, numbers by value). Where they look like a walk, they are
-    /// aligned with the database as a whole walk, else matched one by one (as `eval --database`).
+    /// The frames to place on it, from the same kinds of source. Where they look like a walk, they
+    /// are aligned with the database as a whole walk, else matched one by one (as `eval --database`).
     #[arg(long)]
     pub queries: PathBuf,
     /// Write the matches here (CSV); default: print them.
@@ -25,10 +27,11 @@ pub struct Args {
     pub source_args: SourceArgs,
 }
 
-/// The CSV header: per query its index and image, its best database image (empty where none), the
+/// The CSV header: per query its index and frame, its best database frame (empty where none), the
 /// match's score, and 1 where the score passes the threshold (`detector.min_score`, or
-/// `detector.max_distance` as a score).
-pub const HEADER: &str = "query,query_image,match,match_image,score,accepted";
+/// `detector.max_distance` as a score). A frame is named by its file in an image folder, elsewhere
+/// by its stamp in seconds (a TUM folder's `rgb.txt` stamp, a bag message's header stamp).
+pub const HEADER: &str = "query,query_frame,match,match_frame,score,accepted";
 
 pub fn run(args: Args) -> Result<()> {
     args.source_args.refuse_source_only()?;
@@ -37,9 +40,10 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(output) = &args.output {
         ecm_lcd::io::output::ensure_not_an_input(output, &inputs)?;
     }
-    let (database, queries) = (images_in_name_order(&args.database)?, images_in_name_order(&args.queries)?);
     let mut pipeline = args.source_args.pipeline()?;
-    let (results, _) = run_database_queries(&mut pipeline, &database, &queries)?;
+    let run = run_database_queries(&mut pipeline, &args.database, &args.queries, args.source_args.topic.as_deref())?;
+    let database_names = frame_names(&args.database, &run.database_stamps)?;
+    let query_names = frame_names(&args.queries, &run.query_stamps)?;
     let min_score = pipeline.detector().min_score();
     let sink: Box<dyn Write> = match &args.output {
         Some(path) => {
@@ -50,27 +54,37 @@ pub fn run(args: Args) -> Result<()> {
     // The csv crate quotes image names that hold commas or quotes.
     let mut csv = csv::Writer::from_writer(sink);
     csv.write_record(HEADER.split(','))?;
-    let name = |path: &Path| path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    for result in &results {
-        let (matched, match_image, score, accepted) = match result.best {
+    for result in &run.results {
+        let (matched, match_frame, score, accepted) = match result.best {
             Some((matched, score)) => (
                 matched.to_string(),
-                name(&database[matched]),
+                database_names[matched].clone(),
                 format!("{score:.6}"),
                 u8::from(score >= min_score).to_string(),
             ),
             None => (String::new(), String::new(), String::new(), "0".to_string()),
         };
         let query = result.query.to_string();
-        csv.write_record([&query, &name(&queries[result.query]), &matched, &match_image, &score, &accepted])?;
+        csv.write_record([&query, &query_names[result.query], &matched, &match_frame, &score, &accepted])?;
     }
     csv.flush().context("cannot write the matches")?;
-    let accepted = results.iter().filter(|r| r.best.is_some_and(|(_, score)| score >= min_score)).count();
+    let accepted = run.results.iter().filter(|r| r.best.is_some_and(|(_, score)| score >= min_score)).count();
     let policy = super::eval::policy_name(pipeline.params(), true);
     log::info!(
-        "{} queries matched against {} database images ({policy}); {accepted} at or above the threshold {min_score}",
-        queries.len(),
-        database.len()
+        "{} queries matched against {} database frames ({policy}); {accepted} at or above the threshold {min_score}",
+        run.query_stamps.len(),
+        run.database_stamps.len()
     );
     Ok(())
+}
+
+/// The names of `source`'s frames (module doc of [`HEADER`]), `stamps` those it was read with.
+fn frame_names(source: &Path, stamps: &[Stamp]) -> Result<Vec<String>> {
+    if ecm_lcd::io::is_image_folder(source) {
+        let files = images_in_name_order(source)?;
+        anyhow::ensure!(files.len() == stamps.len(), "{} changed while it was read", source.display());
+        let name = |path: &Path| path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        return Ok(files.iter().map(|path| name(path)).collect());
+    }
+    Ok(stamps.iter().map(Stamp::to_string).collect())
 }

@@ -65,10 +65,9 @@ impl SourceArgs {
     }
 
     /// An error naming the first option given that only a replayed SOURCE uses, for commands that
-    /// read database and query folders instead.
+    /// read a database and queries instead (`--topic` serves both: the image topic of bags).
     pub fn refuse_source_only(&self) -> Result<()> {
         let source_only = [
-            ("--topic", self.topic.is_some()),
             ("--depth-topic", self.depth_topic.is_some()),
             ("--poses", self.poses.is_some()),
             ("--db", self.db.is_some()),

@@ -113,6 +113,12 @@ pub fn open_source(path: &Path, topic: Option<&str>) -> Result<Box<dyn FrameSour
     open_source_topics(path, &Topics::image(topic))
 }
 
+/// Whether `path` is a plain folder of images: a folder that is neither a TUM folder (`rgb.txt`)
+/// nor a ROS 2 bag folder (`metadata.yaml`).
+pub fn is_image_folder(path: &Path) -> bool {
+    path.is_dir() && !path.join("rgb.txt").is_file() && !path.join("metadata.yaml").is_file()
+}
+
 /// [`open_source`] with a depth topic too, for bags.
 pub fn open_source_topics(path: &Path, topics: &Topics) -> Result<Box<dyn FrameSource>> {
     let named = topics.image.as_deref().or(topics.depth.as_deref());
