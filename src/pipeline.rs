@@ -250,14 +250,8 @@ impl Pipeline {
     /// become the detector's database, counted ids continue after the largest stored id, and every
     /// later keyframe is appended to it. Refused when the store's identity differs from the pipeline's.
     pub fn attach_store(&mut self, store: KeyframeStore) -> Result<()> {
-        store.identity().check_same(
-            &format!("keyframe database {}", store.path().display()),
-            &self.store_identity(),
-            "this pipeline",
-        )?;
         let started = Instant::now();
-        let limit = Some(self.params.detector().max_keyframes).filter(|&n| n > 0);
-        self.detector.replace_history(store.load_db(limit)?)?;
+        self.load_history(&store)?;
         self.resume_detector(&store)?;
         if let Some(max_id) = store.max_id() {
             self.next_id = self.next_id.max(max_id + 1);
@@ -285,6 +279,29 @@ impl Pipeline {
             }
         }
         self.restore_local_features()
+    }
+
+    /// Makes the keyframes of `store` (opened read-only, say) the database that another session's
+    /// frames are matched against (the database/query mode: a map made beforehand), with their kept
+    /// local features, but none of what a continued run resumes (earlier queries, held-back loops,
+    /// ids, selection, the tracker's path). Refused when the store's identity differs.
+    pub fn load_map(&mut self, store: KeyframeStore) -> Result<()> {
+        self.load_history(&store)?;
+        log::info!("map {}: {} keyframes loaded", store.path().display(), self.detector.db().len());
+        self.store = Some(store);
+        self.restore_local_features()
+    }
+
+    /// The stored keyframes (all, or the newest `detector.max_keyframes`) as the detector's history,
+    /// once the store is known to hold this pipeline's descriptors.
+    fn load_history(&mut self, store: &KeyframeStore) -> Result<()> {
+        store.identity().check_same(
+            &format!("keyframe database {}", store.path().display()),
+            &self.store_identity(),
+            "this pipeline",
+        )?;
+        let limit = Some(self.params.detector().max_keyframes).filter(|&n| n > 0);
+        self.detector.replace_history(store.load_db(limit)?)
     }
 
     /// Gives the detector what the run that filled `store` left it with: the sequence policy's

@@ -16,6 +16,7 @@ use anyhow::{bail, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::config::ParamValue;
+use crate::detector::store::{is_keyframe_store, KeyframeStore};
 use crate::detector::{sequence, walk, Detector, Match};
 use crate::eval::QueryResult;
 use crate::io::tum::TrackerPoses;
@@ -137,9 +138,10 @@ impl ReplayRun {
 pub struct DatabaseQueriesRun {
     /// One result per query, in query order.
     pub results: Vec<QueryResult>,
-    /// The stamps of the database's frames and of the queries, in their order (a frame's index is
-    /// its position here).
-    pub database_stamps: Vec<Stamp>,
+    /// The id and stamp of every database frame, in database order: a source's frame index, or a
+    /// keyframe database's keyframe id (what the results name).
+    pub database: Vec<(u64, Stamp)>,
+    /// The stamps of the queries, in their order (a query's index is its position here).
     pub query_stamps: Vec<Stamp>,
     /// Milliseconds per frame, database and queries together.
     pub per_image_ms: f64,
@@ -162,10 +164,11 @@ fn database_query_topics(source: &Path, topic: Option<&str>) -> Topics {
 /// Database/query mode: every frame of `database` is stored, then each frame of `queries` is
 /// matched against them all (no recency rules: the two are different visits). Each is any source
 /// [`open_source_topics`] opens (image folder in name order, TUM folder, ROS 1 or ROS 2 bag;
-/// `topic` the image topic of bags), a frame's index its position in its source. The database's
-/// depth images (a TUM folder's `depth.txt`) give verified matches metric poses, and the camera
-/// intrinsics a source carries (the database's, else the queries') turn verification on as in a
-/// replay. With the default `detector.sequence.length` 0, queries that look like a walk
+/// `topic` the image topic of bags), a frame's index its position in its source; the database may
+/// also be a keyframe database (`--db`, [`Pipeline::load_map`]), its keyframes named by their ids.
+/// The database's depth images (a TUM folder's `depth.txt`) give verified matches metric poses,
+/// and the camera intrinsics a source carries (the database's, else the queries') turn
+/// verification on as in a replay. With the default `detector.sequence.length` 0, queries that look like a walk
 /// ([`walk::why_not_a_walk`]) are aligned with the database as a whole walk ([`walk::align_walk`]; a
 /// match's score then also weighs how sure the place is, and `detector.sequence.length` stays 0),
 /// others matched as single images (the length is set to 1); a length
@@ -184,18 +187,29 @@ pub fn run_database_queries(
     }
     pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
     let open = |source: &Path| open_source_topics(source, &database_query_topics(source, topic));
-    let (database_frames, query_frames) = (open(database)?, open(queries)?);
-    log::info!("database: {}; queries: {}", database_frames.describe(), query_frames.describe());
-    adopt_carried_intrinsics(pipeline, database_frames.intrinsics().or_else(|| query_frames.intrinsics()))?;
+    let query_frames = open(queries)?;
     let started = Instant::now();
     let mut run = DatabaseQueriesRun::default();
-    for frame in database_frames {
-        let frame = frame.with_context(|| format!("reading the database {}", database.display()))?;
-        let descriptor = pipeline.describe(&frame.image)?;
-        pipeline.detector_mut().insert(frame.index as u64, Stamp::from_nanos(frame.index as i64), &descriptor)?;
-        let features = pipeline.local_features(&frame.image, frame.depth.as_ref())?;
-        pipeline.remember_features(frame.index as u64, features);
-        run.database_stamps.push(frame.stamp);
+    if is_keyframe_store(database) {
+        log::info!("queries: {}", query_frames.describe());
+        adopt_carried_intrinsics(pipeline, query_frames.intrinsics())?;
+        pipeline.load_map(KeyframeStore::open_read_only(database)?)?;
+        let db = pipeline.detector().db();
+        run.database = (0..db.len()).map(|p| (db.id(p), db.stamp(p))).collect();
+    } else {
+        let database_frames =
+            open(database).context("reading the database (a source, or a keyframe database made with --db)")?;
+        log::info!("database: {}; queries: {}", database_frames.describe(), query_frames.describe());
+        adopt_carried_intrinsics(pipeline, database_frames.intrinsics().or_else(|| query_frames.intrinsics()))?;
+        for frame in database_frames {
+            let frame = frame.with_context(|| format!("reading the database {}", database.display()))?;
+            let descriptor = pipeline.describe(&frame.image)?;
+            let id = frame.index as u64;
+            pipeline.detector_mut().insert(id, Stamp::from_nanos(frame.index as i64), &descriptor)?;
+            let features = pipeline.local_features(&frame.image, frame.depth.as_ref())?;
+            pipeline.remember_features(id, features);
+            run.database.push((id, frame.stamp));
+        }
     }
     let mut descriptors = Vec::new();
     for frame in query_frames {
@@ -256,7 +270,7 @@ pub fn run_database_queries(
         };
         run.results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
     }
-    let frames = run.database_stamps.len() + run.query_stamps.len();
+    let frames = run.database.len() + run.query_stamps.len();
     run.per_image_ms = started.elapsed().as_secs_f64() * 1e3 / frames.max(1) as f64;
     Ok(run)
 }

@@ -109,13 +109,13 @@ fn a_real_office_never_seen_is_not_reported_at_the_default_threshold() {
         let run = run_database_queries(&mut pipeline, database, &queries.join("rgb"), None).unwrap();
         let scores: Vec<f32> = run.results.iter().filter_map(|r| r.best.map(|(_, score)| score)).collect();
         let frames = |dir: &std::path::Path| images_in_name_order(&dir.join("rgb")).unwrap().len();
-        assert_eq!((run.database_stamps.len(), run.query_stamps.len()), (frames(database), frames(queries)));
+        assert_eq!((run.database.len(), run.query_stamps.len()), (frames(database), frames(queries)));
         assert_eq!(scores.len(), run.query_stamps.len(), "every query has a best match");
         let highest = scores.iter().copied().fold(f32::NEG_INFINITY, f32::max);
         println!(
             "{} queries against {} references of another office: highest score {highest}",
             run.query_stamps.len(),
-            run.database_stamps.len()
+            run.database.len()
         );
         assert!(highest < min_score, "an office never seen scores {highest}, the threshold is {min_score}");
     }
@@ -465,7 +465,8 @@ fn a_low_resolution_walk_is_not_held_by_keyframes_that_look_like_every_query() {
 /// against the night references, aligned as a walk, each matched within one frame of its own (as
 /// `eval` scores it), with the threshold's verdict. The same frames recorded as bags (the database
 /// a ROS 2 MCAP bag, the queries a ROS 1 bag, both on the topic `--topic` names) give the same
-/// matches, their frames named by stamp. Options that only a replayed source uses are refused.
+/// matches, their frames named by stamp, and so does a keyframe database that a replay kept with
+/// `--db`, which is left as it was. Options that only a replayed source uses are refused.
 #[test]
 fn match_writes_each_querys_place_without_ground_truth() {
     let gp = support::shared_dir().join("data/real/gardens_point_day_night");
@@ -514,6 +515,20 @@ fn match_writes_each_querys_place_without_ground_truth() {
         assert_eq!(bag_row[3], format!("{}.000000000", 100 + folder_row[2].parse::<i64>().unwrap()));
         for column in [0, 2, 4, 5] {
             assert_eq!(bag_row[column], folder_row[column], "query {index}: {from_bags:?} against {rows:?}");
+        }
+    }
+
+    // A map kept by a replay (or the node) with --db: its keyframes are the night frames, ids 0-9.
+    let map = dir.path().join("map.db");
+    let replay = ["replay", reference.to_str().unwrap(), "--quiet", "--db", map.to_str().unwrap()];
+    assert!(ecm_lcd(&[&replay[..], &["-o", dir.path().join("c.csv").to_str().unwrap()]].concat()).status.success());
+    let stored = std::fs::read(&map).unwrap();
+    let from_map = matches(&map, &queries, &[]);
+    assert_eq!(std::fs::read(&map).unwrap(), stored, "the map is only read");
+    for (index, (map_row, folder_row)) in from_map.iter().zip(&rows).enumerate() {
+        assert_eq!(map_row[3], format!("{}.000000000", folder_row[2]), "named by stamp (one a second)");
+        for column in [0, 1, 2, 4, 5] {
+            assert_eq!(map_row[column], folder_row[column], "query {index}: {from_map:?} against {rows:?}");
         }
     }
 

@@ -28,8 +28,9 @@ pub struct Args {
     #[arg(long)]
     pub loops: Option<PathBuf>,
     /// Database/query mode: the database, an image folder (name order, numbers by value: `2` before
-    /// `10`), a TUM folder or a ROS 1 / ROS 2 bag (`--topic` names a bag's image topic); needs
-    /// --queries and --loops, whose indexes count the frames of each from 0.
+    /// `10`), a TUM folder, a ROS 1 / ROS 2 bag (`--topic` names a bag's image topic) or a keyframe
+    /// database (`--db`); needs --queries and --loops, whose indexes count the frames of each from 0
+    /// (a keyframe database's: its keyframe ids).
     #[arg(long, requires_all = ["queries", "loops"], conflicts_with = "source")]
     pub database: Option<PathBuf>,
     /// Database/query mode: the queries, from the same kinds of source. Where they look like a walk,
@@ -198,7 +199,8 @@ pub fn run(args: Args) -> Result<()> {
     if let Some((database, queries)) = args.database_and_queries()? {
         let truth = load_truth(&args, &[])?;
         let run = run_database_queries(&mut pipeline, database, queries, args.source_args.topic.as_deref())?;
-        truth.check_within(run.query_stamps.len(), run.database_stamps.len())?;
+        let references = run.database.iter().map(|&(id, _)| id as usize + 1).max().unwrap_or(0);
+        truth.check_within(run.query_stamps.len(), references)?;
         run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params())?;
         return Ok(());
     }

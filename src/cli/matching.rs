@@ -12,8 +12,9 @@ use std::path::{Path, PathBuf};
 
 #[derive(clap::Args, Debug)]
 pub struct Args {
-    /// The map: an image folder (name order, numbers by value: `2` before `10`), a TUM folder or a
-    /// ROS 1 / ROS 2 bag (`--topic` names the image topic where a bag has several).
+    /// The map: an image folder (name order, numbers by value: `2` before `10`), a TUM folder, a
+    /// ROS 1 / ROS 2 bag (`--topic` names the image topic where a bag has several), or a keyframe
+    /// database made with `--db` (read only; its keyframes are named by id and stamp).
     #[arg(long)]
     pub database: PathBuf,
     /// The frames to place on it, from the same kinds of source. Where they look like a walk, they
@@ -42,7 +43,9 @@ pub fn run(args: Args) -> Result<()> {
     }
     let mut pipeline = args.source_args.pipeline()?;
     let run = run_database_queries(&mut pipeline, &args.database, &args.queries, args.source_args.topic.as_deref())?;
-    let database_names = frame_names(&args.database, &run.database_stamps)?;
+    let database_stamps: Vec<Stamp> = run.database.iter().map(|&(_, stamp)| stamp).collect();
+    let database_names: std::collections::HashMap<u64, String> =
+        run.database.iter().map(|&(id, _)| id).zip(frame_names(&args.database, &database_stamps)?).collect();
     let query_names = frame_names(&args.queries, &run.query_stamps)?;
     let min_score = pipeline.detector().min_score();
     let sink: Box<dyn Write> = match &args.output {
@@ -58,7 +61,7 @@ pub fn run(args: Args) -> Result<()> {
         let (matched, match_frame, score, accepted) = match result.best {
             Some((matched, score)) => (
                 matched.to_string(),
-                database_names[matched].clone(),
+                database_names[&(matched as u64)].clone(),
                 format!("{score:.6}"),
                 u8::from(score >= min_score).to_string(),
             ),
@@ -73,7 +76,7 @@ pub fn run(args: Args) -> Result<()> {
     log::info!(
         "{} queries matched against {} database frames ({policy}); {accepted} at or above the threshold {min_score}",
         run.query_stamps.len(),
-        run.database_stamps.len()
+        run.database.len()
     );
     Ok(())
 }
