@@ -22,7 +22,7 @@ use crate::eval::QueryResult;
 use crate::io::tum::TrackerPoses;
 use crate::io::{open_source_topics, Topics};
 use crate::pipeline::{Pipeline, Timings};
-use crate::types::{LoopCandidate, Stamp};
+use crate::types::{LoopCandidate, Stamp, Verified};
 use crate::verification::best_supported;
 
 /// One keyframe of a replay.
@@ -138,6 +138,9 @@ impl ReplayRun {
 pub struct DatabaseQueriesRun {
     /// One result per query, in query order.
     pub results: Vec<QueryResult>,
+    /// With verification, each query's reported match's: its inliers and relative pose (`None`
+    /// without verification, and where no match passed).
+    pub verified: Vec<Option<Verified>>,
     /// The id and stamp of every database frame, in database order: a source's frame index, or a
     /// keyframe database's keyframe id (what the results name).
     pub database: Vec<(u64, Stamp)>,
@@ -264,9 +267,16 @@ pub fn run_database_queries(
                     }
                     verification
                 });
-                best_supported(verifications.collect::<Vec<_>>()).map(|i| nearest[i])
+                let verifications: Vec<_> = verifications.collect();
+                let chosen = best_supported(verifications.iter().cloned());
+                let verified = chosen.and_then(|i| verifications[i].as_ref());
+                run.verified.push(verified.map(|v| Verified { inliers: v.inliers as u32, pose: v.pose }));
+                chosen.map(|i| nearest[i])
             }
-            None => nearest.first().copied(),
+            None => {
+                run.verified.push(None);
+                nearest.first().copied()
+            }
         };
         run.results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
     }

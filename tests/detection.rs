@@ -480,8 +480,15 @@ fn match_writes_each_querys_place_without_ground_truth() {
         assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
         let text = std::fs::read_to_string(&csv).unwrap();
         let mut lines = text.lines();
-        assert_eq!(lines.next(), Some("query,query_frame,match,match_frame,score,accepted"));
-        lines.map(|line| line.split(',').map(str::to_string).collect()).collect()
+        let header = lines.next().unwrap();
+        assert!(header.starts_with("query,query_frame,match,match_frame,score,accepted,inliers,qx,"), "{header}");
+        let rows: Vec<Vec<String>> = lines.map(|line| line.split(',').map(str::to_string).collect()).collect();
+        // Without intrinsics verification is off: its columns stay empty.
+        for row in &rows {
+            assert_eq!(row.len(), header.split(',').count());
+            assert!(row[6..].iter().all(String::is_empty), "{row:?}");
+        }
+        rows
     };
     let rows = matches(&reference, &queries, &[]);
     assert_eq!(rows.len(), 10, "{rows:?}");

@@ -14,6 +14,8 @@ use ecm_lcd::replay::{run_source, ReplayRun};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
 use ecm_lcd::types::Stamp;
 
+mod support;
+
 fn shared() -> PathBuf {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared");
     assert!(
@@ -118,6 +120,62 @@ fn verified_relative_poses_agree_with_the_ground_truth() {
     );
     assert!(rotation_error <= 1.0, "median rotation error {rotation_error} deg");
     assert!(direction_error <= 5.0, "median translation direction error {direction_error} deg");
+}
+
+/// `match` with verification on (the fr3 intrinsics): the real fr3 frames split into a map (every
+/// other frame) and queries (the frames between), each query's match carries its inliers and the
+/// query camera's pose in the match camera's frame, up to scale, in `replay`'s columns, and the poses
+/// agree with the ground truth as a replay's do.
+#[test]
+fn match_reports_each_querys_verified_pose_in_the_maps_frame() {
+    let fr3 = shared().join("data/tum/fr3_long_office_household");
+    let dir = tempfile::tempdir().unwrap();
+    let (map, queries) = (dir.path().join("map"), dir.path().join("queries"));
+    for (i, path) in ecm_lcd::eval::images_in_name_order(&fr3.join("rgb")).unwrap().iter().enumerate() {
+        let to = if i % 2 == 0 { &map } else { &queries };
+        std::fs::create_dir_all(to).unwrap();
+        std::fs::copy(path, to.join(path.file_name().unwrap())).unwrap();
+    }
+    let csv = dir.path().join("matches.csv");
+    let path = |p: &Path| p.to_str().unwrap().to_string();
+    let args = ["match", "--database", &path(&map), "--queries", &path(&queries), "-o", &path(&csv)];
+    support::ecm_lcd_ok(&[&args[..], &["--param", "camera.preset=tum_fr3"]].concat());
+    let mut reader = csv::Reader::from_path(&csv).unwrap();
+    let header = reader.headers().unwrap().clone();
+    let column = |name: &str| header.iter().position(|h| h == name).unwrap_or_else(|| panic!("no column {name}"));
+    let groundtruth = read_groundtruth(&fr3.join("groundtruth.txt")).unwrap();
+    let pose_of = |file: &str| {
+        let stamp = Stamp::parse_secs(file.trim_end_matches(".png")).unwrap();
+        ecm_lcd::eval::poses_at_stamps(&[stamp], &groundtruth, 0.05)[0]
+    };
+    let (mut verified, mut rotation, mut direction) = (0, Vec::new(), Vec::new());
+    for row in reader.records() {
+        let row = row.unwrap();
+        let field = |name: &str| row.get(column(name)).unwrap();
+        if field("inliers").is_empty() {
+            continue;
+        }
+        verified += 1;
+        assert!(field("inliers").parse::<usize>().unwrap() >= 15, "{row:?}");
+        let value = |name: &str| field(name).parse::<f64>().unwrap();
+        let q = nalgebra::Quaternion::new(value("qw"), value("qx"), value("qy"), value("qz"));
+        let t = nalgebra::Vector3::new(value("tx"), value("ty"), value("tz"));
+        assert!((q.norm() - 1.0).abs() < 1e-5 && (t.norm() - 1.0).abs() < 1e-5, "unit rotation and direction: {row:?}");
+        assert_eq!((field("metric"), field("cov_x_x")), ("0", ""), "up to scale, no covariance: {row:?}");
+        let (Some(query), Some(matched)) = (pose_of(field("query_frame")), pose_of(field("match_frame"))) else {
+            continue;
+        };
+        let truth = matched.inverse() * query;
+        rotation.push(nalgebra::UnitQuaternion::from_quaternion(q).angle_to(&truth.rotation).to_degrees());
+        direction.push(t.angle(&truth.translation.vector).to_degrees());
+    }
+    assert!(verified >= 6 && rotation.len() >= 5, "{verified} of 8 queries verified, {} with poses", rotation.len());
+    for errors in [&mut rotation, &mut direction] {
+        errors.sort_by(f64::total_cmp);
+    }
+    let (rotation, direction) = (rotation[rotation.len() / 2], direction[direction.len() / 2]);
+    println!("{verified} of 8 queries verified: median rotation error {rotation:.2} deg, direction {direction:.2} deg");
+    assert!(rotation <= 1.0 && direction <= 5.0, "median errors {rotation} deg, {direction} deg");
 }
 
 /// A folder named as the TUM benchmark names its fr3 sequences gives the fr3 intrinsics by itself:

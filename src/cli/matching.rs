@@ -28,11 +28,17 @@ pub struct Args {
     pub source_args: SourceArgs,
 }
 
-/// The CSV header: per query its index and frame, its best database frame (empty where none), the
+/// The CSV columns: per query its index and frame, its best database frame (empty where none), the
 /// match's score, and 1 where the score passes the threshold (`detector.min_score`, or
-/// `detector.max_distance` as a score). A frame is named by its file in an image folder, elsewhere
-/// by its stamp in seconds (a TUM folder's `rgb.txt` stamp, a bag message's header stamp).
-pub const HEADER: &str = "query,query_frame,match,match_frame,score,accepted";
+/// `detector.max_distance` as a score); then, where verification is on and the match passed it,
+/// its inliers and the query camera's pose in the match camera's frame, as in `replay`'s CSV
+/// (`inliers,qx,qy,qz,qw,tx,ty,tz,metric,cov_x_x,...`; with verification a match that fails it is
+/// no match). A frame is named by its file in an image folder, elsewhere by its stamp in seconds (a
+/// TUM folder's `rgb.txt` stamp, a bag message's header stamp).
+pub fn header() -> Vec<String> {
+    let matched = ["query", "query_frame", "match", "match_frame", "score", "accepted"];
+    matched.into_iter().map(str::to_string).chain(ecm_lcd::io::candidates::verification_columns()).collect()
+}
 
 pub fn run(args: Args) -> Result<()> {
     args.source_args.refuse_source_only()?;
@@ -56,8 +62,8 @@ pub fn run(args: Args) -> Result<()> {
     };
     // The csv crate quotes image names that hold commas or quotes.
     let mut csv = csv::Writer::from_writer(sink);
-    csv.write_record(HEADER.split(','))?;
-    for result in &run.results {
+    csv.write_record(header())?;
+    for (result, verified) in run.results.iter().zip(&run.verified) {
         let (matched, match_frame, score, accepted) = match result.best {
             Some((matched, score)) => (
                 matched.to_string(),
@@ -68,7 +74,8 @@ pub fn run(args: Args) -> Result<()> {
             None => (String::new(), String::new(), String::new(), "0".to_string()),
         };
         let query = result.query.to_string();
-        csv.write_record([&query, &query_names[result.query], &matched, &match_frame, &score, &accepted])?;
+        let record = [query, query_names[result.query].clone(), matched, match_frame, score, accepted];
+        csv.write_record(record.into_iter().chain(ecm_lcd::io::candidates::verification_fields(*verified)))?;
     }
     csv.flush().context("cannot write the matches")?;
     let accepted = run.results.iter().filter(|r| r.best.is_some_and(|(_, score)| score >= min_score)).count();
@@ -81,7 +88,7 @@ pub fn run(args: Args) -> Result<()> {
     Ok(())
 }
 
-/// The names of `source`'s frames (module doc of [`HEADER`]), `stamps` those it was read with.
+/// The names of `source`'s frames ([`header`]), `stamps` those it was read with.
 fn frame_names(source: &Path, stamps: &[Stamp]) -> Result<Vec<String>> {
     if ecm_lcd::io::is_image_folder(source) {
         let files = images_in_name_order(source)?;

@@ -12,28 +12,21 @@ use nalgebra::{Matrix6, Quaternion, UnitQuaternion, Vector3};
 
 use crate::types::{LoopCandidate, RelativePose, Stamp, Verified};
 
-/// The columns before the covariance's ([`columns`]).
-const POSE_HEADER: [&str; 15] = [
-    "query_id",
-    "query_stamp",
-    "match_id",
-    "match_stamp",
-    "distance",
-    "score",
-    "inliers",
-    "qx",
-    "qy",
-    "qz",
-    "qw",
-    "tx",
-    "ty",
-    "tz",
-    "metric",
-];
+/// The columns of a match ([`columns`]).
+const MATCH_HEADER: [&str; 6] = ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score"];
+
+/// The columns of geometric verification before the covariance's ([`verification_columns`]).
+const POSE_HEADER: [&str; 9] = ["inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz", "metric"];
 
 /// Every column's name, in order ([`CandidateCsv`]).
 pub fn columns() -> Vec<String> {
-    POSE_HEADER.iter().map(|name| name.to_string()).chain(covariance_columns().map(|(name, _, _)| name)).collect()
+    MATCH_HEADER.iter().map(|name| name.to_string()).chain(verification_columns()).collect()
+}
+
+/// The columns of geometric verification: `inliers`, the relative pose, `metric` and the covariance
+/// ([`CandidateCsv`]; [`verification_fields`]).
+pub fn verification_columns() -> impl Iterator<Item = String> {
+    POSE_HEADER.iter().map(|name| name.to_string()).chain(covariance_columns().map(|(name, _, _)| name))
 }
 
 /// The pose parameters in the order of ROS's `PoseWithCovariance` (translation, then rotation about
@@ -146,15 +139,23 @@ pub fn fields(c: &LoopCandidate) -> Vec<String> {
         c.match_stamp.to_string(),
         format!("{:.6}", c.distance),
         format!("{:.6}", c.score),
-        c.verified.map(|v| v.inliers.to_string()).unwrap_or_default(),
     ];
-    let pose = c.verified.and_then(|v| v.pose).map(|p| {
+    record.extend(verification_fields(c.verified));
+    record
+}
+
+/// A verification's fields under [`verification_columns`], all empty where there is none (and the
+/// pose's where it has no pose, the covariance's where it has none).
+pub fn verification_fields(verified: Option<Verified>) -> Vec<String> {
+    let mut record = vec![verified.map(|v| v.inliers.to_string()).unwrap_or_default()];
+    let pose = verified.and_then(|v| v.pose);
+    let values = pose.map(|p| {
         let (q, t) = (p.rotation, p.translation);
         [q.i, q.j, q.k, q.w, t.x, t.y, t.z]
     });
-    record.extend((0..7).map(|i| pose.map(|values| format!("{:.6}", values[i])).unwrap_or_default()));
-    record.push(c.verified.and_then(|v| v.pose).map(|p| u8::from(p.metric).to_string()).unwrap_or_default());
-    let covariance = c.verified.and_then(|v| v.pose).and_then(|p| p.covariance);
+    record.extend((0..7).map(|i| values.map(|values| format!("{:.6}", values[i])).unwrap_or_default()));
+    record.push(pose.map(|p| u8::from(p.metric).to_string()).unwrap_or_default());
+    let covariance = pose.and_then(|p| p.covariance);
     record.extend(
         covariance_columns().map(|(_, row, column)| {
             covariance.map(|matrix| format!("{:.6e}", matrix[(row, column)])).unwrap_or_default()
@@ -340,7 +341,7 @@ mod tests {
         assert!(err.contains("query_stamp") && err.contains("c.csv"), "{err}");
         // A pose that is not a number is refused, not passed on to a pose graph.
         let line = "1,2.0,0,1.0,0.5,0.9,30,0,0,0,1,NaN,0,1,0";
-        std::fs::write(&path, format!("{}\n{line}\n", POSE_HEADER.join(","))).unwrap();
+        std::fs::write(&path, format!("{},{}\n{line}\n", MATCH_HEADER.join(","), POSE_HEADER.join(","))).unwrap();
         let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
         assert!(err.contains("c.csv:2: `\"NaN\"` is not a finite number"), "{err}");
     }
