@@ -109,17 +109,65 @@ fn verified_relative_poses_agree_with_the_ground_truth() {
         direction.push(pose.translation.angle(&truth.translation.vector).to_degrees());
     }
     assert!(rotation.len() >= 6, "{} verified pairs with poses", rotation.len());
-    let median = |values: &mut Vec<f64>| {
-        values.sort_by(f64::total_cmp);
-        values[values.len() / 2]
-    };
-    let (rotation_error, direction_error) = (median(&mut rotation), median(&mut direction));
+    let pairs = rotation.len();
+    let (rotation_error, direction_error) = (median_of(rotation), median_of(direction));
     println!(
-        "{} pairs: median rotation error {rotation_error:.2} deg, translation direction {direction_error:.2} deg",
-        rotation.len()
+        "{pairs} pairs: median rotation error {rotation_error:.2} deg, translation direction {direction_error:.2} deg"
     );
     assert!(rotation_error <= 1.0, "median rotation error {rotation_error} deg");
     assert!(direction_error <= 5.0, "median translation direction error {direction_error} deg");
+}
+
+/// One verified row of `match`'s CSV: the frames' names, the inliers and the relative pose.
+struct MatchedPose {
+    query_frame: String,
+    match_frame: String,
+    inliers: usize,
+    rotation: nalgebra::UnitQuaternion<f64>,
+    translation: nalgebra::Vector3<f64>,
+    metric: bool,
+    has_covariance: bool,
+}
+
+/// Runs `match` with `args` (after the command) and reads the verified rows of its CSV, checking
+/// that each carries replay's verification columns: at least the default 15 inliers and a unit
+/// quaternion. Returns them and the number of queries.
+fn matched_poses(dir: &Path, args: &[&str]) -> (Vec<MatchedPose>, usize) {
+    let csv = dir.join("matches.csv");
+    support::ecm_lcd_ok(&[&["match", "-o", csv.to_str().unwrap()], args].concat());
+    let mut reader = csv::Reader::from_path(&csv).unwrap();
+    let header = reader.headers().unwrap().clone();
+    let column = |name: &str| header.iter().position(|h| h == name).unwrap_or_else(|| panic!("no column {name}"));
+    let (mut poses, mut queries) = (Vec::new(), 0);
+    for row in reader.records() {
+        let row = row.unwrap();
+        queries += 1;
+        let field = |name: &str| row.get(column(name)).unwrap().to_string();
+        if field("inliers").is_empty() {
+            continue;
+        }
+        let value = |name: &str| field(name).parse::<f64>().unwrap();
+        let q = nalgebra::Quaternion::new(value("qw"), value("qx"), value("qy"), value("qz"));
+        assert!((q.norm() - 1.0).abs() < 1e-5, "{row:?}");
+        let pose = MatchedPose {
+            query_frame: field("query_frame"),
+            match_frame: field("match_frame"),
+            inliers: field("inliers").parse().unwrap(),
+            rotation: nalgebra::UnitQuaternion::from_quaternion(q),
+            translation: nalgebra::Vector3::new(value("tx"), value("ty"), value("tz")),
+            metric: field("metric") == "1",
+            has_covariance: !field("cov_x_x").is_empty(),
+        };
+        assert!(pose.inliers >= 15, "{row:?}");
+        poses.push(pose);
+    }
+    (poses, queries)
+}
+
+/// The median of `values`.
+fn median_of(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
 }
 
 /// `match` with verification on (the fr3 intrinsics): the real fr3 frames split into a map (every
@@ -136,46 +184,96 @@ fn match_reports_each_querys_verified_pose_in_the_maps_frame() {
         std::fs::create_dir_all(to).unwrap();
         std::fs::copy(path, to.join(path.file_name().unwrap())).unwrap();
     }
-    let csv = dir.path().join("matches.csv");
-    let path = |p: &Path| p.to_str().unwrap().to_string();
-    let args = ["match", "--database", &path(&map), "--queries", &path(&queries), "-o", &path(&csv)];
-    support::ecm_lcd_ok(&[&args[..], &["--param", "camera.preset=tum_fr3"]].concat());
-    let mut reader = csv::Reader::from_path(&csv).unwrap();
-    let header = reader.headers().unwrap().clone();
-    let column = |name: &str| header.iter().position(|h| h == name).unwrap_or_else(|| panic!("no column {name}"));
+    let (map, queries) = (map.to_str().unwrap(), queries.to_str().unwrap());
+    let (poses, count) =
+        matched_poses(dir.path(), &["--database", map, "--queries", queries, "--param", "camera.preset=tum_fr3"]);
     let groundtruth = read_groundtruth(&fr3.join("groundtruth.txt")).unwrap();
     let pose_of = |file: &str| {
         let stamp = Stamp::parse_secs(file.trim_end_matches(".png")).unwrap();
         ecm_lcd::eval::poses_at_stamps(&[stamp], &groundtruth, 0.05)[0]
     };
-    let (mut verified, mut rotation, mut direction) = (0, Vec::new(), Vec::new());
-    for row in reader.records() {
-        let row = row.unwrap();
-        let field = |name: &str| row.get(column(name)).unwrap();
-        if field("inliers").is_empty() {
-            continue;
-        }
-        verified += 1;
-        assert!(field("inliers").parse::<usize>().unwrap() >= 15, "{row:?}");
-        let value = |name: &str| field(name).parse::<f64>().unwrap();
-        let q = nalgebra::Quaternion::new(value("qw"), value("qx"), value("qy"), value("qz"));
-        let t = nalgebra::Vector3::new(value("tx"), value("ty"), value("tz"));
-        assert!((q.norm() - 1.0).abs() < 1e-5 && (t.norm() - 1.0).abs() < 1e-5, "unit rotation and direction: {row:?}");
-        assert_eq!((field("metric"), field("cov_x_x")), ("0", ""), "up to scale, no covariance: {row:?}");
-        let (Some(query), Some(matched)) = (pose_of(field("query_frame")), pose_of(field("match_frame"))) else {
-            continue;
-        };
+    let (mut rotation, mut direction) = (Vec::new(), Vec::new());
+    for pose in &poses {
+        assert!(!pose.metric && !pose.has_covariance, "up to scale, without a covariance");
+        assert!((pose.translation.norm() - 1.0).abs() < 1e-5, "a unit direction");
+        let (Some(query), Some(matched)) = (pose_of(&pose.query_frame), pose_of(&pose.match_frame)) else { continue };
         let truth = matched.inverse() * query;
-        rotation.push(nalgebra::UnitQuaternion::from_quaternion(q).angle_to(&truth.rotation).to_degrees());
-        direction.push(t.angle(&truth.translation.vector).to_degrees());
+        rotation.push(pose.rotation.angle_to(&truth.rotation).to_degrees());
+        direction.push(pose.translation.angle(&truth.translation.vector).to_degrees());
     }
-    assert!(verified >= 6 && rotation.len() >= 5, "{verified} of 8 queries verified, {} with poses", rotation.len());
-    for errors in [&mut rotation, &mut direction] {
-        errors.sort_by(f64::total_cmp);
-    }
-    let (rotation, direction) = (rotation[rotation.len() / 2], direction[direction.len() / 2]);
-    println!("{verified} of 8 queries verified: median rotation error {rotation:.2} deg, direction {direction:.2} deg");
+    assert!(
+        poses.len() >= 6 && rotation.len() >= 5,
+        "{} of {count} verified, {} with truth",
+        poses.len(),
+        rotation.len()
+    );
+    let (rotation, direction) = (median_of(rotation), median_of(direction));
+    println!(
+        "{} of {count} queries verified: median rotation error {rotation:.2} deg, direction {direction:.2} deg",
+        poses.len()
+    );
     assert!(rotation <= 1.0 && direction <= 5.0, "median errors {rotation} deg, {direction} deg");
+}
+
+/// `match` against a map with depth (a synthetic TUM folder of the first lap with `depth.txt`) gives
+/// the second lap's queries metric poses with a covariance, within the metric goals of the
+/// ground truth.
+#[test]
+fn match_against_a_map_with_depth_reports_metric_poses() {
+    let dir = tempfile::tempdir().unwrap();
+    let full = dir.path().join("full");
+    let config = SynthConfig { frames: 120, laps: 2, depth: true, ..SynthConfig::default() };
+    let scene = Scene::new(config.clone()).unwrap();
+    write_tum_folder(&scene, &full).unwrap();
+    // The map: the first lap's lines of rgb.txt and depth.txt and their files; the queries: the
+    // second lap's images alone.
+    let (map, queries) = (dir.path().join("map"), dir.path().join("queries"));
+    for list in ["rgb.txt", "depth.txt"] {
+        let text = std::fs::read_to_string(full.join(list)).unwrap();
+        let mut kept = String::new();
+        for (i, line) in text.lines().filter(|line| !line.starts_with('#')).enumerate() {
+            let file = line.split_whitespace().nth(1).unwrap();
+            let to = if i < 60 { map.join(file) } else { queries.join(Path::new(file).file_name().unwrap()) };
+            if i < 60 {
+                kept += &format!("{line}\n");
+            } else if list == "depth.txt" {
+                continue;
+            }
+            std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+            std::fs::copy(full.join(file), to).unwrap();
+        }
+        std::fs::write(map.join(list), kept).unwrap();
+    }
+    let focal = scene.focal_length().to_string();
+    let (cx, cy) = ((config.width as f64 / 2.0 - 0.5).to_string(), (config.height as f64 / 2.0 - 0.5).to_string());
+    let camera = [
+        format!("camera.fx={focal}"),
+        format!("camera.fy={focal}"),
+        format!("camera.cx={cx}"),
+        format!("camera.cy={cy}"),
+    ];
+    let mut args = vec!["--database", map.to_str().unwrap(), "--queries", queries.to_str().unwrap()];
+    camera.iter().for_each(|c| args.extend(["--param", c.as_str()]));
+    let (poses, count) = matched_poses(dir.path(), &args);
+    let groundtruth = read_groundtruth(&full.join("groundtruth.txt")).unwrap();
+    let pose_of = |name: &str| {
+        let stamp = Stamp::parse_secs(name.trim_end_matches(".png")).unwrap();
+        ecm_lcd::eval::poses_at_stamps(&[stamp], &groundtruth, 0.001)[0].unwrap()
+    };
+    let (mut rotation, mut translation) = (Vec::new(), Vec::new());
+    for pose in &poses {
+        assert!(pose.metric && pose.has_covariance, "metric, with a covariance");
+        let truth = pose_of(&pose.match_frame).inverse() * pose_of(&pose.query_frame);
+        rotation.push(pose.rotation.angle_to(&truth.rotation).to_degrees());
+        translation.push((pose.translation - truth.translation.vector).norm());
+    }
+    assert!(poses.len() >= 54, "{} of {count} queries verified", poses.len());
+    let (rotation, translation) = (median_of(rotation), median_of(translation));
+    println!(
+        "{} of {count} queries metric: median rotation error {rotation:.2} deg, translation {translation:.3} m",
+        poses.len()
+    );
+    assert!(rotation <= 1.0 && translation <= 0.05, "median errors {rotation} deg, {translation} m");
 }
 
 /// A folder named as the TUM benchmark names its fr3 sequences gives the fr3 intrinsics by itself:
