@@ -148,6 +148,9 @@ pub struct DatabaseQueriesRun {
     pub query_stamps: Vec<Stamp>,
     /// Milliseconds per frame, database and queries together.
     pub per_image_ms: f64,
+    /// Set when a source broke off (a truncated bag, an unreadable image): the frames before it
+    /// were matched, and this names the source and what went wrong.
+    pub error: Option<String>,
 }
 
 impl DatabaseQueriesRun {
@@ -157,11 +160,15 @@ impl DatabaseQueriesRun {
     }
 }
 
+/// Whether `source` is a bag (what the image topic of the database/query mode applies to).
+fn is_bag(source: &Path) -> bool {
+    !crate::io::is_image_folder(source) && !source.join("rgb.txt").is_file() && !is_keyframe_store(source)
+}
+
 /// The topics to open `source` with in the database/query mode: the image topic `topic` applies to
 /// bags only (the same camera's topic in both), and neither side pairs depth or poses.
 fn database_query_topics(source: &Path, topic: Option<&str>) -> Topics {
-    let bag = !crate::io::is_image_folder(source) && !source.join("rgb.txt").is_file();
-    Topics { image: topic.filter(|_| bag).map(str::to_string), ..Default::default() }
+    Topics { image: topic.filter(|_| is_bag(source)).map(str::to_string), ..Default::default() }
 }
 
 /// Database/query mode: every frame of `database` is stored, then each frame of `queries` is
@@ -171,7 +178,9 @@ fn database_query_topics(source: &Path, topic: Option<&str>) -> Topics {
 /// also be a keyframe database (`--db`, [`Pipeline::load_map`]), its keyframes named by their ids.
 /// The database's depth images (a TUM folder's `depth.txt`) give verified matches metric poses,
 /// and the camera intrinsics a source carries (the database's, else the queries') turn
-/// verification on as in a replay. With the default `detector.sequence.length` 0, queries that look like a walk
+/// verification on as in a replay. A source that breaks off (a truncated bag, an unreadable image)
+/// ends the reading ([`DatabaseQueriesRun::error`]): the queries read before are matched, and none
+/// where the database broke off. With the default `detector.sequence.length` 0, queries that look like a walk
 /// ([`walk::why_not_a_walk`]) are aligned with the database as a whole walk ([`walk::align_walk`]; a
 /// match's score then also weighs how sure the place is, and `detector.sequence.length` stays 0),
 /// others matched as single images (the length is set to 1); a length
@@ -189,6 +198,9 @@ pub fn run_database_queries(
         pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
     }
     pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
+    if topic.is_some() && !is_bag(database) && !is_bag(queries) {
+        bail!("--topic names the image topic of a bag, and neither the database nor the queries is one");
+    }
     let open = |source: &Path| open_source_topics(source, &database_query_topics(source, topic));
     let query_frames = open(queries)?;
     let started = Instant::now();
@@ -205,7 +217,13 @@ pub fn run_database_queries(
         log::info!("database: {}; queries: {}", database_frames.describe(), query_frames.describe());
         adopt_carried_intrinsics(pipeline, database_frames.intrinsics().or_else(|| query_frames.intrinsics()))?;
         for frame in database_frames {
-            let frame = frame.with_context(|| format!("reading the database {}", database.display()))?;
+            let frame = match frame {
+                Ok(frame) => frame,
+                Err(e) => {
+                    run.error = Some(broke_off("the database", database, run.database.len(), &e));
+                    break;
+                }
+            };
             let descriptor = pipeline.describe(&frame.image)?;
             let id = frame.index as u64;
             pipeline.detector_mut().insert(id, Stamp::from_nanos(frame.index as i64), &descriptor)?;
@@ -215,10 +233,20 @@ pub fn run_database_queries(
         }
     }
     let mut descriptors = Vec::new();
-    for frame in query_frames {
-        let frame = frame.with_context(|| format!("reading the queries {}", queries.display()))?;
-        descriptors.push(pipeline.describe(&frame.image)?);
-        run.query_stamps.push(frame.stamp);
+    // Where the database broke off, no query is read: a walk would be aligned with part of the map.
+    if run.error.is_none() {
+        for frame in query_frames {
+            match frame {
+                Ok(frame) => {
+                    descriptors.push(pipeline.describe(&frame.image)?);
+                    run.query_stamps.push(frame.stamp);
+                }
+                Err(e) => {
+                    run.error = Some(broke_off("the queries", queries, run.query_stamps.len(), &e));
+                    break;
+                }
+            }
+        }
     }
     let tried = pipeline.matches_tried();
     let aligned = if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
@@ -248,6 +276,7 @@ pub fn run_database_queries(
         };
         let best = match again.as_mut() {
             Some(frames) => {
+                // Only the queries read the first time are matched, so these read again.
                 let frame = frames
                     .next()
                     .with_context(|| format!("{} ended early when read again", queries.display()))?
@@ -283,6 +312,12 @@ pub fn run_database_queries(
     let frames = run.database.len() + run.query_stamps.len();
     run.per_image_ms = started.elapsed().as_secs_f64() * 1e3 / frames.max(1) as f64;
     Ok(run)
+}
+
+/// What a source that broke off after `read` frames says ([`DatabaseQueriesRun::error`]), on one line.
+fn broke_off(what: &str, source: &Path, read: usize, error: &anyhow::Error) -> String {
+    let error = format!("{error:#}");
+    format!("{what} {} broke off after {read} frames: {}", source.display(), error.trim_end())
 }
 
 /// Hands the camera intrinsics a source carries to `pipeline`, unless the `camera.*` parameters

@@ -545,6 +545,43 @@ fn match_writes_each_querys_place_without_ground_truth() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("--poses applies to a replayed SOURCE"));
 }
 
+/// Nothing lost when a source breaks off: `match` writes the matches of the queries read before a
+/// query image that does not decode and then fails naming it; a database that breaks off matches
+/// no query and leaves an existing output as it was. `--topic` with no bag on either side is refused.
+#[test]
+fn match_keeps_the_queries_before_a_source_breaks_off() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    for folder in ["db", "q"] {
+        std::fs::create_dir(d(folder)).unwrap();
+        for i in 0..8u8 {
+            let image =
+                image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([x as u8 * 4 + i * 30, y as u8 * 5, i * 20]));
+            image.save(d(&format!("{folder}/{i}.png"))).unwrap();
+        }
+    }
+    let cut = |path: String| std::fs::write(&path, &std::fs::read(&path).unwrap()[..100]).unwrap();
+    let failed = |out: Output, pieces: &[&str]| {
+        let err = String::from_utf8_lossy(&out.stderr).to_string();
+        assert!(!out.status.success(), "{err}");
+        pieces.iter().for_each(|piece| assert!(err.contains(piece), "{piece:?} not in {err}"));
+    };
+    let run = || ecm_lcd(&["match", "--database", &d("db"), "--queries", &d("q"), "-o", &d("m.csv")]);
+    cut(d("q/5.png"));
+    failed(run(), &["the queries", "broke off after 5 frames", "5.png", "queries before it were written"]);
+    let written = std::fs::read_to_string(d("m.csv")).unwrap();
+    assert_eq!(written.lines().count(), 1 + 5, "{written}");
+    assert!(written.lines().skip(1).enumerate().all(|(i, line)| line.starts_with(&format!("{i},{i}.png,"))));
+
+    std::fs::write(d("m.csv"), "kept").unwrap();
+    cut(d("db/3.png"));
+    failed(run(), &["the database", "broke off after 3 frames", "left as it was"]);
+    assert_eq!(std::fs::read_to_string(d("m.csv")).unwrap(), "kept");
+
+    let with_topic = ecm_lcd(&["match", "--database", &d("db"), "--queries", &d("q"), "--topic", "/camera/image"]);
+    failed(with_topic, &["--topic", "neither the database nor the queries is one"]);
+}
+
 #[test]
 fn demo_replays_the_bundled_sample() {
     let out_dir = tempfile::tempdir().unwrap();

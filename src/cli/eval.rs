@@ -199,6 +199,9 @@ pub fn run(args: Args) -> Result<()> {
     if let Some((database, queries)) = args.database_and_queries()? {
         let truth = load_truth(&args, &[])?;
         let run = run_database_queries(&mut pipeline, database, queries, args.source_args.topic.as_deref())?;
+        if let Some(error) = run.error {
+            bail!("{error}");
+        }
         let references = run.database.iter().map(|&(id, _)| id as usize + 1).max().unwrap_or(0);
         truth.check_within(run.query_stamps.len(), references)?;
         run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params())?;

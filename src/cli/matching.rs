@@ -54,6 +54,9 @@ pub fn run(args: Args) -> Result<()> {
         run.database.iter().map(|&(id, _)| id).zip(frame_names(&args.database, &database_stamps)?).collect();
     let query_names = frame_names(&args.queries, &run.query_stamps)?;
     let min_score = pipeline.detector().min_score();
+    if let (Some(error), true) = (&run.error, run.results.is_empty()) {
+        anyhow::bail!("{error} (no query was matched; the output was left as it was)");
+    }
     let sink: Box<dyn Write> = match &args.output {
         Some(path) => {
             Box::new(std::fs::File::create(path).with_context(|| format!("cannot write {}", path.display()))?)
@@ -85,16 +88,20 @@ pub fn run(args: Args) -> Result<()> {
         run.query_stamps.len(),
         run.database.len()
     );
-    Ok(())
+    match run.error {
+        Some(error) => anyhow::bail!("{error} (the matches of the queries before it were written)"),
+        None => Ok(()),
+    }
 }
 
 /// The names of `source`'s frames ([`header`]), `stamps` those it was read with.
 fn frame_names(source: &Path, stamps: &[Stamp]) -> Result<Vec<String>> {
     if ecm_lcd::io::is_image_folder(source) {
+        // The frames read are the folder's first images (all, unless it broke off).
         let files = images_in_name_order(source)?;
-        anyhow::ensure!(files.len() == stamps.len(), "{} changed while it was read", source.display());
+        anyhow::ensure!(files.len() >= stamps.len(), "{} changed while it was read", source.display());
         let name = |path: &Path| path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        return Ok(files.iter().map(|path| name(path)).collect());
+        return Ok(files[..stamps.len()].iter().map(|path| name(path)).collect());
     }
     Ok(stamps.iter().map(Stamp::to_string).collect())
 }
