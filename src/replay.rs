@@ -12,7 +12,7 @@
 use std::path::Path;
 use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, ensure, Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::config::ParamValue;
@@ -165,18 +165,25 @@ fn is_bag(source: &Path) -> bool {
     !crate::io::is_image_folder(source) && !source.join("rgb.txt").is_file() && !is_keyframe_store(source)
 }
 
-/// The topics to open `source` with in the database/query mode: the image topic `topic` applies to
-/// bags only (the same camera's topic in both), and neither side pairs depth or poses.
-fn database_query_topics(source: &Path, topic: Option<&str>) -> Topics {
-    Topics { image: topic.filter(|_| is_bag(source)).map(str::to_string), ..Default::default() }
+/// The topics to open `source` with in the database/query mode, from those given (`topics`): the
+/// image topic applies to bags only (the same camera's topic in both), the depth topic to the
+/// database's bag only (`with_depth`), and poses to neither.
+fn database_query_topics(source: &Path, topics: &Topics, with_depth: bool) -> Topics {
+    let bag = is_bag(source);
+    Topics {
+        image: topics.image.clone().filter(|_| bag),
+        depth: topics.depth.clone().filter(|_| bag && with_depth),
+        poses: None,
+    }
 }
 
 /// Database/query mode: every frame of `database` is stored, then each frame of `queries` is
 /// matched against them all (no recency rules: the two are different visits). Each is any source
 /// [`open_source_topics`] opens (image folder in name order, TUM folder, ROS 1 or ROS 2 bag;
-/// `topic` the image topic of bags), a frame's index its position in its source; the database may
-/// also be a keyframe database (`--db`, [`Pipeline::load_map`]), its keyframes named by their ids.
-/// The database's depth images (a TUM folder's `depth.txt`) give verified matches metric poses,
+/// `topics.image` the image topic of bags), a frame's index its position in its source; the database
+/// may also be a keyframe database (`--db`, [`Pipeline::load_map`]), its keyframes named by their
+/// ids. The database's depth images (a TUM folder's `depth.txt`, a bag's `topics.depth`) give
+/// verified matches metric poses,
 /// and the camera intrinsics a source carries (the database's, else the queries') turn
 /// verification on as in a replay. A source that breaks off (a truncated bag, an unreadable image)
 /// ends the reading ([`DatabaseQueriesRun::error`]): the queries read before are matched, and none
@@ -192,17 +199,23 @@ pub fn run_database_queries(
     pipeline: &mut Pipeline,
     database: &Path,
     queries: &Path,
-    topic: Option<&str>,
+    topics: &Topics,
 ) -> Result<DatabaseQueriesRun> {
     for rule in ["detector.min_history", "detector.exclude_recent.count"] {
         pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
     }
     pipeline.set_param("detector.exclude_recent.seconds", ParamValue::Double(0.0)).map_err(anyhow::Error::msg)?;
-    if topic.is_some() && !is_bag(database) && !is_bag(queries) {
+    if topics.image.is_some() && !is_bag(database) && !is_bag(queries) {
         bail!("--topic names the image topic of a bag, and neither the database nor the queries is one");
     }
-    let open = |source: &Path| open_source_topics(source, &database_query_topics(source, topic));
-    let query_frames = open(queries)?;
+    if topics.depth.is_some() && !is_bag(database) {
+        bail!("--depth-topic names the depth topic of the database's bag, and the database is not a bag");
+    }
+    ensure!(topics.poses.is_none(), "tracker poses apply to a replayed source, not to a database and queries");
+    let open = |source: &Path, with_depth: bool| {
+        open_source_topics(source, &database_query_topics(source, topics, with_depth))
+    };
+    let query_frames = open(queries, false)?;
     let started = Instant::now();
     let mut run = DatabaseQueriesRun::default();
     if is_keyframe_store(database) {
@@ -213,7 +226,7 @@ pub fn run_database_queries(
         run.database = (0..db.len()).map(|p| (db.id(p), db.stamp(p))).collect();
     } else {
         let database_frames =
-            open(database).context("reading the database (a source, or a keyframe database made with --db)")?;
+            open(database, true).context("reading the database (a source, or a keyframe database made with --db)")?;
         log::info!("database: {}; queries: {}", database_frames.describe(), query_frames.describe());
         adopt_carried_intrinsics(pipeline, database_frames.intrinsics().or_else(|| query_frames.intrinsics()))?;
         for frame in database_frames {
@@ -265,7 +278,7 @@ pub fn run_database_queries(
     };
     // Read again for their local features: the query images are not all kept while their
     // descriptors are.
-    let mut again = if pipeline.verifies() { Some(open(queries)?) } else { None };
+    let mut again = if pipeline.verifies() { Some(open(queries, false)?) } else { None };
     for (index, descriptor) in descriptors.iter().enumerate() {
         let ahead = &descriptors[index + 1..][..sequence::queries_ahead(length, index, descriptors.len())];
         // With verification, the nearest verified with the most inliers ([`best_supported`]); none

@@ -241,4 +241,62 @@ fn a_tum_style_bag_with_depth_replays_like_its_folder() {
         assert!(apart < 1e-3, "{} -> {}: bag and folder poses {apart} m apart", bag.query_id, bag.match_id);
         assert!(!plain.verified.unwrap().pose.unwrap().metric, "no depth topic: pose up to scale");
     }
+
+    // As a map for `match`: the first lap as a TUM folder with depth.txt, and the same lap as a bag
+    // with `--depth-topic`, place the second lap's images alike, with the same metric poses.
+    let (lap1, lap1_bag, lap2) = (dir.path().join("lap1"), dir.path().join("lap1.bag"), dir.path().join("lap2"));
+    let file_of = |line: &str| line.split_whitespace().nth(1).unwrap().to_string();
+    let copy = |from: &str, to: std::path::PathBuf| {
+        std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+        std::fs::copy(seq.join(from), to).unwrap();
+    };
+    for list in ["rgb.txt", "depth.txt", "groundtruth.txt"] {
+        let text = std::fs::read_to_string(seq.join(list)).unwrap();
+        let lines: Vec<&str> = text.lines().filter(|line| !line.starts_with('#')).collect();
+        let (first, second) = lines.split_at(lines.len() / 2);
+        std::fs::create_dir_all(&lap1).unwrap();
+        std::fs::write(lap1.join(list), first.iter().map(|line| format!("{line}\n")).collect::<String>()).unwrap();
+        if list == "groundtruth.txt" {
+            continue;
+        }
+        first.iter().for_each(|line| copy(&file_of(line), lap1.join(file_of(line))));
+        if list == "rgb.txt" {
+            second.iter().map(|line| file_of(line)).for_each(|file| {
+                copy(&file, lap2.join(Path::new(&file).file_name().unwrap()));
+            });
+        }
+    }
+    support::rosbags_fixtures(&["tum-bag", &arg(&lap1), &arg(&lap1_bag), fx, fy, cx, cy].map(std::ffi::OsStr::new));
+    let placed = |map: &Path, extra: &[&str], name: &str| {
+        let out = dir.path().join(name);
+        let args = ["match", "--database", &arg(map), "--queries", &arg(&lap2), "-o", &arg(&out)];
+        support::ecm_lcd_ok(&[&args[..], extra].concat());
+        std::fs::read_to_string(out).unwrap()
+    };
+    let from_folder = placed(&lap1, &camera, "placed_folder.csv");
+    let from_bag = placed(
+        &lap1_bag,
+        &["--topic", "/camera/rgb/image_color", "--depth-topic", "/camera/depth/image"],
+        "placed_bag.csv",
+    );
+    let rows = |text: &str| -> Vec<Vec<String>> {
+        text.lines().skip(1).map(|line| line.split(',').map(str::to_string).collect()).collect()
+    };
+    let (folder_rows, bag_rows) = (rows(&from_folder), rows(&from_bag));
+    assert_eq!(folder_rows.len(), 120);
+    let metric = folder_rows.iter().filter(|row| row[14] == "1").count();
+    println!("{metric} of 120 second-lap frames placed on the first lap with metric poses");
+    assert!(metric >= 100, "{metric} metric");
+    for (folder_row, bag_row) in folder_rows.iter().zip(&bag_rows) {
+        // Query, match, score, accepted, inliers and metric agree; the frames are named alike by stamp.
+        for column in [0, 1, 2, 3, 4, 5, 6, 14] {
+            assert_eq!(folder_row[column], bag_row[column], "column {column}:\n{folder_row:?}\n{bag_row:?}");
+        }
+        if folder_row[14] == "1" {
+            let t = |row: &[String]| {
+                nalgebra::Vector3::from_iterator(row[11..14].iter().map(|v| v.parse::<f64>().unwrap()))
+            };
+            assert!((t(folder_row) - t(bag_row)).norm() < 1e-3, "{folder_row:?}\n{bag_row:?}");
+        }
+    }
 }

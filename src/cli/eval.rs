@@ -198,7 +198,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     if let Some((database, queries)) = args.database_and_queries()? {
         let truth = load_truth(&args, &[])?;
-        let run = run_database_queries(&mut pipeline, database, queries, args.source_args.topic.as_deref())?;
+        let run = run_database_queries(&mut pipeline, database, queries, &args.source_args.topics())?;
         if let Some(error) = run.error {
             bail!("{error}");
         }

@@ -65,13 +65,10 @@ impl SourceArgs {
     }
 
     /// An error naming the first option given that only a replayed SOURCE uses, for commands that
-    /// read a database and queries instead (`--topic` serves both: the image topic of bags).
+    /// read a database and queries instead (`--topic` serves both: the image topic of bags;
+    /// `--depth-topic` the database's bag).
     pub fn refuse_source_only(&self) -> Result<()> {
-        let source_only = [
-            ("--depth-topic", self.depth_topic.is_some()),
-            ("--poses", self.poses.is_some()),
-            ("--db", self.db.is_some()),
-        ];
+        let source_only = [("--poses", self.poses.is_some()), ("--db", self.db.is_some())];
         match source_only.iter().find(|(_, given)| *given) {
             Some((flag, _)) => anyhow::bail!("{flag} applies to a replayed SOURCE, not to --database/--queries"),
             None => Ok(()),
