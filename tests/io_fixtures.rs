@@ -245,27 +245,7 @@ fn a_tum_style_bag_with_depth_replays_like_its_folder() {
     // As a map for `match`: the first lap as a TUM folder with depth.txt, and the same lap as a bag
     // with `--depth-topic`, place the second lap's images alike, with the same metric poses.
     let (lap1, lap1_bag, lap2) = (dir.path().join("lap1"), dir.path().join("lap1.bag"), dir.path().join("lap2"));
-    let file_of = |line: &str| line.split_whitespace().nth(1).unwrap().to_string();
-    let copy = |from: &str, to: std::path::PathBuf| {
-        std::fs::create_dir_all(to.parent().unwrap()).unwrap();
-        std::fs::copy(seq.join(from), to).unwrap();
-    };
-    for list in ["rgb.txt", "depth.txt", "groundtruth.txt"] {
-        let text = std::fs::read_to_string(seq.join(list)).unwrap();
-        let lines: Vec<&str> = text.lines().filter(|line| !line.starts_with('#')).collect();
-        let (first, second) = lines.split_at(lines.len() / 2);
-        std::fs::create_dir_all(&lap1).unwrap();
-        std::fs::write(lap1.join(list), first.iter().map(|line| format!("{line}\n")).collect::<String>()).unwrap();
-        if list == "groundtruth.txt" {
-            continue;
-        }
-        first.iter().for_each(|line| copy(&file_of(line), lap1.join(file_of(line))));
-        if list == "rgb.txt" {
-            second.iter().map(|line| file_of(line)).for_each(|file| {
-                copy(&file, lap2.join(Path::new(&file).file_name().unwrap()));
-            });
-        }
-    }
+    support::split_into_map_and_queries(&seq, &lap1, &lap2);
     support::rosbags_fixtures(&["tum-bag", &arg(&lap1), &arg(&lap1_bag), fx, fy, cx, cy].map(std::ffi::OsStr::new));
     let placed = |map: &Path, extra: &[&str], name: &str| {
         let out = dir.path().join(name);

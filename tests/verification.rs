@@ -225,25 +225,9 @@ fn match_against_a_map_with_depth_reports_metric_poses() {
     let config = SynthConfig { frames: 120, laps: 2, depth: true, ..SynthConfig::default() };
     let scene = Scene::new(config.clone()).unwrap();
     write_tum_folder(&scene, &full).unwrap();
-    // The map: the first lap's lines of rgb.txt and depth.txt and their files; the queries: the
-    // second lap's images alone.
+    // The map: the first lap as a TUM folder with depth; the queries: the second lap's images.
     let (map, queries) = (dir.path().join("map"), dir.path().join("queries"));
-    for list in ["rgb.txt", "depth.txt"] {
-        let text = std::fs::read_to_string(full.join(list)).unwrap();
-        let mut kept = String::new();
-        for (i, line) in text.lines().filter(|line| !line.starts_with('#')).enumerate() {
-            let file = line.split_whitespace().nth(1).unwrap();
-            let to = if i < 60 { map.join(file) } else { queries.join(Path::new(file).file_name().unwrap()) };
-            if i < 60 {
-                kept += &format!("{line}\n");
-            } else if list == "depth.txt" {
-                continue;
-            }
-            std::fs::create_dir_all(to.parent().unwrap()).unwrap();
-            std::fs::copy(full.join(file), to).unwrap();
-        }
-        std::fs::write(map.join(list), kept).unwrap();
-    }
+    support::split_into_map_and_queries(&full, &map, &queries);
     let focal = scene.focal_length().to_string();
     let (cx, cy) = ((config.width as f64 / 2.0 - 0.5).to_string(), (config.height as f64 / 2.0 - 0.5).to_string());
     let camera = [

@@ -135,3 +135,31 @@ pub fn gardens_point_gray(dir: &Path, width: u32, height: u32) -> (PathBuf, Path
     }
     (dir.join("ref"), dir.join("query"))
 }
+
+/// Splits the TUM folder `seq` (a sequence of two laps) into a map and queries for the
+/// database/query mode: `map` a TUM folder of its first half (`rgb.txt`, and `depth.txt` and
+/// `groundtruth.txt` where it has them, with their files), `queries` a folder of the second half's
+/// colour images alone.
+pub fn split_into_map_and_queries(seq: &Path, map: &Path, queries: &Path) {
+    let file_of = |line: &str| line.split_whitespace().nth(1).unwrap().to_string();
+    let copy = |from: &str, to: PathBuf| {
+        std::fs::create_dir_all(to.parent().unwrap()).unwrap();
+        std::fs::copy(seq.join(from), to).unwrap();
+    };
+    for list in ["rgb.txt", "depth.txt", "groundtruth.txt"] {
+        let Ok(text) = std::fs::read_to_string(seq.join(list)) else { continue };
+        let lines: Vec<&str> = text.lines().filter(|line| !line.starts_with('#')).collect();
+        let (first, second) = lines.split_at(lines.len() / 2);
+        std::fs::create_dir_all(map).unwrap();
+        std::fs::write(map.join(list), first.iter().map(|line| format!("{line}\n")).collect::<String>()).unwrap();
+        if list == "groundtruth.txt" {
+            continue;
+        }
+        first.iter().for_each(|line| copy(&file_of(line), map.join(file_of(line))));
+        if list == "rgb.txt" {
+            for file in second.iter().map(|line| file_of(line)) {
+                copy(&file, queries.join(Path::new(&file).file_name().unwrap()));
+            }
+        }
+    }
+}
