@@ -54,7 +54,7 @@ pub enum Command {
     Replay(replay::Args),
     /// Replay a source and score the detector against ground truth (precision-recall).
     Eval(eval::Args),
-    /// Find each query image's place among database images (no ground truth needed); CSV.
+    /// Place each query frame on a map made before, without ground truth: match, score, verified pose (CSV).
     Match(matching::Args),
     /// Get or set a parameter of a running node (like `ros2 param get|set`).
     Param(param::Args),
