@@ -546,8 +546,8 @@ fn match_writes_each_querys_place_without_ground_truth() {
 }
 
 /// Nothing lost when a source breaks off: `match` writes the matches of the queries read before a
-/// query image that does not decode and then fails naming it; a database that breaks off matches
-/// no query and leaves an existing output as it was. `--topic` with no bag on either side is refused.
+/// query image that does not decode and then fails naming it, and `eval` scores those queries; a
+/// database that breaks off matches no query and leaves an existing output as it was. `--topic` with no bag on either side is refused.
 #[test]
 fn match_keeps_the_queries_before_a_source_breaks_off() {
     let dir = tempfile::tempdir().unwrap();
@@ -572,6 +572,12 @@ fn match_keeps_the_queries_before_a_source_breaks_off() {
     let written = std::fs::read_to_string(d("m.csv")).unwrap();
     assert_eq!(written.lines().count(), 1 + 5, "{written}");
     assert!(written.lines().skip(1).enumerate().all(|(i, line)| line.starts_with(&format!("{i},{i}.png,"))));
+    // eval, as for a replay that broke off, scores the queries read against the truth cut to them.
+    std::fs::write(d("loops.csv"), (0..8).map(|i| format!("{i},{i}\n")).collect::<String>()).unwrap();
+    let out = ecm_lcd(&["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv"), "--json"]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(json["queries"], 5, "{json}");
 
     std::fs::write(d("m.csv"), "kept").unwrap();
     cut(d("db/3.png"));

@@ -83,8 +83,13 @@ pub fn run(args: Args) -> Result<()> {
     csv.flush().context("cannot write the matches")?;
     let accepted = run.results.iter().filter(|r| r.best.is_some_and(|(_, score)| score >= min_score)).count();
     let policy = super::eval::policy_name(pipeline.params(), true);
+    let verified = run.verified.iter().flatten().count();
+    let verified = match pipeline.verifies() {
+        true => format!("; {verified} verified ({} no match)", run.results.len() - verified),
+        false => String::new(),
+    };
     log::info!(
-        "{} queries matched against {} database frames ({policy}); {accepted} at or above the threshold {min_score}",
+        "{} queries matched against {} database frames ({policy}){verified}; {accepted} at or above the threshold {min_score}",
         run.query_stamps.len(),
         run.database.len()
     );
