@@ -320,7 +320,7 @@ fn measure(
     };
     let (results, truth) = match &set.data {
         Data::DatabaseQueries { database, queries, loops } => {
-            let run = run_database_queries(&mut pipeline, database, queries, &Default::default())?;
+            let run = run_database_queries(&mut pipeline, database, queries, &Default::default(), false)?;
             row.ms_per_keyframe = run.per_image_ms;
             (run.results, read_loops(loops)?)
         }

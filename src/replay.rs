@@ -200,6 +200,7 @@ pub fn run_database_queries(
     database: &Path,
     queries: &Path,
     topics: &Topics,
+    progress: bool,
 ) -> Result<DatabaseQueriesRun> {
     for rule in ["detector.min_history", "detector.exclude_recent.count"] {
         pipeline.set_param(rule, ParamValue::Integer(0)).map_err(anyhow::Error::msg)?;
@@ -218,6 +219,7 @@ pub fn run_database_queries(
     let query_frames = open(queries, false)?;
     let started = Instant::now();
     let mut run = DatabaseQueriesRun::default();
+    let bar = frames_bar(progress, query_frames.len_hint().unwrap_or(0));
     if is_keyframe_store(database) {
         log::info!("queries: {}", query_frames.describe());
         adopt_carried_intrinsics(pipeline, query_frames.intrinsics())?;
@@ -227,6 +229,7 @@ pub fn run_database_queries(
     } else {
         let database_frames =
             open(database, true).context("reading the database (a source, or a keyframe database made with --db)")?;
+        bar.inc_length(database_frames.len_hint().unwrap_or(0) as u64);
         log::info!("database: {}; queries: {}", database_frames.describe(), query_frames.describe());
         adopt_carried_intrinsics(pipeline, database_frames.intrinsics().or_else(|| query_frames.intrinsics()))?;
         for frame in database_frames {
@@ -243,6 +246,7 @@ pub fn run_database_queries(
             let features = pipeline.local_features(&frame.image, frame.depth.as_ref())?;
             pipeline.remember_features(id, features);
             run.database.push((id, frame.stamp));
+            bar.inc(1);
         }
     }
     let mut descriptors = Vec::new();
@@ -253,6 +257,7 @@ pub fn run_database_queries(
                 Ok(frame) => {
                     descriptors.push(pipeline.describe(&frame.image)?);
                     run.query_stamps.push(frame.stamp);
+                    bar.inc(1);
                 }
                 Err(e) => {
                     run.error = Some(broke_off("the queries", queries, run.query_stamps.len(), &e));
@@ -261,6 +266,7 @@ pub fn run_database_queries(
             }
         }
     }
+    bar.finish_and_clear();
     let tried = pipeline.matches_tried();
     let aligned = if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
         let aligned = walk_matches(pipeline.detector(), &descriptors, tried)?;
@@ -325,6 +331,16 @@ pub fn run_database_queries(
     let frames = run.database.len() + run.query_stamps.len();
     run.per_image_ms = started.elapsed().as_secs_f64() * 1e3 / frames.max(1) as f64;
     Ok(run)
+}
+
+/// A progress bar over `frames` frames (0: not known), drawn only with `progress`.
+fn frames_bar(progress: bool, frames: usize) -> ProgressBar {
+    let bar = if progress { ProgressBar::new(frames as u64) } else { ProgressBar::hidden() };
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} frames, {per_sec}, {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar
 }
 
 /// What a source that broke off after `read` frames says ([`DatabaseQueriesRun::error`]), on one line.
@@ -437,11 +453,7 @@ fn replay_frames(
     };
     log::info!("replaying {}", frames.describe());
     adopt_carried_intrinsics(pipeline, frames.intrinsics())?;
-    let bar = if progress { ProgressBar::new(frames.len_hint().unwrap_or(0) as u64) } else { ProgressBar::hidden() };
-    bar.set_style(
-        ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} frames, {per_sec}, {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    let bar = frames_bar(progress, frames.len_hint().unwrap_or(0));
     let started = Instant::now();
     let mut run = ReplayRun::default();
     for frame in frames {

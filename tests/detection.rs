@@ -106,7 +106,8 @@ fn a_real_office_never_seen_is_not_reported_at_the_default_threshold() {
     };
     for (database, queries) in [(&fr3, &fr2), (&fr2, &fr3)] {
         let mut pipeline = Pipeline::with_weights(Params::default(), weights()).unwrap();
-        let run = run_database_queries(&mut pipeline, database, &queries.join("rgb"), &Default::default()).unwrap();
+        let run =
+            run_database_queries(&mut pipeline, database, &queries.join("rgb"), &Default::default(), false).unwrap();
         let scores: Vec<f32> = run.results.iter().filter_map(|r| r.best.map(|(_, score)| score)).collect();
         let frames = |dir: &std::path::Path| images_in_name_order(&dir.join("rgb")).unwrap().len();
         assert_eq!((run.database.len(), run.query_stamps.len()), (frames(database), frames(queries)));

@@ -198,7 +198,13 @@ pub fn run(args: Args) -> Result<()> {
     };
     if let Some((database, queries)) = args.database_and_queries()? {
         let mut truth = load_truth(&args, &[])?;
-        let run = run_database_queries(&mut pipeline, database, queries, &args.source_args.topics())?;
+        let run = run_database_queries(
+            &mut pipeline,
+            database,
+            queries,
+            &args.source_args.topics(),
+            !args.source_args.quiet,
+        )?;
         let references = run.database.iter().map(|&(id, _)| id as usize + 1).max().unwrap_or(0);
         if let Some(error) = &run.error {
             if run.results.is_empty() {

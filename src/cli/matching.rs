@@ -48,7 +48,13 @@ pub fn run(args: Args) -> Result<()> {
         ecm_lcd::io::output::ensure_not_an_input(output, &inputs)?;
     }
     let mut pipeline = args.source_args.pipeline()?;
-    let run = run_database_queries(&mut pipeline, &args.database, &args.queries, &args.source_args.topics())?;
+    let run = run_database_queries(
+        &mut pipeline,
+        &args.database,
+        &args.queries,
+        &args.source_args.topics(),
+        !args.source_args.quiet,
+    )?;
     let database_stamps: Vec<Stamp> = run.database.iter().map(|&(_, stamp)| stamp).collect();
     let database_names: std::collections::HashMap<u64, String> =
         run.database.iter().map(|&(id, _)| id).zip(frame_names(&args.database, &database_stamps)?).collect();
