@@ -150,18 +150,18 @@ fn open_connection(path: &Path, flags: OpenFlags) -> Result<Connection> {
     Ok(connection)
 }
 
-/// An existing regular file (a symlink to one is followed), or an error that says what it is.
 /// Whether `path` looks like a keyframe database (`--db`): a regular file in SQLite's format that is
 /// not a ROS 2 bag (`.db3`).
 pub fn is_keyframe_store(path: &Path) -> bool {
     use std::io::Read;
-    let bag = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("db3"));
+    if !path.is_file() || path.extension().is_some_and(|e| e.eq_ignore_ascii_case("db3")) {
+        return false;
+    }
     let mut magic = [0u8; 16];
-    let sqlite =
-        std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut magic)).is_ok() && &magic == b"SQLite format 3\0";
-    path.is_file() && !bag && sqlite
+    std::fs::File::open(path).and_then(|mut f| f.read_exact(&mut magic)).is_ok() && &magic == b"SQLite format 3\0"
 }
 
+/// An existing regular file (a symlink to one is followed), or an error that says what it is.
 fn ensure_database_file(path: &Path) -> Result<()> {
     match std::fs::metadata(path) {
         Ok(m) if m.is_file() => Ok(()),
