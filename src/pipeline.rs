@@ -15,6 +15,7 @@
 //! hides it, nor is reported in its place where the true place is verified on more points. The best
 //! match (for evaluation) is chosen the same way ([`Outcome::best_verified`]).
 
+use std::collections::HashSet;
 use std::path::Path;
 use std::time::Instant;
 
@@ -116,6 +117,10 @@ pub struct Pipeline {
     verify_best: bool,
     /// The tracker's path through the frames that came with poses (odometry consistency).
     odometry: OdometryTrack,
+    /// The id of every keyframe in the detector's history, or dropped from it: an id is taken once.
+    taken_ids: HashSet<u64>,
+    /// Depth images that came with a frame of another size, and were left out.
+    misfit_depths: u64,
 }
 
 /// The descriptor as one name, the tap included: the mode's name for the modes on the head (`power`;
@@ -185,6 +190,8 @@ impl Pipeline {
             camera_info: None,
             verify_best: true,
             odometry: OdometryTrack::default(),
+            taken_ids: HashSet::new(),
+            misfit_depths: 0,
         };
         log::info!("descriptor {} ({} values)", pipeline.descriptor_name(), pipeline.descriptor.dim());
         Ok(pipeline)
@@ -301,7 +308,10 @@ impl Pipeline {
             "this pipeline",
         )?;
         let limit = Some(self.params.detector().max_keyframes).filter(|&n| n > 0);
-        self.detector.replace_history(store.load_db(limit)?)
+        self.detector.replace_history(store.load_db(limit)?)?;
+        let db = self.detector.db();
+        self.taken_ids = (0..db.len()).map(|position| db.id(position)).collect();
+        Ok(())
     }
 
     /// Gives the detector what the run that filled `store` left it with: the sequence policy's
@@ -438,10 +448,37 @@ impl Pipeline {
         if select && self.selector.offer(input.stamp) == Verdict::Reject {
             return Ok(Outcome::default());
         }
+        let without_depth;
+        let input = match input.depth {
+            Some(depth) if (depth.width, depth.height) != input.image.dimensions() => {
+                self.leave_out_misfit_depth(id, depth, input.image);
+                without_depth = Input { depth: None, ..*input };
+                &without_depth
+            }
+            _ => input,
+        };
         // The workers stay hot from the forward pass through the search (its probed lists are
         // scanned in parallel). During a `--db` append (an fsynced transaction) a poller gives up
         // after `runtime::HOT_WORKER_PATIENCE`.
         crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, input, tracked))
+    }
+
+    /// A depth image of another size than its colour image cannot be registered to it (another
+    /// camera, or a depth topic not registered to the colour one): the keyframe goes on without it,
+    /// and the first and every hundredth such image is named in the log.
+    fn leave_out_misfit_depth(&mut self, id: u64, depth: &DepthImage, image: &RgbImage) {
+        self.misfit_depths += 1;
+        if self.misfit_depths % 100 == 1 {
+            log::warn!(
+                "keyframe {id}: its depth image is {}x{}, the colour image {}x{}; it goes on without depth \
+                 ({} such depth images so far; is the depth registered to the colour camera?)",
+                depth.width,
+                depth.height,
+                image.width(),
+                image.height(),
+                self.misfit_depths
+            );
+        }
     }
 
     fn describe_and_detect(
@@ -458,7 +495,7 @@ impl Pipeline {
         // regions leave a worker idle between them, and the features need only the image. Not when
         // the selector may still reject the keyframe by its descriptor.
         let overlap = !(select && self.selector.needs_descriptor());
-        let (feature_map, mut early_features) = match (&self.verifier, overlap) {
+        let (feature_map, early_features) = match (&self.verifier, overlap) {
             (Some(verifier), true) => {
                 let embedder = &mut self.embedder;
                 let (map, (features, ms)) = rayon::join(
@@ -480,12 +517,28 @@ impl Pipeline {
         if select && self.selector.needs_descriptor() && !self.selector.offer_descriptor(stamp, &descriptor)? {
             return Ok(outcome);
         }
-        // Refused before the detector sees it, as the store would refuse it after.
+        // Refused before the detector sees it, as the store would refuse it after: an id names one
+        // keyframe, so a second one under it would send later loops to the wrong place.
         if let Some(store) = &self.store {
             ensure!(!store.contains(id)?, "keyframe id {id} is already stored in {}", store.path().display());
         }
+        ensure!(
+            !self.taken_ids.contains(&id),
+            "keyframe id {id} was taken by an earlier keyframe (a tracker that restarts its ids needs a new session)"
+        );
+        // Extracted before the keyframe enters the detector, so that a failure leaves no trace of it.
+        let features = match (early_features, &self.verifier) {
+            (Some(early), _) => Some(early),
+            (None, Some(verifier)) => {
+                let started = Instant::now();
+                Some((verifier.extract(image, depth)?, started.elapsed().as_secs_f64() * 1e3))
+            }
+            (None, None) => None,
+        };
+        let before_detector = Instant::now();
         // With verification, alternatives to try when a better match fails.
         let (nearest, candidates) = self.detector.process_ranked(id, stamp, &descriptor, self.matches_tried())?;
+        self.taken_ids.insert(id);
         (outcome.best, outcome.candidates) = (nearest.first().copied(), candidates);
         outcome.keyframe = Some(id);
         if let Some(tracked) = tracked {
@@ -499,13 +552,9 @@ impl Pipeline {
             outcome.candidates.splice(0..0, confirmed);
         }
         let after_detector = Instant::now();
-        outcome.timings.detector_ms = (after_detector - after_descriptor).as_secs_f64() * 1e3;
+        outcome.timings.detector_ms = (after_detector - before_detector).as_secs_f64() * 1e3;
         let mut stored_features = None;
-        if self.verifier.is_some() {
-            let (features, extraction_ms) = match early_features.take() {
-                Some(early) => early,
-                None => (self.local_features(image, depth)?, 0.0),
-            };
+        if let Some((features, extraction_ms)) = features {
             self.verify_outcome(&features, tracked, &nearest, &mut outcome);
             let confirmed = self.detector.confirm_held_back(id, &outcome.candidates, self.matches_tried());
             let confirmed = self.verify_confirmed(confirmed, &mut outcome);

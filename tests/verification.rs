@@ -9,10 +9,10 @@ use ecm_lcd::eval::revisit::write_two_pass;
 use ecm_lcd::eval::{evaluate, loop_truth_from_poses, Metrics, PoseLoopCriteria, QueryResult};
 use ecm_lcd::io::tum::read_groundtruth;
 use ecm_lcd::model::weights::resolve;
-use ecm_lcd::pipeline::Pipeline;
+use ecm_lcd::pipeline::{Input, Pipeline};
 use ecm_lcd::replay::{run_source, ReplayRun};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
-use ecm_lcd::types::Stamp;
+use ecm_lcd::types::{DepthImage, Stamp};
 
 mod support;
 
@@ -320,6 +320,47 @@ fn camera_info_turns_verification_on_in_auto_mode_only() {
     }
     // Frame 9 revisits frame 0, whose features were never extracted: nothing is reported.
     assert!(!reported.contains(&(9, 0)), "{reported:?}");
+}
+
+/// A depth image of another size than its colour image (a depth camera not registered to the colour
+/// one) cannot give a keyframe a metric pose, but it costs the keyframe nothing: the desk orbit with
+/// such depth images gives the candidates, verified up to scale, that it gives without depth. A
+/// second keyframe under an id already taken is refused and leaves the history as it was.
+#[test]
+fn a_depth_image_of_another_size_is_left_out_and_a_taken_id_is_refused() {
+    let orbit = shared().join("data/real/tum_fr3_desk_orbit/rgb");
+    let frames: Vec<_> = ecm_lcd::eval::images_in_name_order(&orbit).unwrap();
+    let images: Vec<_> = frames.iter().map(|path| ecm_lcd::preprocess::read_image(path).unwrap()).collect();
+    let misfit = DepthImage { width: 320, height: 240, metres: vec![1.5; 320 * 240] };
+    let run = |depth: Option<&DepthImage>| {
+        let mut pipeline = pipeline(&[
+            ("camera.preset", "tum_fr3"),
+            ("detector.min_history", "2"),
+            ("detector.exclude_recent.count", "3"),
+            ("detector.exclude_recent.seconds", "0"),
+            PERMISSIVE,
+        ]);
+        let mut candidates = Vec::new();
+        for (i, image) in images.iter().enumerate() {
+            let stamp = Stamp::from_nanos(i as i64 * 1_000_000_000);
+            let input = Input { depth, ..Input::keyframe(i as u64, stamp, image) };
+            let outcome = pipeline.process_input(&input).unwrap();
+            assert_eq!(outcome.keyframe, Some(i as u64));
+            candidates.extend(outcome.candidates);
+        }
+        (pipeline, candidates)
+    };
+    let (_, without_depth) = run(None);
+    let (mut with_misfits, candidates) = run(Some(&misfit));
+    assert_eq!(candidates, without_depth);
+    let revisit = candidates.iter().find(|c| (c.query_id, c.match_id) == (9, 0)).expect("the revisit is reported");
+    let pose = revisit.verified.and_then(|v| v.pose).expect("verified, with a pose");
+    assert!(!pose.metric, "up to scale: no depth was used");
+
+    let err =
+        format!("{:#}", with_misfits.process_keyframe(4, Stamp::from_nanos(20_000_000_000), &images[0]).unwrap_err());
+    assert!(err.contains("keyframe id 4 was taken by an earlier keyframe"), "{err}");
+    assert_eq!(with_misfits.detector().db().len(), images.len());
 }
 
 #[test]
