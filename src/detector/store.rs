@@ -421,11 +421,13 @@ impl KeyframeStore {
         }
         let sql_id = to_sql_id(id)?;
         let json = if candidates.is_empty() { None } else { Some(serde_json::to_string(candidates)?) };
-        let written = (|| -> rusqlite::Result<()> {
+        let written = (|| -> rusqlite::Result<i64> {
             let transaction = self.connection.transaction()?;
             transaction
                 .prepare("INSERT INTO keyframes (id, stamp_nanos, descriptor) VALUES (?1, ?2, ?3)")?
                 .execute(params![sql_id, stamp.nanos, descriptor_blob(descriptor)])?;
+            // The keyframe's row, read before the other tables' inserts move the last row id on.
+            let seq = transaction.last_insert_rowid();
             if let Some(json) = &json {
                 transaction
                     .prepare("INSERT OR REPLACE INTO candidates (query_id, json) VALUES (?1, ?2)")?
@@ -448,18 +450,18 @@ impl KeyframeStore {
                     .prepare("INSERT INTO consistency (id, json) VALUES (?1, ?2)")?
                     .execute(params![sql_id, json])?;
             }
-            transaction.commit()
+            transaction.commit()?;
+            Ok(seq)
         })();
-        match written {
-            Ok(()) => {}
+        let seq = match written {
+            Ok(seq) => seq,
             Err(rusqlite::Error::SqliteFailure(e, _)) if e.code == rusqlite::ErrorCode::ConstraintViolation => {
                 bail!("keyframe id {id} is already stored in {}", self.path.display())
             }
             Err(e) => return Err(e).with_context(|| format!("storing keyframe {id} in {}", self.path.display())),
-        }
+        };
         self.count += 1;
         self.max_id = Some(self.max_id.map_or(id, |m| m.max(id)));
-        let seq = self.connection.last_insert_rowid();
         self.extend_vector_file(seq, seq, descriptor);
         Ok(())
     }

@@ -230,6 +230,52 @@ fn a_load_maps_the_vector_file_and_catches_it_up() {
     assert_holds(&db, &(19..40).collect::<Vec<_>>(), dim);
 }
 
+/// Keyframes stored with everything beside them (candidates, local features, a frame and pose, a
+/// consistency state: rows in other tables, under the keyframe's id) reach the vector file in their
+/// place: a load maps the file as written, without a rebuild, and holds every keyframe exactly. The
+/// ids run apart from the row numbers, as a tracker's do.
+#[cfg(unix)]
+#[test]
+fn keyframes_stored_with_side_records_keep_the_vector_file_in_step() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("side.db");
+    let dim = 4;
+    let mut store = store_with(&path, [], dim);
+    let inode = || std::os::unix::fs::MetadataExt::ino(&std::fs::metadata(vectors::path_for(&path)).unwrap());
+    let created = inode();
+    let ids: Vec<u64> = (0..12).map(|i| 100 + 3 * i).collect();
+    for (i, &id) in ids.iter().enumerate() {
+        let d = descriptor(id, dim);
+        let candidate = LoopCandidate {
+            query_id: id,
+            query_stamp: stamp(id),
+            match_id: ids[0],
+            match_stamp: stamp(ids[0]),
+            distance: 0.5,
+            score: 0.8,
+            rank: 0,
+            verified: None,
+        };
+        let candidates = if i % 2 == 1 { vec![candidate] } else { Vec::new() };
+        store
+            .append_keyframe(&KeyframeRecord {
+                candidates: &candidates,
+                local_features: Some(&[1, 2, 3]),
+                frame_id: "camera",
+                tracker_pose: Some(Isometry3::identity()),
+                consistency: Some("{}"),
+                ..KeyframeRecord::new(id, stamp(id), &d)
+            })
+            .unwrap();
+        assert_eq!(vector_rows(&path), i as u64 + 1, "after keyframe {id}");
+    }
+    drop(store);
+    let db = KeyframeStore::open_existing(&path).unwrap().load_db(None).unwrap();
+    assert!(db.is_mapped());
+    assert_holds(&db, &ids, dim);
+    assert_eq!(inode(), created, "the vector file was rebuilt");
+}
+
 /// A vector file that is damaged, torn, from another database or not finite is rebuilt from the
 /// database; the load's keyframes are exact either way, and the next load maps the rebuilt file.
 #[cfg(unix)]

@@ -33,7 +33,10 @@ use rayon::prelude::*;
 use crate::detector::rows::DescriptorRows;
 
 const MAGIC: &[u8; 16] = b"ecm-lcd vectors\n";
-const VERSION: u32 = 1;
+/// 2 since keyframes stored with candidates, local features, a frame or a consistency state were
+/// appended under another table's row id: a version-1 file may hold rows out of place where its last
+/// row checks out, so it is rebuilt.
+const VERSION: u32 = 2;
 const HEADER_BYTES: usize = 80;
 /// Byte offset of row 0: a whole page, so that the rows map from a page boundary.
 pub(super) const ROWS_OFFSET: u64 = 4096;
