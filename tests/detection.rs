@@ -360,7 +360,7 @@ fn figures(json: &serde_json::Value) -> (f64, f64) {
 /// database are aligned as a walk by default, which finds every place and puts no wrong match above
 /// a right one; single images put a look-alike first and score wrong matches above right ones.
 /// Walks sampled unlike the database, or along a part of its route, are aligned as walks too;
-/// photos in no order are matched as single images.
+/// photos in no order, and fewer than four queries, are matched as single images.
 #[test]
 fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let dir = tempfile::tempdir().unwrap();
@@ -398,6 +398,15 @@ fn queries_against_a_database_are_matched_as_a_walk_by_default() {
     let json = eval(&photos, &photo_loops, &[]);
     assert_eq!(json["policy"], "single-image", "{json}");
     assert_eq!(figures(&json), (recall_at_1, at_full_precision), "single images do not depend on the order");
+    // One photo, or three, are too few to tell a walk: single images too.
+    for (name, chosen) in [("one_photo", &[6][..]), ("three_photos", &[2, 3, 4][..])] {
+        let (part, part_loops) = subset(name, chosen);
+        let json = eval(&part, &part_loops, &[]);
+        assert_eq!(
+            (json["policy"].as_str(), json["queries"].as_u64()),
+            (Some("single-image"), Some(chosen.len() as u64))
+        );
+    }
     // Walks sampled unlike the database (every second query: two database images per query) and
     // along half of its route (single images put a look-alike first in the first half) are aligned
     // as walks too, and every place is found.

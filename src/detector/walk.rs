@@ -52,6 +52,9 @@ pub const WALK_EVIDENCE: f64 = 0.75;
 /// half the set away may be the same place.
 pub const SPREAD_COMPARISONS: usize = 8;
 
+/// The fewest queries taken for a walk.
+pub const MIN_WALK: usize = 4;
+
 /// The farthest apart, in queries, that two queries' single-image matches are compared to measure
 /// the walk's speed.
 pub const SPEED_SPAN: usize = 10;
@@ -59,11 +62,13 @@ pub const SPEED_SPAN: usize = 10;
 /// Why `queries` (descriptors in their order) do not look like a walk, or `None` when they do: for
 /// at least [`WALK_EVIDENCE`] of them the next query is nearer than at least half of the queries
 /// [`SPREAD_COMPARISONS`] evenly spread offsets away (each offset once, never the query itself or
-/// its successor).
+/// its successor). Fewer than [`MIN_WALK`] queries are not taken for one: too few to tell, and too
+/// few for an alignment to be sure of any place (a single query would score at most the share of the
+/// keyframes near its best).
 pub fn why_not_a_walk(queries: &[Vec<f32>]) -> Option<String> {
     let n = queries.len();
-    if n < 4 {
-        return None;
+    if n < MIN_WALK {
+        return Some(format!("{n} queries are too few to tell whether they are a walk"));
     }
     let mut offsets: Vec<usize> = (1..=SPREAD_COMPARISONS).map(|j| j * n / (SPREAD_COMPARISONS + 1)).collect();
     offsets.dedup();
@@ -485,7 +490,8 @@ mod tests {
         // A walk: each query a small step from the last along a turning route.
         let walk: Vec<Vec<f32>> = (0..40).map(|i| unit(i as f32 * 0.05)).collect();
         assert_eq!(why_not_a_walk(&walk), None);
-        assert_eq!(why_not_a_walk(&walk[..3]), None, "too few to tell");
+        assert_eq!(why_not_a_walk(&walk[..4]), None);
+        assert!(why_not_a_walk(&walk[..3]).unwrap().contains("too few"));
         // The same queries in no order (a fixed permutation).
         let shuffled: Vec<Vec<f32>> = (0..40).map(|i| walk[(i * 17) % 40].clone()).collect();
         let why = why_not_a_walk(&shuffled).expect("photos in no order");
