@@ -1,4 +1,5 @@
-//! Commands a user mistypes: an output that names an input, a database path that is a device, a
+//! Commands a user mistypes: an output that names an input (or a file of a source folder, or another
+//! output), a database path that is a device, a
 //! FIFO, a directory or a symlink, read-only inspection of files that are not keyframe databases,
 //! and numbers far out of range. Each must fail fast (within 2 s and 200 MB) with an error that says
 //! what is wrong, and every file involved must keep its bytes (and its kind) afterwards.
@@ -84,7 +85,10 @@ fn an_output_that_is_an_input_is_refused_and_the_input_kept() {
     store(Path::new(&d("k.db")));
     std::fs::write(d("m.tflite"), b"not really a model").unwrap();
     std::fs::create_dir(dir.path().join("seq")).unwrap();
+    image.save(d("seq/0.png")).unwrap();
+    std::fs::write(d("loops.csv"), "0,0\n").unwrap();
     let before = snapshot(dir.path());
+    let source_before = snapshot(&dir.path().join("seq"));
 
     refused(&["embed", &d("frame.png"), "-o", &d("frame.png")], &["frame.png", "destroy"]);
     refused(&["db", "export", &d("k.db"), "-o", &d("k.db")], &["k.db", "destroy"]);
@@ -94,7 +98,20 @@ fn an_output_that_is_an_input_is_refused_and_the_input_kept() {
     let spelled = dir.path().join(".").join("frame.png");
     refused(&["embed", &d("frame.png"), "-o", spelled.to_str().unwrap()], &["destroy"]);
 
+    // A file the source folder holds, or the loop truth.
+    refused(&["replay", &d("seq"), "-o", &d("seq/0.png")], &["seq/0.png", "file of the source folder"]);
+    let (database, queries) = (["--database", &d("seq")], ["--queries", &d("seq")]);
+    refused(&["match", database[0], database[1], queries[0], queries[1], "-o", &d("seq/0.png")], &["source folder"]);
+    let eval = ["eval", database[0], database[1], queries[0], queries[1], "--loops", &d("loops.csv")];
+    refused(&[&eval[..], &["-o", &d("loops.csv")]].concat(), &["loops.csv", "destroy"]);
+    // Two outputs under one name, whether the file exists yet or not.
+    refused(&["replay", &d("seq"), "--db", &d("new.db"), "-o", &d("new.db")], &["--db and -o both name", "new.db"]);
+    refused(&[&eval[..], &["-o", &d("pr.png"), "--plot", &d("pr.png")]].concat(), &["-o and --plot both name"]);
+    let pose_graph = ["pose-graph", "--odometry", &d("o.txt"), "--candidates", &d("c.csv")];
+    refused(&[&pose_graph[..], &["-o", &d("same.png"), "--plot", &d("same.png")]].concat(), &["both name"]);
+
     assert_eq!(snapshot(dir.path()), before, "a refused command changed a file");
+    assert_eq!(snapshot(&dir.path().join("seq")), source_before, "a refused command changed a source file");
 }
 
 #[test]

@@ -192,6 +192,21 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(plot) = &args.plot {
         ecm_lcd::io::output::ensure_png(plot, "--plot")?;
     }
+    // Before anything is opened: no output may be an input, a source's file or the other output.
+    let sources: Vec<&Path> =
+        [&args.source, &args.database, &args.queries].into_iter().flatten().map(PathBuf::as_path).collect();
+    let mut inputs = sources.clone();
+    inputs.extend([&args.loops, &args.groundtruth].into_iter().flatten().map(PathBuf::as_path));
+    inputs.extend(args.source_args.files_read());
+    let outputs: Vec<(&str, &Path)> = [("-o", &args.output), ("--plot", &args.plot)]
+        .into_iter()
+        .filter_map(|(flag, path)| Some((flag, path.as_deref()?)))
+        .collect();
+    for &(_, output) in &outputs {
+        ecm_lcd::io::output::ensure_not_an_input(output, &inputs)?;
+        ecm_lcd::io::output::ensure_not_in_source(output, &sources)?;
+    }
+    ecm_lcd::io::output::ensure_distinct_outputs(&outputs)?;
     let mut pipeline = match (&args.source, &args.loops) {
         (Some(_), None) => pipeline_for_pose_truth(&args.source_args, &args.criteria()?)?,
         _ => args.source_args.pipeline()?,

@@ -42,10 +42,12 @@ pub fn header() -> Vec<String> {
 
 pub fn run(args: Args) -> Result<()> {
     args.source_args.refuse_source_only()?;
-    let inputs: Vec<&Path> =
-        [args.source_args.config.as_deref(), args.source_args.weights.as_deref()].into_iter().flatten().collect();
+    let sources = [args.database.as_path(), args.queries.as_path()];
+    let mut inputs = sources.to_vec();
+    inputs.extend(args.source_args.files_read());
     if let Some(output) = &args.output {
         ecm_lcd::io::output::ensure_not_an_input(output, &inputs)?;
+        ecm_lcd::io::output::ensure_not_in_source(output, &sources)?;
     }
     let mut pipeline = args.source_args.pipeline()?;
     let run = run_database_queries(

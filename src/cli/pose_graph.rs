@@ -60,6 +60,7 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(plot) = &args.plot {
         ensure_not_an_input(plot, &inputs)?;
         ecm_lcd::io::output::ensure_png(plot, "--plot")?;
+        ecm_lcd::io::output::ensure_distinct_outputs(&[("-o", &args.output), ("--plot", plot)])?;
     }
     for (name, value) in [
         ("--robust-scale", args.robust_scale),

@@ -64,6 +64,12 @@ impl SourceArgs {
         params_from(self.config.as_deref(), &self.params)
     }
 
+    /// The files the options name for reading (not the sources, nor `--db`): `--config`,
+    /// `--weights`, `--poses`.
+    pub fn files_read(&self) -> Vec<&Path> {
+        [self.config.as_deref(), self.weights.as_deref(), self.poses.as_deref()].into_iter().flatten().collect()
+    }
+
     /// An error naming the first option given that only a replayed SOURCE uses, for commands that
     /// read a database and queries instead (`--topic` serves both: the image topic of bags;
     /// `--depth-topic` the database's bag).
@@ -115,15 +121,8 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     // Before anything is opened: neither output may be one of the inputs (or the other output).
-    let inputs: Vec<&Path> = [
-        Some(args.source.as_path()),
-        args.source_args.config.as_deref(),
-        args.source_args.weights.as_deref(),
-        args.source_args.poses.as_deref(),
-    ]
-    .into_iter()
-    .flatten()
-    .collect();
+    let mut inputs = vec![args.source.as_path()];
+    inputs.extend(args.source_args.files_read());
     if let Some(db) = &args.source_args.db {
         ecm_lcd::io::output::ensure_not_an_input(db, &inputs)?;
     }
@@ -131,6 +130,10 @@ pub fn run(args: Args) -> Result<()> {
         let mut read = inputs.clone();
         read.extend(args.source_args.db.as_deref());
         ecm_lcd::io::output::ensure_not_an_input(output, &read)?;
+        ecm_lcd::io::output::ensure_not_in_source(output, &[&args.source])?;
+        if let Some(db) = &args.source_args.db {
+            ecm_lcd::io::output::ensure_distinct_outputs(&[("--db", db), ("-o", output)])?;
+        }
     }
     let mut pipeline = args.source_args.pipeline()?;
     let resuming = pipeline.store().is_some_and(|store| !store.is_empty());

@@ -1,11 +1,12 @@
-//! Files a command writes: an output is never one of the command's own inputs, and a whole-file
-//! output replaces a regular file only by rename.
+//! Files a command writes: an output is never one of the command's own inputs, a file its source
+//! folders hold, or another of its outputs, and a whole-file output replaces a regular file only by
+//! rename.
 //!
 //! The input check runs before anything is read or written, so a mistyped `-o` that names an input
 //! (`embed img.jpg -o img.jpg`, `db export k.db -o k.db`) leaves every file as it was.
 
 use std::io::Write as _;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 
@@ -75,8 +76,54 @@ pub fn same_file(a: &Path, b: &Path) -> bool {
     }
 }
 
+/// `path` made absolute without its needing to exist: resolved itself where it exists, else its
+/// folder resolved and its name joined (`None` where neither can be).
+fn resolved(path: &Path) -> Option<PathBuf> {
+    if let Ok(absolute) = path.canonicalize() {
+        return Some(absolute);
+    }
+    let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    Some(folder.canonicalize().ok()?.join(path.file_name()?))
+}
+
+/// Refuses two outputs (each with its flag) that name one file, existing or not: the second one
+/// written would replace the first.
+pub fn ensure_distinct_outputs(outputs: &[(&str, &Path)]) -> Result<()> {
+    for (i, &(flag, path)) in outputs.iter().enumerate() {
+        for &(other_flag, other) in &outputs[i + 1..] {
+            let same = same_file(path, other) || resolved(path).is_some_and(|p| resolved(other) == Some(p));
+            if same {
+                bail!("{flag} and {other_flag} both name {}; each output needs its own file", path.display());
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Refuses `output` when it is an existing image or text file inside one of the `sources` that are
+/// folders: an image the folder replays, or a TUM folder's `rgb.txt`, `depth.txt` or
+/// `groundtruth.txt`. Other files there (a CSV written before) may be replaced.
+pub fn ensure_not_in_source(output: &Path, sources: &[&Path]) -> Result<()> {
+    let read_by_sources = crate::io::tum::has_image_extension(output)
+        || output.extension().is_some_and(|e| e.eq_ignore_ascii_case("txt"));
+    if !read_by_sources || !output.is_file() {
+        return Ok(());
+    }
+    let Some(absolute) = resolved(output) else { return Ok(()) };
+    for source in sources.iter().filter(|s| s.is_dir()) {
+        if source.canonicalize().is_ok_and(|folder| absolute.starts_with(folder)) {
+            bail!(
+                "the output {} is a file of the source folder {}; writing it would destroy the source (choose another output path)",
+                output.display(),
+                source.display()
+            );
+        }
+    }
+    Ok(())
+}
+
 /// Refuses `output` when it is the same file as one of `inputs` (an input that does not exist yet,
-/// or an output that does not, never clashes).
+/// or an output that does not, never clashes: [`ensure_distinct_outputs`] checks outputs).
 pub fn ensure_not_an_input(output: &Path, inputs: &[&Path]) -> Result<()> {
     if let Some(input) = inputs.iter().find(|input| same_file(output, input)) {
         bail!(

@@ -196,6 +196,13 @@ fn load_depth(path: &Path, width: u32, height: u32) -> Result<DepthImage> {
     Ok(DepthImage::from_tum(&depth))
 }
 
+/// Whether `path`'s name ends in an image folder's extension: png, jpg, jpeg or bmp, in any case.
+pub fn has_image_extension(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["png", "jpg", "jpeg", "bmp"].iter().any(|known| e.eq_ignore_ascii_case(known)))
+}
+
 /// The image files (png, jpg, jpeg, bmp; any case) directly inside `dir`, in name order with
 /// numbers compared by value (`frame2` before `frame10`), as cameras and tools that number their
 /// frames without leading zeros mean them; zero-padded names keep their plain order.
@@ -203,8 +210,7 @@ pub(crate) fn image_files_in_name_order(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut paths = Vec::new();
     for entry in fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))? {
         let path = entry.with_context(|| format!("cannot list {}", dir.display()))?.path();
-        let ext = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
-        if path.is_file() && matches!(ext.as_deref(), Some("png" | "jpg" | "jpeg" | "bmp")) {
+        if path.is_file() && has_image_extension(&path) {
             paths.push(path);
         }
     }
