@@ -487,15 +487,23 @@ pub fn param_spec(name: &str) -> Option<&'static ParamSpec> {
     param_specs().iter().find(|spec| spec.name == name)
 }
 
+/// ROS 2's own parameter for the node's clock, which ros2-client serves (not in [`param_specs`]).
+pub const USE_SIM_TIME: &str = "use_sim_time";
+
 /// A complete, validated set of parameter values.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Params {
     values: BTreeMap<&'static str, ParamValue>,
+    /// [`USE_SIM_TIME`] where a params file gave it: the node's clock (offline commands have none).
+    use_sim_time: Option<bool>,
 }
 
 impl Default for Params {
     fn default() -> Self {
-        Params { values: param_specs().iter().map(|spec| (spec.name, spec.default.clone())).collect() }
+        Params {
+            values: param_specs().iter().map(|spec| (spec.name, spec.default.clone())).collect(),
+            use_sim_time: None,
+        }
     }
 }
 
@@ -530,6 +538,13 @@ impl Params {
             for (name, value) in flat {
                 let value = param_value_from_yaml(&value)
                     .with_context(|| format!("parameter `{name}` in node section {key:?}"))?;
+                if name == USE_SIM_TIME {
+                    let ParamValue::Bool(sim) = value else {
+                        anyhow::bail!("`{USE_SIM_TIME}` in node section {key:?} must be true or false, got {value:?}");
+                    };
+                    params.use_sim_time = Some(sim);
+                    continue;
+                }
                 params.set(&name, value).map_err(|reason| anyhow::anyhow!("{reason} (node section {key:?})"))?;
             }
         }
@@ -575,6 +590,11 @@ impl Params {
         let (name, value) =
             assignment.split_once('=').with_context(|| format!("--param {assignment}: expected NAME=VALUE"))?;
         self.set_from_str(name.trim(), value.trim()).map_err(|e| anyhow::anyhow!("--param {assignment}: {e}"))
+    }
+
+    /// [`USE_SIM_TIME`] where a params file gave it.
+    pub fn use_sim_time(&self) -> Option<bool> {
+        self.use_sim_time
     }
 
     /// The current value of a parameter; `None` for an unknown name.

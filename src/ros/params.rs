@@ -12,16 +12,17 @@ use ros2_client::ParameterValue;
 use super::args::RosArgs;
 use crate::config::{param_spec, param_specs, ParamError, ParamValue, Params};
 
-/// The built-in ROS parameter that ros2-client itself serves (not in ecm-lcd's table).
-pub const USE_SIM_TIME: &str = "use_sim_time";
+pub use crate::config::USE_SIM_TIME;
 
 /// The parameter values the node starts with (see the module doc for precedence).
-/// Returns the params and the `use_sim_time` value given with `-p`, if any.
+/// Returns the params and the `use_sim_time` value given in a params file or with `-p`, if any.
 pub fn initial_params(args: &RosArgs, fully_qualified_node_name: &str) -> Result<(Params, Option<bool>)> {
     let mut params = Params::default();
     let defaults = Params::default();
+    let mut use_sim_time = None;
     for path in &args.params_files {
         let loaded = Params::load(path, fully_qualified_node_name)?;
+        use_sim_time = loaded.use_sim_time().or(use_sim_time);
         for spec in param_specs() {
             let value = loaded.get(spec.name);
             if value != defaults.get(spec.name) {
@@ -31,7 +32,6 @@ pub fn initial_params(args: &RosArgs, fully_qualified_node_name: &str) -> Result
             }
         }
     }
-    let mut use_sim_time = None;
     for (name, value) in &args.params {
         if name == USE_SIM_TIME {
             match value {
@@ -137,5 +137,16 @@ mod tests {
         assert_eq!(sim, Some(true));
         args.params = vec![("bogus".into(), ParamValue::Integer(1))];
         assert!(format!("{:#}", initial_params(&args, "/ecm_lcd").unwrap_err()).contains("bogus"));
+        // A params file may give use_sim_time too (launch files for bag replays do); -p wins.
+        let sim_file = dir.path().join("sim.yaml");
+        std::fs::write(&sim_file, "/**:\n  ros__parameters:\n    use_sim_time: false\n").unwrap();
+        let sim_on_command_line = vec![(USE_SIM_TIME.into(), ParamValue::Bool(true))];
+        let both = RosArgs { params_files: vec![sim_file.clone()], params: sim_on_command_line, ..RosArgs::default() };
+        assert_eq!(initial_params(&both, "/ecm_lcd").unwrap().1, Some(true));
+        let from_files = RosArgs { params_files: vec![sim_file.clone()], ..RosArgs::default() };
+        assert_eq!(initial_params(&from_files, "/ecm_lcd").unwrap().1, Some(false));
+        std::fs::write(&sim_file, "/**:\n  ros__parameters:\n    use_sim_time: 1\n").unwrap();
+        let err = format!("{:#}", initial_params(&from_files, "/ecm_lcd").unwrap_err());
+        assert!(err.contains("use_sim_time") && err.contains("true or false"), "{err}");
     }
 }
