@@ -218,7 +218,9 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             name: "input_size",
             kind: ParamKind::Integer,
             default: ParamValue::Integer(224),
-            range: ParamRange::Integer { min: 32, max: 1024, step: 32 },
+            // At 32 the last maps are 1x1 and nearly all zero, so the head's descriptors of different
+            // places coincide.
+            range: ParamRange::Integer { min: 64, max: 1024, step: 32 },
             description: "Square network input side in pixels (a multiple of 32; 224 gives a 7x7 feature map).",
             read_only: true,
         },
@@ -954,6 +956,8 @@ mod tests {
         p.set("input_size", ParamValue::Integer(320)).unwrap();
         let err = p.set("input_size", ParamValue::Integer(300)).unwrap_err().to_string();
         assert!(err.contains("steps of 32"), "{err}");
+        // 32 is a multiple, but the head's descriptors coincide there.
+        assert!(p.set("input_size", ParamValue::Integer(32)).is_err());
         assert_eq!(p.input_size(), 320);
         // Allowed strings.
         let err = p.set("arch", ParamValue::String("resnet".into())).unwrap_err().to_string();
