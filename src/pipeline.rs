@@ -121,6 +121,9 @@ pub struct Pipeline {
     taken_ids: HashSet<u64>,
     /// Depth images that came with a frame of another size, and were left out.
     misfit_depths: u64,
+    /// The newest frame stamp seen, and how many frames since came stamped no later.
+    newest_stamp: Option<Stamp>,
+    stamps_not_advancing: u64,
 }
 
 /// The descriptor as one name, the tap included: the mode's name for the modes on the head (`power`;
@@ -192,6 +195,8 @@ impl Pipeline {
             odometry: OdometryTrack::default(),
             taken_ids: HashSet::new(),
             misfit_depths: 0,
+            newest_stamp: None,
+            stamps_not_advancing: 0,
         };
         log::info!("descriptor {} ({} values)", pipeline.descriptor_name(), pipeline.descriptor.dim());
         Ok(pipeline)
@@ -443,6 +448,7 @@ impl Pipeline {
     }
 
     fn run(&mut self, id: u64, select: bool, input: &Input) -> Result<Outcome> {
+        self.watch_stamps(input.stamp);
         // Every frame with a pose lengthens the tracker's path, keyframe or not.
         let tracked = input.tracker_pose.map(|pose| self.odometry.advance(&pose));
         if select && self.selector.offer(input.stamp) == Verdict::Reject {
@@ -461,6 +467,28 @@ impl Pipeline {
         // scanned in parallel). During a `--db` append (an fsynced transaction) a poller gives up
         // after `runtime::HOT_WORKER_PATIENCE`.
         crate::runtime::with_hot_workers(|| self.describe_and_detect(id, select, input, tracked))
+    }
+
+    /// Selection and the exclusion of recent keyframes go by stamps, so frames whose stamps do not
+    /// advance (all 0 from a tracker on `use_sim_time` with no `/clock`, a bag written without header
+    /// stamps) are mostly dropped or never matched: the first and every hundredth is named in the log.
+    fn watch_stamps(&mut self, stamp: Stamp) {
+        match self.newest_stamp {
+            Some(newest) if stamp <= newest => {
+                self.stamps_not_advancing += 1;
+                if self.stamps_not_advancing % 100 == 1 {
+                    log::warn!(
+                        "a frame stamped {stamp} came after one stamped {newest}: keyframe selection \
+                         (selection.min_period) and the exclusion of recent keyframes \
+                         (detector.exclude_recent.seconds) go by stamps, so frames that do not advance are \
+                         mostly dropped or never matched ({} such frames so far; a tracker on use_sim_time \
+                         without /clock stamps 0)",
+                        self.stamps_not_advancing
+                    );
+                }
+            }
+            _ => self.newest_stamp = Some(stamp),
+        }
     }
 
     /// A depth image of another size than its colour image cannot be registered to it (another
@@ -585,6 +613,11 @@ impl Pipeline {
             })?;
         }
         Ok(outcome)
+    }
+
+    /// How many frames came stamped no later than a frame before them ([`Pipeline::watch_stamps`]).
+    pub fn stamps_not_advancing(&self) -> u64 {
+        self.stamps_not_advancing
     }
 
     /// Whether [`Outcome::best_verified`] is worked out when the best match is not a candidate (on by

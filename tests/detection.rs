@@ -122,6 +122,27 @@ fn a_real_office_never_seen_is_not_reported_at_the_default_threshold() {
     }
 }
 
+/// Frames whose stamps do not advance (a tracker on `use_sim_time` with no `/clock` stamps them all
+/// 0) are counted (and named in the log): selection keeps the first of them only, and nothing is
+/// matched. Frames stamped in order count none.
+#[test]
+fn frames_whose_stamps_do_not_advance_are_counted() {
+    let fr2 = images_in_name_order(&support::shared_dir().join("data/tum/fr2_desk/rgb")).unwrap();
+    let images: Vec<_> = fr2.iter().take(5).map(|p| ecm_lcd::preprocess::read_image(p).unwrap()).collect();
+    for (step, not_advancing, keyframes) in [(0, 4, 1), (1_000_000_000, 0, 5)] {
+        let mut pipeline = Pipeline::with_weights(Params::default(), weights()).unwrap();
+        let kept = images
+            .iter()
+            .enumerate()
+            .filter(|(i, image)| {
+                let stamp = ecm_lcd::types::Stamp::from_nanos(*i as i64 * step);
+                pipeline.process_counted(stamp, image).unwrap().keyframe.is_some()
+            })
+            .count();
+        assert_eq!((pipeline.stamps_not_advancing(), kept), (not_advancing, keyframes), "step {step} ns");
+    }
+}
+
 /// The same real frames one every 2 s (a slower camera, 34 s in all). By `eval`'s default truth (20 s
 /// apart) only the second pass's last queries revisit; the others see places 16 s old or younger, no
 /// loops by that rule. A detector that looks back further (`detector.exclude_recent.seconds` 10, the

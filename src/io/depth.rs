@@ -8,8 +8,9 @@
 //!   [`DEPTH_ASSOCIATION`] (TUM's `associate.py` rule, as for TUM folders); otherwise it has none.
 //! - Bags are read in record order, and a depth message can be recorded after the colour frame it
 //!   belongs to, so a frame is held back until a depth message stamped past its window arrives, a
-//!   colour frame [`MAX_HOLD`] newer arrives, or the bag ends. Depth messages are kept only while a
-//!   held or future frame could still take them, so memory stays bounded by that lag.
+//!   colour frame [`MAX_HOLD`] newer arrives, [`MAX_HELD_FRAMES`] frames wait behind it (colour
+//!   stamps that do not advance: all 0, or repeated), or the bag ends. Depth messages are kept only
+//!   while a held or future frame could still take them, so memory stays bounded by that lag.
 
 use std::collections::VecDeque;
 
@@ -26,6 +27,9 @@ pub const MAX_HOLD: Stamp = Stamp::from_nanos(1_000_000_000);
 
 /// Depth messages kept at most while no colour frame arrives (a bag whose colour topic stops).
 const MAX_KEPT_DEPTHS: usize = 64;
+
+/// Colour frames held at most, whatever their stamps say (module doc).
+pub const MAX_HELD_FRAMES: usize = 64;
 
 /// Millimetres per metre in `16UC1` depth images.
 const UNITS_PER_METRE_16UC1: f32 = 1000.0;
@@ -156,6 +160,7 @@ impl<S: MessageSource> DepthPaired<S> {
         let window_end = front.stamp.nanos.saturating_add(DEPTH_ASSOCIATION.nanos);
         !self.paired
             || self.ended
+            || self.pending.len() > MAX_HELD_FRAMES
             || self.depths.back().is_some_and(|(stamp, _)| stamp.nanos > window_end)
             || self.newest_colour.is_some_and(|s| s.nanos.saturating_sub(front.stamp.nanos) > MAX_HOLD.nanos)
     }
@@ -319,6 +324,12 @@ mod tests {
         assert_eq!(first.index, 0);
         assert!(source.pending.len() <= (MAX_HOLD.nanos / ms(100).nanos) as usize + 1, "{}", source.pending.len());
         assert_eq!(source.count(), 99);
+        // Colour stamps that never advance (all 0): held by count instead, each frame still out.
+        let stuck = (0..1000).map(|i| Ok(colour(i, Stamp::default()))).collect::<Vec<_>>();
+        let mut source = DepthPaired::new(Scripted(stuck.into_iter()), true);
+        assert_eq!(source.next().unwrap().unwrap().index, 0);
+        assert!(source.pending.len() <= MAX_HELD_FRAMES, "{}", source.pending.len());
+        assert_eq!(source.count(), 999);
     }
 
     #[test]
