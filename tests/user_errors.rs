@@ -338,3 +338,25 @@ fn repeated_and_decreasing_stamps_are_warned_with_counts() {
     assert!(out.status.success(), "{err}");
     assert!(err.contains("1 stamp(s) repeat") && err.contains("1 go back in time"), "{err}");
 }
+
+/// Durations the ROS helper commands take that no duration holds (negative, infinite, or a rate so
+/// low that its period overflows) are refused, naming the option, before any DDS participant starts.
+/// They run in a private network namespace all the same, should one start.
+#[test]
+fn durations_out_of_range_are_refused_before_any_participant_starts() {
+    let bag = Path::new(env!("CARGO_MANIFEST_DIR")).join("bags/sample_loop.bag");
+    let bag = bag.to_str().unwrap();
+    let exe = Path::new(env!("CARGO_BIN_EXE_ecm-lcd"));
+    for (args, expected) in [
+        (&["listen", "--idle-timeout=-1"][..], "--idle-timeout"),
+        (&["listen", "--wait-publisher", "inf"], "--wait-publisher"),
+        (&["param", "--timeout", "1e30", "get", "/ecm_lcd", "detector.min_score"], "--timeout"),
+        (&["play-keyframes", bag, "--rate", "1e-300"], "1 / --rate"),
+        (&["play-keyframes", bag, "--linger", "inf"], "--linger"),
+    ] {
+        let out = ecm_lcd::ros::netns::private_netns_command(exe).args(args).env("RUST_LOG", "warn").output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?}:\n{err}");
+        assert!(err.contains(expected) && err.contains("seconds"), "{args:?}: {expected:?} not in:\n{err}");
+    }
+}

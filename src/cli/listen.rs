@@ -28,10 +28,12 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<()> {
+    let wait_publisher = args.wait_publisher.map(|wait| super::seconds_arg("--wait-publisher", wait)).transpose()?;
+    let idle_timeout = args.idle_timeout.map(|idle| super::seconds_arg("--idle-timeout", idle)).transpose()?;
     let context = ros2_client::Context::new().context("creating the DDS participant")?;
     let listener = CandidateListener::new(&context, &args.topic)?;
-    if let Some(wait) = args.wait_publisher {
-        if !listener.wait_for_publisher(Duration::from_secs_f64(wait.max(0.0))) {
+    if let (Some(wait), Some(waiting)) = (args.wait_publisher, wait_publisher) {
+        if !listener.wait_for_publisher(waiting) {
             anyhow::bail!("no publisher on {} after {wait} s", args.topic);
         }
         log::info!("matched a publisher on {}", args.topic);
@@ -53,7 +55,7 @@ pub fn run(args: Args) -> Result<()> {
                 return Ok(());
             }
         }
-        if args.idle_timeout.is_some_and(|t| last.elapsed() >= Duration::from_secs_f64(t)) {
+        if idle_timeout.is_some_and(|t| last.elapsed() >= t) {
             log::info!("no candidate for {} s; received {received}", args.idle_timeout.unwrap_or_default());
             return Ok(());
         }

@@ -74,6 +74,13 @@ pub enum Command {
     TrainPlace(train_place::Args),
 }
 
+/// `seconds` as a duration, refused naming `flag` where it is negative, not a number, or longer than a
+/// duration holds (a plain conversion would panic).
+fn seconds_arg(flag: &str, seconds: f64) -> anyhow::Result<std::time::Duration> {
+    std::time::Duration::try_from_secs_f64(seconds)
+        .map_err(|_| anyhow::anyhow!("{flag} must be a number of seconds from 0 up, got {seconds}"))
+}
+
 /// Parses the command line, runs the command and turns an error into one line on stderr.
 pub fn main() -> ExitCode {
     let cli = Cli::parse();

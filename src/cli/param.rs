@@ -5,7 +5,6 @@
 //! carries the node's reason (exit status 1).
 
 use anyhow::{bail, Context as _, Result};
-use std::time::Duration;
 
 use ecm_lcd::ros::args::parse_param_value;
 use ecm_lcd::ros::params::{from_ros, to_ros};
@@ -38,10 +37,10 @@ pub enum Action {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    if !(args.timeout.is_finite() && args.timeout > 0.0) {
+    if args.timeout.is_nan() || args.timeout <= 0.0 {
         bail!("--timeout must be a positive number of seconds, got {}", args.timeout);
     }
-    let timeout = Duration::from_secs_f64(args.timeout);
+    let timeout = super::seconds_arg("--timeout", args.timeout)?;
     let context = ros2_client::Context::new().context("creating the DDS participant")?;
     match args.action {
         Action::Get { node, name } => {

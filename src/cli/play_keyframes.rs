@@ -6,7 +6,7 @@
 
 use anyhow::{Context as _, Result};
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use ecm_lcd::io::tum::TrackerPoses;
 use ecm_lcd::ros::msgs::Pose;
@@ -62,6 +62,8 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     anyhow::ensure!(args.rate > 0.0 && args.rate.is_finite(), "--rate must be a positive number, got {}", args.rate);
+    let period = super::seconds_arg("the period 1 / --rate", 1.0 / args.rate)?;
+    let (wait, linger) = (super::seconds_arg("--wait", args.wait)?, super::seconds_arg("--linger", args.linger)?);
     let topics =
         ecm_lcd::io::Topics { image: args.bag_topic.clone(), depth: args.bag_depth_topic.clone(), poses: None };
     let source = ecm_lcd::io::open_source_topics(&args.source, &topics)
@@ -81,10 +83,9 @@ pub fn run(args: Args) -> Result<()> {
         publisher.add_depth_topic(depth_topic, args.qos)?;
     }
     log::info!("publishing {} on {topic} as {:?} at {} Hz", source.describe(), args.send_as, args.rate);
-    if !publisher.wait_for_subscriber(Duration::from_secs_f64(args.wait.max(0.0))) {
+    if !publisher.wait_for_subscriber(wait) {
         log::warn!("no subscriber on {topic} after {} s; publishing anyway", args.wait);
     }
-    let period = Duration::from_secs_f64(1.0 / args.rate);
     let start = Instant::now();
     let mut published = 0usize;
     for frame in source.skip(args.start).take(args.limit.unwrap_or(usize::MAX)) {
@@ -98,7 +99,7 @@ pub fn run(args: Args) -> Result<()> {
         log::debug!("published frame {} stamp {}", frame.index, frame.stamp);
         published += 1;
     }
-    std::thread::sleep(Duration::from_secs_f64(args.linger.max(0.0)));
+    std::thread::sleep(linger);
     log::info!("published {published} frames on {topic}");
     if let Some(poses) = &poses {
         poses.report(published);
