@@ -110,6 +110,11 @@ fn an_output_that_is_an_input_is_refused_and_the_input_kept() {
     let pose_graph = ["pose-graph", "--odometry", &d("o.txt"), "--candidates", &d("c.csv")];
     refused(&[&pose_graph[..], &["-o", &d("same.png"), "--plot", &d("same.png")]].concat(), &["both name"]);
 
+    // synth writes new bags only, and checks before it renders anything.
+    refused(&["synth", "-o", &d("synth"), "--frames", "4", "--ros1-bag", &d("k.db")], &["k.db", "already exists"]);
+    refused(&["synth", "-o", &d("synth"), "--frames", "4", "--ros2-bag", &d("seq")], &["already exists"]);
+    assert!(!dir.path().join("synth").exists(), "a refused synth wrote its folder");
+
     assert_eq!(snapshot(dir.path()), before, "a refused command changed a file");
     assert_eq!(snapshot(&dir.path().join("seq")), source_before, "a refused command changed a source file");
 }

@@ -102,6 +102,17 @@ pub fn run(args: Args) -> Result<()> {
     if args.output.join("rgb.txt").exists() {
         bail!("{} already holds a sequence (rgb.txt); choose an empty folder", args.output.display());
     }
+    // Before anything is written: a bag is always new, in a folder that exists.
+    for (flag, bag) in [("--ros1-bag", &args.ros1_bag), ("--ros2-bag", &args.ros2_bag)] {
+        let Some(bag) = bag else { continue };
+        if bag.exists() {
+            bail!("{flag} {} already exists; synth writes a new bag (choose another path)", bag.display());
+        }
+        let folder = bag.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+        if !folder.is_dir() {
+            bail!("{flag} {}: the folder {} does not exist", bag.display(), folder.display());
+        }
+    }
     let base = match args.preset {
         Preset::Easy => SynthConfig::default(),
         Preset::Hard => SynthConfig::hard(),
