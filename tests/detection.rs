@@ -603,12 +603,13 @@ fn match_keeps_the_queries_before_a_source_breaks_off() {
     let written = std::fs::read_to_string(d("m.csv")).unwrap();
     assert_eq!(written.lines().count(), 1 + 5, "{written}");
     assert!(written.lines().skip(1).enumerate().all(|(i, line)| line.starts_with(&format!("{i},{i}.png,"))));
-    // eval, as for a replay that broke off, scores the queries read against the truth cut to them.
+    // eval, as for a replay that broke off, scores the queries read against the truth cut to them,
+    // prints the figures, then fails naming the damage.
     std::fs::write(d("loops.csv"), (0..8).map(|i| format!("{i},{i}\n")).collect::<String>()).unwrap();
     let out = ecm_lcd(&["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv"), "--json"]);
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["queries"], 5, "{json}");
+    failed(out, &["broke off after 5 frames", "the figures above count the 5 read before"]);
 
     std::fs::write(d("m.csv"), "kept").unwrap();
     cut(d("db/3.png"));

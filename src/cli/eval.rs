@@ -231,7 +231,10 @@ pub fn run(args: Args) -> Result<()> {
         }
         truth.check_within(run.query_stamps.len(), references)?;
         run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params())?;
-        return Ok(());
+        return match &run.error {
+            Some(error) => Err(broke_off(error, run.results.len())),
+            None => Ok(()),
+        };
     }
     let Some(source) = &args.source else { bail!("give a SOURCE to replay, or --database and --queries") };
     let run = run_source(&mut pipeline, source, &args.source_args.topics(), !args.source_args.quiet)?;
@@ -247,7 +250,17 @@ pub fn run(args: Args) -> Result<()> {
     let mut timings = run.mean_timings();
     timings.push(("wall_s", run.wall_secs));
     run_with_results(&args, &truth, &results, &timings, pipeline.params())?;
-    Ok(())
+    match &run.error {
+        Some(error) => Err(broke_off(error, run.frames)),
+        None => Ok(()),
+    }
+}
+
+/// The error of a run whose source broke off after `read` frames or queries, once their figures are
+/// out: the command fails, as a replay or `match` does, so that a script does not take a part for
+/// the whole.
+fn broke_off(error: &dyn std::fmt::Display, read: usize) -> anyhow::Error {
+    anyhow::anyhow!("{error} (the figures above count the {read} read before)")
 }
 
 /// The pipeline of `source_args` for scoring against loop truth from poses under `criteria`: it does
