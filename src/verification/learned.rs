@@ -29,13 +29,21 @@ pub const MIN_COSINE: f32 = 0.82;
 /// Quantisation of unit features to `i8`.
 const SCALE: f32 = 127.0;
 
+/// ... and never taller than this: a thin image scaled to the minimum width would otherwise ask for
+/// gigabytes (a 1x10000 image, 320 wide, would be 3.2 million rows).
+pub const MAX_INPUT_HEIGHT: u32 = 4 * MAX_INPUT_WIDTH;
+
 /// The network's input size for an image of `size` (width, height): scaled to at most
-/// [`MAX_INPUT_WIDTH`] and at least [`MIN_INPUT_WIDTH`] wide, each side cut down to a multiple of 32.
+/// [`MAX_INPUT_WIDTH`] and at least [`MIN_INPUT_WIDTH`] wide, but at most [`MAX_INPUT_HEIGHT`] tall,
+/// each side cut down to a multiple of 32.
 pub fn input_size(size: [u32; 2]) -> [u32; 2] {
     if size[0] == 0 || size[1] == 0 {
         return [0, 0];
     }
-    let scale = (MAX_INPUT_WIDTH as f64 / size[0] as f64).min(1.0).max(MIN_INPUT_WIDTH as f64 / size[0] as f64);
+    let scale = (MAX_INPUT_WIDTH as f64 / size[0] as f64)
+        .min(1.0)
+        .max(MIN_INPUT_WIDTH as f64 / size[0] as f64)
+        .min(MAX_INPUT_HEIGHT as f64 / size[1] as f64);
     let cut = |side: u32| ((side as f64 * scale) as u32) / SIDE_MULTIPLE as u32 * SIDE_MULTIPLE as u32;
     [cut(size[0]), cut(size[1])]
 }
@@ -224,6 +232,11 @@ mod tests {
         assert_eq!(input_size([320, 240]), [320, 224]);
         assert_eq!(input_size([64, 48]), [320, 224]);
         assert_eq!(input_size([160, 120]), [320, 224]);
+        // Thin or tall images stay within the height bound (too thin for any cell: no input).
+        assert_eq!(input_size([1, 10_000]), [0, 2560]);
+        assert_eq!(input_size([640, 100_000]), [0, 2560]);
+        assert_eq!(input_size([100, 10_000]), [0, 2560]);
+        assert_eq!(input_size([480, 800]), [480, 800]);
         assert_eq!(input_size([0, 20]), [0, 0]);
         assert!((input_scale([960, 540]) - 540.0 / 352.0).abs() < 1e-9);
         assert_eq!(input_scale([640, 480]), 1.0);
