@@ -22,13 +22,17 @@ use crate::io::msgs::{CompressedImage, Image};
 
 /// Reads an image file of any supported format (PNG, JPEG, BMP) as RGB.
 pub fn read_image(path: &Path) -> Result<RgbImage> {
+    Ok(open_image(path)?.into_rgb8())
+}
+
+/// Decodes the image file `path` as it is, its format told by its bytes rather than its name (a PNG
+/// named `.jpg` is read as the PNG it is).
+pub fn open_image(path: &Path) -> Result<image::DynamicImage> {
     let reader = image::ImageReader::open(path)
         .with_context(|| format!("cannot open image {}", path.display()))?
         .with_guessed_format()
         .with_context(|| format!("cannot read image {}", path.display()))?;
-    let image =
-        reader.decode().map_err(image_error).with_context(|| format!("{} is not a readable image", path.display()))?;
-    Ok(image.into_rgb8())
+    reader.decode().map_err(image_error).with_context(|| format!("{} is not a readable image", path.display()))
 }
 
 /// `(p - 128) / 128` for every byte value.
@@ -121,6 +125,17 @@ impl Preprocessor {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_image_is_read_as_its_bytes_say_whatever_its_name() {
+        let dir = tempfile::tempdir().unwrap();
+        let image = RgbImage::from_fn(8, 6, |x, y| image::Rgb([x as u8 * 30, y as u8 * 40, 7]));
+        let png = dir.path().join("frame.png");
+        image.save(&png).unwrap();
+        let misnamed = dir.path().join("FRAME.JPG");
+        std::fs::rename(&png, &misnamed).unwrap();
+        assert_eq!(read_image(&misnamed).unwrap(), image);
+    }
 
     #[test]
     fn constant_image_maps_to_its_normalised_value() -> Result<()> {

@@ -180,9 +180,8 @@ fn associate_depth(entries: &mut [ImageEntry], depths: Vec<(String, Stamp, PathB
 
 /// Reads a TUM 16-bit depth PNG; it must have the colour image's size.
 fn load_depth(path: &Path, width: u32, height: u32) -> Result<DepthImage> {
-    let image = image::open(path)
-        .map_err(crate::io::image_msg::image_error)
-        .with_context(|| format!("cannot decode depth image {}", path.display()))?;
+    let image =
+        crate::preprocess::open_image(path).with_context(|| format!("cannot decode depth image {}", path.display()))?;
     let image::DynamicImage::ImageLuma16(depth) = image else {
         bail!("depth image {} is not a 16-bit grayscale PNG (TUM depth: 5000 units per metre)", path.display());
     };
@@ -225,8 +224,7 @@ impl Iterator for ImageFilesSource {
         let entry = self.entries.get(self.next)?;
         let index = self.next;
         self.next += 1;
-        let loaded = image::open(&entry.path)
-            .map_err(crate::io::image_msg::image_error)
+        let loaded = crate::preprocess::open_image(&entry.path)
             .with_context(|| format!("{}: cannot decode image {}", entry.origin, entry.path.display()));
         let frame = loaded.and_then(|img| {
             let image = img.into_rgb8();
