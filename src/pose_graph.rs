@@ -117,7 +117,20 @@ pub struct PoseGraphResult {
     pub loops: Vec<(usize, usize, f64)>,
     /// Loops whose keyframes have no odometry pose within the stamp tolerance (not used).
     pub unmatched_loops: usize,
+    /// Loops that cannot be a relative pose within this map (not used, [`plausible`]).
+    pub implausible_loops: usize,
     pub nodes: usize,
+}
+
+/// Whether `constraint` can be a relative pose between two cameras of a map whose odometry spans
+/// `extent` (the farthest any pose is from the first): finite, and a metric translation no longer than
+/// twice the extent plus one unit (the odometry's scale may be off). A loop far beyond that (a
+/// corrupted row, a stray unit) would set the robust kernel's first scale and drag the whole map
+/// before the kernel could reject it.
+fn plausible(constraint: &LoopConstraint, extent: f64) -> bool {
+    let relative = &constraint.relative;
+    let finite = relative.translation.vector.iter().chain(relative.rotation.coords.iter()).all(|v| v.is_finite());
+    finite && (!constraint.metric || relative.translation.vector.norm() <= 2.0 * extent + 1.0)
 }
 
 /// Most rounds of reweighting in stage two (positions), which stops sooner once the kernel's scale is
@@ -221,6 +234,10 @@ pub fn optimise(
     let index_of = |stamp: Stamp| nearest_stamp(&stamps, stamp, max_offset);
     let mut tied: Vec<(usize, usize, LoopConstraint)> = Vec::new();
     let mut unmatched_loops = 0;
+    let first = odometry[0].1.translation.vector;
+    let extent = odometry.iter().map(|(_, pose)| (pose.translation.vector - first).norm()).fold(0.0, f64::max);
+    let (loops, implausible): (Vec<&LoopConstraint>, Vec<&LoopConstraint>) =
+        loops.iter().partition(|constraint| plausible(constraint, extent));
     for constraint in loops {
         match (index_of(constraint.query_stamp), index_of(constraint.match_stamp)) {
             (Some(q), Some(m)) if q != m => tied.push((q, m, *constraint)),
@@ -370,7 +387,7 @@ pub fn optimise(
         trajectory.push((*stamp, estimate[k] * (odometry[node].1.inverse() * pose)));
     }
     let loops = tied.iter().zip(&weights).map(|(&(q, m, _), &w)| (q, m, w)).collect();
-    Ok(PoseGraphResult { trajectory, loops, unmatched_loops, nodes: nodes.len() })
+    Ok(PoseGraphResult { trajectory, loops, unmatched_loops, implausible_loops: implausible.len(), nodes: nodes.len() })
 }
 
 #[cfg(test)]
@@ -433,6 +450,26 @@ mod tests {
         let (_, _, false_weight) = *result.loops.last().unwrap();
         assert!(false_weight < 0.1, "the false loop keeps weight {false_weight}");
         assert!(result.loops[..result.loops.len() - 1].iter().all(|&(_, _, w)| w > 0.5), "{:?}", result.loops);
+    }
+
+    /// Loops that cannot be relative poses within the map (a corrupted row: a translation of 1e15, or
+    /// not finite) are left out and counted; the map is corrected as without them.
+    #[test]
+    fn loops_far_beyond_the_map_are_left_out() {
+        let truth = circle(120);
+        let odometry = drifted(&truth);
+        let loops: Vec<LoopConstraint> = (60..120).step_by(4).map(|q| true_loop(&truth, q, q - 60)).collect();
+        let params = PoseGraphParams { max_nodes: 60, ..PoseGraphParams::default() };
+        let clean = optimise(&odometry, &loops, &params).unwrap();
+        let mut corrupted = loops.clone();
+        for bad in [1e15, f64::NAN] {
+            let mut row = true_loop(&truth, 90, 30);
+            row.relative.translation.vector.x = bad;
+            corrupted.push(row);
+        }
+        let result = optimise(&odometry, &corrupted, &params).unwrap();
+        assert_eq!((result.implausible_loops, clean.implausible_loops), (2, 0));
+        assert_eq!(result.trajectory, clean.trajectory);
     }
 
     /// A monocular tracker's loops: rotation and translation direction, no length.

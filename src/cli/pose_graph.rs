@@ -97,6 +97,13 @@ pub fn run(args: Args) -> Result<()> {
             params.max_stamp_offset_s
         );
     }
+    if result.implausible_loops > 0 {
+        log::warn!(
+            "{} loops are no relative pose within this map (not finite, or metric and longer than twice the \
+             odometry's extent); not used",
+            result.implausible_loops
+        );
+    }
     write_trajectory(&args.output, &result.trajectory)?;
     let kept = result.loops.iter().filter(|&&(_, _, w)| w >= 0.5).count();
     let groundtruth = match &args.groundtruth {
@@ -150,6 +157,7 @@ pub fn run(args: Args) -> Result<()> {
             "loops_up_to_scale": up_to_scale,
             "loops_not_used": left_out,
             "loops_unmatched": result.unmatched_loops,
+            "loops_implausible": result.implausible_loops,
             "seconds": seconds,
             "ate_rmse_before_m": errors.as_ref().map(|(b, _)| b.rmse),
             "ate_rmse_after_m": errors.as_ref().map(|(_, a)| a.rmse),
