@@ -82,12 +82,31 @@ pub struct CameraInfo {
 }
 
 impl CameraInfo {
-    /// The pinhole intrinsics of `k`, or `None` for an uncalibrated camera (driver convention: `k`
-    /// all zero) or values that are not a usable calibration. Distortion is not modelled: geometric
+    /// The pinhole intrinsics of the images published beside this message, or `None` for an
+    /// uncalibrated camera (driver convention: `k` all zero) or values that are not a usable
+    /// calibration. `k` is the full sensor's; as ROS defines the message (and image_geometry reads
+    /// it), the images are its region of interest (`roi`, offsets in full-sensor pixels; all zero: the
+    /// whole sensor) binned by `binning_x`, `binning_y` (0 or 1: none), so the principal point moves by
+    /// the offsets and every value is divided by the binning. Distortion is not modelled: geometric
     /// verification's pixel tolerance absorbs the mild distortion of common RGB-D cameras.
     pub fn intrinsics(&self) -> Option<crate::verification::Intrinsics> {
         let [fx, _, cx, _, fy, cy, _, _, _] = self.k;
         let usable = [fx, fy, cx, cy].iter().all(|v| v.is_finite()) && fx > 0.0 && fy > 0.0;
-        usable.then_some(crate::verification::Intrinsics { fx, fy, cx, cy })
+        let (bx, by) = (self.binning_x.max(1) as f64, self.binning_y.max(1) as f64);
+        let (x0, y0) = (self.roi.x_offset as f64, self.roi.y_offset as f64);
+        usable.then_some(crate::verification::Intrinsics {
+            fx: fx / bx,
+            fy: fy / by,
+            cx: (cx - x0) / bx,
+            cy: (cy - y0) / by,
+        })
+    }
+
+    /// The size of the images published beside this message (their region of interest, binned), or
+    /// `None` where the message gives none.
+    pub fn image_size(&self) -> Option<[u32; 2]> {
+        let roi = |side: u32, full: u32| if side > 0 { side } else { full };
+        let (width, height) = (roi(self.roi.width, self.width), roi(self.roi.height, self.height));
+        (width > 0 && height > 0).then(|| [width / self.binning_x.max(1), height / self.binning_y.max(1)])
     }
 }
