@@ -690,6 +690,15 @@ fn bad_sources_give_clear_errors_and_truncated_bags_report_what_was_read() {
     let out = ecm_lcd(&["replay", junk.to_str().unwrap(), "--quiet", "-o", csv.to_str().unwrap()]);
     assert_clean_failure(&out, &["junk.bag"]);
     assert!(std::fs::read(&csv).unwrap() == earlier, "a source that cannot be read replaced the earlier CSV");
+    // ... also where the source opens but its first frame is unreadable, and the summary says so.
+    let first_cut = dir.path().join("first_cut");
+    std::fs::create_dir_all(&first_cut).unwrap();
+    std::fs::write(first_cut.join("0.png"), std::fs::read(&junk).unwrap()).unwrap();
+    let out = ecm_lcd(&["replay", first_cut.to_str().unwrap(), "--quiet", "-o", csv.to_str().unwrap()]);
+    assert_clean_failure(&out, &["broke off after 0 frames", "the output was left as it was"]);
+    assert!(std::fs::read(&csv).unwrap() == earlier, "an unreadable first frame replaced the earlier CSV");
+    let summary = String::from_utf8_lossy(&out.stderr);
+    assert!(summary.contains("0 frames") && !summary.contains("; wrote"), "{summary}");
 
     // A TUM folder whose rgb.txt names a missing image.
     let tum = dir.path().join("tum");

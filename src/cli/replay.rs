@@ -193,7 +193,7 @@ pub fn run(args: Args) -> Result<()> {
         t.network_ms,
         t.descriptor_ms,
         t.detector_ms,
-        args.output.as_ref().map(|p| format!("; wrote {}", p.display())).unwrap_or_default()
+        args.output.as_ref().filter(|_| !untouched).map(|p| format!("; wrote {}", p.display())).unwrap_or_default()
     );
     if let Some(why) = run.why_nothing_could_match(pipeline.params()) {
         log::warn!("{}: {why}", args.source.display());
