@@ -28,6 +28,9 @@ use anyhow::{bail, Result};
 use image::RgbImage;
 use nalgebra::Isometry3;
 
+/// The most frames one sequence may have (over 9 hours at 30 Hz): its poses are kept in memory.
+pub const MAX_FRAMES: usize = 1_000_000;
+
 /// What to render.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SynthConfig {
@@ -222,6 +225,14 @@ impl Scene {
         }
         if config.start_stamp.nanos < 0 || config.start_stamp.nanos % 1000 != 0 {
             bail!("start stamp {} must be non-negative and a whole number of microseconds", config.start_stamp);
+        }
+        if config.frames > MAX_FRAMES {
+            bail!("{} frames are more than the {MAX_FRAMES} a synthetic sequence holds", config.frames);
+        }
+        // The last stamp must still be a stamp (nanoseconds in an i64: until the year 2262).
+        let last_secs = config.start_stamp.nanos as f64 / 1e9 + (config.frames - 1) as f64 / config.rate_hz;
+        if last_secs >= i64::MAX as f64 / 1e9 {
+            bail!("{} frames at {} Hz run past the last stamp a timestamp holds", config.frames, config.rate_hz);
         }
         config.difficulty.check()?;
         let d = &config.difficulty;
@@ -515,5 +526,9 @@ mod tests {
         assert!(Scene::new(SynthConfig { laps: 0, ..small(1) }).is_err());
         assert!(Scene::new(SynthConfig { width: 2, ..small(1) }).is_err());
         assert!(Scene::new(SynthConfig { rate_hz: f64::NAN, ..small(1) }).is_err());
+        // Too many frames to hold, or stamps past what a timestamp holds.
+        assert!(Scene::new(SynthConfig { frames: MAX_FRAMES + 1, ..small(1) }).is_err());
+        assert!(Scene::new(SynthConfig { frames: 100, rate_hz: 1e-9, ..small(1) }).is_err());
+        assert!(Scene::new(SynthConfig { frames: MAX_FRAMES, ..small(1) }).is_ok());
     }
 }
