@@ -38,6 +38,11 @@ fn pipeline(overrides: &[(&str, &str)]) -> Pipeline {
 /// Every eligible top-1 match becomes a candidate (`min_score` 0), so verification alone decides.
 const PERMISSIVE: (&str, &str) = ("detector.min_score", "0");
 
+/// The desk orbit's ten frames (one revisit, frame 9 of frame 0): searched from the third frame on,
+/// skipping only the three newest (no stamps: an image folder).
+const ORBIT_RECENCY: [(&str, &str); 3] =
+    [("detector.min_history", "2"), ("detector.exclude_recent.count", "3"), ("detector.exclude_recent.seconds", "0")];
+
 /// The TUM fr3 two-pass sequence (frames one second apart) written into `dir`, its frame count, and
 /// the parameters that verify it with every top-1 match a candidate.
 fn two_pass(dir: &Path) -> (PathBuf, usize, [(&'static str, &'static str); 5]) {
@@ -56,11 +61,7 @@ fn two_pass(dir: &Path) -> (PathBuf, usize, [(&'static str, &'static str); 5]) {
 #[test]
 fn the_orbit_revisit_is_verified_and_the_wrong_matches_are_not() {
     let orbit = shared().join("data/real/tum_fr3_desk_orbit");
-    let recency = [
-        ("detector.min_history", "2"),
-        ("detector.exclude_recent.count", "3"),
-        ("detector.exclude_recent.seconds", "0"),
-    ];
+    let recency = ORBIT_RECENCY;
     let mut unverified = pipeline(&[recency[0], recency[1], recency[2], PERMISSIVE, ("verification.mode", "off")]);
     let appearance = run_source(&mut unverified, &orbit.join("rgb"), &Default::default(), false).unwrap();
     assert!(appearance.candidates.len() >= 4, "{:?}", appearance.candidates);
@@ -303,12 +304,7 @@ fn camera_info_turns_verification_on_in_auto_mode_only() {
     // verify.
     let orbit = shared().join("data/real/tum_fr3_desk_orbit/rgb");
     let frames: Vec<_> = ecm_lcd::eval::images_in_name_order(&orbit).unwrap();
-    let mut late = pipeline(&[
-        ("detector.min_history", "2"),
-        ("detector.exclude_recent.count", "3"),
-        ("detector.exclude_recent.seconds", "0"),
-        PERMISSIVE,
-    ]);
+    let mut late = pipeline(&[&ORBIT_RECENCY[..], &[PERMISSIVE]].concat());
     let mut reported = Vec::new();
     for (i, path) in frames.iter().enumerate() {
         if i == 1 {
@@ -333,13 +329,7 @@ fn a_depth_image_of_another_size_is_left_out_and_a_taken_id_is_refused() {
     let images: Vec<_> = frames.iter().map(|path| ecm_lcd::preprocess::read_image(path).unwrap()).collect();
     let misfit = DepthImage { width: 320, height: 240, metres: vec![1.5; 320 * 240] };
     let run = |depth: Option<&DepthImage>| {
-        let mut pipeline = pipeline(&[
-            ("camera.preset", "tum_fr3"),
-            ("detector.min_history", "2"),
-            ("detector.exclude_recent.count", "3"),
-            ("detector.exclude_recent.seconds", "0"),
-            PERMISSIVE,
-        ]);
+        let mut pipeline = pipeline(&[&ORBIT_RECENCY[..], &[("camera.preset", "tum_fr3"), PERMISSIVE]].concat());
         let mut candidates = Vec::new();
         for (i, image) in images.iter().enumerate() {
             let stamp = Stamp::from_nanos(i as i64 * 1_000_000_000);
@@ -368,13 +358,7 @@ fn a_node_checks_candidates_only_and_evaluation_checks_every_best_match() {
     let orbit = shared().join("data/real/tum_fr3_desk_orbit/rgb");
     let frames = ecm_lcd::eval::images_in_name_order(&orbit).unwrap();
     // No candidate passes 0.999, so only evaluation's best-match check runs.
-    let overrides = [
-        ("detector.min_history", "2"),
-        ("detector.exclude_recent.count", "3"),
-        ("detector.exclude_recent.seconds", "0"),
-        ("detector.min_score", "0.999"),
-        ("camera.preset", "tum_fr3"),
-    ];
+    let overrides = [&ORBIT_RECENCY[..], &[("detector.min_score", "0.999"), ("camera.preset", "tum_fr3")]].concat();
     let checked = |verify_best: bool| {
         let mut pipeline = pipeline(&overrides);
         pipeline.set_verify_best(verify_best);

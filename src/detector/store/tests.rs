@@ -176,6 +176,12 @@ fn assert_holds(db: &KeyframeDb, ids: &[u64], dim: usize) {
     }
 }
 
+/// The vector file's inode: a rebuild replaces the file (by rename), so it changes.
+#[cfg(unix)]
+fn vector_file_inode(path: &Path) -> u64 {
+    std::os::unix::fs::MetadataExt::ino(&std::fs::metadata(vectors::path_for(path)).unwrap())
+}
+
 #[cfg(unix)]
 fn vector_rows(path: &Path) -> u64 {
     VectorFile::open(&vectors::path_for(path)).unwrap().unwrap().header().unwrap().rows
@@ -190,7 +196,7 @@ fn a_load_maps_the_vector_file_and_catches_it_up() {
     let path = dir.path().join("kf.db");
     let dim = 8;
     let empty = store_with(&path, [], dim);
-    let inode = || std::os::unix::fs::MetadataExt::ino(&std::fs::metadata(vectors::path_for(&path)).unwrap());
+    let inode = || vector_file_inode(&path);
     let created = inode();
     assert!(empty.load_db(None).unwrap().is_empty());
     assert_eq!(inode(), created, "an empty store's vector file was rebuilt");
@@ -241,7 +247,7 @@ fn keyframes_stored_with_side_records_keep_the_vector_file_in_step() {
     let path = dir.path().join("side.db");
     let dim = 4;
     let mut store = store_with(&path, [], dim);
-    let inode = || std::os::unix::fs::MetadataExt::ino(&std::fs::metadata(vectors::path_for(&path)).unwrap());
+    let inode = || vector_file_inode(&path);
     let created = inode();
     let ids: Vec<u64> = (0..12).map(|i| 100 + 3 * i).collect();
     for (i, &id) in ids.iter().enumerate() {
