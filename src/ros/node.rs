@@ -99,6 +99,11 @@ pub trait KeyframeProcessor: Send + 'static {
     fn keyframes(&self) -> Option<u64> {
         None
     }
+    /// Frames so far stamped no later than one before them (for `/diagnostics`: selection and the
+    /// exclusion of recent keyframes go by stamps).
+    fn stamps_not_advancing(&self) -> u64 {
+        0
+    }
 }
 
 impl KeyframeProcessor for crate::pipeline::Pipeline {
@@ -132,6 +137,10 @@ impl KeyframeProcessor for crate::pipeline::Pipeline {
 
     fn set_camera_info(&mut self, intrinsics: Intrinsics) -> Result<bool> {
         crate::pipeline::Pipeline::set_camera_info(self, intrinsics)
+    }
+
+    fn stamps_not_advancing(&self) -> u64 {
+        crate::pipeline::Pipeline::stamps_not_advancing(self)
     }
 
     fn keyframes(&self) -> Option<u64> {
@@ -213,6 +222,9 @@ pub struct NodeCounters {
     pub process_us: AtomicU64,
     /// The processor's keyframe history after the last message (see [`KeyframeProcessor::keyframes`]).
     pub keyframes: AtomicU64,
+    /// Messages stamped no later than one before them, as the processor counts them
+    /// ([`KeyframeProcessor::stamps_not_advancing`]).
+    pub stamps_not_advancing: AtomicU64,
 }
 
 /// A copy of [`NodeCounters`] at one moment.
@@ -225,6 +237,7 @@ pub struct CountersSnapshot {
     pub failed: u64,
     pub candidates: u64,
     pub param_changes: u64,
+    pub stamps_not_advancing: u64,
 }
 
 impl NodeCounters {
@@ -238,6 +251,7 @@ impl NodeCounters {
             failed: get(&self.failed),
             candidates: get(&self.candidates),
             param_changes: get(&self.param_changes),
+            stamps_not_advancing: get(&self.stamps_not_advancing),
         }
     }
 }
@@ -516,8 +530,9 @@ pub fn run_node(
     Ok(final_counters)
 }
 
-/// The node's `/diagnostics` entry: `WARN` while messages are being dropped or failing (since `previous`),
-/// else `OK`; the counters, the queue and the mean worker time per message as values.
+/// The node's `/diagnostics` entry: `WARN` while messages are being dropped or failing, or come
+/// stamped no later than earlier ones (since `previous`), else `OK`; the counters, the queue and the
+/// mean worker time per message as values.
 fn diagnostic_status(
     fqn: &str,
     counters: &NodeCounters,
@@ -527,8 +542,13 @@ fn diagnostic_status(
 ) -> DiagnosticStatus {
     let now = counters.snapshot();
     let (dropping, failing) = (now.dropped > previous.dropped, now.failed > previous.failed);
-    let (level, message) = match (dropping, failing) {
-        (false, false) => (DiagnosticStatus::OK, "ok".to_string()),
+    let stuck = now.stamps_not_advancing.saturating_sub(previous.stamps_not_advancing);
+    let (level, message) = match (dropping, failing, stuck > 0) {
+        (false, false, false) => (DiagnosticStatus::OK, "ok".to_string()),
+        (false, false, true) => (
+            DiagnosticStatus::WARN,
+            format!("{stuck} messages in the last period stamped no later than an earlier one (use_sim_time without /clock?)"),
+        ),
         _ => (
             DiagnosticStatus::WARN,
             format!(
@@ -556,6 +576,7 @@ fn diagnostic_status(
         ("malformed", now.malformed.to_string()),
         ("dropped", now.dropped.to_string()),
         ("failed", now.failed.to_string()),
+        ("stamps_not_advancing", now.stamps_not_advancing.to_string()),
         ("decode_ms_mean", format!("{:.2}", per_message(&counters.decode_us))),
         ("process_ms_mean", format!("{:.2}", per_message(&counters.process_us))),
     ];
@@ -856,6 +877,7 @@ fn worker_loop(
         if let Some(keyframes) = processor.keyframes() {
             counters.keyframes.store(keyframes, Ordering::Relaxed);
         }
+        counters.stamps_not_advancing.store(processor.stamps_not_advancing(), Ordering::Relaxed);
         if let Some(id) = id.or(keyframe) {
             frame_ids.insert(id, &header.frame_id);
             if let Some(pose) = tracker_pose {
@@ -905,7 +927,22 @@ fn worker_loop(
 
 #[cfg(test)]
 mod tests {
-    use super::FrameIds;
+    use super::{diagnostic_status, DiagnosticStatus, FrameIds, NodeCounters, Ordering};
+
+    #[test]
+    fn diagnostics_warn_while_stamps_do_not_advance() {
+        let counters = NodeCounters::default();
+        let before = counters.snapshot();
+        assert_eq!(diagnostic_status("/lcd", &counters, &before, 0, 8).level, DiagnosticStatus::OK);
+        counters.stamps_not_advancing.store(3, Ordering::Relaxed);
+        let status = diagnostic_status("/lcd", &counters, &before, 0, 8);
+        assert_eq!(status.level, DiagnosticStatus::WARN);
+        assert!(status.message.starts_with("3 messages") && status.message.contains("stamped"), "{}", status.message);
+        assert!(status.values.iter().any(|kv| kv.key == "stamps_not_advancing" && kv.value == "3"));
+        // Once they advance again, the next period is OK.
+        let later = counters.snapshot();
+        assert_eq!(diagnostic_status("/lcd", &counters, &later, 0, 8).level, DiagnosticStatus::OK);
+    }
 
     #[test]
     fn frame_ids_are_bounded_and_share_one_name() {
