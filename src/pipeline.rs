@@ -124,6 +124,31 @@ pub struct Pipeline {
     /// The newest frame stamp seen, and how many frames since came stamped no later.
     newest_stamp: Option<Stamp>,
     stamps_not_advancing: u64,
+    /// Frames left out for showing nothing ([`MIN_CONTRAST`]).
+    blank_frames: u64,
+}
+
+/// The grey-level standard deviation under which an image shows nothing (a covered lens, darkness, a
+/// view saturated white): its descriptor is the same wherever it was taken, so it would match every
+/// other such image as the same place. Such frames are left out: no keyframe, no match.
+pub const MIN_CONTRAST: f64 = 1.0;
+
+/// The standard deviation of `image`'s grey levels (the mean of the three channels), over every
+/// fourth pixel of every fourth row: enough to tell an image that shows nothing.
+pub fn contrast(image: &RgbImage) -> f64 {
+    let (mut n, mut sum, mut squares) = (0.0, 0.0, 0.0);
+    for y in (0..image.height()).step_by(4) {
+        for x in (0..image.width()).step_by(4) {
+            let [r, g, b] = image.get_pixel(x, y).0;
+            let grey = (r as f64 + g as f64 + b as f64) / 3.0;
+            (n, sum, squares) = (n + 1.0, sum + grey, squares + grey * grey);
+        }
+    }
+    if n == 0.0 {
+        return 0.0;
+    }
+    let mean = sum / n;
+    (squares / n - mean * mean).max(0.0).sqrt()
 }
 
 /// The descriptor as one name, the tap included: the mode's name for the modes on the head (`power`;
@@ -197,6 +222,7 @@ impl Pipeline {
             misfit_depths: 0,
             newest_stamp: None,
             stamps_not_advancing: 0,
+            blank_frames: 0,
         };
         log::info!("descriptor {} ({} values)", pipeline.descriptor_name(), pipeline.descriptor.dim());
         Ok(pipeline)
@@ -454,6 +480,19 @@ impl Pipeline {
         if select && self.selector.offer(input.stamp) == Verdict::Reject {
             return Ok(Outcome::default());
         }
+        let contrast = contrast(input.image);
+        if contrast < MIN_CONTRAST {
+            self.blank_frames += 1;
+            if self.blank_frames % 100 == 1 {
+                log::warn!(
+                    "frame stamped {} shows nothing (grey levels vary by {contrast:.2}, under {MIN_CONTRAST}): no \
+                     keyframe, no match ({} such frames so far; a covered lens, darkness?)",
+                    input.stamp,
+                    self.blank_frames
+                );
+            }
+            return Ok(Outcome::default());
+        }
         let without_depth;
         let input = match input.depth {
             Some(depth) if (depth.width, depth.height) != input.image.dimensions() => {
@@ -613,6 +652,11 @@ impl Pipeline {
             })?;
         }
         Ok(outcome)
+    }
+
+    /// How many frames were left out for showing nothing ([`MIN_CONTRAST`]).
+    pub fn blank_frames(&self) -> u64 {
+        self.blank_frames
     }
 
     /// How many frames came stamped no later than a frame before them ([`Pipeline::watch_stamps`]).

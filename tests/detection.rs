@@ -143,6 +143,29 @@ fn frames_whose_stamps_do_not_advance_are_counted() {
     }
 }
 
+/// Frames that show nothing (a covered lens, darkness) have the same descriptor wherever they were
+/// taken, so two of them would be reported as a loop at score 1: they are left out, neither keyframes
+/// nor matched. Here two black keyframes 33 s apart among the real fr2 desk frames.
+#[test]
+fn frames_that_show_nothing_are_neither_keyframes_nor_matched() {
+    let fr2 = images_in_name_order(&support::shared_dir().join("data/tum/fr2_desk/rgb")).unwrap();
+    let mut images: Vec<_> = fr2.iter().take(12).map(|p| ecm_lcd::preprocess::read_image(p).unwrap()).collect();
+    let black = image::RgbImage::new(images[0].width(), images[0].height());
+    (images[0], images[11]) = (black.clone(), black);
+    let mut pipeline = Pipeline::with_weights(Params::default(), weights()).unwrap();
+    let mut candidates = Vec::new();
+    for (i, image) in images.iter().enumerate() {
+        let outcome = pipeline
+            .process_keyframe(i as u64, ecm_lcd::types::Stamp::from_nanos(i as i64 * 3_000_000_000), image)
+            .unwrap();
+        assert_eq!(outcome.keyframe.is_none(), i == 0 || i == 11, "frame {i}");
+        candidates.extend(outcome.candidates.iter().map(|c| (c.query_id, c.match_id)));
+    }
+    assert_eq!(pipeline.blank_frames(), 2);
+    assert!(candidates.iter().all(|&(q, m)| ![0, 11].contains(&q) && ![0, 11].contains(&m)), "{candidates:?}");
+    assert!(ecm_lcd::pipeline::contrast(&images[5]) > 10.0 * ecm_lcd::pipeline::MIN_CONTRAST);
+}
+
 /// The same real frames one every 2 s (a slower camera, 34 s in all). By `eval`'s default truth (20 s
 /// apart) only the second pass's last queries revisit; the others see places 16 s old or younger, no
 /// loops by that rule. A detector that looks back further (`detector.exclude_recent.seconds` 10, the
