@@ -117,6 +117,8 @@ pub struct PoseGraphResult {
     pub loops: Vec<(usize, usize, f64)>,
     /// Loops whose keyframes have no odometry pose within the stamp tolerance (not used).
     pub unmatched_loops: usize,
+    /// Loops whose two keyframes are tied to one odometry pose (no edge to add; not used).
+    pub self_loops: usize,
     /// Loops that cannot be a relative pose within this map (not used, [`plausible`]).
     pub implausible_loops: usize,
     pub nodes: usize,
@@ -223,7 +225,15 @@ pub fn optimise(
     params: &PoseGraphParams,
 ) -> Result<PoseGraphResult> {
     ensure!(odometry.len() >= 2, "the odometry has {} pose(s); a pose graph needs at least 2", odometry.len());
-    ensure!(odometry.windows(2).all(|w| w[0].0 < w[1].0), "the odometry's stamps must increase");
+    if let Some(i) = odometry.windows(2).position(|w| w[0].0 >= w[1].0) {
+        bail!(
+            "the odometry's stamps must increase: pose {} is stamped {}, pose {} {}",
+            i + 1,
+            odometry[i].0,
+            i + 2,
+            odometry[i + 1].0
+        );
+    }
     ensure!(params.max_nodes >= 2, "a pose graph needs at least 2 nodes");
     ensure!(
         params.robust_scale > 0.0 && params.robust_rotation_scale > 0.0 && params.loop_weight > 0.0,
@@ -233,7 +243,7 @@ pub fn optimise(
     let max_offset = Stamp::from_nanos((params.max_stamp_offset_s * 1e9).round() as i64);
     let index_of = |stamp: Stamp| nearest_stamp(&stamps, stamp, max_offset);
     let mut tied: Vec<(usize, usize, LoopConstraint)> = Vec::new();
-    let mut unmatched_loops = 0;
+    let (mut unmatched_loops, mut self_loops) = (0, 0);
     let first = odometry[0].1.translation.vector;
     let extent = odometry.iter().map(|(_, pose)| (pose.translation.vector - first).norm()).fold(0.0, f64::max);
     let (loops, implausible): (Vec<&LoopConstraint>, Vec<&LoopConstraint>) =
@@ -241,6 +251,7 @@ pub fn optimise(
     for constraint in loops {
         match (index_of(constraint.query_stamp), index_of(constraint.match_stamp)) {
             (Some(q), Some(m)) if q != m => tied.push((q, m, *constraint)),
+            (Some(_), Some(_)) => self_loops += 1,
             _ => unmatched_loops += 1,
         }
     }
@@ -387,7 +398,8 @@ pub fn optimise(
         trajectory.push((*stamp, estimate[k] * (odometry[node].1.inverse() * pose)));
     }
     let loops = tied.iter().zip(&weights).map(|(&(q, m, _), &w)| (q, m, w)).collect();
-    Ok(PoseGraphResult { trajectory, loops, unmatched_loops, implausible_loops: implausible.len(), nodes: nodes.len() })
+    let implausible_loops = implausible.len();
+    Ok(PoseGraphResult { trajectory, loops, unmatched_loops, self_loops, implausible_loops, nodes: nodes.len() })
 }
 
 #[cfg(test)]
@@ -536,8 +548,14 @@ mod tests {
             .all(|(a, b)| a.0 == b.0 && (a.1.translation.vector - b.1.translation.vector).norm() < 1e-9));
         let far = LoopConstraint { query_stamp: Stamp::from_nanos(1 << 50), ..true_loop(&truth, 10, 0) };
         assert_eq!(optimise(&truth, &[far], &PoseGraphParams::default()).unwrap().unmatched_loops, 1);
+        // Both ends on one pose: counted apart, not as a missing pose.
+        let itself = LoopConstraint { match_stamp: truth[10].0, ..true_loop(&truth, 10, 0) };
+        let result = optimise(&truth, &[itself], &PoseGraphParams::default()).unwrap();
+        assert_eq!((result.self_loops, result.unmatched_loops), (1, 0));
         assert!(optimise(&truth[..1], &[], &PoseGraphParams::default()).is_err());
-        let reversed: Vec<_> = truth.iter().rev().copied().collect();
-        assert!(optimise(&reversed, &[], &PoseGraphParams::default()).is_err());
+        let mut swapped = truth.clone();
+        swapped.swap(3, 4);
+        let err = optimise(&swapped, &[], &PoseGraphParams::default()).unwrap_err().to_string();
+        assert!(err.contains("pose 4 is stamped") && err.contains("pose 5"), "{err}");
     }
 }

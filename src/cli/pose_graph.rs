@@ -97,6 +97,13 @@ pub fn run(args: Args) -> Result<()> {
             params.max_stamp_offset_s
         );
     }
+    if result.self_loops > 0 {
+        log::warn!(
+            "{} loops tie both their keyframes to one odometry pose (within {} s of it); not used",
+            result.self_loops,
+            params.max_stamp_offset_s
+        );
+    }
     if result.implausible_loops > 0 {
         log::warn!(
             "{} loops are no relative pose within this map (not finite, or metric and longer than twice the \
@@ -158,6 +165,7 @@ pub fn run(args: Args) -> Result<()> {
             "loops_not_used": left_out,
             "loops_unmatched": result.unmatched_loops,
             "loops_implausible": result.implausible_loops,
+            "loops_on_one_pose": result.self_loops,
             "seconds": seconds,
             "ate_rmse_before_m": errors.as_ref().map(|(b, _)| b.rmse),
             "ate_rmse_after_m": errors.as_ref().map(|(_, a)| a.rmse),
