@@ -70,6 +70,11 @@ fn classify_matches_the_tflite_reference() {
     }
     // The import was cached for the next command.
     assert!(cache.path().join(resolve::CACHED_WEIGHTS).is_file());
+    // A labels file that does not name every class is refused, not half used.
+    let short = cache.path().join("two_labels.txt");
+    std::fs::write(&short, "a\nb\n").unwrap();
+    let out = ecm_lcd(cache.path(), &["classify", "--labels", short.to_str().unwrap(), &paths[0]]).output().unwrap();
+    assert_clean_failure(&out, "names 2 classes, the network has 1001");
 }
 
 #[test]

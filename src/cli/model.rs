@@ -3,7 +3,7 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use anyhow::Result;
+use anyhow::{bail, Result};
 use serde::Serialize;
 
 use ecm_lcd::model::embedder::Embedder;
@@ -148,7 +148,17 @@ pub fn classify(args: ClassifyArgs) -> Result<()> {
     // A trained checkpoint's class names are in its run record; the shared ImageNet labels only
     // name an ImageNet classifier's 1001 outputs.
     let labels = match &args.labels {
-        Some(path) => read_labels(Some(path))?,
+        Some(path) => {
+            let labels = read_labels(Some(path))?;
+            if labels.len() != classes {
+                bail!(
+                    "--labels {} names {} classes, the network has {classes} (one label a line, index 0 first)",
+                    path.display(),
+                    labels.len()
+                );
+            }
+            labels
+        }
         None => match ecm_lcd::train::class_names_of(&resolved.path, classes) {
             Some(names) => names,
             None if classes == 1001 => read_labels(None)?,
