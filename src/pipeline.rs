@@ -30,7 +30,7 @@ use crate::detector::{Detector, Match};
 use crate::model::embedder::Embedder;
 use crate::model::weights::resolve::{self, Resolved};
 use crate::model::{Arch, Tap};
-use crate::types::{DepthImage, FeatureMap, Frame, LoopCandidate, RelativePose, Stamp, Verified};
+use crate::types::{DepthImage, FeatureMap, Frame, LoopCandidate, Recurring, RelativePose, Stamp, Verified};
 use crate::verification::{
     best_supported, Intrinsics, LocalFeatureKind, LocalFeatures, OdometryTrack, Tracked, Verification, Verifier,
 };
@@ -120,12 +120,12 @@ pub struct Pipeline {
     /// The id of every keyframe in the detector's history, or dropped from it: an id is taken once.
     taken_ids: HashSet<u64>,
     /// Depth images that came with a frame of another size, and were left out.
-    misfit_depths: u64,
+    misfit_depths: Recurring,
     /// The newest frame stamp seen, and how many frames since came stamped no later.
     newest_stamp: Option<Stamp>,
-    stamps_not_advancing: u64,
+    stamps_not_advancing: Recurring,
     /// Frames left out for showing nothing ([`MIN_CONTRAST`]).
-    blank_frames: u64,
+    blank_frames: Recurring,
 }
 
 /// The grey-level standard deviation under which an image shows nothing (a covered lens, darkness, a
@@ -219,10 +219,10 @@ impl Pipeline {
             verify_best: true,
             odometry: OdometryTrack::default(),
             taken_ids: HashSet::new(),
-            misfit_depths: 0,
+            misfit_depths: Recurring::default(),
             newest_stamp: None,
-            stamps_not_advancing: 0,
-            blank_frames: 0,
+            stamps_not_advancing: Recurring::default(),
+            blank_frames: Recurring::default(),
         };
         log::info!("descriptor {} ({} values)", pipeline.descriptor_name(), pipeline.descriptor.dim());
         Ok(pipeline)
@@ -477,31 +477,23 @@ impl Pipeline {
         self.watch_stamps(input.stamp);
         // Every frame with a pose lengthens the tracker's path, keyframe or not.
         let tracked = input.tracker_pose.map(|pose| self.odometry.advance(&pose));
-        if select && self.selector.offer(input.stamp) == Verdict::Reject {
-            return Ok(Outcome::default());
-        }
+        // Before selection, so that a blank frame does not take a keyframe's turn.
         let contrast = contrast(input.image);
         if contrast < MIN_CONTRAST {
-            self.blank_frames += 1;
-            if self.blank_frames % 100 == 1 {
+            if let Some(n) = self.blank_frames.occurred() {
                 log::warn!(
                     "frame stamped {} shows nothing (grey levels vary by {contrast:.2}, under {MIN_CONTRAST}): no \
-                     keyframe, no match ({} such frames so far; a covered lens, darkness?)",
-                    input.stamp,
-                    self.blank_frames
+                     keyframe, no match ({n} such frames so far; a covered lens, darkness?)",
+                    input.stamp
                 );
             }
             return Ok(Outcome::default());
         }
-        let without_depth;
-        let input = match input.depth {
-            Some(depth) if (depth.width, depth.height) != input.image.dimensions() => {
-                self.leave_out_misfit_depth(id, depth, input.image);
-                without_depth = Input { depth: None, ..*input };
-                &without_depth
-            }
-            _ => input,
-        };
+        if select && self.selector.offer(input.stamp) == Verdict::Reject {
+            return Ok(Outcome::default());
+        }
+        let fitting = Input { depth: self.fitting_depth(input.depth, input.image), ..*input };
+        let input = &fitting;
         // The workers stay hot from the forward pass through the search (its probed lists are
         // scanned in parallel). During a `--db` append (an fsynced transaction) a poller gives up
         // after `runtime::HOT_WORKER_PATIENCE`.
@@ -514,15 +506,13 @@ impl Pipeline {
     fn watch_stamps(&mut self, stamp: Stamp) {
         match self.newest_stamp {
             Some(newest) if stamp <= newest => {
-                self.stamps_not_advancing += 1;
-                if self.stamps_not_advancing % 100 == 1 {
+                if let Some(n) = self.stamps_not_advancing.occurred() {
                     log::warn!(
                         "a frame stamped {stamp} came after one stamped {newest}: keyframe selection \
                          (selection.min_period) and the exclusion of recent keyframes \
                          (detector.exclude_recent.seconds) go by stamps, so frames that do not advance are \
-                         mostly dropped or never matched ({} such frames so far; a tracker on use_sim_time \
-                         without /clock stamps 0)",
-                        self.stamps_not_advancing
+                         mostly dropped or never matched ({n} such frames so far; a tracker on use_sim_time \
+                         without /clock stamps 0)"
                     );
                 }
             }
@@ -530,22 +520,25 @@ impl Pipeline {
         }
     }
 
-    /// A depth image of another size than its colour image cannot be registered to it (another
-    /// camera, or a depth topic not registered to the colour one): the keyframe goes on without it,
-    /// and the first and every hundredth such image is named in the log.
-    fn leave_out_misfit_depth(&mut self, id: u64, depth: &DepthImage, image: &RgbImage) {
-        self.misfit_depths += 1;
-        if self.misfit_depths % 100 == 1 {
+    /// `depth` where it has `image`'s size. One of another size cannot be registered to it (another
+    /// camera, or a depth topic not registered to the colour one): the frame goes on without it, and
+    /// the first and every hundredth such image is named in the log.
+    fn fitting_depth<'a>(&mut self, depth: Option<&'a DepthImage>, image: &RgbImage) -> Option<&'a DepthImage> {
+        let depth = depth?;
+        if (depth.width, depth.height) == image.dimensions() {
+            return Some(depth);
+        }
+        if let Some(n) = self.misfit_depths.occurred() {
             log::warn!(
-                "keyframe {id}: its depth image is {}x{}, the colour image {}x{}; it goes on without depth \
-                 ({} such depth images so far; is the depth registered to the colour camera?)",
+                "a depth image is {}x{}, its colour image {}x{}; the frame goes on without depth ({n} such \
+                 depth images so far; is the depth registered to the colour camera?)",
                 depth.width,
                 depth.height,
                 image.width(),
-                image.height(),
-                self.misfit_depths
+                image.height()
             );
         }
+        None
     }
 
     fn describe_and_detect(
@@ -596,9 +589,9 @@ impl Pipeline {
         // Extracted before the keyframe enters the detector, so that a failure leaves no trace of it.
         let features = match (early_features, &self.verifier) {
             (Some(early), _) => Some(early),
-            (None, Some(verifier)) => {
+            (None, Some(_)) => {
                 let started = Instant::now();
-                Some((verifier.extract(image, depth)?, started.elapsed().as_secs_f64() * 1e3))
+                Some((self.local_features(image, depth)?, started.elapsed().as_secs_f64() * 1e3))
             }
             (None, None) => None,
         };
@@ -656,12 +649,12 @@ impl Pipeline {
 
     /// How many frames were left out for showing nothing ([`MIN_CONTRAST`]).
     pub fn blank_frames(&self) -> u64 {
-        self.blank_frames
+        self.blank_frames.count()
     }
 
     /// How many frames came stamped no later than a frame before them ([`Pipeline::watch_stamps`]).
     pub fn stamps_not_advancing(&self) -> u64 {
-        self.stamps_not_advancing
+        self.stamps_not_advancing.count()
     }
 
     /// Whether [`Outcome::best_verified`] is worked out when the best match is not a candidate (on by
@@ -681,9 +674,10 @@ impl Pipeline {
         self.verifier.as_ref().map_or(1, |v| v.params().candidates)
     }
 
-    /// The local features of `image` (with keypoint depths from `depth`) for verification (empty when
-    /// verification is off).
-    pub fn local_features(&self, image: &RgbImage, depth: Option<&DepthImage>) -> Result<LocalFeatures> {
+    /// The local features of `image` (with keypoint depths from `depth`, where it has the image's
+    /// size) for verification (empty when verification is off).
+    pub fn local_features(&mut self, image: &RgbImage, depth: Option<&DepthImage>) -> Result<LocalFeatures> {
+        let depth = self.fitting_depth(depth, image);
         match &self.verifier {
             Some(verifier) => verifier.extract(image, depth),
             None => Ok(LocalFeatures::default()),

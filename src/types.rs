@@ -1,4 +1,5 @@
-//! Small value types shared by every stage: time stamps, frames and loop candidates.
+//! Small value types shared by every stage: time stamps, frames and loop candidates, and the count
+//! of a recurring warning.
 
 use serde::{Deserialize, Serialize};
 use std::fmt;
@@ -316,5 +317,23 @@ impl FeatureMap {
     pub fn global_average(&self) -> Vec<f32> {
         let plane = self.height * self.width;
         self.data.chunks_exact(plane).map(|c| c.iter().sum::<f32>() / plane as f32).collect()
+    }
+}
+
+/// How often one kind of input problem has recurred; the log names it on the first and every
+/// hundredth occurrence, since a warning per frame would bury everything else at camera rates.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Recurring(u64);
+
+impl Recurring {
+    /// Counts one more occurrence; returns the count where this one is to be logged.
+    pub fn occurred(&mut self) -> Option<u64> {
+        self.0 += 1;
+        (self.0 % 100 == 1).then_some(self.0)
+    }
+
+    /// Occurrences so far.
+    pub fn count(&self) -> u64 {
+        self.0
     }
 }

@@ -100,12 +100,15 @@ pub fn ensure_distinct_outputs(outputs: &[(&str, &Path)]) -> Result<()> {
     Ok(())
 }
 
-/// Refuses `output` when it is an existing image or text file inside one of the `sources` that are
-/// folders: an image the folder replays, or a TUM folder's `rgb.txt`, `depth.txt` or
-/// `groundtruth.txt`. Other files there (a CSV written before) may be replaced.
+/// The text files of a TUM folder (the benchmark's, and `odometry.txt` from `synth`).
+const TUM_FILES: [&str; 5] = ["rgb.txt", "depth.txt", "groundtruth.txt", "accelerometer.txt", "odometry.txt"];
+
+/// Refuses `output` when it is an existing file inside one of the `sources` that are folders and
+/// that sources read: an image, or a TUM folder's lists (`rgb.txt`, ...). Other files there (a CSV
+/// written before) may be replaced.
 pub fn ensure_not_in_source(output: &Path, sources: &[&Path]) -> Result<()> {
     let read_by_sources = crate::io::tum::has_image_extension(output)
-        || output.extension().is_some_and(|e| e.eq_ignore_ascii_case("txt"));
+        || output.file_name().and_then(|n| n.to_str()).is_some_and(|n| TUM_FILES.contains(&n));
     if !read_by_sources || !output.is_file() {
         return Ok(());
     }

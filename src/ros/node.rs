@@ -775,7 +775,7 @@ fn worker_loop(
         _ => String::new(),
     };
     // The image size camera_info gives, and how many messages came at another size.
-    let (mut calibrated_size, mut misfits): (Option<[u32; 2]>, u64) = (None, 0);
+    let (mut calibrated_size, mut misfits) = (None, crate::types::Recurring::default());
     loop {
         let next = queue.pop(Duration::from_millis(200));
         for (stamp, depth) in inputs.depths.take() {
@@ -832,8 +832,7 @@ fn worker_loop(
             }
         };
         if let Some([width, height]) = calibrated_size.filter(|&size| size != [image.width(), image.height()]) {
-            misfits += 1;
-            if misfits % 100 == 1 {
+            if let Some(misfits) = misfits.occurred() {
                 warn!(
                     "[{fqn}] camera_info describes {width}x{height} images, this {topic} message is {}x{}: \
                      its verified poses use intrinsics of another image size ({misfits} such messages so far; \
