@@ -724,7 +724,8 @@ impl Params {
     pub fn intrinsics(&self) -> Option<Intrinsics> {
         let (fx, fy) = (self.double("camera.fx"), self.double("camera.fy"));
         if fx > 0.0 && fy > 0.0 {
-            return Some(Intrinsics { fx, fy, cx: self.double("camera.cx"), cy: self.double("camera.cy") });
+            // Given for the frames as they arrive: no size to scale from.
+            return Some(Intrinsics { fx, fy, cx: self.double("camera.cx"), cy: self.double("camera.cy"), size: None });
         }
         Intrinsics::preset(self.string("camera.preset"))
     }

@@ -126,6 +126,10 @@ pub struct Pipeline {
     stamps_not_advancing: Recurring,
     /// Frames left out for showing nothing ([`MIN_CONTRAST`]).
     blank_frames: Recurring,
+    /// Frames of a shape verification's intrinsics do not describe, and the last frame size they
+    /// were scaled to ([`Pipeline::watch_frame_size`]).
+    misfit_sizes: Recurring,
+    scaled_to: Option<[u32; 2]>,
 }
 
 /// The grey-level standard deviation under which an image shows nothing (a covered lens, darkness, a
@@ -223,6 +227,8 @@ impl Pipeline {
             newest_stamp: None,
             stamps_not_advancing: Recurring::default(),
             blank_frames: Recurring::default(),
+            misfit_sizes: Recurring::default(),
+            scaled_to: None,
         };
         log::info!("descriptor {} ({} values)", pipeline.descriptor_name(), pipeline.descriptor.dim());
         Ok(pipeline)
@@ -492,6 +498,7 @@ impl Pipeline {
         if select && self.selector.offer(input.stamp) == Verdict::Reject {
             return Ok(Outcome::default());
         }
+        self.watch_frame_size(input.image, input.stamp);
         let fitting = Input { depth: self.fitting_depth(input.depth, input.image), ..*input };
         let input = &fitting;
         // The workers stay hot from the forward pass through the search (its probed lists are
@@ -517,6 +524,41 @@ impl Pipeline {
                 }
             }
             _ => self.newest_stamp = Some(stamp),
+        }
+    }
+
+    /// Verification's intrinsics hold for the size they were calibrated at; frames that are those
+    /// images resized are verified with them scaled ([`Intrinsics::for_image`]), said once per size,
+    /// and frames of another shape without them (no pose), the first and every hundredth named.
+    fn watch_frame_size(&mut self, image: &RgbImage, stamp: Stamp) {
+        let Some(intrinsics) = self.verifier.as_ref().and_then(|v| v.params().intrinsics) else { return };
+        let size = [image.width(), image.height()];
+        match (intrinsics.size, intrinsics.for_image(size)) {
+            (Some([width, height]), Some(scaled)) if scaled != intrinsics && self.scaled_to != Some(size) => {
+                self.scaled_to = Some(size);
+                log::info!(
+                    "the camera intrinsics are for {width}x{height} images, the frames are {}x{}: scaled to fx {:.1} \
+                     fy {:.1} cx {:.1} cy {:.1}",
+                    size[0],
+                    size[1],
+                    scaled.fx,
+                    scaled.fy,
+                    scaled.cx,
+                    scaled.cy
+                );
+            }
+            (Some([width, height]), None) => {
+                if let Some(n) = self.misfit_sizes.occurred() {
+                    log::warn!(
+                        "the camera intrinsics are for {width}x{height} images, the frame stamped {stamp} is {}x{}, which no \
+                         scaling of them describes: its loops are verified without intrinsics, with no relative \
+                         pose ({n} such frames so far; are the intrinsics this camera's, for this image topic?)",
+                        size[0],
+                        size[1]
+                    );
+                }
+            }
+            _ => {}
         }
     }
 

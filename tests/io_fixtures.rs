@@ -78,7 +78,13 @@ fn rosbags_written_bags_read_with_every_encoding() {
         for topic in ["/rgb8", "/jpeg"] {
             let source = open_source(&path, Some(topic)).unwrap();
             let carried = source.intrinsics().unwrap_or_else(|| panic!("{bag} {topic}: no intrinsics"));
-            let expected = ecm_lcd::verification::Intrinsics { fx: 525.25, fy: 526.5, cx: 7.75, cy: 5.5 };
+            let expected = ecm_lcd::verification::Intrinsics {
+                fx: 525.25,
+                fy: 526.5,
+                cx: 7.75,
+                cy: 5.5,
+                size: Some([WIDTH, HEIGHT]),
+            };
             assert_eq!(
                 (carried.intrinsics, carried.origin.as_str()),
                 (expected, "topic /camera_info"),

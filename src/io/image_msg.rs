@@ -542,11 +542,13 @@ mod tests {
         assert!(err.contains("1 bytes left over"), "{err}");
         // The images are the region of interest binned (1 by 2): the principal point moves by the
         // offsets, and the vertical values halve.
-        let expected = crate::verification::Intrinsics { fx: 525.0, fy: 263.0, cx: 318.5, cy: 118.75 };
+        let expected =
+            crate::verification::Intrinsics { fx: 525.0, fy: 263.0, cx: 318.5, cy: 118.75, size: Some([4, 1]) };
         assert_eq!(info.intrinsics(), Some(expected));
         assert_eq!(info.image_size(), Some([4, 1]));
         let whole = CameraInfo { binning_x: 0, binning_y: 0, roi: RegionOfInterest::default(), ..info.clone() };
-        let plain = crate::verification::Intrinsics { fx: 525.0, fy: 526.0, cx: 319.5, cy: 239.5 };
+        let plain =
+            crate::verification::Intrinsics { fx: 525.0, fy: 526.0, cx: 319.5, cy: 239.5, size: Some([640, 480]) };
         assert_eq!((whole.intrinsics(), whole.image_size()), (Some(plain), Some([640, 480])));
         assert_eq!(CameraInfo { width: 0, height: 0, ..whole }.image_size(), None);
         let uncalibrated = CameraInfo { k: [0.0; 9], ..info };

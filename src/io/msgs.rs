@@ -99,6 +99,7 @@ impl CameraInfo {
             fy: fy / by,
             cx: (cx - x0) / bx,
             cy: (cy - y0) / by,
+            size: self.image_size(),
         })
     }
 

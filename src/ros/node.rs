@@ -290,8 +290,8 @@ struct Queued {
 enum Control {
     /// A validated parameter change.
     Param(String, ParamValue),
-    /// New intrinsics from `camera_info`, and the image size it gives (sent only when they change).
-    CameraInfo(Intrinsics, Option<[u32; 2]>),
+    /// New intrinsics from `camera_info`, with the image size it gives (sent only when they change).
+    CameraInfo(Intrinsics),
 }
 
 /// Runs the node until `stop` is set: creates the DDS participant, the subscriptions and the publisher,
@@ -431,9 +431,9 @@ pub fn run_node(
     poll.registry().register(&mut cmp_sub, cmp_token, Interest::READABLE).context("polling compressed images")?;
     poll.registry().register(&mut info_sub, info_token, Interest::READABLE).context("polling camera_info")?;
     poll.registry().register(&mut depth_sub, depth_token, Interest::READABLE).context("polling depth")?;
-    // The last intrinsics (and image size) passed on, and whether an uncalibrated camera_info was
-    // reported.
-    let mut camera_info: (Option<(Intrinsics, Option<[u32; 2]>)>, bool) = (None, false);
+    // The last intrinsics passed on (with the image size they hold for), and whether an uncalibrated
+    // camera_info was reported.
+    let mut camera_info: (Option<Intrinsics>, bool) = (None, false);
     let mut services = ParamServices::create(&context, &fqn)?;
     services.register(poll.registry(), 10).context("polling the parameter services")?;
     let mut events = Events::with_capacity(16);
@@ -480,10 +480,10 @@ pub fn run_node(
         }
         loop {
             match info_sub.take() {
-                Ok(Some((info, _))) => match info.intrinsics().map(|intrinsics| (intrinsics, info.image_size())) {
+                Ok(Some((info, _))) => match info.intrinsics() {
                     Some(calibration) if camera_info.0 != Some(calibration) => {
                         camera_info.0 = Some(calibration);
-                        queue.push_control(Control::CameraInfo(calibration.0, calibration.1));
+                        queue.push_control(Control::CameraInfo(calibration));
                     }
                     Some(_) => {}
                     None if !camera_info.1 => {
@@ -774,8 +774,6 @@ fn worker_loop(
         Some(ParamValue::String(mode)) => mode,
         _ => String::new(),
     };
-    // The image size camera_info gives, and how many messages came at another size.
-    let (mut calibrated_size, mut misfits) = (None, crate::types::Recurring::default());
     loop {
         let next = queue.pop(Duration::from_millis(200));
         for (stamp, depth) in inputs.depths.take() {
@@ -788,8 +786,7 @@ fn worker_loop(
                 }
                 continue;
             }
-            Next::Control(Control::CameraInfo(intrinsics, size)) => {
-                calibrated_size = size;
+            Next::Control(Control::CameraInfo(intrinsics)) => {
                 match processor.set_camera_info(intrinsics) {
                     Ok(verifying) => info!(
                         "[{fqn}] camera intrinsics from camera_info: fx {:.1} fy {:.1} cx {:.1} cy {:.1}; geometric verification {}",
@@ -831,17 +828,6 @@ fn worker_loop(
                 continue;
             }
         };
-        if let Some([width, height]) = calibrated_size.filter(|&size| size != [image.width(), image.height()]) {
-            if let Some(misfits) = misfits.occurred() {
-                warn!(
-                    "[{fqn}] camera_info describes {width}x{height} images, this {topic} message is {}x{}: \
-                     its verified poses use intrinsics of another image size ({misfits} such messages so far; \
-                     is camera_info the image topic's own?)",
-                    image.width(),
-                    image.height()
-                );
-            }
-        }
         let decode_ms = started.elapsed().as_secs_f64() * 1e3;
         counters.decode_us.fetch_add((decode_ms * 1e3) as u64, Ordering::Relaxed);
         let stamp = Stamp::from(header.stamp);

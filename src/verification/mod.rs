@@ -64,13 +64,17 @@ pub const MIN_METRIC_INLIERS: usize = 10;
 use kornia_image::{Image, ImageSize};
 use kornia_imgproc::features::OrbDetector;
 
-/// Pinhole camera intrinsics in pixels, for the image size the keyframes arrive in.
+/// Pinhole camera intrinsics in pixels, for images of `size` (or of the size the keyframes arrive
+/// in, where `size` is not known).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Intrinsics {
     pub fx: f64,
     pub fy: f64,
     pub cx: f64,
     pub cy: f64,
+    /// The width and height of the images these values describe, where known (a calibration's own,
+    /// `camera_info`'s): frames of another size get them scaled ([`Intrinsics::for_image`]).
+    pub size: Option<[u32; 2]>,
 }
 
 impl Intrinsics {
@@ -82,7 +86,28 @@ impl Intrinsics {
             "tum_fr3" => (535.4, 539.2, 320.1, 247.6),
             _ => return None,
         };
-        Some(Intrinsics { fx, fy, cx, cy })
+        Some(Intrinsics { fx, fy, cx, cy, size: Some([640, 480]) })
+    }
+
+    /// These intrinsics for a frame of `size` pixels: as they are where the size is theirs or not
+    /// known; scaled where the frame is the calibrated image resized (a tracker that publishes its
+    /// keyframes at half size, a bag recorded downscaled), its sides within a pixel of one common
+    /// factor; `None` for a frame of another shape (cropped, or another camera's), which no scaling
+    /// of these values describes. Resizing maps pixel centres, `x' + 0.5 = s (x + 0.5)`.
+    pub fn for_image(&self, size: [u32; 2]) -> Option<Intrinsics> {
+        let Some(calibrated) = self.size.filter(|&calibrated| calibrated != size) else { return Some(*self) };
+        let [(w, h), (cw, ch)] = [size, calibrated].map(|[w, h]| (w as f64, h as f64));
+        let (sx, sy) = (w / cw, h / ch);
+        if w == 0.0 || h == 0.0 || (cw * sy - w).abs() > 1.0 || (ch * sx - h).abs() > 1.0 {
+            return None;
+        }
+        Some(Intrinsics {
+            fx: self.fx * sx,
+            fy: self.fy * sy,
+            cx: (self.cx + 0.5) * sx - 0.5,
+            cy: (self.cy + 0.5) * sy - 0.5,
+            size: Some(size),
+        })
     }
 
     fn matrix(&self) -> Mat3F64 {
@@ -400,6 +425,19 @@ fn equalise_histogram(gray: &mut image::GrayImage) {
 
 /// Checks whether `query` and `matched` see one rigid scene (module doc).
 pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &VerificationParams) -> Verification {
+    // One camera matrix serves both views: images of two sizes, or of a shape the intrinsics do not
+    // describe, are verified as without intrinsics (no pose), the pipeline having said why.
+    let fitted = params.intrinsics.and_then(|k| match query.image_size == matched.image_size {
+        true => k.for_image(query.image_size),
+        false => None,
+    });
+    let refitted;
+    let params = if fitted == params.intrinsics {
+        params
+    } else {
+        refitted = VerificationParams { intrinsics: fitted, ..params.clone() };
+        &refitted
+    };
     let (pairs, threshold) = match (&query.descriptors, &matched.descriptors) {
         (Descriptors::Orb(q), Descriptors::Orb(m)) => {
             (hamming::mutual_matches(q, m, params.ratio), params.pixel_threshold)
@@ -441,7 +479,7 @@ fn metric_pose(
     if points.len() < MIN_METRIC_INLIERS {
         return None;
     }
-    let Intrinsics { fx, fy, cx, cy } = *intrinsics;
+    let Intrinsics { fx, fy, cx, cy, .. } = *intrinsics;
     let world: Vec<Vec3AF32> = points
         .iter()
         .map(|&(_, m, d)| {
@@ -889,6 +927,62 @@ mod tests {
     }
 
     #[test]
+    fn intrinsics_follow_a_resized_frame_and_not_a_cropped_one() {
+        let k = Intrinsics::preset("tum_fr3").unwrap();
+        assert_eq!(k.for_image([640, 480]), Some(k));
+        let half = k.for_image([320, 240]).unwrap();
+        let expected = [535.4 / 2.0, 539.2 / 2.0, 160.0 - 0.25 + 0.05, 123.8 - 0.25];
+        for (value, expected) in [half.fx, half.fy, half.cx, half.cy].into_iter().zip(expected) {
+            assert!((value - expected).abs() < 1e-9, "{half:?}");
+        }
+        assert_eq!(half.size, Some([320, 240]));
+        // A third, rounded to whole pixels.
+        assert!(k.for_image([213, 160]).is_some());
+        assert_eq!(k.for_image([640, 360]), None, "a crop");
+        assert_eq!(k.for_image([480, 640]), None, "turned");
+        assert_eq!(k.for_image([0, 0]), None);
+        let size_unknown = Intrinsics { size: None, ..k };
+        assert_eq!(size_unknown.for_image([320, 240]), Some(size_unknown));
+    }
+
+    /// ORB-kind features at `points`, the i-th with the i-th of a set of distinct descriptors, so
+    /// that two such sets match point for point.
+    fn orb_features(points: &[Vec2F64], image_size: [u32; 2]) -> LocalFeatures {
+        let descriptor = |i: u64| {
+            std::array::from_fn(|byte| ((i * 32 + byte as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 56) as u8)
+        };
+        LocalFeatures {
+            keypoints: points.iter().map(|p| [p.x as f32, p.y as f32]).collect(),
+            descriptors: Descriptors::Orb((0..points.len() as u64).map(descriptor).collect()),
+            depths: Vec::new(),
+            image_size,
+        }
+    }
+
+    #[test]
+    fn a_calibration_of_the_full_frame_verifies_half_size_keyframes_with_the_right_pose() {
+        let k = Intrinsics::preset("tum_fr3").unwrap();
+        let half = k.for_image([320, 240]).unwrap();
+        let r = Rotation3::from_euler_angles(0.04, -0.25, 0.02);
+        let t = Vector3::new(0.5, 0.05, 0.1);
+        let (x1, x2) = two_views(&r, &t, &half, 150, 0);
+        let params = VerificationParams { intrinsics: Some(k), ..VerificationParams::default() };
+        let direction_error = |v: &Verification| v.pose.map(|pose| pose.translation.angle(&t).to_degrees());
+        let scaled = verify(&orb_features(&x1, [320, 240]), &orb_features(&x2, [320, 240]), &params);
+        assert!(scaled.accepted, "{scaled:?}");
+        let error = direction_error(&scaled).expect("a pose");
+        assert!(error < 2.0, "translation direction off by {error} degrees");
+        // The full frame's values taken as they are would not describe these frames.
+        let unscaled = fit_geometry(&x1, &x2, &params);
+        assert!(direction_error(&unscaled).is_none_or(|error| error > 5.0), "{unscaled:?}");
+        // A cropped frame, or two sizes, are verified as without intrinsics: no pose.
+        for (a, b) in [([320, 200], [320, 200]), ([320, 240], [640, 480])] {
+            let v = verify(&orb_features(&x1, a), &orb_features(&x2, b), &params);
+            assert!(v.accepted && v.pose.is_none(), "{a:?} {b:?}: {v:?}");
+        }
+    }
+
+    #[test]
     fn the_relative_pose_of_a_rigid_motion_is_recovered() {
         let k = Intrinsics::preset("tum_fr3").unwrap();
         let params = VerificationParams { intrinsics: Some(k), ..VerificationParams::default() };
@@ -1002,7 +1096,7 @@ mod tests {
 
     #[test]
     fn a_metric_pose_from_depth_matches_the_truth_within_its_covariance() {
-        let intrinsics = Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0 };
+        let intrinsics = Intrinsics { fx: 500.0, fy: 500.0, cx: 320.0, cy: 240.0, size: None };
         // The query camera in the match camera's frame: 0.3 m right, 0.1 m forward, turned 5 degrees.
         let truth = nalgebra::Isometry3::new(Vector3::new(0.3, 0.0, 0.1), Vector3::new(0.0, 5f64.to_radians(), 0.0));
         let points = noisy_correspondences(&truth, &intrinsics, 150, 0.5, 7);
@@ -1033,7 +1127,7 @@ mod tests {
     #[test]
     fn the_metric_covariance_matches_the_spread_of_the_errors() {
         // The synthetic camera at 320x240 and a revisit 13 cm apart, turned 3.5 degrees.
-        let intrinsics = Intrinsics { fx: 262.4, fy: 262.4, cx: 159.5, cy: 119.5 };
+        let intrinsics = Intrinsics { fx: 262.4, fy: 262.4, cx: 159.5, cy: 119.5, size: None };
         let truth =
             nalgebra::Isometry3::new(Vector3::new(0.12, 0.0, 0.05), Vector3::new(0.0, 3.5f64.to_radians(), 0.0));
         let trials = 100;
