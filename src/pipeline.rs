@@ -132,6 +132,45 @@ pub struct Pipeline {
     scaled_to: Option<[u32; 2]>,
 }
 
+/// Counts of inputs that were well formed but could not be used as they came, each logged where it
+/// occurs (the first and every hundredth); a node reports them in `/diagnostics`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct InputProblems {
+    /// Frames stamped no later than a frame before them ([`Pipeline::watch_stamps`]).
+    pub stamps_not_advancing: u64,
+    /// Frames left out for showing nothing ([`MIN_CONTRAST`]).
+    pub blank_frames: u64,
+    /// Depth images of another size than their colour image, left out ([`Pipeline::fitting_depth`]).
+    pub misfit_depths: u64,
+    /// Frames of a shape that verification's intrinsics do not describe, verified without them
+    /// ([`Pipeline::watch_frame_size`]).
+    pub misfit_sizes: u64,
+}
+
+impl InputProblems {
+    /// Each count with its name and what usually causes it.
+    pub fn named(&self) -> [(&'static str, u64, &'static str); 4] {
+        [
+            (
+                "stamps_not_advancing",
+                self.stamps_not_advancing,
+                "frames stamped no later than an earlier one (use_sim_time without /clock?)",
+            ),
+            ("blank_frames", self.blank_frames, "frames showing nothing, left out (a covered lens, darkness?)"),
+            (
+                "misfit_depths",
+                self.misfit_depths,
+                "depth images of another size than their colour image, left out (depth not registered?)",
+            ),
+            (
+                "misfit_sizes",
+                self.misfit_sizes,
+                "frames of a shape the camera intrinsics do not describe, verified without them",
+            ),
+        ]
+    }
+}
+
 /// The grey-level standard deviation under which an image shows nothing (a covered lens, darkness, a
 /// view saturated white): its descriptor is the same wherever it was taken, so it would match every
 /// other such image as the same place. Such frames are left out: no keyframe, no match.
@@ -689,14 +728,14 @@ impl Pipeline {
         Ok(outcome)
     }
 
-    /// How many frames were left out for showing nothing ([`MIN_CONTRAST`]).
-    pub fn blank_frames(&self) -> u64 {
-        self.blank_frames.count()
-    }
-
-    /// How many frames came stamped no later than a frame before them ([`Pipeline::watch_stamps`]).
-    pub fn stamps_not_advancing(&self) -> u64 {
-        self.stamps_not_advancing.count()
+    /// How many inputs so far were well formed but could not be used as they came.
+    pub fn input_problems(&self) -> InputProblems {
+        InputProblems {
+            stamps_not_advancing: self.stamps_not_advancing.count(),
+            blank_frames: self.blank_frames.count(),
+            misfit_depths: self.misfit_depths.count(),
+            misfit_sizes: self.misfit_sizes.count(),
+        }
     }
 
     /// Whether [`Outcome::best_verified`] is worked out when the best match is not a candidate (on by

@@ -139,7 +139,11 @@ fn frames_whose_stamps_do_not_advance_are_counted() {
                 pipeline.process_counted(stamp, image).unwrap().keyframe.is_some()
             })
             .count();
-        assert_eq!((pipeline.stamps_not_advancing(), kept), (not_advancing, keyframes), "step {step} ns");
+        assert_eq!(
+            (pipeline.input_problems().stamps_not_advancing, kept),
+            (not_advancing, keyframes),
+            "step {step} ns"
+        );
     }
 }
 
@@ -161,7 +165,7 @@ fn frames_that_show_nothing_are_neither_keyframes_nor_matched() {
         assert_eq!(outcome.keyframe.is_none(), i == 0 || i == 11, "frame {i}");
         candidates.extend(outcome.candidates.iter().map(|c| (c.query_id, c.match_id)));
     }
-    assert_eq!(pipeline.blank_frames(), 2);
+    assert_eq!(pipeline.input_problems().blank_frames, 2);
     assert!(candidates.iter().all(|&(q, m)| ![0, 11].contains(&q) && ![0, 11].contains(&m)), "{candidates:?}");
     assert!(ecm_lcd::pipeline::contrast(&images[5]) > 10.0 * ecm_lcd::pipeline::MIN_CONTRAST);
 }

@@ -294,8 +294,13 @@ fn bytes_per_pixel(encoding: &str) -> Option<usize> {
 /// Decodes a raw `sensor_msgs/Image` to RGB (see the module doc for the conversions).
 pub fn decode_image(msg: &Image) -> Result<RgbImage> {
     let encoding = msg.encoding.as_str();
-    let bpp = bytes_per_pixel(encoding).with_context(|| {
-        format!("unsupported image encoding {encoding:?} (supported: rgb8, bgr8, rgba8, bgra8, mono8, mono16)")
+    let bpp = bytes_per_pixel(encoding).with_context(|| match encoding {
+        // A depth topic taken for the colour one (the ROS depth encodings, REP 118).
+        "16UC1" | "32FC1" => format!(
+            "image encoding {encoding:?} is a depth image's: this topic carries depth, not the colour images \
+             to describe (give it as the depth topic: --depth-topic, or the node's `depth`)"
+        ),
+        _ => format!("unsupported image encoding {encoding:?} (supported: rgb8, bgr8, rgba8, bgra8, mono8, mono16)"),
     })?;
     let (row_bytes, step) = checked_layout(msg, bpp, &format!("{encoding} image"))?;
     let (width, height) = (msg.width as usize, msg.height as usize);
@@ -608,6 +613,8 @@ mod tests {
         assert!(err.contains("step 5 is smaller than width*3 = 6"), "{err}");
         let err = decode_image(&raw("yuv422", 2, 2, 4, vec![0; 8], 0)).unwrap_err().to_string();
         assert!(err.contains("unsupported image encoding \"yuv422\""), "{err}");
+        let err = decode_image(&raw("16UC1", 2, 2, 4, vec![0; 8], 0)).unwrap_err().to_string();
+        assert!(err.contains("is a depth image's") && err.contains("--depth-topic"), "{err}");
         let err = decode_image(&raw("mono8", u32::MAX, u32::MAX, u32::MAX, vec![], 0)).unwrap_err().to_string();
         assert!(err.contains("overflow") || err.contains("data has 0 bytes"), "{err}");
     }

@@ -45,7 +45,7 @@ use crate::config::{ParamError, ParamValue, Params};
 use crate::io::depth::{depth_from_image, nearest_within_window};
 use crate::io::image_msg::{decode_compressed_image, decode_image};
 use crate::io::msgs::{CameraInfo, CompressedImage, Header, Image};
-use crate::pipeline::Input;
+use crate::pipeline::{Input, InputProblems};
 use crate::types::{self, DepthImage, Stamp};
 use crate::verification::Intrinsics;
 use nalgebra::Isometry3;
@@ -99,10 +99,9 @@ pub trait KeyframeProcessor: Send + 'static {
     fn keyframes(&self) -> Option<u64> {
         None
     }
-    /// Frames so far stamped no later than one before them (for `/diagnostics`: selection and the
-    /// exclusion of recent keyframes go by stamps).
-    fn stamps_not_advancing(&self) -> u64 {
-        0
+    /// Inputs so far that were well formed but could not be used as they came (for `/diagnostics`).
+    fn input_problems(&self) -> InputProblems {
+        InputProblems::default()
     }
 }
 
@@ -139,8 +138,8 @@ impl KeyframeProcessor for crate::pipeline::Pipeline {
         crate::pipeline::Pipeline::set_camera_info(self, intrinsics)
     }
 
-    fn stamps_not_advancing(&self) -> u64 {
-        crate::pipeline::Pipeline::stamps_not_advancing(self)
+    fn input_problems(&self) -> InputProblems {
+        crate::pipeline::Pipeline::input_problems(self)
     }
 
     fn keyframes(&self) -> Option<u64> {
@@ -222,9 +221,8 @@ pub struct NodeCounters {
     pub process_us: AtomicU64,
     /// The processor's keyframe history after the last message (see [`KeyframeProcessor::keyframes`]).
     pub keyframes: AtomicU64,
-    /// Messages stamped no later than one before them, as the processor counts them
-    /// ([`KeyframeProcessor::stamps_not_advancing`]).
-    pub stamps_not_advancing: AtomicU64,
+    /// Inputs the processor could not use as they came ([`KeyframeProcessor::input_problems`]).
+    pub input_problems: Mutex<InputProblems>,
 }
 
 /// A copy of [`NodeCounters`] at one moment.
@@ -237,7 +235,7 @@ pub struct CountersSnapshot {
     pub failed: u64,
     pub candidates: u64,
     pub param_changes: u64,
-    pub stamps_not_advancing: u64,
+    pub input_problems: InputProblems,
 }
 
 impl NodeCounters {
@@ -251,7 +249,7 @@ impl NodeCounters {
             failed: get(&self.failed),
             candidates: get(&self.candidates),
             param_changes: get(&self.param_changes),
-            stamps_not_advancing: get(&self.stamps_not_advancing),
+            input_problems: *self.input_problems.lock().unwrap_or_else(|e| e.into_inner()),
         }
     }
 }
@@ -542,13 +540,17 @@ fn diagnostic_status(
 ) -> DiagnosticStatus {
     let now = counters.snapshot();
     let (dropping, failing) = (now.dropped > previous.dropped, now.failed > previous.failed);
-    let stuck = now.stamps_not_advancing.saturating_sub(previous.stamps_not_advancing);
-    let (level, message) = match (dropping, failing, stuck > 0) {
-        (false, false, false) => (DiagnosticStatus::OK, "ok".to_string()),
-        (false, false, true) => (
-            DiagnosticStatus::WARN,
-            format!("{stuck} messages in the last period stamped no later than an earlier one (use_sim_time without /clock?)"),
-        ),
+    // Inputs not usable as they came, in the last period.
+    let (counts, before) = (now.input_problems.named(), previous.input_problems.named());
+    let problems: Vec<String> = counts
+        .iter()
+        .zip(&before)
+        .filter(|((_, count, _), (_, earlier, _))| count > earlier)
+        .map(|((_, count, what), (_, earlier, _))| format!("{} {what}", count - earlier))
+        .collect();
+    let (level, message) = match (dropping, failing, problems.is_empty()) {
+        (false, false, true) => (DiagnosticStatus::OK, "ok".to_string()),
+        (false, false, false) => (DiagnosticStatus::WARN, format!("in the last period: {}", problems.join("; "))),
         _ => (
             DiagnosticStatus::WARN,
             format!(
@@ -576,16 +578,16 @@ fn diagnostic_status(
         ("malformed", now.malformed.to_string()),
         ("dropped", now.dropped.to_string()),
         ("failed", now.failed.to_string()),
-        ("stamps_not_advancing", now.stamps_not_advancing.to_string()),
         ("decode_ms_mean", format!("{:.2}", per_message(&counters.decode_us))),
         ("process_ms_mean", format!("{:.2}", per_message(&counters.process_us))),
     ];
+    let values = values.into_iter().chain(counts.iter().map(|&(name, count, _)| (name, count.to_string())));
     DiagnosticStatus {
         level,
         name: format!("{}: loop closure", fqn.trim_start_matches('/')),
         message,
         hardware_id: fqn.to_string(),
-        values: values.into_iter().map(|(key, value)| KeyValue { key: key.to_string(), value }).collect(),
+        values: values.map(|(key, value)| KeyValue { key: key.to_string(), value }).collect(),
     }
 }
 
@@ -862,7 +864,7 @@ fn worker_loop(
         if let Some(keyframes) = processor.keyframes() {
             counters.keyframes.store(keyframes, Ordering::Relaxed);
         }
-        counters.stamps_not_advancing.store(processor.stamps_not_advancing(), Ordering::Relaxed);
+        *counters.input_problems.lock().unwrap_or_else(|e| e.into_inner()) = processor.input_problems();
         if let Some(id) = id.or(keyframe) {
             frame_ids.insert(id, &header.frame_id);
             if let Some(pose) = tracker_pose {
@@ -912,18 +914,26 @@ fn worker_loop(
 
 #[cfg(test)]
 mod tests {
-    use super::{diagnostic_status, DiagnosticStatus, FrameIds, NodeCounters, Ordering};
+    use super::{diagnostic_status, DiagnosticStatus, FrameIds, InputProblems, NodeCounters};
 
     #[test]
-    fn diagnostics_warn_while_stamps_do_not_advance() {
+    fn diagnostics_warn_while_inputs_cannot_be_used() {
         let counters = NodeCounters::default();
         let before = counters.snapshot();
         assert_eq!(diagnostic_status("/lcd", &counters, &before, 0, 8).level, DiagnosticStatus::OK);
-        counters.stamps_not_advancing.store(3, Ordering::Relaxed);
+        let problems = InputProblems { stamps_not_advancing: 3, blank_frames: 2, ..InputProblems::default() };
+        *counters.input_problems.lock().unwrap() = problems;
         let status = diagnostic_status("/lcd", &counters, &before, 0, 8);
         assert_eq!(status.level, DiagnosticStatus::WARN);
-        assert!(status.message.starts_with("3 messages") && status.message.contains("stamped"), "{}", status.message);
-        assert!(status.values.iter().any(|kv| kv.key == "stamps_not_advancing" && kv.value == "3"));
+        let message = &status.message;
+        assert!(
+            message.contains("3 frames stamped no later") && message.contains("2 frames showing nothing"),
+            "{message}"
+        );
+        assert!(!message.contains("depth"), "{message}");
+        for (key, value) in [("stamps_not_advancing", "3"), ("blank_frames", "2"), ("misfit_sizes", "0")] {
+            assert!(status.values.iter().any(|kv| kv.key == key && kv.value == value), "{key}: {:?}", status.values);
+        }
         // Once they advance again, the next period is OK.
         let later = counters.snapshot();
         assert_eq!(diagnostic_status("/lcd", &counters, &later, 0, 8).level, DiagnosticStatus::OK);
