@@ -425,19 +425,11 @@ fn equalise_histogram(gray: &mut image::GrayImage) {
 
 /// Checks whether `query` and `matched` see one rigid scene (module doc).
 pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &VerificationParams) -> Verification {
-    // One camera matrix serves both views: images of two sizes, or of a shape the intrinsics do not
-    // describe, are verified as without intrinsics (no pose), the pipeline having said why.
-    let fitted = params.intrinsics.and_then(|k| match query.image_size == matched.image_size {
-        true => k.for_image(query.image_size),
-        false => None,
+    // Each view's camera: the intrinsics scaled to its image. An image of a shape they do not
+    // describe leaves the pair verified as without intrinsics (no pose), the pipeline having said why.
+    let cameras = params.intrinsics.and_then(|k| {
+        Some(Cameras { query: k.for_image(query.image_size)?, matched: k.for_image(matched.image_size)? })
     });
-    let refitted;
-    let params = if fitted == params.intrinsics {
-        params
-    } else {
-        refitted = VerificationParams { intrinsics: fitted, ..params.clone() };
-        &refitted
-    };
     let (pairs, threshold) = match (&query.descriptors, &matched.descriptors) {
         (Descriptors::Orb(q), Descriptors::Orb(m)) => {
             (hamming::mutual_matches(q, m, params.ratio), params.pixel_threshold)
@@ -453,8 +445,8 @@ pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &Verificat
     let point = |p: [f32; 2]| Vec2F64::new(p[0] as f64, p[1] as f64);
     let x1: Vec<Vec2F64> = pairs.iter().map(|&(i, _)| point(query.keypoints[i])).collect();
     let x2: Vec<Vec2F64> = pairs.iter().map(|&(_, j)| point(matched.keypoints[j])).collect();
-    let (mut verification, inliers) = fit(&x1, &x2, params, threshold);
-    if let (true, Some(intrinsics), false) = (verification.accepted, &params.intrinsics, matched.depths.is_empty()) {
+    let (mut verification, inliers) = fit(&x1, &x2, params, threshold, cameras.as_ref());
+    if let (true, Some(cameras), false) = (verification.accepted, &cameras, matched.depths.is_empty()) {
         // Step 5: the inliers whose match keypoint has a depth.
         let points: Vec<(Vec2F64, Vec2F64, f32)> = pairs
             .iter()
@@ -462,7 +454,7 @@ pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &Verificat
             .filter(|&(&(_, j), &inlier)| inlier && matched.depths[j] > 0.0)
             .map(|(&(i, j), _)| (point(query.keypoints[i]), point(matched.keypoints[j]), matched.depths[j]))
             .collect();
-        if let Some(pose) = metric_pose(&points, intrinsics, threshold) {
+        if let Some(pose) = metric_pose(&points, cameras, threshold) {
             verification.pose = Some(pose);
         }
     }
@@ -471,22 +463,20 @@ pub fn verify(query: &LocalFeatures, matched: &LocalFeatures, params: &Verificat
 
 /// Step 5 of the module doc: from (query pixel, match pixel, match depth) triples, the query camera's
 /// metric pose in the match camera's frame; `None` when too few agree.
-fn metric_pose(
-    points: &[(Vec2F64, Vec2F64, f32)],
-    intrinsics: &Intrinsics,
-    pixel_threshold: f64,
-) -> Option<RelativePose> {
+fn metric_pose(points: &[(Vec2F64, Vec2F64, f32)], cameras: &Cameras, pixel_threshold: f64) -> Option<RelativePose> {
     if points.len() < MIN_METRIC_INLIERS {
         return None;
     }
-    let Intrinsics { fx, fy, cx, cy, .. } = *intrinsics;
+    let lifted = cameras.matched;
     let world: Vec<Vec3AF32> = points
         .iter()
         .map(|&(_, m, d)| {
-            let (x, y) = ((m.x - cx) / fx, (m.y - cy) / fy);
+            let (x, y) = ((m.x - lifted.cx) / lifted.fx, (m.y - lifted.cy) / lifted.fy);
             Vec3AF32::new(x as f32 * d, y as f32 * d, d)
         })
         .collect();
+    let intrinsics = &cameras.query;
+    let Intrinsics { fx, fy, cx, cy, .. } = *intrinsics;
     let image: Vec<Vec2F32> = points.iter().map(|&(q, _, _)| Vec2F32::new(q.x as f32, q.y as f32)).collect();
     let k = Mat3AF32::from_cols(
         Vec3AF32::new(fx as f32, 0.0, 0.0),
@@ -647,11 +637,25 @@ fn least_squares_pose(
 /// Steps 3 and 4 of the module doc on matched pixel positions (`x1[i]` in the query, `x2[i]` in the
 /// match).
 pub fn fit_geometry(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams) -> Verification {
-    fit(x1, x2, params, params.pixel_threshold).0
+    let cameras = params.intrinsics.map(|k| Cameras { query: k, matched: k });
+    fit(x1, x2, params, params.pixel_threshold, cameras.as_ref()).0
+}
+
+/// The intrinsics of the two views of a pair, each scaled to its own image.
+#[derive(Clone, Copy, Debug)]
+struct Cameras {
+    query: Intrinsics,
+    matched: Intrinsics,
 }
 
 /// [`fit_geometry`] with the winning model's inlier mask.
-fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams, threshold: f64) -> (Verification, Vec<bool>) {
+fn fit(
+    x1: &[Vec2F64],
+    x2: &[Vec2F64],
+    params: &VerificationParams,
+    threshold: f64,
+    cameras: Option<&Cameras>,
+) -> (Verification, Vec<bool>) {
     // A fixed seed: the same pair is always judged the same way.
     let ransac = RansacParams { max_iterations: 500, threshold, min_inliers: 0, random_seed: Some(0), refit: false };
     let fits = [
@@ -665,16 +669,16 @@ fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams, threshold: f
         .max_by_key(|(model, fit)| (fit.inlier_count, *model == GeometricModel::Fundamental));
     let inliers = best.map_or(0, |(_, fit)| fit.inlier_count);
     let accepted = inliers >= params.min_inliers && inliers as f64 >= params.min_inlier_ratio * x1.len() as f64;
-    let pose = match (best, &params.intrinsics) {
-        (Some((model, fit)), Some(intrinsics)) if accepted => {
+    let pose = match (best, cameras) {
+        (Some((model, fit)), Some(cameras)) if accepted => {
             let pairs: Vec<(Vec2F64, Vec2F64)> =
                 (0..x1.len()).filter(|&i| fit.inliers[i]).map(|i| (x1[i], x2[i])).collect();
-            relative_pose(model, &fit.model, &intrinsics.matrix(), &pairs, threshold, params.min_inliers)
+            relative_pose(model, &fit.model, cameras, &pairs, threshold, params.min_inliers)
         }
         _ => None,
     };
     // With intrinsics, a camera motion must explain the matches, not only a fundamental matrix.
-    let accepted = accepted && (params.intrinsics.is_none() || pose.is_some());
+    let accepted = accepted && (cameras.is_none() || pose.is_some());
     let mask = best.map_or_else(|| vec![false; x1.len()], |(_, fit)| fit.inliers.clone());
     (Verification { matches: x1.len(), inliers, model: best.map(|(model, _)| model), accepted, pose }, mask)
 }
@@ -685,33 +689,37 @@ fn fit(x1: &[Vec2F64], x2: &[Vec2F64], params: &VerificationParams, threshold: f
 fn relative_pose(
     model: GeometricModel,
     fit: &Mat3F64,
-    k: &Mat3F64,
+    cameras: &Cameras,
     inliers: &[(Vec2F64, Vec2F64)],
     threshold: f64,
     min_support: usize,
 ) -> Option<RelativePose> {
+    let (k1, k2) = (cameras.query.matrix(), cameras.matched.matrix());
     let motions: Vec<(Mat3F64, Vec3F64)> = match model {
         GeometricModel::Fundamental => {
-            let e = enforce_essential_constraints(&essential_from_fundamental(fit, k, k))?;
+            let e = enforce_essential_constraints(&essential_from_fundamental(fit, &k1, &k2))?;
             decompose_essential(&e)?.to_vec()
         }
-        GeometricModel::Homography => decompose_homography(fit, k, k),
+        GeometricModel::Homography => decompose_homography(fit, &k1, &k2),
     };
-    let k_inv = k.inverse();
-    let ray = |p: &Vec2F64| k_inv * Vec3F64::new(p.x, p.y, 1.0);
+    let (k1_inv, k2_inv) = (k1.inverse(), k2.inverse());
+    let ray = |k_inv: &Mat3F64, p: &Vec2F64| *k_inv * Vec3F64::new(p.x, p.y, 1.0);
     let in_front = |(r, t): &(Mat3F64, Vec3F64)| {
-        inliers.iter().filter(|(a, b)| triangulate_midpoint_known_pose(&ray(a), &ray(b), r, t).is_some()).count()
+        inliers
+            .iter()
+            .filter(|(a, b)| triangulate_midpoint_known_pose(&ray(&k1_inv, a), &ray(&k2_inv, b), r, t).is_some())
+            .count()
     };
     let (mut r, mut t) = *motions.iter().max_by_key(|motion| in_front(motion))?;
     if model == GeometricModel::Fundamental {
         // The lift from F loses accuracy; a Levenberg-Marquardt pass on the inliers' Sampson errors
         // (kornia's two-view refinement) recovers it.
         let (y1, y2): (Vec<Vec2F64>, Vec<Vec2F64>) = inliers.iter().copied().unzip();
-        (r, t) = refine_pose_lm(r, t, &y1, &y2, k, k, &LmPoseConfig::default());
+        (r, t) = refine_pose_lm(r, t, &y1, &y2, &k1, &k2, &LmPoseConfig::default());
     }
     let cross =
         Mat3F64::from_cols(Vec3F64::new(0.0, t.z, -t.y), Vec3F64::new(-t.z, 0.0, t.x), Vec3F64::new(t.y, -t.x, 0.0));
-    let epipolar = k_inv.transpose() * cross * r * k_inv;
+    let epipolar = k2_inv.transpose() * cross * r * k1_inv;
     let support = inliers.iter().filter(|(a, b)| sampson_distance(&epipolar, a, b) < threshold * threshold).count();
     if support < min_support || 2 * support < inliers.len() {
         return None;
@@ -975,11 +983,19 @@ mod tests {
         // The full frame's values taken as they are would not describe these frames.
         let unscaled = fit_geometry(&x1, &x2, &params);
         assert!(direction_error(&unscaled).is_none_or(|error| error > 5.0), "{unscaled:?}");
-        // A cropped frame, or two sizes, are verified as without intrinsics: no pose.
-        for (a, b) in [([320, 200], [320, 200]), ([320, 240], [640, 480])] {
-            let v = verify(&orb_features(&x1, a), &orb_features(&x2, b), &params);
-            assert!(v.accepted && v.pose.is_none(), "{a:?} {b:?}: {v:?}");
-        }
+        // The match keyframe at full size (a map made before from the full frames): each view
+        // gets its own camera.
+        let full: Vec<Vec2F64> = x2.iter().map(|p| Vec2F64::new(2.0 * p.x + 0.5, 2.0 * p.y + 0.5)).collect();
+        let mixed = verify(&orb_features(&x1, [320, 240]), &orb_features(&full, [640, 480]), &params);
+        let error = direction_error(&mixed).expect("a pose");
+        assert!(mixed.accepted && error < 2.0, "translation direction off by {error} degrees: {mixed:?}");
+        // A cropped frame is verified as without intrinsics: no pose.
+        let cropped = verify(&orb_features(&x1, [320, 200]), &orb_features(&x2, [320, 240]), &params);
+        assert!(cropped.accepted && cropped.pose.is_none(), "{cropped:?}");
+    }
+
+    fn same_camera(intrinsics: Intrinsics) -> Cameras {
+        Cameras { query: intrinsics, matched: intrinsics }
     }
 
     #[test]
@@ -1100,7 +1116,7 @@ mod tests {
         // The query camera in the match camera's frame: 0.3 m right, 0.1 m forward, turned 5 degrees.
         let truth = nalgebra::Isometry3::new(Vector3::new(0.3, 0.0, 0.1), Vector3::new(0.0, 5f64.to_radians(), 0.0));
         let points = noisy_correspondences(&truth, &intrinsics, 150, 0.5, 7);
-        let pose = metric_pose(&points, &intrinsics, 2.0).expect("a metric pose");
+        let pose = metric_pose(&points, &same_camera(intrinsics), 2.0).expect("a metric pose");
         assert!(pose.metric);
         let rotation_error = pose.rotation.angle_to(&truth.rotation).to_degrees();
         let translation_error = pose.translation - truth.translation.vector;
@@ -1116,8 +1132,16 @@ mod tests {
                 translation_error[axis]
             );
         }
+        // The match keyframe at twice the size (its camera scaled with it): the same pose.
+        let doubled = Intrinsics { size: Some([320, 240]), ..intrinsics }.for_image([640, 480]).unwrap();
+        let double: Vec<_> =
+            points.iter().map(|&(q, m, d)| (q, Vec2F64::new(2.0 * m.x + 0.5, 2.0 * m.y + 0.5), d)).collect();
+        let cameras = Cameras { query: intrinsics, matched: doubled };
+        let mixed = metric_pose(&double, &cameras, 2.0).expect("a metric pose");
+        assert!(mixed.rotation.angle_to(&pose.rotation) < 1e-4, "{mixed:?} against {pose:?}");
+        assert!((mixed.translation - pose.translation).norm() < 1e-4, "{mixed:?} against {pose:?}");
         // Too few points: no metric pose.
-        assert!(metric_pose(&points[..MIN_METRIC_INLIERS - 1], &intrinsics, 2.0).is_none());
+        assert!(metric_pose(&points[..MIN_METRIC_INLIERS - 1], &same_camera(intrinsics), 2.0).is_none());
     }
 
     /// The covariance is calibrated: over many seeded pairs with independent pixel noise in both
@@ -1134,7 +1158,7 @@ mod tests {
         let (mut rotation, mut translation) = (0.0, 0.0);
         for seed in 0..trials {
             let points = noisy_correspondences(&truth, &intrinsics, 120, 1.0, seed);
-            let pose = metric_pose(&points, &intrinsics, 4.0).expect("a metric pose");
+            let pose = metric_pose(&points, &same_camera(intrinsics), 4.0).expect("a metric pose");
             let (r, t) = pose.normalised_squared_errors(&truth).expect("a covariance");
             rotation += r / trials as f64;
             translation += t / trials as f64;
