@@ -82,10 +82,26 @@ pub fn nearest_stamp(sorted: &[Stamp], stamp: Stamp, max_offset: Stamp) -> Optio
         .filter(|&i| gap(i) <= max_offset.nanos.unsigned_abs())
 }
 
+impl Stamp {
+    /// Seconds as decimal text with `places` decimals (at most 9; further digits are cut, toward
+    /// zero), as [`Stamp::parse_secs`] reads it back: a stamp before the epoch is signed as a whole,
+    /// `-0.750000`, not split like ROS's `sec` and `nanosec` (`-1` and `250000000`).
+    pub fn to_decimal(self, places: usize) -> String {
+        let places = places.min(9);
+        let magnitude = self.nanos.unsigned_abs();
+        let (whole, fraction) = (magnitude / 1_000_000_000, magnitude % 1_000_000_000);
+        let sign = if self.nanos < 0 { "-" } else { "" };
+        if places == 0 {
+            return format!("{sign}{whole}");
+        }
+        format!("{sign}{whole}.{:0places$}", fraction / 10u64.pow(9 - places as u32))
+    }
+}
+
 impl fmt::Display for Stamp {
     /// Seconds with nine decimals, e.g. `1341847980.722988000`.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}.{:09}", self.sec(), self.nsec())
+        f.write_str(&self.to_decimal(9))
     }
 }
 
@@ -249,6 +265,13 @@ mod tests {
         assert_eq!(s.to_string(), "1341847980.722988000");
         assert_eq!(Stamp::from_sec_nsec(s.sec(), s.nsec()), s);
         assert_eq!(Stamp::parse_secs("-0.5").unwrap().nanos, -500_000_000);
+        // Before the epoch, printed signed as a whole and read back the same.
+        for text in ["-0.750000000", "-1.250000000", "-3.000000001", "0.000000000"] {
+            let stamp = Stamp::parse_secs(text).unwrap();
+            assert_eq!((stamp.to_string(), Stamp::parse_secs(&stamp.to_string())), (text.to_string(), Some(stamp)));
+        }
+        assert_eq!(Stamp::parse_secs("-0.7509").unwrap().to_decimal(6), "-0.750900");
+        assert_eq!(Stamp::parse_secs("12.5").unwrap().to_decimal(0), "12");
         assert!(Stamp::parse_secs("12a.3").is_none());
         assert!(Stamp::parse_secs("").is_none());
     }

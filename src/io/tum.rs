@@ -393,7 +393,7 @@ fn write_trajectory_line(text: &mut String, stamp: Stamp, pose: &Isometry3<f64>)
 
 /// `sec.micros`, as TUM files print stamps.
 fn tum_stamp(stamp: Stamp) -> String {
-    format!("{}.{:06}", stamp.sec(), stamp.nsec() / 1000)
+    stamp.to_decimal(6)
 }
 
 /// A tracker's trajectory (TUM format, camera-to-world) looked up by frame stamp: each frame takes
