@@ -86,12 +86,13 @@ pub fn run(args: Args) -> Result<()> {
         DbCommand::Merge { first, second, output, offset } => {
             let report = store::merge(&first, &second, &output, offset)?;
             eprintln!(
-                "{} keyframes from {} and {} from {} written to {}",
+                "{} keyframes from {} and {} from {} written to {} ({} with local features for verification)",
                 report.from_first,
                 first.display(),
                 report.from_second,
                 second.display(),
-                output.display()
+                output.display(),
+                report.with_local_features
             );
             Ok(())
         }

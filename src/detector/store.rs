@@ -1051,12 +1051,17 @@ fn create_schema(connection: &Connection, identity: &StoreIdentity) -> Result<()
 pub struct MergeReport {
     pub from_first: u64,
     pub from_second: u64,
+    /// Of all those keyframes, how many came with their local features (verification can check a
+    /// match against those only).
+    pub with_local_features: u64,
 }
 
 /// Writes a new store at `output` holding `first`'s keyframes, then `second`'s with `second_id_offset`
-/// added to their ids. Both must have the same identity; an id in both (after the offset) is an error
-/// naming the clashing ids; `output` must not exist yet. Rows are copied inside SQLite (no descriptor
-/// passes through memory), in one transaction.
+/// added to their ids, each with its local features and its frame (name and tracker pose). Both must
+/// have the same identity; an id in both (after the offset) is an error naming the clashing ids;
+/// `output` must not exist yet. Rows are copied inside SQLite (no descriptor passes through memory),
+/// in one transaction. Not copied: the candidates (the merged map's keyframes were never matched
+/// against each other) and the temporal-consistency state (that of one stream's last keyframe).
 pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) -> Result<MergeReport> {
     let a = KeyframeStore::open_read_only(first)?;
     let b = KeyframeStore::open_read_only(second)?;
@@ -1103,8 +1108,23 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
             "INSERT INTO main.keyframes (id, stamp_nanos, descriptor) SELECT id + ?1, stamp_nanos, descriptor FROM";
         let from_first = out.connection.execute(&format!("{copy} first.keyframes ORDER BY seq"), [0i64])? as u64;
         let from_second = out.connection.execute(&format!("{copy} second.keyframes ORDER BY seq"), [offset])? as u64;
+        let mut with_local_features = 0;
+        for (source, shift) in [("first", 0i64), ("second", offset)] {
+            with_local_features += out.connection.execute(
+                &format!(
+                    "INSERT INTO main.local_features (id, data) SELECT id + ?1, data FROM {source}.local_features"
+                ),
+                [shift],
+            )? as u64;
+            out.connection.execute(
+                &format!(
+                    "INSERT INTO main.frames (id, frame_id, pose) SELECT id + ?1, frame_id, pose FROM {source}.frames"
+                ),
+                [shift],
+            )?;
+        }
         out.connection.execute_batch("COMMIT")?;
-        Ok(MergeReport { from_first, from_second })
+        Ok(MergeReport { from_first, from_second, with_local_features })
     })()
     .with_context(|| format!("merging into {}", output.display()));
     if result.is_err() {

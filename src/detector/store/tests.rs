@@ -146,7 +146,7 @@ fn merge_keeps_ids_refuses_clashes_and_other_identities() {
     assert!(!out.exists());
 
     let report = merge(&a, &b, &out, 100).unwrap();
-    assert_eq!(report, MergeReport { from_first: 5, from_second: 4 });
+    assert_eq!(report, MergeReport { from_first: 5, from_second: 4, with_local_features: 0 });
     let merged = KeyframeStore::open_existing(&out).unwrap();
     assert_eq!(merged.identity(), &identity(8));
     let keyframes = merged.keyframes().unwrap();
@@ -164,6 +164,37 @@ fn merge_keeps_ids_refuses_clashes_and_other_identities() {
     let err = format!("{:#}", merge(&a, &c, &out2, 0).unwrap_err());
     assert!(err.contains(&"ab".repeat(32)) && err.contains(&"ef".repeat(32)), "{err}");
     assert!(!out2.exists());
+}
+
+/// A merged map verifies as its parts did: each keyframe's local features and frame come with it,
+/// under its new id.
+#[test]
+fn merge_keeps_each_keyframes_local_features_and_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b, out) = (dir.path().join("a.db"), dir.path().join("b.db"), dir.path().join("out.db"));
+    let pose = Isometry3::translation(1.0, 2.0, 3.0);
+    for (path, ids) in [(&a, 0..3u64), (&b, 0..2)] {
+        let mut store = KeyframeStore::open_or_create(path, &identity(4)).unwrap();
+        for id in ids {
+            let (d, features, name) = (descriptor(id, 4), [id as u8 + 1; 3], format!("camera{id}"));
+            let record = KeyframeRecord {
+                local_features: (id != 1).then_some(&features[..]),
+                frame_id: &name,
+                tracker_pose: Some(pose),
+                ..KeyframeRecord::new(id, stamp(id), &d)
+            };
+            store.append_keyframe(&record).unwrap();
+        }
+    }
+    let report = merge(&a, &b, &out, 10).unwrap();
+    assert_eq!(report, MergeReport { from_first: 3, from_second: 2, with_local_features: 3 });
+    let merged = KeyframeStore::open_read_only(&out).unwrap();
+    let features = merged.local_features(0).unwrap();
+    assert_eq!(features, vec![(0, vec![1; 3]), (2, vec![3; 3]), (10, vec![1; 3])]);
+    let frames = merged.frames(0).unwrap();
+    let names: Vec<(u64, &str)> = frames.iter().map(|(id, (name, _))| (*id, name.as_str())).collect();
+    assert_eq!(names, [(0, "camera0"), (1, "camera1"), (2, "camera2"), (10, "camera0"), (11, "camera1")]);
+    assert!(frames.iter().all(|(_, (_, p))| *p == Some(pose)));
 }
 
 /// Checks that `db` holds exactly the keyframes `ids` (in order) of `dim` values.
