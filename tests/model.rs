@@ -143,6 +143,20 @@ fn import_weights_writes_files_that_load() {
     .unwrap();
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json[0]["top"][0]["index"], 20);
+    // One network, one identity (the keyframe database's): the TFLite file read directly, a copy of
+    // it under another name, its import saved by `import-weights`, and the cache's import.
+    let copy = dir.path().join("renamed.tflite");
+    std::fs::copy(tflite(), &copy).unwrap();
+    let cache = dir.path().join("cache");
+    std::fs::create_dir(&cache).unwrap();
+    let cached =
+        ecm_lcd(&cache, &["classify", bird.to_str().unwrap()]).env("ECM_LCD_SHARED", shared()).output().unwrap();
+    assert!(cached.status.success(), "{}", stderr(&cached));
+    let identities: Vec<String> = [tflite(), copy, mnv2, cache.join(resolve::CACHED_WEIGHTS)]
+        .iter()
+        .map(|path| resolve::load_file(path).unwrap().sha256)
+        .collect();
+    assert!(identities.iter().all(|id| *id == identities[0]), "{identities:?}");
 }
 
 #[test]

@@ -20,10 +20,23 @@ use crate::model::Arch;
 /// Reads `path` and imports it; see [`import_tflite_bytes`].
 pub fn import_tflite(path: &Path) -> Result<Weights> {
     let bytes = crate::io::read_capped(path, crate::io::limits::WEIGHTS_FILE, "TFLite model")?;
-    let mut weights = import_tflite_bytes(&bytes).with_context(|| format!("cannot import {}", path.display()))?;
+    import_tflite_file(path, &bytes)
+}
+
+/// Imports `bytes`, read from `path`, and says where they came from. Every way of importing a file
+/// (`import-weights`, `--weights x.tflite`, the cache) goes through here, so the same file gives the
+/// same weights, byte for byte once saved, and so the same keyframe database identity: the public
+/// file is named as published whatever the copy is called, another file by its name and hash.
+pub fn import_tflite_file(path: &Path, bytes: &[u8]) -> Result<Weights> {
+    let mut weights = import_tflite_bytes(bytes).with_context(|| format!("cannot import {}", path.display()))?;
     weights.check_finite().with_context(|| format!("cannot import {}", path.display()))?;
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    weights.source = format!("{name} (TFLite, sha256 {})", super::fetch::sha256_hex(&bytes));
+    let sha256 = super::fetch::sha256_hex(bytes);
+    weights.source = if sha256 == super::resolve::UPSTREAM_SHA256 {
+        format!("{} (TFLite)", super::resolve::UPSTREAM_FILE)
+    } else {
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        format!("{name} (TFLite, sha256 {sha256})")
+    };
     Ok(weights)
 }
 

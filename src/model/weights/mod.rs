@@ -46,8 +46,20 @@ pub struct Weights {
 }
 
 impl Weights {
-    /// Saves as safetensors with the metadata in the header.
+    /// Saves as safetensors with the metadata in the header ([`Weights::to_bytes`]).
     pub fn save(&self, path: &Path) -> Result<()> {
+        let bytes = self.to_bytes()?;
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        }
+        // A regular file is replaced by rename (a crash never leaves half a weights file); a device,
+        // FIFO or symlink is written in place, never replaced.
+        crate::io::output::write_replacing(path, &bytes)?;
+        Ok(())
+    }
+
+    /// The safetensors file [`Weights::save`] writes: the same weights always give the same bytes.
+    pub fn to_bytes(&self) -> Result<Vec<u8>> {
         let mut fields = BTreeMap::new();
         fields.insert("format", FORMAT.to_string());
         fields.insert("arch", self.arch.name().to_string());
@@ -62,14 +74,7 @@ impl Weights {
         let mut names: Vec<&String> = self.tensors.keys().collect();
         names.sort();
         let data: Vec<(&str, &Tensor)> = names.iter().map(|n| (n.as_str(), &self.tensors[*n])).collect();
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        }
-        // A regular file is replaced by rename (a crash never leaves half a weights file); a device,
-        // FIFO or symlink is written in place, never replaced.
-        let bytes = safetensors::serialize(data, Some(metadata)).context("serialising the weights")?;
-        crate::io::output::write_replacing(path, &bytes)?;
-        Ok(())
+        safetensors::serialize(data, Some(metadata)).context("serialising the weights")
     }
 
     /// Loads a safetensors file written by [`Weights::save`] (or any file using the naming scheme

@@ -30,7 +30,9 @@ pub struct Resolved {
     pub weights: Weights,
     /// The file read (a safetensors or TFLite file).
     pub path: PathBuf,
-    /// SHA-256 of that file, lower-case hex.
+    /// SHA-256 of the weights as a safetensors file, lower-case hex: of the file read, or for a
+    /// TFLite file of its import as [`Weights::save`] would write it (what the cache holds), so that
+    /// a database made with either is the same network's.
     pub sha256: String,
 }
 
@@ -55,16 +57,15 @@ pub fn cache_dir() -> Option<PathBuf> {
 /// Reads a weights file: `.tflite` is imported, anything else is read as safetensors.
 pub fn load_file(path: &Path) -> Result<Resolved> {
     let bytes = crate::io::read_capped(path, crate::io::limits::WEIGHTS_FILE, "weights file")?;
-    let sha256 = sha256_hex(&bytes);
     let is_tflite = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("tflite"));
-    let weights = if is_tflite {
-        let mut w =
-            super::import::import_tflite_bytes(&bytes).with_context(|| format!("cannot import {}", path.display()))?;
-        w.source = format!("{} (TFLite)", path.file_name().unwrap_or_default().to_string_lossy());
-        w
+    let (weights, sha256) = if is_tflite {
+        let weights = super::import::import_tflite_file(path, &bytes)?;
+        let sha256 = sha256_hex(&weights.to_bytes()?);
+        (weights, sha256)
     } else {
-        Weights::from_bytes(&bytes)
-            .with_context(|| format!("{} is not a valid ecm-lcd weights file", path.display()))?
+        let weights = Weights::from_bytes(&bytes)
+            .with_context(|| format!("{} is not a valid ecm-lcd weights file", path.display()))?;
+        (weights, sha256_hex(&bytes))
     };
     Ok(Resolved { weights, path: path.to_path_buf(), sha256 })
 }
