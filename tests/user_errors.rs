@@ -283,6 +283,17 @@ fn plots_must_be_png_and_empty_sources_and_foreign_databases_are_refused() {
     refused_pose_graph("out.txt", &["--plot", &d("f.jpg")], &["f.jpg", "PNG"]);
     refused_pose_graph("c.csv", &[], &["destroy"]);
     refused_pose_graph("out.txt", &["--robust-rotation-scale", "0"], &["--robust-rotation-scale", "positive"]);
+    // What fails after the work, fails before any output is written: a ground truth that cannot
+    // be read or pairs with no pose, a plot in a folder that does not exist.
+    std::fs::write(d("other.txt"), "100.0 0 0 0 0 0 0 1\n101.0 1 0 0 0 0 0 1\n").unwrap();
+    refused_pose_graph("out.txt", &["--groundtruth", &d("missing.txt")], &["missing.txt"]);
+    refused_pose_graph("out.txt", &["--groundtruth", &d("other.txt")], &["ground-truth pose within"]);
+    refused_pose_graph("out.txt", &["--plot", &d("nodir/p.png")], &["--plot", "does not exist"]);
+    refused(&["eval", &d("seq"), "-o", &d("pr.csv"), "--plot", &d("nodir/x.png")], &["--plot", "does not exist"]);
+    assert!(!Path::new(&d("out.txt")).exists() && !Path::new(&d("pr.csv")).exists());
+    // Options that only a replayed source uses are refused where they would be ignored.
+    refused(&["learn-projection", &d("seq"), "-o", &d("p.safetensors"), "--db", &d("k.db")], &["--db"]);
+    assert!(!Path::new(&d("k.db")).exists());
 
     // A ROS 2 bag with its image topic and no message in it.
     let bag = dir.path().join("empty_bag");

@@ -63,6 +63,7 @@ pub fn run(args: Args) -> Result<()> {
         }
         DbCommand::Export { path, output } => {
             ecm_lcd::io::output::ensure_not_an_input(&output, &[&path])?;
+            ecm_lcd::io::output::ensure_writable_outputs(&[("-o", &output)])?;
             let store = KeyframeStore::open_read_only(&path)?;
             ecm_lcd::io::output::replace_with(&output, |file| {
                 let mut out = csv::Writer::from_writer(file);

@@ -82,7 +82,7 @@ impl Args {
     pub fn database_and_queries(&self) -> Result<Option<(&Path, &Path)>> {
         match (&self.database, &self.queries) {
             (Some(database), Some(queries)) => {
-                self.source_args.refuse_source_only()?;
+                self.source_args.refuse_source_only("--database/--queries")?;
                 Ok(Some((database, queries)))
             }
             (None, None) => Ok(None),
@@ -206,7 +206,7 @@ pub fn run(args: Args) -> Result<()> {
         ecm_lcd::io::output::ensure_not_an_input(output, &inputs)?;
         ecm_lcd::io::output::ensure_not_in_source(output, &sources)?;
     }
-    ecm_lcd::io::output::ensure_distinct_outputs(&outputs)?;
+    ecm_lcd::io::output::ensure_writable_outputs(&outputs)?;
     let mut pipeline = match (&args.source, &args.loops) {
         (Some(_), None) => pipeline_for_pose_truth(&args.source_args, &args.criteria()?)?,
         _ => args.source_args.pipeline()?,

@@ -37,11 +37,13 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     let inputs: Vec<&std::path::Path> = args.sources.iter().map(PathBuf::as_path).collect();
+    args.source_args.refuse_source_only("learn-projection (it reads only images)")?;
     ecm_lcd::io::output::ensure_not_an_input(&args.output, &inputs)?;
+    ecm_lcd::io::output::ensure_writable_outputs(&[("-o", &args.output)])?;
     let mut params = args.source_args.params()?;
     // Learned on the descriptor itself, never on a projection of it.
     params.set_from_str("descriptor.projection", "").map_err(anyhow::Error::msg)?;
-    let mut pipeline = ecm_lcd::pipeline::Pipeline::new(params, args.source_args.weights.as_deref())?;
+    let mut pipeline = args.source_args.pipeline_with(params)?;
     let name = pipeline.descriptor_name();
     let mut samples = Vec::new();
     'sources: for source in &args.sources {

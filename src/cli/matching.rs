@@ -41,13 +41,14 @@ pub fn header() -> Vec<String> {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    args.source_args.refuse_source_only()?;
+    args.source_args.refuse_source_only("--database/--queries")?;
     let sources = [args.database.as_path(), args.queries.as_path()];
     let mut inputs = sources.to_vec();
     inputs.extend(args.source_args.files_read());
     if let Some(output) = &args.output {
         ecm_lcd::io::output::ensure_not_an_input(output, &inputs)?;
         ecm_lcd::io::output::ensure_not_in_source(output, &sources)?;
+        ecm_lcd::io::output::ensure_writable_outputs(&[("-o", output)])?;
     }
     let mut pipeline = args.source_args.pipeline()?;
     let run = run_database_queries(

@@ -209,6 +209,7 @@ pub struct EmbedArgs {
 pub fn embed(args: EmbedArgs) -> Result<()> {
     let images: Vec<&std::path::Path> = args.images.iter().map(PathBuf::as_path).collect();
     ecm_lcd::io::output::ensure_not_an_input(&args.output, &images)?;
+    ecm_lcd::io::output::ensure_writable_outputs(&[("-o", &args.output)])?;
     let (mut embedder, _) = args.network.embedder(Arch::EcMobileNet, false)?;
     // Every image is read before the output is opened, so a bad image leaves an existing file as it was.
     let mut records = Vec::with_capacity(args.images.len());

@@ -57,11 +57,13 @@ pub fn run(args: Args) -> Result<()> {
     let mut inputs = vec![args.odometry.as_path(), args.candidates.as_path()];
     inputs.extend(args.groundtruth.as_deref());
     ensure_not_an_input(&args.output, &inputs)?;
+    let mut outputs = vec![("-o", args.output.as_path())];
     if let Some(plot) = &args.plot {
         ensure_not_an_input(plot, &inputs)?;
         ecm_lcd::io::output::ensure_png(plot, "--plot")?;
-        ecm_lcd::io::output::ensure_distinct_outputs(&[("-o", &args.output), ("--plot", plot)])?;
+        outputs.push(("--plot", plot));
     }
+    ecm_lcd::io::output::ensure_writable_outputs(&outputs)?;
     for (name, value) in [
         ("--robust-scale", args.robust_scale),
         ("--robust-rotation-scale", args.robust_rotation_scale),
@@ -74,6 +76,12 @@ pub fn run(args: Args) -> Result<()> {
     let odometry = read_groundtruth(&args.odometry)
         .with_context(|| format!("reading the odometry {}", args.odometry.display()))?;
     let candidates = read_candidates_csv(&args.candidates)?;
+    let groundtruth = match &args.groundtruth {
+        Some(path) => {
+            Some(read_groundtruth(path).with_context(|| format!("reading the ground truth {}", path.display()))?)
+        }
+        None => None,
+    };
     let (loops, left_out) = LoopConstraint::from_candidates(&candidates, args.metric_only);
     let up_to_scale = loops.iter().filter(|l| !l.metric).count();
     if left_out > 0 {
@@ -111,14 +119,8 @@ pub fn run(args: Args) -> Result<()> {
             result.implausible_loops
         );
     }
-    write_trajectory(&args.output, &result.trajectory)?;
     let kept = result.loops.iter().filter(|&&(_, _, w)| w >= 0.5).count();
-    let groundtruth = match &args.groundtruth {
-        Some(path) => {
-            Some(read_groundtruth(path).with_context(|| format!("reading the ground truth {}", path.display()))?)
-        }
-        None => None,
-    };
+    // Everything that can fail is done before the outputs are written.
     let errors = match &groundtruth {
         Some(truth) => {
             Some((absolute_trajectory_error(&odometry, truth)?, absolute_trajectory_error(&result.trajectory, truth)?))
@@ -154,6 +156,7 @@ pub fn run(args: Args) -> Result<()> {
             path,
         )?;
     }
+    write_trajectory(&args.output, &result.trajectory)?;
     if args.json {
         let summary = serde_json::json!({
             "poses": result.trajectory.len(),

@@ -71,12 +71,12 @@ impl SourceArgs {
     }
 
     /// An error naming the first option given that only a replayed SOURCE uses, for commands that
-    /// read a database and queries instead (`--topic` serves both: the image topic of bags;
-    /// `--depth-topic` the database's bag).
-    pub fn refuse_source_only(&self) -> Result<()> {
+    /// read other inputs (`what`: a database and queries, or images to learn from), which would
+    /// otherwise ignore it (`--topic` serves all: the image topic of bags; `--depth-topic` a bag's).
+    pub fn refuse_source_only(&self, what: &str) -> Result<()> {
         let source_only = [("--poses", self.poses.is_some()), ("--db", self.db.is_some())];
         match source_only.iter().find(|(_, given)| *given) {
-            Some((flag, _)) => anyhow::bail!("{flag} applies to a replayed SOURCE, not to --database/--queries"),
+            Some((flag, _)) => anyhow::bail!("{flag} applies to a replayed SOURCE, not to {what}"),
             None => Ok(()),
         }
     }
@@ -131,10 +131,12 @@ pub fn run(args: Args) -> Result<()> {
         read.extend(args.source_args.db.as_deref());
         ecm_lcd::io::output::ensure_not_an_input(output, &read)?;
         ecm_lcd::io::output::ensure_not_in_source(output, &[&args.source])?;
-        if let Some(db) = &args.source_args.db {
-            ecm_lcd::io::output::ensure_distinct_outputs(&[("--db", db), ("-o", output)])?;
-        }
     }
+    let outputs: Vec<(&str, &Path)> = [("--db", &args.source_args.db), ("-o", &args.output)]
+        .into_iter()
+        .filter_map(|(flag, path)| Some((flag, path.as_deref()?)))
+        .collect();
+    ecm_lcd::io::output::ensure_writable_outputs(&outputs)?;
     let mut pipeline = args.source_args.pipeline()?;
     let resuming = pipeline.store().is_some_and(|store| !store.is_empty());
     let stored = match pipeline.store() {

@@ -86,9 +86,16 @@ fn resolved(path: &Path) -> Option<PathBuf> {
     Some(folder.canonicalize().ok()?.join(path.file_name()?))
 }
 
-/// Refuses two outputs (each with its flag) that name one file, existing or not: the second one
-/// written would replace the first.
-pub fn ensure_distinct_outputs(outputs: &[(&str, &Path)]) -> Result<()> {
+/// Refuses outputs (each with its flag) that could not all be written, before any work: one whose
+/// folder does not exist (a command would otherwise write its other outputs and then fail), or two
+/// that name one file, existing or not (the second one written would replace the first).
+pub fn ensure_writable_outputs(outputs: &[(&str, &Path)]) -> Result<()> {
+    for &(flag, path) in outputs {
+        let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        if !folder.is_dir() {
+            bail!("{flag} {}: the folder {} does not exist", path.display(), folder.display());
+        }
+    }
     for (i, &(flag, path)) in outputs.iter().enumerate() {
         for &(other_flag, other) in &outputs[i + 1..] {
             let same = same_file(path, other) || resolved(path).is_some_and(|p| resolved(other) == Some(p));
@@ -126,7 +133,7 @@ pub fn ensure_not_in_source(output: &Path, sources: &[&Path]) -> Result<()> {
 }
 
 /// Refuses `output` when it is the same file as one of `inputs` (an input that does not exist yet,
-/// or an output that does not, never clashes: [`ensure_distinct_outputs`] checks outputs).
+/// or an output that does not, never clashes: [`ensure_writable_outputs`] checks outputs).
 pub fn ensure_not_an_input(output: &Path, inputs: &[&Path]) -> Result<()> {
     if let Some(input) = inputs.iter().find(|input| same_file(output, input)) {
         bail!(
