@@ -259,7 +259,8 @@ pub fn optimise(
     if ends.len() + 2 > params.max_nodes {
         bail!("{} loop ends need more than the {} nodes allowed (raise the node limit)", ends.len(), params.max_nodes);
     }
-    let spacing = odometry.len().div_ceil(params.max_nodes - ends.len()).max(1);
+    // Every `spacing`-th pose, the loop ends and the last pose: at most `max_nodes` in all.
+    let spacing = odometry.len().div_ceil(params.max_nodes - ends.len() - 1).max(1);
     let mut nodes: BTreeSet<usize> = (0..odometry.len()).step_by(spacing).collect();
     nodes.extend(&ends);
     nodes.insert(odometry.len() - 1);
@@ -459,6 +460,13 @@ mod tests {
         // The loops fix the heading; the odometry's 2% scale error, the same on both laps, they cannot.
         assert!(after * 5.0 < before, "ATE {before} -> {after}");
         assert_eq!(result.trajectory.len(), truth.len());
+        assert!(result.nodes <= params.max_nodes, "{} nodes", result.nodes);
+        // The node limit holds with and without loop ends among the nodes.
+        for (max_nodes, loops) in [(2, &loops[..0]), (7, &loops[..0]), (40, &loops[..])] {
+            let params = PoseGraphParams { max_nodes, ..PoseGraphParams::default() };
+            let nodes = optimise(&odometry, loops, &params).unwrap().nodes;
+            assert!((2..=max_nodes).contains(&nodes), "{nodes} nodes for at most {max_nodes}");
+        }
         let (_, _, false_weight) = *result.loops.last().unwrap();
         assert!(false_weight < 0.1, "the false loop keeps weight {false_weight}");
         assert!(result.loops[..result.loops.len() - 1].iter().all(|&(_, _, w)| w > 0.5), "{:?}", result.loops);

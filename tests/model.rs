@@ -256,3 +256,23 @@ fn weights_are_downloaded_checked_and_cached_when_nothing_local_exists() {
     let out = classify("http://127.0.0.1:9/unreachable", false);
     assert!(out.status.success(), "{}", stderr(&out));
 }
+
+#[test]
+fn embed_writes_a_header_and_one_row_per_image() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("descriptors.csv");
+    let images = ["bird.bmp", "cat.bmp"].map(|name| shared().join("data/imagenet").join(name));
+    let mut args = vec!["embed".to_string(), "-o".into(), csv.to_str().unwrap().into()];
+    args.extend(images.iter().map(|p| p.to_str().unwrap().to_string()));
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let out = ecm_lcd(dir.path(), &args).env("ECM_LCD_SHARED", shared()).output().unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    let text = std::fs::read_to_string(&csv).unwrap();
+    let rows: Vec<Vec<&str>> = text.lines().map(|l| l.split(',').collect()).collect();
+    assert_eq!(rows.len(), 3, "a header and two rows");
+    assert_eq!((rows[0][0], rows[0][1], rows[0][1280], rows[0].len()), ("image", "v0", "v1279", 1281));
+    for (row, image) in rows[1..].iter().zip(&images) {
+        assert_eq!((row[0], row.len()), (image.to_str().unwrap(), 1281));
+        assert!(row[1..].iter().all(|v| v.parse::<f32>().is_ok_and(f32::is_finite)));
+    }
+}

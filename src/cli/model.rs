@@ -219,13 +219,17 @@ pub fn embed(args: EmbedArgs) -> Result<()> {
         record.extend(pooled.iter().map(|v| v.to_string()));
         records.push(record);
     }
+    let values = records.first().map_or(0, |record| record.len() - 1);
+    let header: Vec<String> =
+        std::iter::once("image".to_string()).chain((0..values).map(|i| format!("v{i}"))).collect();
     ecm_lcd::io::output::replace_with(&args.output, |file| {
         let mut writer = csv::Writer::from_writer(file);
+        writer.write_record(&header)?;
         for record in &records {
             writer.write_record(record)?;
         }
         Ok(writer.flush()?)
     })?;
-    println!("wrote {} descriptors of 1280 values to {}", args.images.len(), args.output.display());
+    println!("wrote {} descriptors of {values} values to {}", args.images.len(), args.output.display());
     Ok(())
 }

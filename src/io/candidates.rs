@@ -174,6 +174,9 @@ pub fn write_candidates_csv(candidates: &[LoopCandidate], path: &Path) -> Result
 /// rank is the order of a query's lines.
 pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
     let text = crate::io::read_capped_text(path, crate::io::limits::TEXT_LIST, "candidates CSV")?;
+    // Comment lines (`#`, as in TUM files) are read as blank lines, which the reader skips but counts.
+    let text: Vec<&str> = text.lines().map(|l| if l.trim_start().starts_with('#') { "" } else { l }).collect();
+    let text = text.join("\n");
     let mut reader = csv::ReaderBuilder::new().has_headers(true).from_reader(text.as_bytes());
     let header = reader.headers().with_context(|| format!("{}: no header line", path.display()))?.clone();
     let column = |name: &str| header.iter().position(|h| h == name);
@@ -190,9 +193,13 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
     let covariance_columns: Option<Vec<(usize, usize, usize)>> =
         covariance_columns().map(|(name, row, col)| column(&name).map(|i| (i, row, col))).collect();
     let mut candidates: Vec<LoopCandidate> = Vec::new();
+    // The file's own line numbers: the reader skips blank lines (and the comments, blanked), and its
+    // own count of lines does not hold across them. A record is one line in these files.
+    let content_lines: Vec<usize> =
+        text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()).map(|(i, _)| i + 1).collect();
     for (row, record) in reader.records().enumerate() {
-        let line = row + 2;
-        let record = record.with_context(|| format!("{}:{line}: malformed CSV line", path.display()))?;
+        let line = content_lines.get(row + 1).copied().unwrap_or(0);
+        let record = record.map_err(|e| anyhow::anyhow!("{}:{line}: malformed CSV line: {e}", path.display()))?;
         let field = |i: usize| record.get(i).unwrap_or("");
         let number = |i: usize| -> Result<f64> {
             field(i).parse::<f64>().ok().filter(|v| v.is_finite()).with_context(|| {
@@ -344,5 +351,14 @@ mod tests {
         std::fs::write(&path, format!("{},{}\n{line}\n", MATCH_HEADER.join(","), POSE_HEADER.join(","))).unwrap();
         let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
         assert!(err.contains("c.csv:2: `\"NaN\"` is not a finite number"), "{err}");
+        // Errors name the file's own line, blank and comment lines counted.
+        let header = format!("{},{}", MATCH_HEADER.join(","), POSE_HEADER.join(","));
+        let good = "1,2.0,0,1.0,0.5,0.9,30,0,0,0,1,0,0,1,0";
+        std::fs::write(&path, format!("{header}\n\n{good}\n# a note\n{line}\n")).unwrap();
+        let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
+        assert!(err.contains("c.csv:5: "), "{err}");
+        std::fs::write(&path, format!("{header}\n\n{good}\n1,2\n")).unwrap();
+        let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
+        assert!(err.contains("c.csv:4: malformed"), "{err}");
     }
 }

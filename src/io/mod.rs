@@ -341,11 +341,16 @@ pub fn read_capped(path: &std::path::Path, limit: u64, what: &str) -> anyhow::Re
 /// As [`read_capped`], as UTF-8 text; invalid UTF-8 names the line it is on.
 pub fn read_capped_text(path: &std::path::Path, limit: u64, what: &str) -> anyhow::Result<String> {
     let bytes = read_capped(path, limit, what)?;
-    String::from_utf8(bytes).map_err(|e| {
+    let mut text = String::from_utf8(bytes).map_err(|e| {
         let valid = e.utf8_error().valid_up_to();
         let line = e.as_bytes()[..valid].iter().filter(|&&b| b == b'\n').count() + 1;
         anyhow::anyhow!("{what} {}: line {line} is not valid UTF-8", path.display())
-    })
+    })?;
+    // The byte-order mark that Windows editors and spreadsheets put first is not text.
+    if text.starts_with('\u{feff}') {
+        text.drain(..'\u{feff}'.len_utf8());
+    }
+    Ok(text)
 }
 
 /// Size limits of whole-file reads.
@@ -375,6 +380,9 @@ mod capped_tests {
         std::fs::write(&path, b"a\nb\xffc\n").unwrap();
         let err = super::read_capped_text(&path, 100, "list").unwrap_err().to_string();
         assert!(err.contains("line 2") && err.contains("UTF-8"), "{err}");
+        // A byte-order mark (Windows editors, spreadsheets) is not part of the text.
+        std::fs::write(&path, "\u{feff}9,0\r\n").unwrap();
+        assert_eq!(super::read_capped_text(&path, 100, "list").unwrap(), "9,0\r\n");
         std::fs::write(&path, vec![b'x'; 3 << 20]).unwrap();
         let err = super::read_capped(&path, 2 << 20, "weights file").unwrap_err().to_string();
         assert!(err.contains("list.txt") && err.contains("2 MiB"), "{err}");

@@ -40,7 +40,6 @@ fn stamp_problem(text: &str) -> &'static str {
 /// byte-order mark at the start is skipped).
 fn data_lines(path: &Path) -> Result<Vec<(usize, String)>> {
     let text = super::read_capped_text(path, super::limits::TEXT_LIST, "list")?;
-    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     Ok(text
         .lines()
         .enumerate()
