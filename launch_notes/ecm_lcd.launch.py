@@ -2,6 +2,9 @@
 machine); src/cli/launch_file.rs checks that its command line, at the defaults below, is one `ecm-lcd node` accepts.
 
     ros2 launch ecm_lcd.launch.py image_topic:=/camera/color/image_raw params:=config/ecm_lcd.yaml
+
+camera_info (intrinsics: verification) and depth (registered to colour: metric poses) default to a
+RealSense driver's topics; a topic nobody publishes costs nothing.
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, ExecuteProcess
@@ -11,11 +14,15 @@ from launch.substitutions import LaunchConfiguration
 def generate_launch_description():
     image_topic = LaunchConfiguration("image_topic")
     keyframe_topic = LaunchConfiguration("keyframe_topic")
+    camera_info_topic = LaunchConfiguration("camera_info_topic")
+    depth_topic = LaunchConfiguration("depth_topic")
     params = LaunchConfiguration("params")
     input_qos = LaunchConfiguration("input_qos")
     return LaunchDescription([
         DeclareLaunchArgument("image_topic", default_value="/camera/color/image_raw"),
         DeclareLaunchArgument("keyframe_topic", default_value="/tracker/keyframes"),
+        DeclareLaunchArgument("camera_info_topic", default_value="/camera/color/camera_info"),
+        DeclareLaunchArgument("depth_topic", default_value="/camera/aligned_depth_to_color/image_raw"),
         DeclareLaunchArgument("params", default_value="config/ecm_lcd.yaml"),
         DeclareLaunchArgument("input_qos", default_value="sensor-data",
                               description="reliable | sensor-data (best-effort camera drivers)"),
@@ -26,7 +33,9 @@ def generate_launch_description():
                  "--params-file", params,
                  "-r", ["image:=", image_topic],
                  "-r", ["image/compressed:=", image_topic, "/compressed"],
-                 "-r", ["keyframes:=", keyframe_topic]],
+                 "-r", ["keyframes:=", keyframe_topic],
+                 "-r", ["camera_info:=", camera_info_topic],
+                 "-r", ["depth:=", depth_topic]],
             output="screen",
         ),
     ])

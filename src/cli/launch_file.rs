@@ -1,6 +1,6 @@
 //! Test: `launch_notes/ecm_lcd.launch.py` matches the code: the command it starts, with its launch
 //! arguments at their defaults, parses as `ecm-lcd node` does (options, `--ros-args`), its remaps name
-//! the node's topics, and its default params file is `config/ecm_lcd.yaml`, which loads to the
+//! each of the node's input topics, and its default params file is `config/ecm_lcd.yaml`, which loads to the
 //! built-in defaults. The launch file is read with Python's `ast` (no ROS 2 needed): substitutions are
 //! replaced by the declared defaults, as `ros2 launch` does without overrides.
 
@@ -11,7 +11,9 @@ use super::{Cli, Command as EcmCommand};
 use clap::Parser;
 use ecm_lcd::config::Params;
 use ecm_lcd::ros::args::RosArgs;
-use ecm_lcd::ros::node::{CAMERA_INFO_TOPIC, COMPRESSED_TOPIC, DEFAULT_NODE_NAME, IMAGE_TOPIC, KEYFRAMES_TOPIC};
+use ecm_lcd::ros::node::{
+    CAMERA_INFO_TOPIC, COMPRESSED_TOPIC, DEFAULT_NODE_NAME, DEPTH_TOPIC, IMAGE_TOPIC, KEYFRAMES_TOPIC,
+};
 
 /// The `cmd` of the launch file's ExecuteProcess with every LaunchConfiguration replaced by its
 /// DeclareLaunchArgument default and list elements joined (launch concatenates them).
@@ -58,12 +60,15 @@ fn the_launch_file_starts_the_node_the_code_defines() {
     let ros = RosArgs::parse(&node.ros_args, DEFAULT_NODE_NAME).unwrap();
     assert_eq!(ros.node_name(DEFAULT_NODE_NAME), DEFAULT_NODE_NAME);
 
-    // Every remap renames one of the node's topics.
-    let topics = [KEYFRAMES_TOPIC, IMAGE_TOPIC, COMPRESSED_TOPIC, CAMERA_INFO_TOPIC];
-    assert!(!ros.remaps.is_empty());
+    // Every input topic is remapped (the calibration and depth too: verification and metric poses
+    // need them), and every remap renames one of the node's topics.
+    let topics = [KEYFRAMES_TOPIC, IMAGE_TOPIC, COMPRESSED_TOPIC, CAMERA_INFO_TOPIC, DEPTH_TOPIC];
     for (from, to) in &ros.remaps {
         assert!(topics.contains(&from.as_str()), "remap of {from}, which the node does not have");
         assert!(to.starts_with('/'), "{from} -> {to}");
+    }
+    for topic in topics {
+        assert!(ros.remaps.iter().any(|(from, _)| from == topic), "{topic} is not remapped: {:?}", ros.remaps);
     }
 
     // The default params file is the shipped one, relative to the repository, and it is the defaults.
