@@ -128,12 +128,18 @@ fn two_pass_pose_errors(width: u32, height: u32) -> (f64, f64, usize) {
     (rotation_error, direction_error, pairs)
 }
 
+/// [`two_pass_pose_errors`] at `width` x `height`, over at least `min_pairs` pairs, within the median
+/// bounds (degrees).
+fn check_two_pass_poses(width: u32, height: u32, min_pairs: usize, max_rotation: f64, max_direction: f64) {
+    let (rotation_error, direction_error, pairs) = two_pass_pose_errors(width, height);
+    assert!(pairs >= min_pairs, "{pairs} verified pairs with poses");
+    assert!(rotation_error <= max_rotation, "median rotation error {rotation_error} deg");
+    assert!(direction_error <= max_direction, "median translation direction error {direction_error} deg");
+}
+
 #[test]
 fn verified_relative_poses_agree_with_the_ground_truth() {
-    let (rotation_error, direction_error, pairs) = two_pass_pose_errors(640, 480);
-    assert!(pairs >= 6, "{pairs} verified pairs with poses");
-    assert!(rotation_error <= 1.0, "median rotation error {rotation_error} deg");
-    assert!(direction_error <= 5.0, "median translation direction error {direction_error} deg");
+    check_two_pass_poses(640, 480, 6, 1.0, 5.0);
 }
 
 /// A tracker that publishes its keyframes at half size, with the full frame's calibration: the
@@ -141,10 +147,7 @@ fn verified_relative_poses_agree_with_the_ground_truth() {
 /// taken unscaled puts them several times farther off).
 #[test]
 fn half_size_frames_with_the_full_frame_calibration_get_right_poses() {
-    let (rotation_error, direction_error, pairs) = two_pass_pose_errors(320, 240);
-    assert!(pairs >= 4, "{pairs} verified pairs with poses");
-    assert!(rotation_error <= 4.0, "median rotation error {rotation_error} deg");
-    assert!(direction_error <= 10.0, "median translation direction error {direction_error} deg");
+    check_two_pass_poses(320, 240, 4, 4.0, 10.0);
 }
 
 /// One verified row of `match`'s CSV: the frames' names, the inliers and the relative pose.
