@@ -94,18 +94,32 @@ pub fn why_not_a_walk(queries: &[Vec<f32>]) -> Option<String> {
 /// quarter of them, that the alignment is there to correct. About 1 where both are sampled alike,
 /// whatever part of the route the queries cover; `None` for fewer than 2 queries.
 fn walk_speed(nearest: &[usize]) -> Option<f64> {
-    let mut slopes: Vec<f64> = (0..nearest.len())
-        .flat_map(|i| {
-            (i + 1..nearest.len().min(i + SPEED_SPAN + 1))
-                .map(move |j| (nearest[j] as f64 - nearest[i] as f64) / (j - i) as f64)
-        })
-        .collect();
-    if slopes.is_empty() {
-        return None;
+    let mut span = SPEED_SPAN;
+    loop {
+        let mut slopes: Vec<f64> = (0..nearest.len())
+            .flat_map(|i| {
+                (i + 1..nearest.len().min(i + span + 1))
+                    .map(move |j| (nearest[j] as f64 - nearest[i] as f64) / (j - i) as f64)
+            })
+            .collect();
+        if slopes.is_empty() {
+            return None;
+        }
+        slopes.sort_by(f64::total_cmp);
+        let speed = slopes[slopes.len() / 2].abs();
+        // A walk slower than the database's sampling (every camera frame against keyframes) moves
+        // less than a keyframe between most queries this close, and the median slope is 0: wider
+        // spans, until they cover a few keyframes or the whole walk.
+        if speed * span as f64 >= SLOW_SPAN_KEYFRAMES || span + 1 >= nearest.len() {
+            return Some(speed);
+        }
+        span *= 2;
     }
-    slopes.sort_by(f64::total_cmp);
-    Some(slopes[slopes.len() / 2].abs())
 }
+
+/// How many keyframes, at least, the spans of queries that measure a walk's speed cover
+/// ([`walk_speed`]).
+const SLOW_SPAN_KEYFRAMES: f64 = 3.0;
 
 /// The largest move between two queries, in keyframes, for a walk of `speed` keyframes per query.
 fn largest_move(speed: f64) -> usize {
@@ -509,6 +523,10 @@ mod tests {
         assert_eq!(walk_speed(&along(1.0, 500)), Some(1.0));
         assert_eq!(walk_speed(&along(2.0, 0)), Some(2.0));
         assert_eq!(walk_speed(&along(0.5, 0)), Some(0.5));
+        // Slower than the keyframes (every camera frame against keyframes): not 0.
+        let slow: Vec<usize> = (0..200).map(|i| i / 10).collect();
+        let measured = walk_speed(&slow).unwrap();
+        assert!((0.08..=0.12).contains(&measured), "{measured}");
         let backwards: Vec<usize> = along(1.0, 0).into_iter().rev().collect();
         assert_eq!(walk_speed(&backwards), Some(1.0), "the route the other way");
         // Wrong single-image matches, one query in four, do not move the median.
