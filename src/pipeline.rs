@@ -537,7 +537,7 @@ impl Pipeline {
         if select && self.selector.offer(input.stamp) == Verdict::Reject {
             return Ok(Outcome::default());
         }
-        self.watch_frame_size(input.image, input.stamp);
+        self.watch_frame_size(input.image);
         let fitting = Input { depth: self.fitting_depth(input.depth, input.image), ..*input };
         let input = &fitting;
         // The workers stay hot from the forward pass through the search (its probed lists are
@@ -569,7 +569,7 @@ impl Pipeline {
     /// Verification's intrinsics hold for the size they were calibrated at; frames that are those
     /// images resized are verified with them scaled ([`Intrinsics::for_image`]), said once per size,
     /// and frames of another shape without them (no pose), the first and every hundredth named.
-    fn watch_frame_size(&mut self, image: &RgbImage, stamp: Stamp) {
+    fn watch_frame_size(&mut self, image: &RgbImage) {
         let Some(intrinsics) = self.verifier.as_ref().and_then(|v| v.params().intrinsics) else { return };
         let size = [image.width(), image.height()];
         match (intrinsics.size, intrinsics.for_image(size)) {
@@ -589,7 +589,7 @@ impl Pipeline {
             (Some([width, height]), None) => {
                 if let Some(n) = self.misfit_sizes.occurred() {
                     log::warn!(
-                        "the camera intrinsics are for {width}x{height} images, the frame stamped {stamp} is {}x{}, which no \
+                        "the camera intrinsics are for {width}x{height} images, a frame is {}x{}, which no \
                          scaling of them describes: its loops are verified without intrinsics, with no relative \
                          pose ({n} such frames so far; are the intrinsics this camera's, for this image topic?)",
                         size[0],
@@ -758,6 +758,7 @@ impl Pipeline {
     /// The local features of `image` (with keypoint depths from `depth`, where it has the image's
     /// size) for verification (empty when verification is off).
     pub fn local_features(&mut self, image: &RgbImage, depth: Option<&DepthImage>) -> Result<LocalFeatures> {
+        self.watch_frame_size(image);
         let depth = self.fitting_depth(depth, image);
         match &self.verifier {
             Some(verifier) => verifier.extract(image, depth),
@@ -948,6 +949,8 @@ impl Pipeline {
     /// matches one of them is rejected). Returns whether verification is on afterwards.
     pub fn set_camera_info(&mut self, intrinsics: Intrinsics) -> Result<bool> {
         self.camera_info = Some(intrinsics);
+        // New values: the next scaled ones are said again.
+        self.scaled_to = None;
         if let Some(params) = self.params.verification(self.camera_info) {
             match &mut self.verifier {
                 Some(verifier) => verifier.set_params(params),

@@ -90,11 +90,13 @@ impl Stamp {
         let places = places.min(9);
         let magnitude = self.nanos.unsigned_abs();
         let (whole, fraction) = (magnitude / 1_000_000_000, magnitude % 1_000_000_000);
-        let sign = if self.nanos < 0 { "-" } else { "" };
+        let fraction = fraction / 10u64.pow(9 - places as u32);
+        // No sign on digits that are all zero: a stamp a nanosecond before the epoch is `0.000000`.
+        let sign = if self.nanos < 0 && (whole > 0 || fraction > 0) { "-" } else { "" };
         if places == 0 {
             return format!("{sign}{whole}");
         }
-        format!("{sign}{whole}.{:0places$}", fraction / 10u64.pow(9 - places as u32))
+        format!("{sign}{whole}.{fraction:0places$}")
     }
 }
 
@@ -272,6 +274,8 @@ mod tests {
         }
         assert_eq!(Stamp::parse_secs("-0.7509").unwrap().to_decimal(6), "-0.750900");
         assert_eq!(Stamp::parse_secs("12.5").unwrap().to_decimal(0), "12");
+        assert_eq!(Stamp::from_nanos(-100).to_decimal(6), "0.000000");
+        assert_eq!(Stamp::from_nanos(-100).to_string(), "-0.000000100");
         assert!(Stamp::parse_secs("12a.3").is_none());
         assert!(Stamp::parse_secs("").is_none());
     }

@@ -1110,18 +1110,31 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
         let from_second = out.connection.execute(&format!("{copy} second.keyframes ORDER BY seq"), [offset])? as u64;
         let mut with_local_features = 0;
         for (source, shift) in [("first", 0i64), ("second", offset)] {
-            with_local_features += out.connection.execute(
-                &format!(
-                    "INSERT INTO main.local_features (id, data) SELECT id + ?1, data FROM {source}.local_features"
-                ),
-                [shift],
-            )? as u64;
-            out.connection.execute(
-                &format!(
-                    "INSERT INTO main.frames (id, frame_id, pose) SELECT id + ?1, frame_id, pose FROM {source}.frames"
-                ),
-                [shift],
-            )?;
+            // A store written before these tables existed has none to copy (opened read-only, it
+            // was not given them).
+            let has = |table: &str| -> rusqlite::Result<bool> {
+                out.connection.query_row(
+                    &format!("SELECT count(*) FROM {source}.sqlite_master WHERE type = 'table' AND name = ?1"),
+                    [table],
+                    |r| r.get::<_, i64>(0).map(|n| n > 0),
+                )
+            };
+            if has("local_features")? {
+                with_local_features += out.connection.execute(
+                    &format!(
+                        "INSERT INTO main.local_features (id, data) SELECT id + ?1, data FROM {source}.local_features"
+                    ),
+                    [shift],
+                )? as u64;
+            }
+            if has("frames")? {
+                out.connection.execute(
+                    &format!(
+                        "INSERT INTO main.frames (id, frame_id, pose) SELECT id + ?1, frame_id, pose FROM {source}.frames"
+                    ),
+                    [shift],
+                )?;
+            }
         }
         out.connection.execute_batch("COMMIT")?;
         Ok(MergeReport { from_first, from_second, with_local_features })
@@ -1129,7 +1142,7 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
     .with_context(|| format!("merging into {}", output.display()));
     if result.is_err() {
         // Leave no half-written output behind.
-        for suffix in ["", "-wal", "-shm"] {
+        for suffix in ["", "-wal", "-shm", "-vectors"] {
             let mut p = output.as_os_str().to_owned();
             p.push(suffix);
             let _ = std::fs::remove_file(PathBuf::from(p));

@@ -193,10 +193,11 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
     let covariance_columns: Option<Vec<(usize, usize, usize)>> =
         covariance_columns().map(|(name, row, col)| column(&name).map(|i| (i, row, col))).collect();
     let mut candidates: Vec<LoopCandidate> = Vec::new();
-    // The file's own line numbers: the reader skips blank lines (and the comments, blanked), and its
-    // own count of lines does not hold across them. A record is one line in these files.
+    // The file's own line numbers: the reader skips empty lines (and the comments, blanked), and its
+    // own count of lines does not hold across them. A record is one line in these files (no quoted
+    // field holds a line break: every column is a number).
     let content_lines: Vec<usize> =
-        text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()).map(|(i, _)| i + 1).collect();
+        text.lines().enumerate().filter(|(_, l)| !l.is_empty()).map(|(i, _)| i + 1).collect();
     for (row, record) in reader.records().enumerate() {
         let line = content_lines.get(row + 1).copied().unwrap_or(0);
         let record = record.map_err(|e| anyhow::anyhow!("{}:{line}: malformed CSV line: {e}", path.display()))?;

@@ -108,6 +108,7 @@ impl CameraInfo {
     pub fn image_size(&self) -> Option<[u32; 2]> {
         let roi = |side: u32, full: u32| if side > 0 { side } else { full };
         let (width, height) = (roi(self.roi.width, self.width), roi(self.roi.height, self.height));
-        (width > 0 && height > 0).then(|| [width / self.binning_x.max(1), height / self.binning_y.max(1)])
+        let binned = [width / self.binning_x.max(1), height / self.binning_y.max(1)];
+        (binned[0] > 0 && binned[1] > 0).then_some(binned)
     }
 }

@@ -528,9 +528,9 @@ pub fn run_node(
     Ok(final_counters)
 }
 
-/// The node's `/diagnostics` entry: `WARN` while messages are being dropped or failing, or come
-/// stamped no later than earlier ones (since `previous`), else `OK`; the counters, the queue and the
-/// mean worker time per message as values.
+/// The node's `/diagnostics` entry: `WARN` while messages are being dropped or failing, or come in a
+/// way the processor cannot use as they are ([`InputProblems`], since `previous`), else `OK`; the
+/// counters, the queue and the mean worker time per message as values.
 fn diagnostic_status(
     fqn: &str,
     counters: &NodeCounters,
@@ -554,9 +554,10 @@ fn diagnostic_status(
         _ => (
             DiagnosticStatus::WARN,
             format!(
-                "{} dropped, {} failed in the last period",
+                "{} dropped, {} failed in the last period{}",
                 now.dropped - previous.dropped,
-                now.failed - previous.failed
+                now.failed - previous.failed,
+                problems.iter().map(|p| format!("; {p}")).collect::<String>()
             ),
         ),
     };

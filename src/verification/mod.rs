@@ -97,8 +97,11 @@ impl Intrinsics {
     pub fn for_image(&self, size: [u32; 2]) -> Option<Intrinsics> {
         let Some(calibrated) = self.size.filter(|&calibrated| calibrated != size) else { return Some(*self) };
         let [(w, h), (cw, ch)] = [size, calibrated].map(|[w, h]| (w as f64, h as f64));
+        if w == 0.0 || h == 0.0 || cw == 0.0 || ch == 0.0 {
+            return None;
+        }
         let (sx, sy) = (w / cw, h / ch);
-        if w == 0.0 || h == 0.0 || (cw * sy - w).abs() > 1.0 || (ch * sx - h).abs() > 1.0 {
+        if (cw * sy - w).abs() > 1.0 || (ch * sx - h).abs() > 1.0 {
             return None;
         }
         Some(Intrinsics {
@@ -949,6 +952,7 @@ mod tests {
         assert_eq!(k.for_image([640, 360]), None, "a crop");
         assert_eq!(k.for_image([480, 640]), None, "turned");
         assert_eq!(k.for_image([0, 0]), None);
+        assert_eq!(Intrinsics { size: Some([0, 0]), ..k }.for_image([320, 240]), None);
         let size_unknown = Intrinsics { size: None, ..k };
         assert_eq!(size_unknown.for_image([320, 240]), Some(size_unknown));
     }

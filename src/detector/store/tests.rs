@@ -195,6 +195,12 @@ fn merge_keeps_each_keyframes_local_features_and_frame() {
     let names: Vec<(u64, &str)> = frames.iter().map(|(id, (name, _))| (*id, name.as_str())).collect();
     assert_eq!(names, [(0, "camera0"), (1, "camera1"), (2, "camera2"), (10, "camera0"), (11, "camera1")]);
     assert!(frames.iter().all(|(_, (_, p))| *p == Some(pose)));
+    // A store from before these tables existed merges with what it has.
+    let old = dir.path().join("old.db");
+    drop(store_with(&old, [20, 21], 4));
+    rusqlite::Connection::open(&old).unwrap().execute_batch("DROP TABLE local_features; DROP TABLE frames;").unwrap();
+    let report = merge(&a, &old, &dir.path().join("with_old.db"), 0).unwrap();
+    assert_eq!(report, MergeReport { from_first: 3, from_second: 2, with_local_features: 2 });
 }
 
 /// Checks that `db` holds exactly the keyframes `ids` (in order) of `dim` values.
