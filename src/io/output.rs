@@ -95,6 +95,9 @@ pub fn ensure_writable_outputs(outputs: &[(&str, &Path)]) -> Result<()> {
         if !folder.is_dir() {
             bail!("{flag} {}: the folder {} does not exist", path.display(), folder.display());
         }
+        if path.is_dir() {
+            bail!("{flag} {} is a folder; give a file name", path.display());
+        }
     }
     for (i, &(flag, path)) in outputs.iter().enumerate() {
         for &(other_flag, other) in &outputs[i + 1..] {

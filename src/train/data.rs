@@ -48,8 +48,18 @@ impl ImageFolder {
     pub fn open(dir: &Path, seed: u64, val_fraction: f64) -> Result<Self> {
         ensure!(dir.is_dir(), "{} is not a directory", dir.display());
         let (train_list, test_list) = (dir.join("TrainImages.txt"), dir.join("TestImages.txt"));
-        if train_list.is_file() && test_list.is_file() {
-            return Self::from_lists(dir, &train_list, &test_list);
+        match (train_list.is_file(), test_list.is_file()) {
+            (true, true) => return Self::from_lists(dir, &train_list, &test_list),
+            (false, false) => {}
+            // One list alone would be left unread while every image in the folders is trained on.
+            (has_train, _) => {
+                let (present, missing) = if has_train { (&train_list, &test_list) } else { (&test_list, &train_list) };
+                bail!(
+                    "{} is there but {} is not: a split by lists needs both (or remove it to split at random)",
+                    present.display(),
+                    missing.display()
+                );
+            }
         }
         ensure!((0.0..1.0).contains(&val_fraction), "--val-fraction {val_fraction} is not in [0, 1)");
         let mut class_dirs: Vec<PathBuf> = std::fs::read_dir(dir)
@@ -69,12 +79,18 @@ impl ImageFolder {
             let label = classes.len();
             classes.push(class_dir.file_name().unwrap_or_default().to_string_lossy().into_owned());
             files.shuffle(&mut rng);
+            ensure!(
+                val_fraction == 0.0 || files.len() >= 2,
+                "class folder {} has {} image, too few to split into training and validation (add images, or \
+                 --val-fraction 0)",
+                class_dir.display(),
+                files.len()
+            );
             let held_out = if val_fraction > 0.0 {
                 ((files.len() as f64 * val_fraction).round() as usize).clamp(1, files.len() - 1)
             } else {
                 0
             };
-            ensure!(files.len() > held_out, "class folder {} has too few images to split", class_dir.display());
             for (i, f) in files.into_iter().enumerate() {
                 if i < held_out {
                     val.push((f, label))
@@ -141,7 +157,7 @@ impl ImageFolder {
 }
 
 /// Augmentation strength.
-#[derive(Clone, Copy, Debug, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Augment {
     /// Smallest area fraction of a random resized crop (largest is 1).
     pub min_crop_area: f64,
@@ -386,4 +402,36 @@ fn spread<T>(items: &[T], n: usize) -> Vec<&T> {
         return items.iter().collect();
     }
     (0..n).map(|i| &items[i * items.len() / n]).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A folder with a class sub-folder per `(name, images)`, the images empty files (listing only).
+    fn folder(classes: &[(&str, usize)]) -> tempfile::TempDir {
+        let dir = tempfile::tempdir().unwrap();
+        for (name, images) in classes {
+            std::fs::create_dir(dir.path().join(name)).unwrap();
+            for i in 0..*images {
+                std::fs::write(dir.path().join(name).join(format!("{i}.png")), b"").unwrap();
+            }
+        }
+        dir
+    }
+
+    #[test]
+    fn a_split_that_cannot_be_made_is_refused_with_a_reason() {
+        let dir = folder(&[("a", 1), ("b", 3)]);
+        let err = ImageFolder::open(dir.path(), 1, 0.2).unwrap_err().to_string();
+        assert!(err.contains("has 1 image, too few to split") && err.contains("--val-fraction 0"), "{err}");
+        let all = ImageFolder::open(dir.path(), 1, 0.0).unwrap();
+        assert_eq!((all.train.len(), all.val.len()), (4, 0));
+        let split = ImageFolder::open(folder(&[("a", 2), ("b", 3)]).path(), 1, 0.2).unwrap();
+        assert_eq!((split.train.len(), split.val.len()), (3, 2));
+        // One list without the other is not silently ignored.
+        std::fs::write(dir.path().join("TrainImages.txt"), "a/0.png\nb/0.png\n").unwrap();
+        let err = ImageFolder::open(dir.path(), 1, 0.0).unwrap_err().to_string();
+        assert!(err.contains("TrainImages.txt is there but") && err.contains("TestImages.txt is not"), "{err}");
+    }
 }

@@ -19,7 +19,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Instant;
 
-use anyhow::{ensure, Result};
+use anyhow::{ensure, Context, Result};
 use candle_core::Tensor;
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -111,6 +111,7 @@ pub fn descriptor_error(
 /// the report as JSON beside it.
 pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) -> Result<DistillReport> {
     let started = Instant::now();
+    let report_path = super::report_beside(&config.out)?;
     check_input_size(config.size)?;
     ensure!(config.opt.batch >= 2, "batch size {} is below 2", config.opt.batch);
     ensure!(
@@ -180,6 +181,7 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
         student.inference_weights(&format!("ecm-lcd distill of {teacher_name} on {}", config.data.display()))?;
     let after =
         descriptor_error(&weights.network(false)?, &teacher_net, heldout_set.clone(), config.size, config.opt.batch)?;
+    weights.check_finite().context("training diverged; nothing is saved (try a lower --lr)")?;
     weights.save(&config.out)?;
     let report = DistillReport {
         command: "distill".into(),
@@ -193,6 +195,6 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
         epoch_train_loss,
         seconds: started.elapsed().as_secs_f64(),
     };
-    write_json(&config.out.with_extension("json"), &report)?;
+    write_json(&report_path, &report)?;
     Ok(report)
 }

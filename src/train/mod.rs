@@ -73,7 +73,7 @@ pub enum OptimizerKind {
 }
 
 /// The optimisation settings classification training and distillation share.
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Optimisation {
     pub epochs: usize,
     pub batch: usize,
@@ -112,7 +112,7 @@ impl Optimisation {
 
 /// Everything a classification run needs besides the data (serialised flat, as before the
 /// shared [`Optimisation`] existed, so older run records still resume).
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Hyper {
     pub size: usize,
     #[serde(flatten)]
@@ -516,6 +516,19 @@ impl RunFiles {
         }
     }
 
+    /// Makes the run's folder and refuses files that could not all be written, before any
+    /// training: an `-o` that is a folder, or one named so that the record would replace the
+    /// weights (`-o run.json`).
+    pub fn check(&self) -> Result<()> {
+        create_folder_of(&self.best)?;
+        crate::io::output::ensure_writable_outputs(&[
+            ("-o", &self.best),
+            ("the last epoch's weights", &self.last),
+            ("the training form", &self.training),
+            ("the run record", &self.json),
+        ])
+    }
+
     /// The files of the run that wrote `checkpoint` (any of its files, or `-o` of that run).
     pub fn of_checkpoint(checkpoint: &Path) -> Self {
         let s = checkpoint.display().to_string();
@@ -564,6 +577,7 @@ pub struct TrainConfig {
 pub fn train(config: &TrainConfig) -> Result<RunRecord> {
     let mut hyper = config.hyper.clone();
     let files = RunFiles::new(&config.out);
+    files.check()?;
     let resumed: Option<(RunRecord, Weights)> = match &config.resume {
         Some(checkpoint) => {
             let from = RunFiles::of_checkpoint(checkpoint);
@@ -572,6 +586,19 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             let record: RunRecord =
                 serde_json::from_str(&text).with_context(|| format!("{} is not a run record", from.json.display()))?;
             ensure!(record.arch == config.arch, "{} trained {}, not {}", from.json.display(), record.arch, config.arch);
+            ensure!(
+                record.epochs_done < record.hyper.opt.epochs,
+                "{} finished its {} epochs: nothing to resume (train anew, without --resume, to train longer)",
+                from.json.display(),
+                record.epochs_done
+            );
+            if record.hyper != config.hyper {
+                log::warn!(
+                    "resuming {}: the run goes on with its own settings (size, epochs, learning rate, batch...); \
+                     those given here differ and are not used",
+                    from.json.display()
+                );
+            }
             hyper = record.hyper.clone();
             Some((record, Weights::load(&from.training)?))
         }
@@ -594,6 +621,19 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             record.classes == folder.classes,
             "the classes of {} differ from those of the resumed run",
             config.data.display()
+        );
+        // Another split would train on the run's validation images.
+        ensure!(
+            (record.split.as_str(), record.train_images, record.val_images)
+                == (folder.split.as_str(), folder.train.len(), folder.val.len()),
+            "the split now ({}: {} training, {} validation images) differs from the resumed run's ({}: {}, {}); \
+             give the run's --val-fraction and data",
+            folder.split,
+            folder.train.len(),
+            folder.val.len(),
+            record.split,
+            record.train_images,
+            record.val_images
         );
     }
     let classes = folder.classes.len();
@@ -724,27 +764,57 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             seconds,
         });
         record.epochs_done = epoch + 1;
+        let mut training = model.tensors();
+        training.extend(optimizer.state_tensors()?);
+        let training = Weights {
+            arch: config.arch,
+            classes: Some(classes),
+            source: "ecm-lcd training form".into(),
+            tensors: training,
+        };
+        // Nothing of an epoch that left the finite numbers is saved: the files of the last good
+        // epoch stay, and the run says so (BatchNorm keeps the loss bounded while its statistics
+        // overflow, so the loss alone does not tell).
+        for form in [&weights, &training] {
+            form.check_finite().with_context(|| {
+                format!(
+                    "training diverged in epoch {}; the files of the epoch before are kept (try a lower --lr, or a \
+                     larger --batch or --size)",
+                    epoch + 1
+                )
+            })?;
+        }
         weights.save(&files.last)?;
         if val_accuracy > record.best_val_accuracy {
             record.best_val_accuracy = val_accuracy;
             record.best_epoch = epoch + 1;
             weights.save(&files.best)?;
         }
-        let mut training = model.tensors();
-        training.extend(optimizer.state_tensors()?);
-        Weights {
-            arch: config.arch,
-            classes: Some(classes),
-            source: "ecm-lcd training form".into(),
-            tensors: training,
-        }
-        .save(&files.training)?;
+        training.save(&files.training)?;
         write_json(&files.json, &record)?;
         if config.target_accuracy.is_some_and(|target| val_accuracy >= target) {
             break;
         }
     }
     Ok(record)
+}
+
+/// The JSON report written beside the weights `out` (its extension replaced by `.json`), once both
+/// can be written ([`crate::io::output::ensure_writable_outputs`]; `-o x.json` would be replaced by
+/// its own report), the folder made.
+pub fn report_beside(out: &Path) -> Result<PathBuf> {
+    create_folder_of(out)?;
+    let json = out.with_extension("json");
+    crate::io::output::ensure_writable_outputs(&[("-o", out), ("the report", &json)])?;
+    Ok(json)
+}
+
+/// Creates the folder `path` is to be written in (a run's outputs may name a new folder).
+fn create_folder_of(path: &Path) -> Result<()> {
+    match path.parent().filter(|dir| !dir.as_os_str().is_empty()) {
+        Some(dir) => std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display())),
+        None => Ok(()),
+    }
 }
 
 /// Writes `value` as pretty JSON to `path`.

@@ -26,7 +26,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, ensure, Context, Result};
-use candle_core::{DType, Device, Tensor, D};
+use candle_core::{Device, Tensor, D};
 use image::RgbImage;
 use nalgebra::Vector3;
 use rand::rngs::StdRng;
@@ -221,7 +221,9 @@ fn batch_hard_loss(
     let hardest = similarity.broadcast_add(&((mask.clone() - 1.0)? * 10.0)?)?.max(D::Minus1)?;
     let negative = ((hardest * -2.0)? + 2.0)?;
     let loss = ((&positive - &negative)? + margin)?.relu()?.mean_all()?;
-    let won = positive.lt(&negative)?.to_dtype(DType::U32)?.sum_all()?.to_scalar::<u32>()? as usize;
+    // An anchor with no negative in the batch has nothing to be nearer than: not counted as won.
+    let nearer = positive.lt(&negative)?.to_vec1::<u8>()?;
+    let won = nearer.iter().zip(negatives).filter(|(&n, row)| n > 0 && row.iter().any(|&m| m > 0.0)).count();
     Ok((loss, won))
 }
 
@@ -235,6 +237,7 @@ pub fn train_place(
     config: &PlaceConfig,
 ) -> Result<PlaceReport> {
     let started = Instant::now();
+    let report_path = super::report_beside(&config.out)?;
     check_input_size(config.size)?;
     ensure!(config.opt.batch >= 1, "--batch (anchors per step) must be at least 1");
     ensure!(config.opt.epochs >= 1, "--epochs must be at least 1");
@@ -258,6 +261,13 @@ pub fn train_place(
         config.max_angle_deg,
         config.min_gap_s,
         config.opt.batch
+    );
+    ensure!(
+        anchors.iter().any(|&a| frames.iter().any(|other| relation(&frames[a], other, config) == Relation::Different)),
+        "no posed frame is of another place than the frames with a revisit (farther than {} m or {}° away): the \
+         objective pushes other places away, and there are none",
+        config.max_distance_m,
+        config.max_angle_deg
     );
     let steps_per_epoch = anchors.len() / config.opt.batch;
     let total = steps_per_epoch * config.opt.epochs;
@@ -333,6 +343,7 @@ pub fn train_place(
         epoch_triplet_accuracy.push(won as f64 / seen.max(1) as f64);
     }
     let weights = model.inference_weights(&format!("ecm-lcd train-place of {init_name}"))?;
+    weights.check_finite().context("training diverged; nothing is saved (try a lower --lr)")?;
     weights.save(&config.out)?;
     let report = PlaceReport {
         command: "train-place".into(),
@@ -345,7 +356,7 @@ pub fn train_place(
         epoch_triplet_accuracy,
         seconds: started.elapsed().as_secs_f64(),
     };
-    write_json(&config.out.with_extension("json"), &report)?;
+    write_json(&report_path, &report)?;
     Ok(report)
 }
 
@@ -400,6 +411,9 @@ mod tests {
             assert!((loss.to_scalar::<f32>().unwrap() - expected).abs() < 1e-5, "margin {margin}");
             assert_eq!(won, 2);
         }
+        // An anchor with no negative in its batch is not counted as won.
+        let none = vec![vec![0.0, 1.0, 0.0, 0.0, 1.0], vec![0.0; 5]];
+        assert_eq!(batch_hard_loss(&d, 2, &none, 0.0).unwrap().1, 1);
     }
 
     #[test]

@@ -269,6 +269,22 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     let from_training = training.network(true)?.logits(&x, Mode::Inference)?;
     assert_eq!(max_abs_diff(&in_memory, &from_last), 0.0);
     assert!(max_abs_diff(&in_memory, &from_training) < 1e-4);
+
+    // A finished run has nothing to resume; another split would train on its validation images;
+    // a run named `.json` would have its record replace its weights. All refused before training.
+    let err = format!("{:#}", train(&second).unwrap_err());
+    assert!(err.contains("finished its 2 epochs"), "{err}");
+    let mut other_split = config(&data, &dir.path().join("split/run.safetensors"), Arch::EcMobileNet, h.clone());
+    other_split.stop_after = Some(1);
+    train(&other_split)?;
+    other_split.resume = Some(RunFiles::new(&other_split.out).training);
+    other_split.val_fraction = 0.5;
+    let err = format!("{:#}", train(&other_split).unwrap_err());
+    assert!(err.contains("differs from the resumed run's"), "{err}");
+    let json_named = config(&data, &dir.path().join("run.json"), Arch::EcMobileNet, h.clone());
+    let err = format!("{:#}", train(&json_named).unwrap_err());
+    assert!(err.contains("both name") && err.contains("run.json"), "{err}");
+    assert!(!dir.path().join("run.json").exists());
     Ok(())
 }
 
