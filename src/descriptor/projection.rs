@@ -38,6 +38,10 @@ pub struct Projection {
     pub sha256: String,
 }
 
+/// The least share of the descriptors' total variance an axis must hold to be a direction they
+/// vary along, not rounding noise ([`Projection::learn`]).
+const SPANNED_SHARE: f64 = 1e-9;
+
 impl Projection {
     /// Learns the projection of `samples` (descriptors of one kind, named `descriptor`) onto `dims`
     /// axes (module doc).
@@ -67,6 +71,14 @@ impl Projection {
         order.sort_by(|&a, &b| eigen.eigenvalues[b].total_cmp(&eigen.eigenvalues[a]));
         // Variance along axis k is lambda_k / count; the regulariser is a tenth of the mean variance.
         let total: f64 = eigen.eigenvalues.iter().map(|e| e.max(0.0)).sum();
+        // An axis that holds next to none of the variance is rounding noise (the images repeat, or
+        // are too few): its direction is arbitrary, and whitening would blow it up.
+        let spanned = order.iter().filter(|&&k| eigen.eigenvalues[k] > SPANNED_SHARE * total).count();
+        ensure!(
+            dims <= spanned,
+            "the {count} descriptors vary along only {spanned} directions, fewer than the {dims} dimensions asked for \
+             (images that repeat, or too few): learn from more varied images, or ask for at most {spanned}"
+        );
         let regulariser = 0.1 * total / count as f64 / count as f64;
         let rows = order
             .iter()
@@ -202,6 +214,16 @@ mod tests {
                 v
             })
             .collect()
+    }
+
+    #[test]
+    fn more_dimensions_than_the_descriptors_vary_along_are_refused() {
+        // Six descriptors of two images, three copies each: one direction of variation.
+        let repeated: Vec<Vec<f32>> =
+            (0..6).map(|i| if i % 2 == 0 { vec![1.0, 0.5, 0.25] } else { vec![0.0, 0.5, 1.0] }).collect();
+        let err = Projection::learn(&repeated, 2, true, "test").unwrap_err().to_string();
+        assert!(err.contains("only 1 directions") && err.contains("at most 1"), "{err}");
+        assert_eq!(Projection::learn(&repeated, 1, true, "test").unwrap().out_dim(), 1);
     }
 
     #[test]
