@@ -122,7 +122,10 @@ impl ImageFolder {
                 if rel.is_empty() || rel.starts_with('#') {
                     continue;
                 }
-                let class = Path::new(rel).components().next().filter(|_| Path::new(rel).components().count() >= 2);
+                // `./a/x.png` names class `a`: only the path's names count.
+                let names: Vec<_> =
+                    Path::new(rel).components().filter(|c| matches!(c, std::path::Component::Normal(_))).collect();
+                let class = names.first().filter(|_| names.len() >= 2);
                 let class = class
                     .with_context(|| format!("{} line {}: '{rel}' is not class/file", list.display(), line_no + 1))?;
                 let path = [dir.join(rel), dir.join("Images").join(rel)].into_iter().find(|p| p.is_file());
@@ -430,8 +433,15 @@ mod tests {
         let split = ImageFolder::open(folder(&[("a", 2), ("b", 3)]).path(), 1, 0.2).unwrap();
         assert_eq!((split.train.len(), split.val.len()), (3, 2));
         // One list without the other is not silently ignored.
-        std::fs::write(dir.path().join("TrainImages.txt"), "a/0.png\nb/0.png\n").unwrap();
+        std::fs::write(dir.path().join("TrainImages.txt"), "a/0.png\n./b/0.png\n").unwrap();
         let err = ImageFolder::open(dir.path(), 1, 0.0).unwrap_err().to_string();
         assert!(err.contains("TrainImages.txt is there but") && err.contains("TestImages.txt is not"), "{err}");
+        // With both lists; `./b/0.png` is class b.
+        std::fs::write(dir.path().join("TestImages.txt"), "b/1.png\n").unwrap();
+        let listed = ImageFolder::open(dir.path(), 1, 0.0).unwrap();
+        assert_eq!(
+            (listed.classes.clone(), listed.train.len(), listed.val.len()),
+            (vec!["a".into(), "b".into()], 2, 1)
+        );
     }
 }
