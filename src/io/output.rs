@@ -96,7 +96,7 @@ pub fn ensure_writable_outputs(outputs: &[(&str, &Path)]) -> Result<()> {
             bail!("{flag} {}: the folder {} does not exist", path.display(), folder.display());
         }
         if path.is_dir() {
-            bail!("{flag} {} is a folder; give a file name", path.display());
+            bail!("{flag} {} is a folder, not a regular file; give a file name", path.display());
         }
     }
     for (i, &(flag, path)) in outputs.iter().enumerate() {
