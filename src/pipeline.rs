@@ -508,6 +508,20 @@ impl Pipeline {
             verifier.remember(id, features);
         }
         log::info!("keyframe database {}: local features of {count} keyframes restored", store.path().display());
+        // Keyframes stored without features (by a run with verification off) cannot be checked.
+        let stored_keyframes = store.len() as usize;
+        let wanted = match verifier.params().keyframes {
+            0 => stored_keyframes,
+            kept => stored_keyframes.min(kept),
+        };
+        if count < wanted {
+            log::warn!(
+                "keyframe database {}: {} of its newest {wanted} keyframes have no local features (stored with \
+                 verification off?); candidates that match them fail verification",
+                store.path().display(),
+                wanted - count
+            );
+        }
         if other_kind > 0 {
             log::warn!(
                 "keyframe database {}: {other_kind} keyframes hold features of the other verification.local_features; \

@@ -267,7 +267,7 @@ fn db_info_export_and_merge_commands() {
     // A second replay of the same source finds everything stored and adds nothing.
     let out = ecm_lcd(&replay_args(seq.to_str().unwrap(), db.to_str().unwrap(), csv.to_str().unwrap()));
     assert!(
-        String::from_utf8_lossy(&out.stderr).contains("6 already stored, skipped"),
+        String::from_utf8_lossy(&out.stderr).contains("6 processed by the earlier run, skipped"),
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );

@@ -294,6 +294,14 @@ fn plots_must_be_png_and_empty_sources_and_foreign_databases_are_refused() {
     // Options that only a replayed source uses are refused where they would be ignored.
     refused(&["learn-projection", &d("seq"), "-o", &d("p.safetensors"), "--db", &d("k.db")], &["--db"]);
     assert!(!Path::new(&d("k.db")).exists());
+    std::fs::write(d("loops.csv"), "1,0\n").unwrap();
+    let database_and_queries = ["eval", "--database", &d("seq"), "--queries", &d("seq"), "--loops", &d("loops.csv")];
+    refused(&[&database_and_queries[..], &["--db", &d("k.db")]].concat(), &["--db applies to a replayed SOURCE"]);
+    assert!(!Path::new(&d("k.db")).exists(), "a refused --db is not created");
+    // eval skips the frames a database already holds, so it would score part of the sequence.
+    let out = command().args(["replay", &d("seq"), "--quiet", "--db", &d("k.db")]).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    refused(&["eval", &d("seq"), "--quiet", "--db", &d("k.db")], &["k.db already holds", "not score"]);
 
     // A ROS 2 bag with its image topic and no message in it.
     let bag = dir.path().join("empty_bag");

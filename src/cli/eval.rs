@@ -207,11 +207,22 @@ pub fn run(args: Args) -> Result<()> {
         ecm_lcd::io::output::ensure_not_in_source(output, &sources)?;
     }
     ecm_lcd::io::output::ensure_writable_outputs(&outputs)?;
+    // Before the pipeline opens (and creates) a --db that database/query mode refuses.
+    let database_and_queries = args.database_and_queries()?;
     let mut pipeline = match (&args.source, &args.loops) {
         (Some(_), None) => pipeline_for_pose_truth(&args.source_args, &args.criteria()?)?,
         _ => args.source_args.pipeline()?,
     };
-    if let Some((database, queries)) = args.database_and_queries()? {
+    // Frames stored by an earlier run are skipped, not replayed, so they would not be scored: the
+    // figures would be of part of the sequence.
+    if let Some(store) = pipeline.store().filter(|store| !store.is_empty()) {
+        bail!(
+            "{} already holds {} keyframes, which eval would skip and not score; give a new database (or none)",
+            store.path().display(),
+            store.len()
+        );
+    }
+    if let Some((database, queries)) = database_and_queries {
         let mut truth = load_truth(&args, &[])?;
         let run = run_database_queries(
             &mut pipeline,

@@ -188,7 +188,7 @@ pub fn run(args: Args) -> Result<()> {
     eprintln!(
         "{} frames{}, {} keyframes, {} loop candidates in {:.1} s (per keyframe: network {:.1} ms, descriptor {:.2} ms, detector {:.2} ms{verification}){}",
         run.frames,
-        if run.skipped > 0 { format!(" ({} already stored, skipped)", run.skipped) } else { String::new() },
+        if run.skipped > 0 { format!(" ({} processed by the earlier run, skipped)", run.skipped) } else { String::new() },
         run.keyframes.len(),
         run.candidates.len(),
         run.wall_secs,
