@@ -332,8 +332,10 @@ impl Pipeline {
     /// Makes `store` the keyframe history: its newest keyframes (all, or `detector.max_keyframes`)
     /// become the detector's database, counted ids continue after the largest stored id, and every
     /// later keyframe is appended to it. Refused when the store's identity differs from the pipeline's.
-    pub fn attach_store(&mut self, store: KeyframeStore) -> Result<()> {
+    pub fn attach_store(&mut self, mut store: KeyframeStore) -> Result<()> {
         let started = Instant::now();
+        self.compare_recorded_parameters(&store)?;
+        store.record_parameters(&self.params.to_json().to_string())?;
         self.load_history(&store)?;
         self.resume_detector(&store)?;
         if let Some(max_id) = store.max_id() {
@@ -362,6 +364,31 @@ impl Pipeline {
             }
         }
         self.restore_local_features()
+    }
+
+    /// Says which parameters differ from those `store`'s keyframes were processed with: a continued
+    /// run keeps the loops found before (the CSV is rewritten from them), found with those.
+    fn compare_recorded_parameters(&self, store: &KeyframeStore) -> Result<()> {
+        let (Some(recorded), false) = (store.recorded_parameters()?, store.is_empty()) else { return Ok(()) };
+        let Ok(serde_json::Value::Object(before)) = serde_json::from_str::<serde_json::Value>(&recorded) else {
+            return Ok(());
+        };
+        let now = self.params.to_json();
+        let changed: Vec<String> = before
+            .iter()
+            .filter(|(name, value)| now.get(name.as_str()).is_some_and(|current| current != *value))
+            .map(|(name, value)| format!("{name} {value} -> {}", now[name.as_str()]))
+            .collect();
+        if !changed.is_empty() {
+            log::warn!(
+                "keyframe database {}: its {} keyframes were processed with other parameters ({}); the loops found \
+                 before keep those settings, the keyframes from now on get these",
+                store.path().display(),
+                store.len(),
+                changed.join(", ")
+            );
+        }
+        Ok(())
     }
 
     /// Makes the keyframes of `store` (opened read-only, say) the database that another session's

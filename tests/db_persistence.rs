@@ -272,6 +272,13 @@ fn db_info_export_and_merge_commands() {
         String::from_utf8_lossy(&out.stderr)
     );
 
+    // Continued with another threshold: the loops found before keep theirs, and the log says so.
+    let mut args = replay_args(seq.to_str().unwrap(), db.to_str().unwrap(), csv.to_str().unwrap());
+    args.extend(["--param", "detector.min_score=0.97"]);
+    let out = ecm_lcd(&args);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && log.contains("processed with other parameters (detector.min_score"), "{log}");
+
     let out = ecm_lcd(&["db", "info", db.to_str().unwrap()]);
     let info = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));

@@ -542,6 +542,24 @@ impl KeyframeStore {
             .is_some())
     }
 
+    /// The parameters the stored keyframes were processed with, as the last run to continue the
+    /// store recorded them (JSON text, [`KeyframeStore::record_parameters`]); `None` where no run
+    /// did (a store made before they were recorded).
+    pub fn recorded_parameters(&self) -> Result<Option<String>> {
+        self.connection
+            .query_row("SELECT value FROM meta WHERE key = 'parameters'", [], |r| r.get::<_, String>(0))
+            .optional()
+            .with_context(|| format!("reading the parameters recorded in {}", self.path.display()))
+    }
+
+    /// Records `json` as the parameters the keyframes from now on are processed with.
+    pub fn record_parameters(&mut self, json: &str) -> Result<()> {
+        self.connection
+            .execute("INSERT OR REPLACE INTO meta (key, value) VALUES ('parameters', ?1)", [json])
+            .with_context(|| format!("recording the parameters in {}", self.path.display()))?;
+        Ok(())
+    }
+
     /// Every stored keyframe's candidates, in the order the keyframes were stored; `None` when the
     /// store does not hold them all (made before candidates were stored, or merged).
     pub fn stored_candidates(&self) -> Result<Option<Vec<LoopCandidate>>> {
