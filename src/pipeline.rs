@@ -334,10 +334,11 @@ impl Pipeline {
     /// later keyframe is appended to it. Refused when the store's identity differs from the pipeline's.
     pub fn attach_store(&mut self, mut store: KeyframeStore) -> Result<()> {
         let started = Instant::now();
-        self.compare_recorded_parameters(&store)?;
-        store.record_parameters(&self.params.to_json().to_string())?;
         self.load_history(&store)?;
         self.resume_detector(&store)?;
+        // Once the store is known to be this pipeline's (its identity checked by the load).
+        self.compare_recorded_parameters(&store)?;
+        store.record_parameters(&self.params.to_json().to_string())?;
         if let Some(max_id) = store.max_id() {
             self.next_id = self.next_id.max(max_id + 1);
         }

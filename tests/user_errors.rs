@@ -288,8 +288,9 @@ fn plots_must_be_png_and_empty_sources_and_foreign_databases_are_refused() {
     std::fs::write(d("other.txt"), "100.0 0 0 0 0 0 0 1\n101.0 1 0 0 0 0 0 1\n").unwrap();
     refused_pose_graph("out.txt", &["--groundtruth", &d("missing.txt")], &["missing.txt"]);
     refused_pose_graph("out.txt", &["--groundtruth", &d("other.txt")], &["ground-truth pose within"]);
-    refused_pose_graph("out.txt", &["--plot", &d("nodir/p.png")], &["--plot", "does not exist"]);
-    refused(&["eval", &d("seq"), "-o", &d("pr.csv"), "--plot", &d("nodir/x.png")], &["--plot", "does not exist"]);
+    // A plot in a folder that cannot be made (its parent is a file).
+    refused_pose_graph("out.txt", &["--plot", &d("c.csv/p.png")], &["--plot", "cannot create"]);
+    refused(&["eval", &d("seq"), "-o", &d("pr.csv"), "--plot", &d("c.csv/x.png")], &["--plot", "cannot create"]);
     assert!(!Path::new(&d("out.txt")).exists() && !Path::new(&d("pr.csv")).exists());
     // Options that only a replayed source uses are refused where they would be ignored.
     refused(&["learn-projection", &d("seq"), "-o", &d("p.safetensors"), "--db", &d("k.db")], &["--db"]);

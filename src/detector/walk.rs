@@ -90,15 +90,22 @@ pub fn why_not_a_walk(queries: &[Vec<f32>]) -> Option<String> {
 /// How fast a walk of queries moves along the database, in database keyframes per query, from the
 /// database position of each query's single-image nearest keyframe (`nearest`, in query order): the
 /// Theil-Sen slope of position against query (the median of the slopes between every two queries
-/// at most [`SPEED_SPAN`] apart), either way. Robust to the wrong single-image matches, up to about a
+/// at most [`SPEED_SPAN`] apart, or over wider spans for a walk slower than the keyframes), either
+/// way. Robust to the wrong single-image matches, up to about a
 /// quarter of them, that the alignment is there to correct. About 1 where both are sampled alike,
 /// whatever part of the route the queries cover; `None` for fewer than 2 queries.
 fn walk_speed(nearest: &[usize]) -> Option<f64> {
     let mut span = SPEED_SPAN;
     loop {
+        // Each query is compared with SPEED_SPAN others spread over the span, so a wide span costs
+        // no more than the first.
+        let offsets: Vec<usize> = (1..=SPEED_SPAN).map(|k| k * span / SPEED_SPAN).collect();
         let mut slopes: Vec<f64> = (0..nearest.len())
             .flat_map(|i| {
-                (i + 1..nearest.len().min(i + span + 1))
+                offsets
+                    .iter()
+                    .map(move |&offset| i + offset)
+                    .take_while(|&j| j < nearest.len())
                     .map(move |j| (nearest[j] as f64 - nearest[i] as f64) / (j - i) as f64)
             })
             .collect();

@@ -56,9 +56,7 @@ impl CandidateCsv {
     /// A new file at `path` (replacing one there), or, with `append` and a non-empty file there, its
     /// continuation (no second header).
     pub fn to_file(path: &Path, append: bool) -> Result<Self> {
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        }
+        crate::io::output::create_folder_of(path)?;
         let continuing = append && std::fs::metadata(path).is_ok_and(|m| m.len() > 0);
         if continuing {
             // Lines of these columns under another header would be misread.

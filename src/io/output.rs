@@ -10,6 +10,15 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 
+/// Creates the folder `path` is to be written in, where it does not exist: an output may name a new
+/// folder (`-o results/run1.csv`).
+pub fn create_folder_of(path: &Path) -> Result<()> {
+    match path.parent().filter(|dir| !dir.as_os_str().is_empty()) {
+        Some(dir) => std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display())),
+        None => Ok(()),
+    }
+}
+
 /// Writes `bytes` as the whole of `path` ([`replace_with`]).
 pub fn write_replacing(path: &Path, bytes: &[u8]) -> Result<()> {
     replace_with(path, |out| Ok(out.write_all(bytes)?))
@@ -86,15 +95,13 @@ fn resolved(path: &Path) -> Option<PathBuf> {
     Some(folder.canonicalize().ok()?.join(path.file_name()?))
 }
 
-/// Refuses outputs (each with its flag) that could not all be written, before any work: one whose
-/// folder does not exist (a command would otherwise write its other outputs and then fail), or two
-/// that name one file, existing or not (the second one written would replace the first).
+/// Makes each output's folder and refuses outputs (each with its flag) that could not all be
+/// written, before any work, so that a command does not write some and then fail on the next: one
+/// whose folder cannot be made, one that is a folder, or two that name one file, existing or not
+/// (the second one written would replace the first).
 pub fn ensure_writable_outputs(outputs: &[(&str, &Path)]) -> Result<()> {
     for &(flag, path) in outputs {
-        let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-        if !folder.is_dir() {
-            bail!("{flag} {}: the folder {} does not exist", path.display(), folder.display());
-        }
+        create_folder_of(path).with_context(|| format!("{flag} {}", path.display()))?;
         if path.is_dir() {
             bail!("{flag} {} is a folder, not a regular file; give a file name", path.display());
         }

@@ -517,10 +517,9 @@ impl RunFiles {
     }
 
     /// Makes the run's folder and refuses files that could not all be written, before any
-    /// training: an `-o` that is a folder, or one named so that the record would replace the
-    /// weights (`-o run.json`).
+    /// training ([`crate::io::output::ensure_writable_outputs`]): an `-o` that is a folder, or one
+    /// named so that the record would replace the weights (`-o run.json`).
     pub fn check(&self) -> Result<()> {
-        create_folder_of(&self.best)?;
         crate::io::output::ensure_writable_outputs(&[
             ("-o", &self.best),
             ("the last epoch's weights", &self.last),
@@ -801,20 +800,11 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
 
 /// The JSON report written beside the weights `out` (its extension replaced by `.json`), once both
 /// can be written ([`crate::io::output::ensure_writable_outputs`]; `-o x.json` would be replaced by
-/// its own report), the folder made.
+/// its own report).
 pub fn report_beside(out: &Path) -> Result<PathBuf> {
-    create_folder_of(out)?;
     let json = out.with_extension("json");
     crate::io::output::ensure_writable_outputs(&[("-o", out), ("the report", &json)])?;
     Ok(json)
-}
-
-/// Creates the folder `path` is to be written in (a run's outputs may name a new folder).
-fn create_folder_of(path: &Path) -> Result<()> {
-    match path.parent().filter(|dir| !dir.as_os_str().is_empty()) {
-        Some(dir) => std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display())),
-        None => Ok(()),
-    }
 }
 
 /// Writes `value` as pretty JSON to `path`.

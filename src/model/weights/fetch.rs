@@ -46,9 +46,7 @@ pub fn download_verified(url: &str, sha256: &str) -> Result<Vec<u8>> {
 
 /// Writes `bytes` to `dest` through a temporary file beside it, so `dest` is whole or absent.
 pub fn write_atomically(dest: &Path, bytes: &[u8]) -> Result<()> {
-    if let Some(dir) = dest.parent() {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    }
+    crate::io::output::create_folder_of(dest)?;
     let part = dest.with_extension("part");
     let mut file = std::fs::File::create(&part).with_context(|| format!("cannot write {}", part.display()))?;
     file.write_all(bytes).and_then(|_| file.sync_all()).with_context(|| format!("cannot write {}", part.display()))?;

@@ -49,9 +49,7 @@ impl Weights {
     /// Saves as safetensors with the metadata in the header ([`Weights::to_bytes`]).
     pub fn save(&self, path: &Path) -> Result<()> {
         let bytes = self.to_bytes()?;
-        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-            std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-        }
+        crate::io::output::create_folder_of(path)?;
         // A regular file is replaced by rename (a crash never leaves half a weights file); a device,
         // FIFO or symlink is written in place, never replaced.
         crate::io::output::write_replacing(path, &bytes)?;
