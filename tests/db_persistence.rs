@@ -119,6 +119,12 @@ fn replay_killed_at_random_moments_ends_as_an_uninterrupted_run() {
     let out = ecm_lcd(&replay_args(seq_text, ref_db.to_str().unwrap(), ref_csv.to_str().unwrap()));
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert_eq!(std::fs::read_to_string(&ref_csv).unwrap(), full, "the lost line was not written again");
+    // Printed rather than written, a resumed run's output is the whole run's too.
+    let mut printed = replay_args(seq_text, ref_db.to_str().unwrap(), "");
+    printed.retain(|arg| !["-o", ""].contains(arg));
+    let out = ecm_lcd(&printed);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(String::from_utf8_lossy(&out.stdout), full, "a resumed run printed other candidates than it wrote");
     assert!(reference_ids.len() > 5 && reference_ids.len() < FRAMES / 2, "selection kept {reference_ids:?}");
     assert!(reference.len() >= reference_ids.len() - 2, "only {} candidates in the reference", reference.len());
 

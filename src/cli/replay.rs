@@ -151,7 +151,12 @@ pub fn run(args: Args) -> Result<()> {
         (Some(path), Some(stored)) => CandidateCsv::rewrite(path, &stored),
         (Some(path), None) if resuming => CandidateCsv::to_file(path, true),
         (Some(path), None) => CandidateCsv::rewrite(path, &[]),
-        (None, _) => CandidateCsv::to_stdout(),
+        // Printed, the earlier run's candidates come first, so the output is the whole run's too.
+        (None, stored) => {
+            let mut out = CandidateCsv::to_stdout()?;
+            out.write(stored.as_deref().unwrap_or_default())?;
+            Ok(out)
+        }
     };
     let mut stored = Some(stored);
     let mut csv: Option<CandidateCsv> = None;
