@@ -94,6 +94,9 @@ pub struct Outcome {
     /// Of [`Outcome::rejected`], those whose features verified but whose tracker poses did not fit
     /// (`verification.max_drift`).
     pub rejected_by_odometry: usize,
+    /// Of the candidates, those the odometry check (`verification.max_drift`) was set to make but
+    /// could not: one of their keyframes has no tracker pose while others have.
+    pub unchecked_by_odometry: usize,
     pub timings: Timings,
 }
 
@@ -130,6 +133,8 @@ pub struct Pipeline {
     /// were scaled to ([`Pipeline::watch_frame_size`]).
     misfit_sizes: Recurring,
     scaled_to: Option<[u32; 2]>,
+    /// Loops reported unchecked by odometry for want of a tracker pose on one keyframe.
+    unchecked_loops: Recurring,
 }
 
 /// Counts of inputs that were well formed but could not be used as they came, each logged where it
@@ -268,6 +273,7 @@ impl Pipeline {
             blank_frames: Recurring::default(),
             misfit_sizes: Recurring::default(),
             scaled_to: None,
+            unchecked_loops: Recurring::default(),
         };
         log::info!("descriptor {} ({} values)", pipeline.descriptor_name(), pipeline.descriptor.dim());
         Ok(pipeline)
@@ -745,6 +751,7 @@ impl Pipeline {
                 self.detector.set_reported(c.query_id, c.rank as usize + 1);
             }
             outcome.candidates.splice(0..0, confirmed);
+            outcome.unchecked_by_odometry = self.watch_unchecked_loops(&outcome.candidates);
             if self.store.is_some() {
                 stored_features = Some(features.to_bytes());
             }
@@ -841,6 +848,37 @@ impl Pipeline {
         let odometry_failed = v.accepted && !self.odometry_consistent(query, matched, v.pose.as_ref());
         v.accepted &= !odometry_failed;
         (v, odometry_failed)
+    }
+
+    /// Names loops reported without the odometry check it was set to make, because one of their
+    /// keyframes has no tracker pose while others have: a tracker that sends poses for some frames
+    /// only, or a database continued with `--poses` on one run and not the other. (With no pose at
+    /// all, nothing is checked, and the replay's summary says so.)
+    /// Returns how many of `reported` those are.
+    fn watch_unchecked_loops(&mut self, reported: &[LoopCandidate]) -> usize {
+        let checks = self.verifier.as_ref().and_then(|v| v.params().drift).is_some();
+        if !checks || self.odometry.is_empty() {
+            return 0;
+        }
+        let mut unchecked = 0;
+        for c in reported {
+            let Some(untracked) = [c.query_id, c.match_id].into_iter().find(|&id| self.odometry.tracked(id).is_none())
+            else {
+                continue;
+            };
+            unchecked += 1;
+            if let Some(n) = self.unchecked_loops.occurred() {
+                log::warn!(
+                    "loop {} -> {} was reported without the odometry check: keyframe {untracked} has no tracker \
+                     pose, while {} keyframes have one ({n} such loops so far; poses for some frames only, or a \
+                     database continued with --poses on one run and not the other?)",
+                    c.query_id,
+                    c.match_id,
+                    self.odometry.len()
+                );
+            }
+        }
+        unchecked
     }
 
     /// Whether a loop from the query (tracked at `query`) to keyframe `matched`, verified with

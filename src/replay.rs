@@ -52,6 +52,8 @@ pub struct ReplayRun {
     pub rejected: usize,
     /// Of `rejected`, those the odometry check rejected (`verification.max_drift`).
     pub rejected_by_odometry: usize,
+    /// Candidates reported without the odometry check it was set to make (a keyframe without a pose).
+    pub unchecked_by_odometry: usize,
     /// Summed per-stage time over the keyframes.
     pub total: Timings,
     pub wall_secs: f64,
@@ -507,6 +509,7 @@ fn replay_frames(
             run.total.verification_ms += t.verification_ms;
             run.rejected += outcome.rejected;
             run.rejected_by_odometry += outcome.rejected_by_odometry;
+            run.unchecked_by_odometry += outcome.unchecked_by_odometry;
             let keyframe = ReplayedKeyframe {
                 index: frame.index,
                 stamp: frame.stamp,

@@ -528,6 +528,24 @@ fn a_restart_keeps_checking_loops_against_the_stored_tracker_poses() {
     assert_eq!(before, [], "before the restart");
     assert_eq!(after, [], "after the restart");
     assert!(found.iter().filter(|(q, _)| *q >= restart_at as u64).count() >= 5, "{found:?}");
+
+    // The first lap stored by a run without poses, the second continued with them (the elsewhere
+    // ones): loops to the first lap cannot be checked, and each reported one is counted as such.
+    let db = dir.path().join("half_posed.db");
+    let mut unposed = pipeline(&db);
+    for frame in &frames[..second_lap] {
+        let outcome = unposed.process_source_frame(frame, None).unwrap();
+        assert_eq!(outcome.unchecked_by_odometry, 0, "no keyframe has a pose yet");
+    }
+    drop(unposed);
+    let mut continued = pipeline(&db);
+    let (mut reported, mut unchecked) = (0, 0);
+    for frame in &frames[second_lap..] {
+        let outcome = continued.process_source_frame(frame, Some(elsewhere(frame.index))).unwrap();
+        reported += outcome.candidates.iter().filter(|c| c.match_id < second_lap as u64).count();
+        unchecked += outcome.unchecked_by_odometry;
+    }
+    assert!(reported >= 5 && unchecked >= reported, "{reported} loops to the first lap, {unchecked} counted unchecked");
 }
 
 /// Temporal consistency (delayed, with verification) and the sequence policy remember the last

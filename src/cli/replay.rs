@@ -183,7 +183,10 @@ pub fn run(args: Args) -> Result<()> {
             Some(_) if args.source_args.poses.is_none() => {
                 " (an odometry check is set, but without --poses no frame has a tracker pose)".to_string()
             }
-            Some(_) => format!(" ({} of them by the odometry check)", run.rejected_by_odometry),
+            Some(_) => format!(
+                " ({} of them by the odometry check; {} candidates were not checked by it, for want of a tracker pose)",
+                run.rejected_by_odometry, run.unchecked_by_odometry
+            ),
             None => String::new(),
         };
         format!(", verification {:.2} ms; {} candidates failed verification{odometry}", t.verification_ms, run.rejected)
