@@ -78,6 +78,21 @@ fn descriptors(network: &Network, x: &Tensor, mode: Mode) -> Result<Tensor> {
     Ok(pooled.broadcast_div(&norm)?)
 }
 
+/// The teacher's descriptors of `x` (images at `size` pixels), refused where one is zero: at small
+/// sizes the teacher's pooled features can vanish altogether, and a student taught zeros learns
+/// nothing of places while its error reads 0.
+fn teacher_descriptors(teacher: &Network, x: &Tensor, size: usize) -> Result<Tensor> {
+    let t = descriptors(teacher, x, Mode::Inference)?;
+    let zero = t.sqr()?.sum(1)?.to_vec1::<f32>()?.iter().filter(|norm| **norm < 0.5).count();
+    ensure!(
+        zero == 0,
+        "the teacher's descriptor is zero for {zero} of {} images at --size {size}: its features vanish at this \
+         input size (try --size 64 or more)",
+        x.dim(0)?
+    );
+    Ok(t)
+}
+
 fn loss_of(student: &Tensor, teacher: &Tensor, loss: DistillLoss) -> Result<Tensor> {
     Ok(match loss {
         DistillLoss::Mse => (student - teacher)?.sqr()?.sum(1)?.mean_all()?,
@@ -99,7 +114,7 @@ pub fn descriptor_error(
         let b = b?;
         let x = b.tensor(size)?;
         let e =
-            (descriptors(student, &x, Mode::Inference)? - descriptors(teacher, &x, Mode::Inference)?)?.sqr()?.sum(1)?;
+            (descriptors(student, &x, Mode::Inference)? - teacher_descriptors(teacher, &x, size)?)?.sqr()?.sum(1)?;
         sum += e.sum_all()?.to_scalar::<f32>()? as f64;
         n += b.len();
     }
@@ -157,7 +172,7 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
         for b in loader.batches.iter() {
             let b = b?;
             let x = b.tensor(config.size)?;
-            let target = descriptors(&teacher_net, &x, Mode::Inference)?.detach();
+            let target = teacher_descriptors(&teacher_net, &x, config.size)?.detach();
             let s = descriptors(&student.network, &x, Mode::FineTune)?;
             let loss = loss_of(&s, &target, config.loss)?;
             let lr = learning_rate(step, total, warmup, config.opt.lr);

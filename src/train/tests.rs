@@ -340,6 +340,11 @@ fn distillation_halves_the_heldout_descriptor_error() -> Result<()> {
     );
     let student = Weights::load(&config.out)?;
     assert_eq!(student.arch, Arch::EcMobileNet);
+    // At 32 px the teacher's pooled features vanish: refused, and nothing is saved.
+    let tiny = distill::DistillConfig { size: 32, out: dir.path().join("tiny.safetensors"), ..config.clone() };
+    let err = format!("{:#}", distill::distill(&teacher.weights, "default", &tiny).unwrap_err());
+    assert!(err.contains("descriptor is zero for") && err.contains("--size 32"), "{err}");
+    assert!(!tiny.out.exists());
     Ok(())
 }
 
