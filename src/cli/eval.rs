@@ -176,8 +176,12 @@ fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)], par
 /// The figures as text.
 pub fn print_summary(metrics: &Metrics, timings_ms: &[(&str, f64)]) {
     let show = |v: Option<f64>| v.map(|v| format!("{v:.3}")).unwrap_or_else(|| "n/a (no loops in the truth)".into());
+    let unknown_matches = match metrics.unknown_matches {
+        0 => String::new(),
+        n => format!(", {n} whose best match has none"),
+    };
     println!(
-        "queries                 {} ({} with a true loop, {} without ground truth)",
+        "queries                 {} ({} with a true loop, {} without ground truth{unknown_matches})",
         metrics.queries, metrics.positives, metrics.unknown
     );
     println!("recall@1                {}", show(metrics.recall_at_1));

@@ -7,7 +7,8 @@
 //! above the threshold is reported; a reported query is a true positive if its match is one of its
 //! true matches, otherwise a false positive (a wrong match of a positive query or any match of a
 //! negative one). Precision = TP / reported, recall = TP / positives. Queries whose truth is
-//! unknown are left out entirely. Equal scores form one threshold.
+//! unknown are left out entirely, as are those whose top-1 match is a frame whose truth is unknown
+//! (no pose: whether the match is right cannot be told). Equal scores form one threshold.
 //!
 //! Average precision is the step-wise area `sum (R_k - R_{k-1}) P_k` over the thresholds (no
 //! interpolation, as scikit-learn's `average_precision_score`). Recall at 100% precision is the
@@ -49,6 +50,8 @@ pub struct Metrics {
     pub false_reports: usize,
     /// Queries left out because their truth is unknown.
     pub unknown: usize,
+    /// Queries left out because their top-1 match's truth is unknown (a frame without a pose).
+    pub unknown_matches: usize,
     pub recall_at_1: Option<f64>,
     pub recall_at_100_precision: Option<f64>,
     pub average_precision: Option<f64>,
@@ -77,6 +80,7 @@ pub fn evaluate(results: &[QueryResult], truth: &LoopTruth) -> Result<Metrics> {
     let mut queries = 0;
     let mut positives = 0;
     let mut unknown = 0;
+    let mut unknown_matches = 0;
     let mut top1_hits = 0;
     // (score, is true positive) of each reported query.
     let mut reported: Vec<(f32, bool)> = Vec::new();
@@ -88,6 +92,10 @@ pub fn evaluate(results: &[QueryResult], truth: &LoopTruth) -> Result<Metrics> {
             unknown += 1;
             continue;
         };
+        if result.best.is_some_and(|(matched, _)| truth.is_unknown_match(matched)) {
+            unknown_matches += 1;
+            continue;
+        }
         queries += 1;
         let positive = !matches.is_empty();
         positives += positive as usize;
@@ -137,6 +145,7 @@ pub fn evaluate(results: &[QueryResult], truth: &LoopTruth) -> Result<Metrics> {
         true_reports,
         false_reports,
         unknown,
+        unknown_matches,
         recall_at_1,
         recall_at_100_precision,
         average_precision,
@@ -153,13 +162,14 @@ mod tests {
     }
 
     /// Truth: queries 10..=13 are positives (10 -> {1}, 11 -> {2, 3}, 12 -> {4}, 13 -> {5});
-    /// 14 and 15 are negatives; 16 is unknown.
+    /// 14 and 15 are negatives; 16 is unknown; frame 7 has no pose.
     fn truth() -> LoopTruth {
         let mut truth = LoopTruth::default();
         for (q, m) in [(10, 1), (11, 2), (11, 3), (12, 4), (13, 5)] {
             truth.insert(q, m);
         }
         truth.mark_unknown(16);
+        truth.mark_unknown_match(7);
         truth
     }
 
@@ -173,9 +183,10 @@ mod tests {
             result(13, Some((5, 0.5))),  // TP
             result(15, None),            // negative, nothing reported
             result(16, Some((0, 0.95))), // unknown truth: ignored
+            result(17, Some((7, 0.99))), // a match without a pose: ignored
         ];
         let m = evaluate(&results, &truth()).unwrap();
-        assert_eq!((m.queries, m.positives, m.unknown), (6, 4, 1));
+        assert_eq!((m.queries, m.positives, m.unknown, m.unknown_matches), (6, 4, 1, 1));
         // Curve: 0.9 -> P 1, R 1/4; 0.8 -> 1, 2/4; 0.7 -> 2/3, 2/4; 0.6 -> 2/4, 2/4; 0.5 -> 3/5, 3/4.
         let expected = [(0.9, 1.0, 0.25), (0.8, 1.0, 0.5), (0.7, 2.0 / 3.0, 0.5), (0.6, 0.5, 0.5), (0.5, 0.6, 0.75)];
         assert_eq!(m.curve.len(), expected.len());

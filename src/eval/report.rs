@@ -24,7 +24,7 @@ pub fn write_curve_csv(metrics: &Metrics, path: &Path) -> Result<()> {
     })
 }
 
-/// The JSON summary: `queries`, `positives`, `unknown`, `recall_at_1`,
+/// The JSON summary: `queries`, `positives`, `unknown`, `unknown_matches`, `recall_at_1`,
 /// `recall_at_100_precision`, `average_precision` (null without positives), plus `timing_ms`
 /// with whatever stage timings the caller measured (milliseconds, by stage name).
 pub fn summary_json(metrics: &Metrics, timings_ms: &[(&str, f64)]) -> serde_json::Value {

@@ -6,7 +6,9 @@
 //! `max_distance_m` and the optical axes (camera +z) within `max_angle_deg`. Each frame takes the
 //! pose of the nearest ground-truth stamp; a frame whose nearest pose is more than
 //! `max_stamp_offset_s` away has no pose: as a query its truth is unknown (it is left out of the
-//! metrics), as a match it is never a true one.
+//! metrics), and as a match it is neither right nor wrong (a query whose best match it is is left
+//! out too: ground truth that starts after the images, as TUM's often does, would otherwise count
+//! a right match to an early frame as a false loop).
 
 use crate::types::Stamp;
 use anyhow::{bail, Context, Result};
@@ -24,6 +26,8 @@ static NO_MATCHES: BTreeSet<usize> = BTreeSet::new();
 pub struct LoopTruth {
     matches: BTreeMap<usize, BTreeSet<usize>>,
     unknown: BTreeSet<usize>,
+    /// Frames (references) with no pose: whether a match to one is right is unknown.
+    unknown_matches: BTreeSet<usize>,
 }
 
 impl LoopTruth {
@@ -74,6 +78,16 @@ impl LoopTruth {
         self.unknown.insert(query);
     }
 
+    /// Marks frame `matched` as one whose matches are neither right nor wrong (it has no pose).
+    pub fn mark_unknown_match(&mut self, matched: usize) {
+        self.unknown_matches.insert(matched);
+    }
+
+    /// Whether a match to `matched` is neither right nor wrong.
+    pub fn is_unknown_match(&self, matched: usize) -> bool {
+        self.unknown_matches.contains(&matched)
+    }
+
     /// The truth of a database/query set cut from one sequence: the frames `queries`, in the order
     /// given, against the frames `references`, each renumbered from 0. A query keeps only its
     /// matches among the references, and stays unknown where it was.
@@ -88,6 +102,9 @@ impl LoopTruth {
                     }
                 }
             }
+        }
+        for m in self.unknown_matches.range(references.clone()) {
+            cut.mark_unknown_match(m - references.start);
         }
         cut
     }
@@ -179,7 +196,10 @@ pub fn loop_truth_from_poses(
     let mut truth = LoopTruth::default();
     for (q, found) in per_query.into_iter().enumerate() {
         match found {
-            None => truth.mark_unknown(q),
+            None => {
+                truth.mark_unknown(q);
+                truth.mark_unknown_match(q);
+            }
             Some(found) => found.into_iter().for_each(|m| truth.insert(q, m)),
         }
     }
@@ -339,11 +359,15 @@ mod tests {
         let poses = poses_at_stamps(&stamps, &groundtruth, 0.05);
         let xs: Vec<Option<f64>> = poses.iter().map(|p| p.map(|p| p.translation.x)).collect();
         assert_eq!(xs, vec![Some(1.0), Some(1.0), None, Some(0.0), None]);
-        // Frames without a pose are unknown as queries and never true matches.
+        // Frames without a pose are unknown as queries and as matches.
         let stamps = [secs(0.0), secs(50.0)];
         let truth = loop_truth_from_poses(&stamps, &groundtruth, &PoseLoopCriteria::default());
         assert_eq!(truth.matches(1), None);
         assert_eq!(truth.unknown_queries().iter().copied().collect::<Vec<_>>(), vec![1]);
+        assert!(truth.is_unknown_match(1) && !truth.is_unknown_match(0));
+        // Cut into a database/query set, a reference keeps its unknown match, renumbered.
+        let cut = truth.between([0], 1..2);
+        assert!(cut.is_unknown_match(0));
     }
 
     #[test]
