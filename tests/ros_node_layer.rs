@@ -349,10 +349,14 @@ struct DefaultNode {
 
 impl DefaultNode {
     fn start(processor: MeanColourProcessor) -> DefaultNode {
+        Self::start_with(NodeSettings::default(), processor)
+    }
+
+    fn start_with(settings: NodeSettings, processor: MeanColourProcessor) -> DefaultNode {
         let (counters, stop) = (Arc::new(NodeCounters::default()), Arc::new(AtomicBool::new(false)));
         let node_stop = stop.clone();
         let thread = std::thread::spawn(move || {
-            run_node(&NodeSettings::default(), Params::default(), None, Box::new(processor), counters, node_stop)
+            run_node(&settings, Params::default(), None, Box::new(processor), counters, node_stop)
         });
         DefaultNode { thread, stop }
     }
@@ -362,6 +366,49 @@ impl DefaultNode {
         self.stop.store(true, Ordering::Relaxed);
         self.thread.join().unwrap().unwrap()
     }
+}
+
+/// With `--input keyframes` (the launch file's default beside a tracker) the node takes the tracker's
+/// keyframes and leaves the camera's frames alone: a camera image published beside them neither takes a
+/// keyframe id nor reaches the processor.
+#[test]
+fn a_node_on_keyframes_only_leaves_camera_frames_alone() {
+    if !ros_support::inside() {
+        return ros_support::check_inner_run("a_node_on_keyframes_only_leaves_camera_frames_alone");
+    }
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.99 };
+    let settings = NodeSettings { inputs: ecm_lcd::ros::node::FrameInputs::Keyframes, ..NodeSettings::default() };
+    let node = DefaultNode::start_with(settings, processor);
+    let context = Context::new().unwrap();
+    let mut peer =
+        context.new_node(NodeName::new("/", "peer").unwrap(), NodeOptions::new().enable_rosout(false)).unwrap();
+    let reliable = ecm_lcd::ros::node::InputQos::Reliable.profile();
+    let kf_topic = peer.create_topic(&Name::parse("/keyframes").unwrap(), msgs::keyframe_type(), &reliable).unwrap();
+    let img_topic = peer.create_topic(&Name::parse("/image").unwrap(), msgs::image_type(), &reliable).unwrap();
+    let kf_pub = peer.create_publisher::<Keyframe>(&kf_topic, None).unwrap();
+    let img_pub = peer.create_publisher::<Image>(&img_topic, None).unwrap();
+    let spinner = peer.spinner().unwrap();
+    std::thread::spawn(move || futures::executor::block_on(spinner.spin()));
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while kf_pub.get_subscription_count(&peer) == 0 && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(kf_pub.get_subscription_count(&peer) > 0, "node's keyframe subscription never matched");
+    std::thread::sleep(Duration::from_millis(500));
+    img_pub.publish(keyframe(0, 9, 50).image).unwrap();
+    kf_pub.publish(keyframe(7, 10, 10)).unwrap();
+    let end = Instant::now() + Duration::from_secs(10);
+    while seen.lock().unwrap().calls.is_empty() && Instant::now() < end {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(img_pub.get_subscription_count(&peer), 0, "the node subscribed the camera's frames");
+    let counters = node.stop();
+    let calls: Vec<Option<u64>> = seen.lock().unwrap().calls.iter().map(|c| c.0).collect();
+    assert_eq!(calls, [Some(7)], "{counters}");
+    assert_eq!(counters.received, 1, "{counters}");
+    println!("INNER-DONE {counters}");
 }
 
 /// A 32x24 `16UC1` depth image of `millimetres` everywhere, stamped `secs` + `nanos`.

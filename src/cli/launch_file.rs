@@ -56,6 +56,9 @@ fn the_launch_file_starts_the_node_the_code_defines() {
     // The whole command line parses as the binary parses it.
     let cli = Cli::try_parse_from(&argv).unwrap_or_else(|e| panic!("{argv:?}: {e}"));
     let EcmCommand::Node(node) = cli.command else { panic!("not the node command: {argv:?}") };
+    // Beside a tracker by default: its keyframes only, reliably (each one matters).
+    assert_eq!(node.input, ecm_lcd::ros::node::FrameInputs::Keyframes, "{argv:?}");
+    assert_eq!(node.input_qos, ecm_lcd::ros::node::InputQos::Reliable, "{argv:?}");
     assert_eq!(node.ros_args.first().map(String::as_str), Some("--ros-args"));
     let ros = RosArgs::parse(&node.ros_args, DEFAULT_NODE_NAME).unwrap();
     assert_eq!(ros.node_name(DEFAULT_NODE_NAME), DEFAULT_NODE_NAME);

@@ -13,7 +13,9 @@ use std::sync::Arc;
 
 use ecm_lcd::config::Params;
 use ecm_lcd::ros::args::RosArgs;
-use ecm_lcd::ros::node::{run_node, InputQos, KeyframeProcessor, NodeCounters, NodeSettings, DEFAULT_NODE_NAME};
+use ecm_lcd::ros::node::{
+    run_node, FrameInputs, InputQos, KeyframeProcessor, NodeCounters, NodeSettings, DEFAULT_NODE_NAME,
+};
 use ecm_lcd::ros::params::initial_params;
 
 #[derive(clap::Args, Debug)]
@@ -21,6 +23,10 @@ pub struct Args {
     /// QoS of the input subscriptions.
     #[arg(long, value_enum, default_value_t = InputQos::Reliable)]
     pub input_qos: InputQos,
+    /// Frame topics to subscribe: `keyframes` beside a tracker, `image` or `compressed` on a camera
+    /// alone (one camera stream: raw and compressed are the same frames twice).
+    #[arg(long, value_enum, default_value_t = FrameInputs::All)]
+    pub input: FrameInputs,
     /// Capacity of the queue in front of the worker (full: the oldest message is dropped and counted).
     #[arg(long, default_value_t = 4)]
     pub queue: usize,
@@ -66,8 +72,13 @@ pub fn run_with(args: Args, make_processor: impl FnOnce(&Params) -> Result<Box<d
     let fqn = ros_args.fully_qualified_node_name(DEFAULT_NODE_NAME);
     let (params, use_sim_time) = initial_params(&ros_args, &fqn)?;
     let processor = make_processor(&params)?;
-    let settings =
-        NodeSettings { ros_args, input_qos: args.input_qos, queue_capacity: args.queue, ..Default::default() };
+    let settings = NodeSettings {
+        ros_args,
+        input_qos: args.input_qos,
+        inputs: args.input,
+        queue_capacity: args.queue,
+        ..Default::default()
+    };
     let counters = Arc::new(NodeCounters::default());
     let stop = Arc::new(AtomicBool::new(false));
     for signal in [SIGINT, SIGTERM] {
@@ -98,6 +109,8 @@ mod tests {
             "node",
             "--input-qos",
             "sensor-data",
+            "--input",
+            "keyframes",
             "--ros-args",
             "-r",
             "__ns:=/r",
@@ -108,6 +121,7 @@ mod tests {
         ])
         .unwrap();
         assert_eq!(w.args.input_qos, InputQos::SensorData);
+        assert_eq!(w.args.input, FrameInputs::Keyframes);
         let ros = RosArgs::parse(&w.args.ros_args, DEFAULT_NODE_NAME).unwrap();
         assert_eq!(ros.namespace(), "/r");
         assert_eq!(ros.params.len(), 1);

@@ -23,6 +23,9 @@
 //! while messages are dropped or fail, with the queue, the counters and the mean worker times.
 //! QoS: inputs reliable, keep last 10 (default) or sensor data (best effort, keep last 5) with
 //! `--input-qos sensor-data`; output reliable, keep last 100, volatile.
+//! `--input` limits the frame subscriptions to one of `keyframes`, `image` and `image/compressed`
+//! ([`FrameInputs`]): a tracker's keyframes and the camera's frames are two numberings of the same frames,
+//! and a raw and a compressed stream of one camera are the same frames twice.
 
 use anyhow::{Context as _, Result};
 use log::{debug, error, info, warn};
@@ -147,6 +150,33 @@ impl KeyframeProcessor for crate::pipeline::Pipeline {
     }
 }
 
+/// Which frame topics the node subscribes.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum FrameInputs {
+    /// All three: whichever a publisher feeds (one, normally).
+    #[default]
+    All,
+    /// A tracker's keyframes only (`keyframes`).
+    Keyframes,
+    /// Raw camera frames only (`image`); the node selects keyframes.
+    Image,
+    /// Compressed camera frames only (`image/compressed`); the node selects keyframes.
+    Compressed,
+}
+
+impl FrameInputs {
+    /// Whether the frame topic `name` ([`KEYFRAMES_TOPIC`], [`IMAGE_TOPIC`], [`COMPRESSED_TOPIC`]) is
+    /// subscribed.
+    pub fn subscribes(self, name: &str) -> bool {
+        match self {
+            FrameInputs::All => true,
+            FrameInputs::Keyframes => name == KEYFRAMES_TOPIC,
+            FrameInputs::Image => name == IMAGE_TOPIC,
+            FrameInputs::Compressed => name == COMPRESSED_TOPIC,
+        }
+    }
+}
+
 /// Input QoS.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
 pub enum InputQos {
@@ -185,6 +215,8 @@ pub fn output_qos() -> QosProfile {
 pub struct NodeSettings {
     pub ros_args: RosArgs,
     pub input_qos: InputQos,
+    /// The frame topics subscribed.
+    pub inputs: FrameInputs,
     /// Capacity of the queue between the receive loop and the worker.
     pub queue_capacity: usize,
     /// How often a status line with the counters is logged (when they changed).
@@ -198,6 +230,7 @@ impl Default for NodeSettings {
         NodeSettings {
             ros_args: RosArgs::default(),
             input_qos: InputQos::Reliable,
+            inputs: FrameInputs::All,
             queue_capacity: 4,
             status_period: Duration::from_secs(5),
             diagnostics_period: Duration::from_secs(1),
@@ -371,10 +404,19 @@ pub fn run_node(
         let what = what.to_string();
         move |e| anyhow::anyhow!("subscribing {what}: {e:?}")
     };
-    let mut kf_sub: Subscription<Keyframe> = node.create_subscription(&kf_topic, None).map_err(sub_err(&kf_name))?;
-    let mut img_sub: Subscription<Image> = node.create_subscription(&img_topic, None).map_err(sub_err(&img_name))?;
-    let mut cmp_sub: Subscription<CompressedImage> =
-        node.create_subscription(&cmp_topic, None).map_err(sub_err(&cmp_name))?;
+    let inputs = settings.inputs;
+    let mut kf_sub: Option<Subscription<Keyframe>> = inputs
+        .subscribes(KEYFRAMES_TOPIC)
+        .then(|| node.create_subscription(&kf_topic, None).map_err(sub_err(&kf_name)))
+        .transpose()?;
+    let mut img_sub: Option<Subscription<Image>> = inputs
+        .subscribes(IMAGE_TOPIC)
+        .then(|| node.create_subscription(&img_topic, None).map_err(sub_err(&img_name)))
+        .transpose()?;
+    let mut cmp_sub: Option<Subscription<CompressedImage>> = inputs
+        .subscribes(COMPRESSED_TOPIC)
+        .then(|| node.create_subscription(&cmp_topic, None).map_err(sub_err(&cmp_name)))
+        .transpose()?;
     let mut info_sub: Subscription<CameraInfo> =
         node.create_subscription(&info_topic, None).map_err(sub_err(&info_name))?;
     let mut depth_sub: Subscription<Image> =
@@ -424,9 +466,15 @@ pub fn run_node(
 
     let mut poll = Poll::new().context("creating the poll")?;
     let (kf_token, img_token, cmp_token, info_token, depth_token) = (Token(1), Token(2), Token(3), Token(4), Token(5));
-    poll.registry().register(&mut kf_sub, kf_token, Interest::READABLE).context("polling keyframes")?;
-    poll.registry().register(&mut img_sub, img_token, Interest::READABLE).context("polling images")?;
-    poll.registry().register(&mut cmp_sub, cmp_token, Interest::READABLE).context("polling compressed images")?;
+    if let Some(sub) = &mut kf_sub {
+        poll.registry().register(sub, kf_token, Interest::READABLE).context("polling keyframes")?;
+    }
+    if let Some(sub) = &mut img_sub {
+        poll.registry().register(sub, img_token, Interest::READABLE).context("polling images")?;
+    }
+    if let Some(sub) = &mut cmp_sub {
+        poll.registry().register(sub, cmp_token, Interest::READABLE).context("polling compressed images")?;
+    }
     poll.registry().register(&mut info_sub, info_token, Interest::READABLE).context("polling camera_info")?;
     poll.registry().register(&mut depth_sub, depth_token, Interest::READABLE).context("polling depth")?;
     // The last intrinsics passed on (with the image size they hold for), and whether an uncalibrated
@@ -451,8 +499,7 @@ pub fn run_node(
         }
     };
     let malformed = |topic: &str, index: u64, reason: String| {
-        let n = counters.malformed.fetch_add(1, Ordering::Relaxed) + 1;
-        warn!("[{fqn}] malformed message #{index} on {topic} skipped: {reason} ({n} malformed so far)");
+        note_malformed(&counters, &fqn, topic, &format!("#{index} "), &reason)
     };
     while !stop.load(Ordering::Relaxed) {
         if let Err(e) = poll.poll(&mut events, Some(Duration::from_millis(100))) {
@@ -461,9 +508,9 @@ pub fn run_node(
             }
         }
         // Edge-triggered: drain every subscription each round (cheap when empty).
-        drain(&kf_sub, &mut indices[0], Incoming::Keyframe, &enqueue, |i, r| malformed(&kf_name, i, r));
-        drain(&img_sub, &mut indices[1], Incoming::Image, &enqueue, |i, r| malformed(&img_name, i, r));
-        drain(&cmp_sub, &mut indices[2], Incoming::Compressed, &enqueue, |i, r| malformed(&cmp_name, i, r));
+        drain(kf_sub.as_ref(), &mut indices[0], Incoming::Keyframe, &enqueue, |i, r| malformed(&kf_name, i, r));
+        drain(img_sub.as_ref(), &mut indices[1], Incoming::Image, &enqueue, |i, r| malformed(&img_name, i, r));
+        drain(cmp_sub.as_ref(), &mut indices[2], Incoming::Compressed, &enqueue, |i, r| malformed(&cmp_name, i, r));
         loop {
             let index = indices[3];
             match depth_sub.take() {
@@ -491,7 +538,7 @@ pub fn run_node(
                     None => {}
                 },
                 Ok(None) => break,
-                Err(e) => warn!("[{fqn}] malformed message on {info_name} skipped: {e:?}"),
+                Err(e) => note_malformed(&counters, &fqn, &info_name, "", &format!("{e:?}")),
             }
         }
         services.serve(&node, &live);
@@ -528,6 +575,15 @@ pub fn run_node(
     Ok(final_counters)
 }
 
+/// Counts a message that did not decode, and logs it: the first ten, then every hundredth (a camera
+/// in an encoding the node does not read sends dozens a second).
+fn note_malformed(counters: &NodeCounters, fqn: &str, topic: &str, index: &str, reason: &str) {
+    let n = counters.malformed.fetch_add(1, Ordering::Relaxed) + 1;
+    if n <= 10 || n.is_multiple_of(100) {
+        warn!("[{fqn}] malformed message {index}on {topic} skipped: {reason} ({n} malformed so far)");
+    }
+}
+
 /// The node's `/diagnostics` entry: `WARN` while messages are being dropped or failing, or come in a
 /// way the processor cannot use as they are ([`InputProblems`], since `previous`), else `OK`; the
 /// counters, the queue and the mean worker time per message as values.
@@ -542,12 +598,20 @@ fn diagnostic_status(
     let (dropping, failing) = (now.dropped > previous.dropped, now.failed > previous.failed);
     // Inputs not usable as they came, in the last period.
     let (counts, before) = (now.input_problems.named(), previous.input_problems.named());
-    let problems: Vec<String> = counts
+    let mut problems: Vec<String> = counts
         .iter()
         .zip(&before)
         .filter(|((_, count, _), (_, earlier, _))| count > earlier)
         .map(|((_, count, what), (_, earlier, _))| format!("{} {what}", count - earlier))
         .collect();
+    // Messages that did not decode (an encoding the node does not read, a cut payload) are lost
+    // inputs as much as dropped ones.
+    if now.malformed > previous.malformed {
+        problems.insert(
+            0,
+            format!("{} malformed messages (not decoded; the log says why)", now.malformed - previous.malformed),
+        );
+    }
     let (level, message) = match (dropping, failing, problems.is_empty()) {
         (false, false, true) => (DiagnosticStatus::OK, "ok".to_string()),
         (false, false, false) => (DiagnosticStatus::WARN, format!("in the last period: {}", problems.join("; "))),
@@ -600,15 +664,16 @@ fn diagnostics_qos() -> QosProfile {
         .history(History::KeepLast { depth: 10 })
 }
 
-/// Takes every message waiting on `subscription`: good ones are queued, undeserialisable ones reported;
-/// `index` counts the messages seen on the topic.
+/// Takes every message waiting on `subscription` (if subscribed): good ones are queued,
+/// undeserialisable ones reported; `index` counts the messages seen on the topic.
 fn drain<M: 'static + serde::de::DeserializeOwned>(
-    subscription: &Subscription<M>,
+    subscription: Option<&Subscription<M>>,
     index: &mut u64,
     wrap: fn(M) -> Incoming,
     enqueue: &impl Fn(Incoming, u64),
     malformed: impl Fn(u64, String),
 ) {
+    let Some(subscription) = subscription else { return };
     loop {
         match subscription.take() {
             Ok(Some((msg, _))) => enqueue(wrap(msg), *index),
@@ -826,8 +891,7 @@ fn worker_loop(
         let image = match decoded {
             Ok(image) => image,
             Err(e) => {
-                let n = counters.malformed.fetch_add(1, Ordering::Relaxed) + 1;
-                warn!("[{fqn}] malformed message #{} on {topic} skipped: {e:#} ({n} malformed so far)", queued.index);
+                note_malformed(counters, fqn, topic, &format!("#{} ", queued.index), &format!("{e:#}"));
                 continue;
             }
         };
@@ -938,6 +1002,11 @@ mod tests {
         // Once they advance again, the next period is OK.
         let later = counters.snapshot();
         assert_eq!(diagnostic_status("/lcd", &counters, &later, 0, 8).level, DiagnosticStatus::OK);
+        // Messages that do not decode (say, a camera sending yuv422) warn too.
+        counters.malformed.fetch_add(2, std::sync::atomic::Ordering::Relaxed);
+        let status = diagnostic_status("/lcd", &counters, &later, 0, 8);
+        assert_eq!(status.level, DiagnosticStatus::WARN);
+        assert!(status.message.contains("2 malformed messages"), "{}", status.message);
     }
 
     #[test]
