@@ -201,18 +201,60 @@ pub fn has_image_extension(path: &Path) -> bool {
         .is_some_and(|e| ["png", "jpg", "jpeg", "bmp"].iter().any(|known| e.eq_ignore_ascii_case(known)))
 }
 
-/// The image files (png, jpg, jpeg, bmp; any case) directly inside `dir`, in name order with
-/// numbers compared by value (`frame2` before `frame10`), as cameras and tools that number their
-/// frames without leading zeros mean them; zero-padded names keep their plain order.
-pub(crate) fn image_files_in_name_order(dir: &Path) -> Result<Vec<PathBuf>> {
+/// The image files (png, jpg, jpeg, bmp; any case) directly inside `dir`, in no order. Hidden
+/// files are left out: a name starting with a dot is no frame (macOS writes `._name.png` beside
+/// every image it copies to a foreign disk). Other files left out (another type, a link to nothing)
+/// are counted in the log, since they shift the index of every image after them.
+pub fn image_files_in(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut paths = Vec::new();
+    let (mut hidden, mut other) = (0, Vec::new());
     for entry in fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))? {
         let path = entry.with_context(|| format!("cannot list {}", dir.display()))?.path();
-        if path.is_file() && has_image_extension(&path) {
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        if name.starts_with('.') {
+            hidden += 1;
+        } else if path.is_file() && has_image_extension(&path) {
             paths.push(path);
+        } else if !path.is_dir() {
+            other.push(name);
         }
     }
-    alphanumeric_sort::sort_path_slice(&mut paths);
+    if hidden > 0 {
+        log::info!("{}: {hidden} hidden files (names starting with a dot) left out", dir.display());
+    }
+    if !other.is_empty() {
+        other.sort();
+        let shown = other.iter().take(5).cloned().collect::<Vec<_>>().join(", ");
+        log::warn!(
+            "{}: {} files left out, not png/jpg/jpeg/bmp images or links to nothing: {shown}{}",
+            dir.display(),
+            other.len(),
+            if other.len() > 5 { ", ..." } else { "" }
+        );
+    }
+    Ok(paths)
+}
+
+/// The image files of [`image_files_in`] in name order with numbers compared by value (`frame2`
+/// before `frame10`), as cameras and tools that number their frames without leading zeros mean
+/// them; zero-padded names keep their plain order. Where every name is a decimal number (stamps
+/// such as `1341847981.1.png` and `1341847981.033333.png`), they are ordered by value.
+pub(crate) fn image_files_in_name_order(dir: &Path) -> Result<Vec<PathBuf>> {
+    let mut paths = image_files_in(dir)?;
+    let value = |path: &PathBuf| -> Option<f64> {
+        let stem = path.file_stem()?.to_str()?;
+        stem.parse::<f64>().ok().filter(|v| v.is_finite() && stem.bytes().all(|b| b.is_ascii_digit() || b == b'.'))
+    };
+    let values: Option<Vec<f64>> = paths.iter().map(value).collect();
+    match values {
+        Some(_) if !paths.is_empty() => {
+            paths.sort_by(|a, b| {
+                let (x, y) = (value(a).expect("checked above"), value(b).expect("checked above"));
+                x.total_cmp(&y).then_with(|| alphanumeric_sort::compare_path(a, b))
+            });
+        }
+        _ => alphanumeric_sort::sort_path_slice(&mut paths),
+    }
     Ok(paths)
 }
 
@@ -595,5 +637,13 @@ mod tests {
         }
         let listed: Vec<_> = image_files_in_name_order(padded.path()).unwrap();
         assert_eq!(listed, ["0000001.jpg", "0000002.jpg", "0000010.jpg"].map(|n| padded.path().join(n)));
+        // Stamps as names: by value (981.1 after 981.033333), and hidden files are no frames.
+        let stamps = tempfile::tempdir().unwrap();
+        for name in ["1341847981.1.png", "1341847981.033333.png", "1341847980.9.png", "._1341847980.png"] {
+            fs::write(stamps.path().join(name), b"x").unwrap();
+        }
+        let listed: Vec<_> = image_files_in_name_order(stamps.path()).unwrap();
+        let expected = ["1341847980.9.png", "1341847981.033333.png", "1341847981.1.png"];
+        assert_eq!(listed, expected.map(|n| stamps.path().join(n)));
     }
 }

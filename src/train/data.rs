@@ -20,15 +20,9 @@ use rand::{Rng, SeedableRng};
 
 use crate::preprocess::{read_image, Preprocessor};
 
-/// Image files directly inside `dir`, sorted by name.
+/// Image files directly inside `dir` ([`crate::io::tum::image_files_in`]), sorted by name.
 pub fn image_files(dir: &Path) -> Result<Vec<PathBuf>> {
-    let mut files = Vec::new();
-    for entry in std::fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))? {
-        let path = entry.with_context(|| format!("cannot list {}", dir.display()))?.path();
-        if path.is_file() && crate::io::tum::has_image_extension(&path) {
-            files.push(path);
-        }
-    }
+    let mut files = crate::io::tum::image_files_in(dir)?;
     files.sort();
     Ok(files)
 }
