@@ -193,7 +193,10 @@ pub(crate) fn choose_image_topic(
         topics.iter().filter(|t| ImageKind::from_type_name(&t.type_name).is_some()).collect();
     let chosen = match wanted {
         Some(name) => {
-            let found = topics.iter().find(|t| t.name == name).with_context(|| {
+            // A topic of several types (ROS 1 allows it) is taken by its image type.
+            let named = || topics.iter().filter(|t| t.name == name);
+            let found = named().find(|t| ImageKind::from_type_name(&t.type_name).is_some()).or_else(|| named().next());
+            let found = found.with_context(|| {
                 format!("{bag} has no topic {name}; image topics: {}", TopicInfo::listing(&image_topics))
             })?;
             if ImageKind::from_type_name(&found.type_name).is_none() {
@@ -239,7 +242,8 @@ pub(crate) fn choose_topics(
 pub(crate) fn choose_depth_topic(bag: &str, topics: &[TopicInfo], wanted: &str, colour: &str) -> Result<TopicInfo> {
     let raw = |t: &&TopicInfo| ImageKind::from_type_name(&t.type_name) == Some(ImageKind::Raw);
     let raw_topics: Vec<&TopicInfo> = topics.iter().filter(raw).collect();
-    let found = topics.iter().find(|t| t.name == wanted).with_context(|| {
+    let named = || topics.iter().filter(|t| t.name == wanted);
+    let found = named().find(raw).or_else(|| named().next()).with_context(|| {
         format!("{bag} has no depth topic {wanted}; raw image topics: {}", TopicInfo::listing(&raw_topics))
     })?;
     if !raw(&found) {
@@ -318,6 +322,12 @@ mod tests {
         assert_eq!((chosen.name.as_str(), kind), ("/rgb", ImageKind::Raw));
         let err = choose_image_topic("bag x", &topics[1..2], None).unwrap_err().to_string();
         assert!(err.contains("no sensor_msgs Image") && err.contains("/tf (tf2_msgs/TFMessage, 9 messages)"), "{err}");
+        // A ROS 1 topic of two types is taken by its image type, named or not.
+        let mixed = vec![topic("/cam", "std_msgs/String", 1), topic("/cam", "sensor_msgs/Image", 4)];
+        for wanted in [None, Some("/cam")] {
+            let (chosen, kind) = choose_image_topic("bag x", &mixed, wanted).unwrap();
+            assert_eq!((chosen.type_name.as_str(), chosen.count, kind), ("sensor_msgs/Image", 4, ImageKind::Raw));
+        }
     }
 }
 

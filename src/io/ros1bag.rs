@@ -423,16 +423,20 @@ impl Ros1BagSource {
             );
         }
 
-        let mut topics: BTreeMap<&str, TopicInfo> = BTreeMap::new();
+        // By topic and type: a ROS 1 topic may carry connections of several types (a recording of
+        // two publishers that disagreed), and only the image type's messages are frames.
+        let mut topics: BTreeMap<(&str, &str), TopicInfo> = BTreeMap::new();
         for conn in connections.values() {
-            topics.entry(&conn.topic).or_insert_with(|| TopicInfo {
+            topics.entry((&conn.topic, &conn.type_name)).or_insert_with(|| TopicInfo {
                 name: conn.topic.clone(),
                 type_name: conn.type_name.clone(),
                 count: 0,
             });
         }
         for (conn, _) in &per_conn {
-            if let Some(info) = connections.get(conn).and_then(|c| topics.get_mut(c.topic.as_str())) {
+            if let Some(info) =
+                connections.get(conn).and_then(|c| topics.get_mut(&(c.topic.as_str(), c.type_name.as_str())))
+            {
                 info.count += 1;
             }
         }
@@ -442,22 +446,32 @@ impl Ros1BagSource {
             None => err,
         };
         let (chosen, kind, depth) = choose_topics(&name, &topics, wanted).map_err(with_damage)?;
+        let is = |conn: &Connection, topic: &TopicInfo| conn.topic == topic.name && conn.type_name == topic.type_name;
         let intrinsics = camera_info_topic(&topics, &chosen.name).and_then(|info_topic| {
             let first = per_conn
                 .iter()
-                .filter(|(conn, _)| connections.get(conn).is_some_and(|c| c.topic == info_topic.name))
+                .filter(|(conn, _)| connections.get(conn).is_some_and(|c| is(c, info_topic)))
                 .min_by_key(|(_, m)| m.time)?;
             let chunk = &chunks[first.1.chunk];
             let decoded = load_chunk(&mut file, chunk)
                 .and_then(|data| camera_info_from_ros1(message_data(&data, &first.1, chunk)?));
             intrinsics_from_camera_info(&name, &info_topic.name, decoded)
         });
+        for other in topics.iter().filter(|t| t.name == chosen.name && t.type_name != chosen.type_name) {
+            log::warn!(
+                "{name}: topic {} also carries {} messages of type {}, left out (its frames are the {})",
+                other.name,
+                other.count,
+                other.type_name,
+                chosen.type_name
+            );
+        }
         let mut messages: Vec<(bool, MessageRef)> = per_conn
             .into_iter()
             .filter_map(|(conn, m)| {
-                let topic = &connections.get(&conn)?.topic;
-                let is_depth = depth.as_ref().is_some_and(|d| &d.name == topic);
-                (is_depth || *topic == chosen.name).then_some((is_depth, m))
+                let conn = connections.get(&conn)?;
+                let is_depth = depth.as_ref().is_some_and(|d| is(conn, d));
+                (is_depth || is(conn, &chosen)).then_some((is_depth, m))
             })
             .collect();
         messages.sort_by_key(|(_, m)| m.time);
