@@ -25,14 +25,23 @@ pub fn read_image(path: &Path) -> Result<RgbImage> {
     Ok(open_image(path)?.into_rgb8())
 }
 
-/// Decodes the image file `path` as it is, its format told by its bytes rather than its name (a PNG
-/// named `.jpg` is read as the PNG it is).
+/// Decodes the image file `path`, its format told by its bytes rather than its name (a PNG named
+/// `.jpg` is read as the PNG it is), turned upright as its EXIF orientation says: a phone's
+/// portrait photo is stored sideways with a tag, and OpenCV's `imread`, which a map made by other
+/// tools went through, applies it too.
 pub fn open_image(path: &Path) -> Result<image::DynamicImage> {
+    use image::ImageDecoder as _;
     let reader = image::ImageReader::open(path)
         .with_context(|| format!("cannot open image {}", path.display()))?
         .with_guessed_format()
         .with_context(|| format!("cannot read image {}", path.display()))?;
-    reader.decode().map_err(image_error).with_context(|| format!("{} is not a readable image", path.display()))
+    let unreadable = || format!("{} is not a readable image", path.display());
+    let mut decoder = reader.into_decoder().map_err(image_error).with_context(unreadable)?;
+    // An unreadable orientation tag leaves the image as stored.
+    let orientation = decoder.orientation().unwrap_or(image::metadata::Orientation::NoTransforms);
+    let mut image = image::DynamicImage::from_decoder(decoder).map_err(image_error).with_context(unreadable)?;
+    image.apply_orientation(orientation);
+    Ok(image)
 }
 
 /// `(p - 128) / 128` for every byte value.
@@ -125,6 +134,28 @@ impl Preprocessor {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A 32x16 JPEG, black on the left and white on the right, tagged with EXIF orientation 6
+    /// (rotate 90 degrees clockwise to view), as phones store portrait photos, reads upright: 16x32,
+    /// black at the top.
+    #[test]
+    fn an_exif_orientation_is_applied() {
+        let stored = RgbImage::from_fn(32, 16, |x, _| if x < 16 { image::Rgb([0; 3]) } else { image::Rgb([255; 3]) });
+        let mut jpeg = Vec::new();
+        stored.write_to(&mut std::io::Cursor::new(&mut jpeg), image::ImageFormat::Jpeg).unwrap();
+        // APP1: "Exif\0\0", a little-endian TIFF header, one IFD entry: Orientation (0x0112), SHORT, 6.
+        let mut exif = b"Exif\0\0II*\0\x08\0\0\0\x01\0\x12\x01\x03\0\x01\0\0\0\x06\0\0\0\0\0\0\0".to_vec();
+        let mut app1 = vec![0xFF, 0xE1];
+        app1.extend_from_slice(&((exif.len() + 2) as u16).to_be_bytes());
+        app1.append(&mut exif);
+        jpeg.splice(2..2, app1);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("portrait.jpg");
+        std::fs::write(&path, &jpeg).unwrap();
+        let upright = read_image(&path).unwrap();
+        assert_eq!(upright.dimensions(), (16, 32));
+        assert!(upright.get_pixel(8, 4).0[0] < 40 && upright.get_pixel(8, 28).0[0] > 215);
+    }
 
     #[test]
     fn an_image_is_read_as_its_bytes_say_whatever_its_name() {
