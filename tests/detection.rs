@@ -357,6 +357,12 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
     let out = ecm_lcd(&["eval", seq.to_str().unwrap(), "--quiet", "--json", "--loops", loops_file.to_str().unwrap()]);
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert!(json["recall_at_1"].as_f64().unwrap() > 0.8, "{json}");
+    // Every other frame a keyframe: half the listed queries go unscored, and the log says so.
+    let loops_arg = loops_file.to_str().unwrap();
+    let out =
+        ecm_lcd(&["eval", seq.to_str().unwrap(), "--quiet", "--loops", loops_arg, "--param", "selection.every_nth=2"]);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && log.contains("30 of the 60 queries with a loop in"), "{log}");
 
     // Database/query mode: lap one is the database, lap two the queries.
     let (db, queries) = (dir.path().join("db"), dir.path().join("queries"));

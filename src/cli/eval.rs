@@ -262,12 +262,31 @@ pub fn run(args: Args) -> Result<()> {
     let truth = load_truth(&args, &run.frame_stamps)?;
     truth.check_within(run.frame_stamps.len(), run.frame_stamps.len())?;
     let results = run.query_results();
+    if let Some(loops) = &args.loops {
+        warn_unscored_loops(loops, &truth, &results);
+    }
     let mut timings = run.mean_timings();
     timings.push(("wall_s", run.wall_secs));
     run_with_results(&args, &truth, &results, &timings, pipeline.params())?;
     match &run.error {
         Some(error) => Err(broke_off(error, run.frames)),
         None => Ok(()),
+    }
+}
+
+/// Says how many queries with a loop in the loops file are not keyframes: a replay scores the
+/// keyframes the detector selects, so those frames' truth goes unused.
+fn warn_unscored_loops(loops: &std::path::Path, truth: &LoopTruth, results: &[ecm_lcd::eval::QueryResult]) {
+    let scored: std::collections::BTreeSet<usize> = results.iter().map(|r| r.query).collect();
+    let listed = truth.positive_queries().count();
+    let unscored = truth.positive_queries().filter(|q| !scored.contains(q)).count();
+    if unscored > 0 {
+        log::warn!(
+            "{unscored} of the {listed} queries with a loop in {} are not keyframes and are not scored: eval scores \
+             the keyframes the detector selects (selection.min_period, .every_nth; --param \
+             selection.min_period=0 makes every frame one)",
+            loops.display()
+        );
     }
 }
 
