@@ -144,7 +144,13 @@ pub fn open_source_topics(path: &Path, topics: &Topics) -> Result<Box<dyn FrameS
     if !path.exists() {
         bail!("{} does not exist", path.display());
     }
-    let extension = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
+    let mut extension = path.extension().and_then(|e| e.to_str()).map(|e| e.to_ascii_lowercase());
+    // `rosbag record` names the bag it is still writing (or was killed writing) `NAME.bag.active`:
+    // a ROS 1 bag without its index, which the reader walks.
+    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or_default().to_ascii_lowercase();
+    if name.ends_with(".bag.active") {
+        extension = Some("bag".into());
+    }
     Ok(match extension.as_deref() {
         Some("bag") => {
             Box::new(depth::DepthPaired::new(ros1bag::Ros1BagSource::open(path, topics)?, topics.depth.is_some()))

@@ -785,6 +785,10 @@ mod tests {
             let source = crate::io::open_source(&path, None).unwrap();
             assert_eq!(source.len_hint(), Some(5));
             assert!(source.describe().ends_with("topic /cam/rgb (5 messages)"), "{}", source.describe());
+            // The name `rosbag record` gives a bag it is still writing.
+            let active = dir.path().join(format!("{}.bag.active", compression.name()));
+            std::fs::copy(&path, &active).unwrap();
+            assert_eq!(crate::io::open_source(&active, None).unwrap().count(), 5);
             let read: Vec<Frame> = source.map(|f| f.unwrap()).collect();
             for (i, (frame, (stamp, image))) in read.iter().zip(frames(5)).enumerate() {
                 assert_eq!((frame.index, frame.stamp), (i, stamp));

@@ -31,8 +31,25 @@ fn cdr_message(kind: ImageKind, is_depth: bool, index: usize, payload: &[u8]) ->
     Ok(BagMessage::Colour(Frame { index, stamp: message.stamp(), image: message.to_rgb()?, depth: None }))
 }
 
-/// Finds the storage file of a rosbag2 folder (one with `metadata.yaml`).
+/// Finds the storage file of a rosbag2 folder (one with `metadata.yaml`). A bag whose messages are
+/// compressed one by one (`compression_mode: MESSAGE`) is refused: its payloads are zstd frames, not
+/// CDR.
 pub fn storage_file_of_bag_dir(dir: &Path) -> Result<PathBuf> {
+    let metadata = crate::io::read_capped_text(&dir.join("metadata.yaml"), 1 << 20, "rosbag2 metadata")?;
+    let field = |key: &str| {
+        metadata.lines().find_map(|line| {
+            let value = line.trim().strip_prefix(key)?.strip_prefix(':')?.trim().trim_matches(['"', '\'']);
+            Some(value.to_string())
+        })
+    };
+    if field("compression_mode").is_some_and(|mode| mode.eq_ignore_ascii_case("message")) {
+        bail!(
+            "{}: the messages of this rosbag2 are compressed one by one ({} compression_mode MESSAGE), which is not \
+             supported; decompress with `ros2 bag convert`",
+            dir.display(),
+            field("compression_format").unwrap_or_default()
+        );
+    }
     let mut files = Vec::new();
     for entry in std::fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))? {
         let path = entry.with_context(|| format!("cannot list {}", dir.display()))?.path();
@@ -534,6 +551,15 @@ mod tests {
                 assert_eq!((frame.index, frame.stamp), (i, stamp));
                 assert_eq!(frame.image, image);
             }
+            // Its messages compressed one by one, as `ros2 bag record --compression-mode message`
+            // writes them: refused by name rather than read as damaged CDR.
+            let metadata = std::fs::read_to_string(bag.join("metadata.yaml")).unwrap();
+            let compressed = metadata
+                .replace("compression_format: \"\"", "compression_format: zstd")
+                .replace("compression_mode: \"\"", "compression_mode: MESSAGE");
+            std::fs::write(bag.join("metadata.yaml"), compressed).unwrap();
+            let err = format!("{:#}", storage_file_of_bag_dir(&bag).unwrap_err());
+            assert!(err.contains("compressed one by one (zstd compression_mode MESSAGE)"), "{err}");
         }
     }
 
