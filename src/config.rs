@@ -524,14 +524,16 @@ impl Params {
         let nodes = document.as_mapping().context("the top level must map node names to `ros__parameters`")?;
         let mut params = Params::default();
         let mut keys_seen = Vec::new();
-        let mut matched = false;
+        let (mut matched, mut matched_by_name, mut left_out) = (false, false, Vec::new());
         for (key, section) in nodes {
             let key = key.as_str().with_context(|| format!("node key {key:?} is not a string"))?;
             keys_seen.push(key.to_string());
             if !node_key_matches(key, node_name) {
+                left_out.push(key.to_string());
                 continue;
             }
             matched = true;
+            matched_by_name |= !key.contains('*');
             let parameters = section
                 .get("ros__parameters")
                 .with_context(|| format!("node section {key:?} has no `ros__parameters`"))?;
@@ -552,6 +554,15 @@ impl Params {
         }
         if !matched {
             anyhow::bail!("no section applies to node {node_name:?} (node keys found: {keys_seen:?})");
+        }
+        // Sections for other nodes are normal in a file shared by several; but where only a wildcard
+        // section applied, a section meant for this node may be misnamed.
+        if !left_out.is_empty() {
+            let why = format!("sections {left_out:?} apply to other nodes than {node_name:?} and were left out");
+            match matched_by_name {
+                true => log::info!("{why}"),
+                false => log::warn!("{why}; only a wildcard section applied (is one of them meant for this node?)"),
+            }
         }
         Ok(params)
     }
