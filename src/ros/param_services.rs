@@ -161,6 +161,11 @@ impl ParamServices {
             // All or nothing: check every change against one trial copy first.
             let mut trial = live.lock().unwrap_or_else(|e| e.into_inner()).clone();
             let check = params.iter().try_for_each(|p| {
+                // The node's store refuses a change of type (an integer for a double), after the
+                // changes before it were applied: refused here, nothing is.
+                if changes_type(node.get_parameter(&p.name).as_ref(), &p.value) {
+                    return Err(format!("{}: cannot change the parameter's type", p.name));
+                }
                 if p.name == USE_SIM_TIME {
                     return matches!(p.value, ParameterValue::Boolean(_))
                         .then_some(())
@@ -193,10 +198,30 @@ impl ParamServices {
     }
 }
 
+/// Whether setting `new` on a parameter holding `existing` changes its type, which ros2-client's
+/// parameter store refuses (an unset value on either side is no type).
+fn changes_type(existing: Option<&ParameterValue>, new: &ParameterValue) -> bool {
+    match existing {
+        Some(existing) if !matches!(existing, ParameterValue::NotSet) && !matches!(new, ParameterValue::NotSet) => {
+            std::mem::discriminant(existing) != std::mem::discriminant(new)
+        }
+        _ => false,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::config::param_specs;
+
+    #[test]
+    fn a_change_of_type_is_told_before_anything_is_applied() {
+        let double = ParameterValue::Double(0.9);
+        assert!(changes_type(Some(&double), &ParameterValue::Integer(1)));
+        assert!(!changes_type(Some(&double), &ParameterValue::Double(1.0)));
+        assert!(!changes_type(None, &ParameterValue::Integer(1)));
+        assert!(!changes_type(Some(&ParameterValue::NotSet), &ParameterValue::Integer(1)));
+    }
 
     #[test]
     fn descriptors_carry_the_table() {
