@@ -479,12 +479,20 @@ fn depth_images_reach_their_keyframes_whichever_comes_first() {
     calls(3);
     // Whatever is left in the inbox reaches the worker within its next wait.
     std::thread::sleep(Duration::from_millis(500));
+    // A keyframe published after 20 depth images at 30 Hz (0.63 s), the first of them its own: a
+    // tracker's keyframe comes some time after its image.
+    for k in 0..20u32 {
+        depth_pub.publish(depth_message(20, k * 33_000_000 + 500, "16UC1", if k == 0 { 5000 } else { 6000 })).unwrap();
+    }
+    std::thread::sleep(Duration::from_millis(300));
+    kf_pub.publish(keyframe(4, 20, 250)).unwrap();
+    calls(4);
     let counters = node.stop();
     let seen = seen.lock().unwrap();
-    assert_eq!(seen.depths, vec![(1, 1.0, "with"), (2, 2.0, "after")], "{counters}");
-    assert_eq!(seen.calls.len(), 3);
+    assert_eq!(seen.depths, vec![(1, 1.0, "with"), (2, 2.0, "after"), (4, 5.0, "with")], "{counters}");
+    assert_eq!(seen.calls.len(), 4);
     assert_eq!(counters.malformed, 1, "{counters}");
-    assert_eq!(counters.processed, 3, "{counters}");
+    assert_eq!(counters.processed, 4, "{counters}");
     println!("INNER-DONE {counters}");
 }
 
