@@ -3,8 +3,8 @@
 //!
 //! Split: when the folder holds `TrainImages.txt` and `TestImages.txt` (indoorCVPR's lists, one
 //! relative path `class/file.jpg` per line), those decide the split and the class of an image is
-//! the first component of its listed path; a listed path is looked up under the folder and, as
-//! indoorCVPR ships its images, under `Images/`. Otherwise every image of every class sub-folder
+//! the folder its listed path names it in (`class/file.jpg`, `Images/class/file.jpg`); a listed
+//! path is looked up under the folder and, as indoorCVPR ships its images, under `Images/`. Otherwise every image of every class sub-folder
 //! is shuffled with the seed and `val_fraction` of each class (at least one image) is held out.
 
 use std::path::{Path, PathBuf};
@@ -116,10 +116,10 @@ impl ImageFolder {
                 if rel.is_empty() || rel.starts_with('#') {
                     continue;
                 }
-                // `./a/x.png` names class `a`: only the path's names count.
+                // The image's folder: `./a/x.png` and `Images/a/x.png` both name class `a`.
                 let names: Vec<_> =
                     Path::new(rel).components().filter(|c| matches!(c, std::path::Component::Normal(_))).collect();
-                let class = names.first().filter(|_| names.len() >= 2);
+                let class = names.len().checked_sub(2).map(|i| &names[i]);
                 let class = class
                     .with_context(|| format!("{} line {}: '{rel}' is not class/file", list.display(), line_no + 1))?;
                 let path = [dir.join(rel), dir.join("Images").join(rel)].into_iter().find(|p| p.is_file());
@@ -430,12 +430,14 @@ mod tests {
         std::fs::write(dir.path().join("TrainImages.txt"), "a/0.png\n./b/0.png\n").unwrap();
         let err = ImageFolder::open(dir.path(), 1, 0.0).unwrap_err().to_string();
         assert!(err.contains("TrainImages.txt is there but") && err.contains("TestImages.txt is not"), "{err}");
-        // With both lists; `./b/0.png` is class b.
-        std::fs::write(dir.path().join("TestImages.txt"), "b/1.png\n").unwrap();
+        // With both lists; `./b/0.png` and `Images/b/9.png` are class b.
+        std::fs::create_dir_all(dir.path().join("Images/b")).unwrap();
+        std::fs::copy(dir.path().join("b/1.png"), dir.path().join("Images/b/9.png")).unwrap();
+        std::fs::write(dir.path().join("TestImages.txt"), "b/1.png\nImages/b/9.png\n").unwrap();
         let listed = ImageFolder::open(dir.path(), 1, 0.0).unwrap();
         assert_eq!(
             (listed.classes.clone(), listed.train.len(), listed.val.len()),
-            (vec!["a".into(), "b".into()], 2, 1)
+            (vec!["a".into(), "b".into()], 2, 2)
         );
     }
 }
