@@ -486,6 +486,7 @@ pub fn run_node(
     let mut indices = [0u64; 4];
     let mut last_status = (Instant::now(), counters.snapshot());
     let mut last_diagnostics = (Instant::now(), counters.snapshot());
+    let started = Instant::now();
     let enqueue = |message: Incoming, index: u64| {
         counters.received.fetch_add(1, Ordering::Relaxed);
         if let Some(old) = queue.push(Queued { message, index, received_at: Instant::now() }) {
@@ -551,7 +552,8 @@ pub fn run_node(
         }
         if last_diagnostics.0.elapsed() >= settings.diagnostics_period {
             let now = counters.snapshot();
-            let status = diagnostic_status(&fqn, &counters, &last_diagnostics.1, queue.len(), settings.queue_capacity);
+            let (queue_use, uptime) = ((queue.len(), settings.queue_capacity), started.elapsed());
+            let status = diagnostic_status(&fqn, &counters, &last_diagnostics.1, queue_use, uptime);
             let array = DiagnosticArray {
                 header: Header { stamp: Stamp::now().into(), frame_id: String::new() },
                 status: vec![status],
@@ -563,6 +565,20 @@ pub fn run_node(
         }
     }
 
+    // What arrived since the last round: a reliable publisher counts it delivered and will not send
+    // it again. Queued as the worker makes room (within a bound), so the stop drops none of it.
+    let patience = Instant::now() + Duration::from_secs(10);
+    let enqueue_when_room = |message: Incoming, index: u64| {
+        while queue.len() >= settings.queue_capacity && Instant::now() < patience {
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        enqueue(message, index);
+    };
+    drain(kf_sub.as_ref(), &mut indices[0], Incoming::Keyframe, &enqueue_when_room, |i, r| malformed(&kf_name, i, r));
+    drain(img_sub.as_ref(), &mut indices[1], Incoming::Image, &enqueue_when_room, |i, r| malformed(&img_name, i, r));
+    drain(cmp_sub.as_ref(), &mut indices[2], Incoming::Compressed, &enqueue_when_room, |i, r| {
+        malformed(&cmp_name, i, r)
+    });
     info!("[{fqn}] stopping: finishing {} queued message(s)", queue.len());
     queue.close();
     let _ = worker.join();
@@ -584,6 +600,9 @@ fn note_malformed(counters: &NodeCounters, fqn: &str, topic: &str, index: &str, 
     }
 }
 
+/// How long after its start a node that has received nothing says so in `/diagnostics`.
+const NO_INPUT_WARNING: Duration = Duration::from_secs(10);
+
 /// The node's `/diagnostics` entry: `WARN` while messages are being dropped or failing, or come in a
 /// way the processor cannot use as they are ([`InputProblems`], since `previous`), else `OK`; the
 /// counters, the queue and the mean worker time per message as values.
@@ -591,8 +610,8 @@ fn diagnostic_status(
     fqn: &str,
     counters: &NodeCounters,
     previous: &CountersSnapshot,
-    queue_depth: usize,
-    queue_capacity: usize,
+    (queue_depth, queue_capacity): (usize, usize),
+    uptime: Duration,
 ) -> DiagnosticStatus {
     let now = counters.snapshot();
     let (dropping, failing) = (now.dropped > previous.dropped, now.failed > previous.failed);
@@ -606,6 +625,15 @@ fn diagnostic_status(
         .collect();
     // Messages that did not decode (an encoding the node does not read, a cut payload) are lost
     // inputs as much as dropped ones.
+    // Nothing at all since the start: a topic not remapped, or a reliable subscription to a
+    // best-effort publisher, which never match. (A quiet spell later is a robot standing still.)
+    if now.received + now.malformed == 0 && uptime >= NO_INPUT_WARNING {
+        problems.push(format!(
+            "no frame received in the {:.0} s since the start (are the frame topics remapped, and does \
+             --input-qos suit the publisher? a reliable subscription never matches a best-effort one)",
+            uptime.as_secs_f64()
+        ));
+    }
     if now.malformed > previous.malformed {
         problems.insert(
             0,
@@ -992,15 +1020,16 @@ fn worker_loop(
 #[cfg(test)]
 mod tests {
     use super::{diagnostic_status, DiagnosticStatus, FrameIds, InputProblems, NodeCounters};
+    use std::time::Duration;
 
     #[test]
     fn diagnostics_warn_while_inputs_cannot_be_used() {
         let counters = NodeCounters::default();
         let before = counters.snapshot();
-        assert_eq!(diagnostic_status("/lcd", &counters, &before, 0, 8).level, DiagnosticStatus::OK);
+        assert_eq!(diagnostic_status("/lcd", &counters, &before, (0, 8), Duration::ZERO).level, DiagnosticStatus::OK);
         let problems = InputProblems { stamps_not_advancing: 3, blank_frames: 2, ..InputProblems::default() };
         *counters.input_problems.lock().unwrap() = problems;
-        let status = diagnostic_status("/lcd", &counters, &before, 0, 8);
+        let status = diagnostic_status("/lcd", &counters, &before, (0, 8), Duration::ZERO);
         assert_eq!(status.level, DiagnosticStatus::WARN);
         let message = &status.message;
         assert!(
@@ -1013,12 +1042,25 @@ mod tests {
         }
         // Once they advance again, the next period is OK.
         let later = counters.snapshot();
-        assert_eq!(diagnostic_status("/lcd", &counters, &later, 0, 8).level, DiagnosticStatus::OK);
+        assert_eq!(diagnostic_status("/lcd", &counters, &later, (0, 8), Duration::ZERO).level, DiagnosticStatus::OK);
         // Messages that do not decode (say, a camera sending yuv422) warn too.
         counters.malformed.fetch_add(2, std::sync::atomic::Ordering::Relaxed);
-        let status = diagnostic_status("/lcd", &counters, &later, 0, 8);
+        let status = diagnostic_status("/lcd", &counters, &later, (0, 8), Duration::ZERO);
         assert_eq!(status.level, DiagnosticStatus::WARN);
         assert!(status.message.contains("2 malformed messages"), "{}", status.message);
+        // Nothing received for 10 s since the start: said; once anything came, not.
+        let idle = NodeCounters::default();
+        let quiet = idle.snapshot();
+        assert_eq!(
+            diagnostic_status("/lcd", &idle, &quiet, (0, 8), Duration::from_secs(9)).level,
+            DiagnosticStatus::OK
+        );
+        let status = diagnostic_status("/lcd", &idle, &quiet, (0, 8), Duration::from_secs(10));
+        assert_eq!(status.level, DiagnosticStatus::WARN);
+        assert!(status.message.contains("no frame received in the 10 s"), "{}", status.message);
+        idle.received.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let status = diagnostic_status("/lcd", &idle, &idle.snapshot(), (0, 8), Duration::from_secs(60));
+        assert_eq!(status.level, DiagnosticStatus::OK);
     }
 
     #[test]
