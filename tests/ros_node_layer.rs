@@ -368,6 +368,23 @@ impl DefaultNode {
     }
 }
 
+/// A spinning peer node with reliable publishers of `/keyframes` and of an Image topic.
+fn keyframe_and_image_publishers(
+    context: &Context,
+    image_topic: &str,
+) -> (ros2_client::Node, ros2_client::Publisher<Keyframe>, ros2_client::Publisher<Image>) {
+    let mut peer =
+        context.new_node(NodeName::new("/", "peer").unwrap(), NodeOptions::new().enable_rosout(false)).unwrap();
+    let reliable = ecm_lcd::ros::node::InputQos::Reliable.profile();
+    let kf_topic = peer.create_topic(&Name::parse("/keyframes").unwrap(), msgs::keyframe_type(), &reliable).unwrap();
+    let image_topic = peer.create_topic(&Name::parse(image_topic).unwrap(), msgs::image_type(), &reliable).unwrap();
+    let kf_pub = peer.create_publisher::<Keyframe>(&kf_topic, None).unwrap();
+    let image_pub = peer.create_publisher::<Image>(&image_topic, None).unwrap();
+    let spinner = peer.spinner().unwrap();
+    std::thread::spawn(move || futures::executor::block_on(spinner.spin()));
+    (peer, kf_pub, image_pub)
+}
+
 /// With `--input keyframes` (the launch file's default beside a tracker) the node takes the tracker's
 /// keyframes and leaves the camera's frames alone: a camera image published beside them neither takes a
 /// keyframe id nor reaches the processor.
@@ -381,15 +398,7 @@ fn a_node_on_keyframes_only_leaves_camera_frames_alone() {
     let settings = NodeSettings { inputs: ecm_lcd::ros::node::FrameInputs::Keyframes, ..NodeSettings::default() };
     let node = DefaultNode::start_with(settings, processor);
     let context = Context::new().unwrap();
-    let mut peer =
-        context.new_node(NodeName::new("/", "peer").unwrap(), NodeOptions::new().enable_rosout(false)).unwrap();
-    let reliable = ecm_lcd::ros::node::InputQos::Reliable.profile();
-    let kf_topic = peer.create_topic(&Name::parse("/keyframes").unwrap(), msgs::keyframe_type(), &reliable).unwrap();
-    let img_topic = peer.create_topic(&Name::parse("/image").unwrap(), msgs::image_type(), &reliable).unwrap();
-    let kf_pub = peer.create_publisher::<Keyframe>(&kf_topic, None).unwrap();
-    let img_pub = peer.create_publisher::<Image>(&img_topic, None).unwrap();
-    let spinner = peer.spinner().unwrap();
-    std::thread::spawn(move || futures::executor::block_on(spinner.spin()));
+    let (peer, kf_pub, img_pub) = keyframe_and_image_publishers(&context, "/image");
     let deadline = Instant::now() + Duration::from_secs(20);
     while kf_pub.get_subscription_count(&peer) == 0 && Instant::now() < deadline {
         std::thread::sleep(Duration::from_millis(50));
@@ -437,15 +446,7 @@ fn depth_images_reach_their_keyframes_whichever_comes_first() {
     let processor = MeanColourProcessor { seen: seen.clone(), history: Vec::new(), next_id: 0, min_score: 0.99 };
     let node = DefaultNode::start(processor);
     let context = Context::new().unwrap();
-    let peer = context.new_node(NodeName::new("/", "peer").unwrap(), NodeOptions::new().enable_rosout(false)).unwrap();
-    let reliable = ecm_lcd::ros::node::InputQos::Reliable.profile();
-    let mut peer = peer;
-    let kf_topic = peer.create_topic(&Name::parse("/keyframes").unwrap(), msgs::keyframe_type(), &reliable).unwrap();
-    let depth_topic = peer.create_topic(&Name::parse("/depth").unwrap(), msgs::image_type(), &reliable).unwrap();
-    let kf_pub = peer.create_publisher::<Keyframe>(&kf_topic, None).unwrap();
-    let depth_pub = peer.create_publisher::<Image>(&depth_topic, None).unwrap();
-    let spinner = peer.spinner().unwrap();
-    std::thread::spawn(move || futures::executor::block_on(spinner.spin()));
+    let (peer, kf_pub, depth_pub) = keyframe_and_image_publishers(&context, "/depth");
     let deadline = Instant::now() + Duration::from_secs(20);
     while (kf_pub.get_subscription_count(&peer) == 0 || depth_pub.get_subscription_count(&peer) == 0)
         && Instant::now() < deadline
