@@ -347,6 +347,7 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
     }
     assert_eq!(json["queries"], 120);
     assert_eq!(json["policy"], "single-image", "keyframes as they come are matched one by one");
+    assert_eq!(json["complete"], true, "{json}");
     assert!(json["recall_at_1"].as_f64().unwrap() > 0.9, "{json}");
     assert!(plot.is_file() && curve.is_file());
 
@@ -642,6 +643,7 @@ fn match_keeps_the_queries_before_a_source_breaks_off() {
     let out = ecm_lcd(&["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv"), "--json"]);
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["queries"], 5, "{json}");
+    assert!(json["complete"] == false && json["broke_off"].as_str().unwrap().contains("5.png"), "{json}");
     failed(out, &["broke off after 5 frames", "the figures above count the 5 read before"]);
 
     std::fs::write(d("m.csv"), "kept").unwrap();

@@ -121,15 +121,18 @@ pub fn load_truth(args: &Args, query_stamps: &[Stamp]) -> Result<LoopTruth> {
 /// Scores the results, writes the requested outputs and logs the summary; `timings_ms` are
 /// per-stage timings to include in the JSON, `params` what the run used (the JSON names the
 /// matching policy and every parameter).
+/// `broke_off`: why the source ended early, where it did (the figures count what was read); the
+/// JSON says `"complete": false` and carries it, so a script reading only the JSON knows.
 pub fn run_with_results(
     args: &Args,
     truth: &LoopTruth,
     results: &[QueryResult],
     timings_ms: &[(&str, f64)],
     params: &Params,
+    broke_off: Option<&str>,
 ) -> Result<Metrics> {
     let metrics = evaluate(results, truth)?;
-    write_outputs(args, &metrics, timings_ms, params)?;
+    write_outputs(args, &metrics, timings_ms, params, broke_off)?;
     Ok(metrics)
 }
 
@@ -144,10 +147,20 @@ pub fn policy_name(params: &Params, database_mode: bool) -> &'static str {
     }
 }
 
-fn write_outputs(args: &Args, metrics: &Metrics, timings_ms: &[(&str, f64)], params: &Params) -> Result<()> {
+fn write_outputs(
+    args: &Args,
+    metrics: &Metrics,
+    timings_ms: &[(&str, f64)],
+    params: &Params,
+    broke_off: Option<&str>,
+) -> Result<()> {
     let mut summary = summary_json(metrics, timings_ms);
     summary["policy"] = serde_json::json!(policy_name(params, args.database.is_some()));
     summary["parameters"] = params.to_json();
+    summary["complete"] = serde_json::json!(broke_off.is_none());
+    if let Some(why) = broke_off {
+        summary["broke_off"] = serde_json::json!(why);
+    }
     if let Some(path) = &args.output {
         write_curve_csv(metrics, path)?;
     }
@@ -245,7 +258,7 @@ pub fn run(args: Args) -> Result<()> {
             truth = truth.between(0..run.results.len(), 0..references);
         }
         truth.check_within(run.query_stamps.len(), references)?;
-        run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params())?;
+        run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params(), run.error.as_deref())?;
         return match &run.error {
             Some(error) => Err(broke_off(error, run.results.len())),
             None => Ok(()),
@@ -267,7 +280,7 @@ pub fn run(args: Args) -> Result<()> {
     }
     let mut timings = run.mean_timings();
     timings.push(("wall_s", run.wall_secs));
-    run_with_results(&args, &truth, &results, &timings, pipeline.params())?;
+    run_with_results(&args, &truth, &results, &timings, pipeline.params(), run.error.as_deref())?;
     match &run.error {
         Some(error) => Err(broke_off(error, run.frames)),
         None => Ok(()),
@@ -379,7 +392,7 @@ mod tests {
         let args = parse(&["seq", "-o", csv.to_str().unwrap(), "--json", "--plot", png.to_str().unwrap()]).unwrap();
         let truth = ecm_lcd::eval::parse_loops("2,0\n3,1\n").unwrap();
         let results = [QueryResult { query: 2, best: Some((0, 0.8)) }, QueryResult { query: 3, best: Some((0, 0.6)) }];
-        let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)], &Params::default()).unwrap();
+        let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)], &Params::default(), None).unwrap();
         assert_eq!(metrics.recall_at_1, Some(0.5));
         assert!(std::fs::read_to_string(&csv).unwrap().starts_with("threshold,precision,recall\n0.8,1,0.5\n"));
         let summary = summary_json(&metrics, &[("total", 5.0)]);
