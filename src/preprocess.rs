@@ -37,6 +37,9 @@ pub fn open_image(path: &Path) -> Result<image::DynamicImage> {
         .with_context(|| format!("cannot read image {}", path.display()))?;
     let unreadable = || format!("{} is not a readable image", path.display());
     let mut decoder = reader.into_decoder().map_err(image_error).with_context(unreadable)?;
+    // The allocation limit `decode` applies (512 MiB): a header claiming 65535x65535 is refused,
+    // not allocated.
+    image::Limits::default().reserve(decoder.total_bytes()).map_err(image_error).with_context(unreadable)?;
     // An unreadable orientation tag leaves the image as stored.
     let orientation = decoder.orientation().unwrap_or(image::metadata::Orientation::NoTransforms);
     let mut image = image::DynamicImage::from_decoder(decoder).map_err(image_error).with_context(unreadable)?;
@@ -134,6 +137,20 @@ impl Preprocessor {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A JPEG whose header claims 65535x65535 pixels is refused, not allocated (12.9 GB).
+    #[test]
+    fn an_image_too_large_to_allocate_is_refused() {
+        let mut jpeg = Vec::new();
+        RgbImage::new(8, 8).write_to(&mut std::io::Cursor::new(&mut jpeg), image::ImageFormat::Jpeg).unwrap();
+        let sof = jpeg.windows(2).position(|w| w == [0xFF, 0xC0]).expect("a baseline JPEG has SOF0");
+        jpeg[sof + 5..sof + 9].copy_from_slice(&[0xFF; 4]);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("huge.jpg");
+        std::fs::write(&path, &jpeg).unwrap();
+        let err = format!("{:#}", read_image(&path).unwrap_err());
+        assert!(err.contains("huge.jpg is not a readable image"), "{err}");
+    }
 
     /// A 32x16 JPEG, black on the left and white on the right, tagged with EXIF orientation 6
     /// (rotate 90 degrees clockwise to view), as phones store portrait photos, reads upright: 16x32,
