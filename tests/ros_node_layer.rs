@@ -484,6 +484,7 @@ fn depth_images_reach_their_keyframes_whichever_comes_first() {
     // tracker's keyframe comes some time after its image.
     for k in 0..20u32 {
         depth_pub.publish(depth_message(20, k * 33_000_000 + 500, "16UC1", if k == 0 { 5000 } else { 6000 })).unwrap();
+        std::thread::sleep(Duration::from_millis(33));
     }
     std::thread::sleep(Duration::from_millis(300));
     kf_pub.publish(keyframe(4, 20, 250)).unwrap();

@@ -21,8 +21,9 @@
 //! is where verification uses depth (on the match side, later).
 //! `/diagnostics` (diagnostic_msgs/DiagnosticArray) carries the node's health every second: OK, or WARN
 //! while messages are dropped or fail, with the queue, the counters and the mean worker times.
-//! QoS: inputs reliable, keep last 10 (default) or sensor data (best effort, keep last 5) with
-//! `--input-qos sensor-data`; output reliable, keep last 100, volatile.
+//! QoS: frame inputs reliable, keep last 10 (default) or sensor data (best effort, keep last 5) with
+//! `--input-qos sensor-data`; `camera_info` and `depth` sensor data always (it matches any
+//! publisher); output reliable, keep last 100, volatile.
 //! `--input` limits the frame subscriptions to one of `keyframes`, `image` and `image/compressed`
 //! ([`FrameInputs`]): a tracker's keyframes and the camera's frames are two numberings of the same frames,
 //! and a raw and a compressed stream of one camera are the same frames twice.
@@ -395,8 +396,11 @@ pub fn run_node(
     let (img_topic, img_name) = topic(&mut node, IMAGE_TOPIC, msgs::image_type(), &input_qos)?;
     let (cmp_topic, cmp_name) = topic(&mut node, COMPRESSED_TOPIC, msgs::compressed_image_type(), &input_qos)?;
     let (out_topic, out_name) = topic(&mut node, CANDIDATES_TOPIC, msgs::loop_candidate_type(), &output_qos())?;
-    let (info_topic, info_name) = topic(&mut node, CAMERA_INFO_TOPIC, msgs::camera_info_type(), &input_qos)?;
-    let (depth_topic, depth_name) = topic(&mut node, DEPTH_TOPIC, msgs::image_type(), &input_qos)?;
+    // A camera driver's calibration and depth: best effort whatever --input-qos says, since that
+    // matches reliable and best-effort publishers alike, and a lost depth image costs one metric pose.
+    let camera_qos = InputQos::SensorData.profile();
+    let (info_topic, info_name) = topic(&mut node, CAMERA_INFO_TOPIC, msgs::camera_info_type(), &camera_qos)?;
+    let (depth_topic, depth_name) = topic(&mut node, DEPTH_TOPIC, msgs::image_type(), &camera_qos)?;
     let (markers_topic, markers_name) = topic(&mut node, MARKERS_TOPIC, msgs::marker_array_type(), &output_qos())?;
     let (diag_topic, diag_name) =
         topic(&mut node, DIAGNOSTICS_TOPIC, msgs::diagnostic_array_type(), &diagnostics_qos())?;
@@ -569,7 +573,7 @@ pub fn run_node(
     // it again. Queued as the worker makes room (within a bound), so the stop drops none of it.
     let patience = Instant::now() + Duration::from_secs(10);
     let enqueue_when_room = |message: Incoming, index: u64| {
-        while queue.len() >= settings.queue_capacity && Instant::now() < patience {
+        while queue.len() >= settings.queue_capacity.max(1) && Instant::now() < patience {
             std::thread::sleep(Duration::from_millis(5));
         }
         enqueue(message, index);
@@ -790,12 +794,14 @@ impl DepthInbox {
 /// Depth images kept at most, waiting for their keyframes (as the offline pairing keeps).
 const DEPTH_IMAGES_KEPT: usize = 64;
 
-/// Appends a depth image, dropping those stamped more than [`crate::io::depth::MAX_HOLD`] before the
-/// newest and the oldest beyond [`DEPTH_IMAGES_KEPT`].
+/// Appends a depth image, dropping those stamped more than [`crate::io::depth::MAX_HOLD`] before it
+/// and the oldest beyond [`DEPTH_IMAGES_KEPT`].
 fn push_recent_depth(images: &mut std::collections::VecDeque<(Stamp, DepthImage)>, item: (Stamp, DepthImage)) {
+    // Aged from the image just pushed, not the newest stamp held: one stamped far ahead (a driver's
+    // clock jump, a bag played in a loop) must not make every later image look stale.
+    let pushed = item.0;
     push_bounded(images, item, DEPTH_IMAGES_KEPT);
-    let newest = images.iter().map(|(stamp, _)| *stamp).max().expect("one was pushed");
-    images.retain(|(stamp, _)| newest.nanos - stamp.nanos <= crate::io::depth::MAX_HOLD.nanos);
+    images.retain(|(stamp, _)| pushed.nanos - stamp.nanos <= crate::io::depth::MAX_HOLD.nanos);
 }
 
 /// Appends `item`, dropping the oldest beyond `capacity`.
@@ -1061,6 +1067,19 @@ mod tests {
         idle.received.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let status = diagnostic_status("/lcd", &idle, &idle.snapshot(), (0, 8), Duration::from_secs(60));
         assert_eq!(status.level, DiagnosticStatus::OK);
+    }
+
+    #[test]
+    fn depth_waits_a_second_of_stamps_even_after_a_stamp_far_ahead() {
+        let depth = || crate::types::DepthImage { width: 1, height: 1, metres: vec![1.0] };
+        let mut images = std::collections::VecDeque::new();
+        let at = |ms: i64| crate::types::Stamp::from_nanos(ms * 1_000_000);
+        super::push_recent_depth(&mut images, (at(1_000_000), depth()));
+        for ms in [0, 500, 900, 1600] {
+            super::push_recent_depth(&mut images, (at(ms), depth()));
+        }
+        let kept: Vec<i64> = images.iter().map(|(stamp, _)| stamp.nanos / 1_000_000).collect();
+        assert_eq!(kept, [1_000_000, 900, 1600], "a second back from the newest pushed, whatever came before");
     }
 
     #[test]
