@@ -533,7 +533,7 @@ impl Params {
                 continue;
             }
             matched = true;
-            matched_by_name |= !key.contains('*');
+            matched_by_name |= key != "/**";
             let parameters = section
                 .get("ros__parameters")
                 .with_context(|| format!("node section {key:?} has no `ros__parameters`"))?;

@@ -296,8 +296,8 @@ fn warn_unscored_loops(loops: &std::path::Path, truth: &LoopTruth, results: &[ec
     if unscored > 0 {
         log::warn!(
             "{unscored} of the {listed} queries with a loop in {} are not keyframes and are not scored: eval scores \
-             the keyframes the detector selects (selection.min_period, .every_nth; --param \
-             selection.min_period=0 makes every frame one)",
+             the keyframes the detector selects (every frame is one with selection.min_period 0, \
+             selection.every_nth 1 and selection.novelty_max_score 1)",
             loops.display()
         );
     }

@@ -180,9 +180,13 @@ pub fn run(args: Args) -> Result<()> {
     let t = run.mean();
     let verification = if pipeline.verifies() {
         let odometry = match pipeline.params().verification(None).and_then(|v| v.drift) {
-            Some(_) if args.source_args.poses.is_none() => {
-                " (an odometry check is set, but without --poses no frame has a tracker pose)".to_string()
-            }
+            Some(_) if args.source_args.poses.is_none() => format!(
+                " (an odometry check is set, but without --poses this run's frames have no tracker pose{})",
+                match run.unchecked_by_odometry {
+                    0 => String::new(),
+                    n => format!("; {n} candidates were not checked by it"),
+                }
+            ),
             Some(_) => format!(
                 " ({} of them by the odometry check; {} candidates were not checked by it, for want of a tracker pose)",
                 run.rejected_by_odometry, run.unchecked_by_odometry

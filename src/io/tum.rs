@@ -201,35 +201,42 @@ pub fn has_image_extension(path: &Path) -> bool {
         .is_some_and(|e| ["png", "jpg", "jpeg", "bmp"].iter().any(|known| e.eq_ignore_ascii_case(known)))
 }
 
+/// Extensions of image formats this build does not read: such a file in an image folder is a
+/// frame the user expects and does not get.
+const UNREAD_IMAGE_EXTENSIONS: [&str; 9] = ["tif", "tiff", "webp", "gif", "pgm", "ppm", "pnm", "jxl", "heic"];
+
 /// The image files (png, jpg, jpeg, bmp; any case) directly inside `dir`, in no order. Hidden
 /// files are left out: a name starting with a dot is no frame (macOS writes `._name.png` beside
-/// every image it copies to a foreign disk). Other files left out (another type, a link to nothing)
-/// are counted in the log, since they shift the index of every image after them.
+/// every image it copies to a foreign disk). Images this build does not read (TIFF, WebP, ...) and
+/// links to nothing are named in a warning: they are frames the user meant, and a loops file that
+/// counts them is off by one for each; other files (lists, notes) are left out quietly.
 pub fn image_files_in(dir: &Path) -> Result<Vec<PathBuf>> {
     let mut paths = Vec::new();
-    let (mut hidden, mut other) = (0, Vec::new());
+    let (mut hidden, mut missed) = (0, Vec::new());
     for entry in fs::read_dir(dir).with_context(|| format!("cannot list {}", dir.display()))? {
         let path = entry.with_context(|| format!("cannot list {}", dir.display()))?.path();
         let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let extension = path.extension().and_then(|e| e.to_str()).unwrap_or_default().to_ascii_lowercase();
+        let dangling = !path.exists() && path.is_symlink();
         if name.starts_with('.') {
             hidden += 1;
         } else if path.is_file() && has_image_extension(&path) {
             paths.push(path);
-        } else if !path.is_dir() {
-            other.push(name);
+        } else if dangling || UNREAD_IMAGE_EXTENSIONS.contains(&extension.as_str()) {
+            missed.push(name);
         }
     }
     if hidden > 0 {
         log::info!("{}: {hidden} hidden files (names starting with a dot) left out", dir.display());
     }
-    if !other.is_empty() {
-        other.sort();
-        let shown = other.iter().take(5).cloned().collect::<Vec<_>>().join(", ");
+    if !missed.is_empty() {
+        missed.sort();
+        let shown = missed.iter().take(5).cloned().collect::<Vec<_>>().join(", ");
         log::warn!(
-            "{}: {} files left out, not png/jpg/jpeg/bmp images or links to nothing: {shown}{}",
+            "{}: {} images left out, in a format not read here (png, jpg, jpeg, bmp are) or links to nothing: {shown}{}",
             dir.display(),
-            other.len(),
-            if other.len() > 5 { ", ..." } else { "" }
+            missed.len(),
+            if missed.len() > 5 { ", ..." } else { "" }
         );
     }
     Ok(paths)
