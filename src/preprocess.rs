@@ -36,6 +36,9 @@ pub fn open_image(path: &Path) -> Result<image::DynamicImage> {
         .with_guessed_format()
         .with_context(|| format!("cannot read image {}", path.display()))?;
     let unreadable = || format!("{} is not a readable image", path.display());
+    if reader.format() == Some(image::ImageFormat::Jpeg) {
+        warn_if_cut_short(path);
+    }
     let mut decoder = reader.into_decoder().map_err(image_error).with_context(unreadable)?;
     // The allocation limit `decode` applies (512 MiB): a header claiming 65535x65535 is refused,
     // not allocated.
@@ -45,6 +48,27 @@ pub fn open_image(path: &Path) -> Result<image::DynamicImage> {
     let mut image = image::DynamicImage::from_decoder(decoder).map_err(image_error).with_context(unreadable)?;
     image.apply_orientation(orientation);
     Ok(image)
+}
+
+/// Warns where the JPEG file `path` has no end-of-image marker after its last scan: a file cut
+/// short (a copy that broke off) still decodes, its missing rows filled in, and would pass as a
+/// frame unsaid. (OpenCV's `imread` warns the same way: "Premature end of JPEG file".)
+fn warn_if_cut_short(path: &Path) {
+    let Ok(bytes) = std::fs::read(path) else { return };
+    if jpeg_cut_short(&bytes) {
+        log::warn!(
+            "{} ends before its end-of-image marker ({} bytes): cut short? its missing part decodes as filler",
+            path.display(),
+            bytes.len()
+        );
+    }
+}
+
+/// Whether the JPEG `bytes` lack an end-of-image marker after their last start-of-scan (scan data
+/// cannot hold one: a 0xFF byte there is stuffed or a restart marker).
+fn jpeg_cut_short(bytes: &[u8]) -> bool {
+    let last_scan = bytes.windows(2).rposition(|w| w == [0xFF, 0xDA]);
+    !last_scan.is_some_and(|at| bytes[at..].windows(2).any(|w| w == [0xFF, 0xD9]))
 }
 
 /// `(p - 128) / 128` for every byte value.
@@ -137,6 +161,18 @@ impl Preprocessor {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_jpeg_cut_short_is_told_from_a_whole_one() {
+        let noise = RgbImage::from_fn(64, 64, |x, y| image::Rgb([(x * 7 + y * 13) as u8, (x * y) as u8, 90]));
+        let mut jpeg = Vec::new();
+        noise.write_to(&mut std::io::Cursor::new(&mut jpeg), image::ImageFormat::Jpeg).unwrap();
+        assert!(!jpeg_cut_short(&jpeg));
+        assert!(jpeg_cut_short(&jpeg[..jpeg.len() * 2 / 3]));
+        // Bytes after the marker (some cameras pad their files) are fine.
+        jpeg.extend_from_slice(&[0; 16]);
+        assert!(!jpeg_cut_short(&jpeg));
+    }
 
     /// A JPEG whose header claims 65535x65535 pixels is refused, not allocated (12.9 GB).
     #[test]
