@@ -31,13 +31,21 @@ pub fn read_image(path: &Path) -> Result<RgbImage> {
 /// tools went through, applies it too.
 pub fn open_image(path: &Path) -> Result<image::DynamicImage> {
     use image::ImageDecoder as _;
-    let reader = image::ImageReader::open(path)
-        .with_context(|| format!("cannot open image {}", path.display()))?
+    // Read once: the bytes serve the JPEG end check and the decoder both (the file is smaller than
+    // the image it decodes to).
+    let bytes = std::fs::read(path).with_context(|| format!("cannot open image {}", path.display()))?;
+    let reader = image::ImageReader::new(std::io::Cursor::new(&bytes))
         .with_guessed_format()
         .with_context(|| format!("cannot read image {}", path.display()))?;
     let unreadable = || format!("{} is not a readable image", path.display());
-    if reader.format() == Some(image::ImageFormat::Jpeg) {
-        warn_if_cut_short(path);
+    // A JPEG cut short still decodes, its missing rows filled in, and would pass as a frame unsaid
+    // (OpenCV's `imread` warns the same way: "Premature end of JPEG file").
+    if reader.format() == Some(image::ImageFormat::Jpeg) && jpeg_cut_short(&bytes) {
+        log::warn!(
+            "{} ends before its end-of-image marker ({} bytes): cut short? its missing part decodes as filler",
+            path.display(),
+            bytes.len()
+        );
     }
     let mut decoder = reader.into_decoder().map_err(image_error).with_context(unreadable)?;
     // The allocation limit `decode` applies (512 MiB): a header claiming 65535x65535 is refused,
@@ -48,20 +56,6 @@ pub fn open_image(path: &Path) -> Result<image::DynamicImage> {
     let mut image = image::DynamicImage::from_decoder(decoder).map_err(image_error).with_context(unreadable)?;
     image.apply_orientation(orientation);
     Ok(image)
-}
-
-/// Warns where the JPEG file `path` has no end-of-image marker after its last scan: a file cut
-/// short (a copy that broke off) still decodes, its missing rows filled in, and would pass as a
-/// frame unsaid. (OpenCV's `imread` warns the same way: "Premature end of JPEG file".)
-fn warn_if_cut_short(path: &Path) {
-    let Ok(bytes) = std::fs::read(path) else { return };
-    if jpeg_cut_short(&bytes) {
-        log::warn!(
-            "{} ends before its end-of-image marker ({} bytes): cut short? its missing part decodes as filler",
-            path.display(),
-            bytes.len()
-        );
-    }
 }
 
 /// Whether the JPEG `bytes` lack an end-of-image marker after their last start-of-scan (scan data
