@@ -815,7 +815,7 @@ fn push_bounded<T>(items: &mut std::collections::VecDeque<T>, item: T, capacity:
 /// Pairs depth images with keyframes by stamp, whichever arrives first (module doc). Unclaimed depth
 /// images are kept for the last [`crate::io::depth::MAX_HOLD`] of depth stamps, at most
 /// [`DEPTH_IMAGES_KEPT`]: a tracker publishes a keyframe some hundred milliseconds after its image
-/// was taken, so the depth it needs is among the oldest kept (16 images, 0.18 s at 90 Hz, lost it).
+/// was taken, so the depth it needs is among the oldest kept, whatever the camera's rate.
 #[derive(Default)]
 struct DepthMatcher {
     /// Depth images no keyframe has taken yet, newest last.
