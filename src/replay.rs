@@ -20,7 +20,7 @@ use crate::detector::store::{is_keyframe_store, KeyframeStore};
 use crate::detector::{sequence, walk, Detector, Match};
 use crate::eval::QueryResult;
 use crate::io::tum::TrackerPoses;
-use crate::io::{open_source_topics, Topics};
+use crate::io::{open_source_topics, unreadable_frame, Topics, UnreadableFrames};
 use crate::pipeline::{Pipeline, Timings};
 use crate::types::{LoopCandidate, Stamp, Verified};
 use crate::verification::best_supported;
@@ -57,6 +57,8 @@ pub struct ReplayRun {
     /// Summed per-stage time over the keyframes.
     pub total: Timings,
     pub wall_secs: f64,
+    /// Frames read whose image could not be decoded, skipped (counted in `frames`).
+    pub unreadable: UnreadableFrames,
     /// Set when the source broke off (e.g. a truncated bag) after the frames above.
     pub error: Option<String>,
 }
@@ -146,8 +148,12 @@ pub struct DatabaseQueriesRun {
     /// The id and stamp of every database frame, in database order: a source's frame index, or a
     /// keyframe database's keyframe id (what the results name).
     pub database: Vec<(u64, Stamp)>,
-    /// The stamps of the queries, in their order (a query's index is its position here).
+    /// The stamps of the queries, in their order (a query's index is its position here), unreadable
+    /// ones' too.
     pub query_stamps: Vec<Stamp>,
+    /// Database frames and queries skipped because their images could not be decoded (none of them
+    /// is in `database` or `results`).
+    pub unreadable: UnreadableFrames,
     /// Milliseconds per image read and described, database and queries together (a keyframe
     /// database's keyframes are loaded, not described, and not counted).
     pub per_image_ms: f64,
@@ -240,6 +246,11 @@ pub fn run_database_queries(
             let frame = match frame {
                 Ok(frame) => frame,
                 Err(e) => {
+                    if let Some(unreadable) = unreadable_frame(&e) {
+                        run.unreadable.skip(database, unreadable);
+                        bar.inc(1);
+                        continue;
+                    }
                     run.error = Some(broke_off("the database", database, run.database.len(), &e));
                     break;
                 }
@@ -253,14 +264,27 @@ pub fn run_database_queries(
             bar.inc(1);
         }
     }
+    if !map_from_store && run.database.is_empty() && run.unreadable.count > 0 && run.error.is_none() {
+        return Err(run.unreadable.none_readable(database, run.unreadable.count));
+    }
+    let database_unreadable = run.unreadable.count;
+    // The readable queries' descriptors and indexes.
     let mut descriptors = Vec::new();
+    let mut query_indexes = Vec::new();
     // Where the database broke off, no query is read: a walk would be aligned with part of the map.
     if run.error.is_none() {
         for frame in query_frames {
             match frame {
                 Ok(frame) => {
                     descriptors.push(pipeline.describe(&frame.image)?);
+                    query_indexes.push(run.query_stamps.len());
                     run.query_stamps.push(frame.stamp);
+                    bar.inc(1);
+                }
+                Err(e) if unreadable_frame(&e).is_some() => {
+                    let unreadable = unreadable_frame(&e).context("matched above")?;
+                    run.unreadable.skip(queries, unreadable);
+                    run.query_stamps.push(unreadable.stamp);
                     bar.inc(1);
                 }
                 Err(e) => {
@@ -271,6 +295,9 @@ pub fn run_database_queries(
         }
     }
     bar.finish_and_clear();
+    if run.unreadable.count > database_unreadable && descriptors.is_empty() && run.error.is_none() {
+        return Err(run.unreadable.none_readable(queries, run.query_stamps.len()));
+    }
     let tried = pipeline.matches_tried();
     let aligned = if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
         let aligned = walk_matches(pipeline.detector(), &descriptors, tried)?;
@@ -289,21 +316,28 @@ pub fn run_database_queries(
     // Read again for their local features: the query images are not all kept while their
     // descriptors are.
     let mut again = if pipeline.verifies() { Some(open(queries, false)?) } else { None };
-    for (index, descriptor) in descriptors.iter().enumerate() {
-        let ahead = &descriptors[index + 1..][..sequence::queries_ahead(length, index, descriptors.len())];
+    for (position, (descriptor, &index)) in descriptors.iter().zip(&query_indexes).enumerate() {
+        let ahead = &descriptors[position + 1..][..sequence::queries_ahead(length, position, descriptors.len())];
         // With verification, the nearest verified with the most inliers ([`best_supported`]); none
         // passing counts as no match.
         let nearest = match &aligned {
-            Some(aligned) => aligned[index].clone(),
+            Some(aligned) => aligned[position].clone(),
             None => pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), descriptor, ahead, tried)?,
         };
         let best = match again.as_mut() {
             Some(frames) => {
-                // Only the queries read the first time are matched, so these read again.
-                let frame = frames
-                    .next()
-                    .with_context(|| format!("{} ended early when read again", queries.display()))?
-                    .with_context(|| format!("reading the queries {} again", queries.display()))?;
+                // Only the queries read the first time are matched, so these read again; the
+                // unreadable ones are passed over again.
+                let frame = loop {
+                    let read =
+                        frames.next().with_context(|| format!("{} ended early when read again", queries.display()))?;
+                    match read {
+                        Ok(frame) if frame.index == index => break frame,
+                        Ok(frame) => ensure!(frame.index < index, "{} changed while it was read", queries.display()),
+                        Err(e) if unreadable_frame(&e).is_some_and(|u| u.index < index) => {}
+                        Err(e) => return Err(e.context(format!("reading the queries {} again", queries.display()))),
+                    }
+                };
                 let features = pipeline.local_features(&frame.image, None)?;
                 let verifications = nearest.iter().map(|m| {
                     let verification = pipeline.verify(&features, m.id);
@@ -464,8 +498,20 @@ fn replay_frames(
         let frame = match frame {
             Ok(frame) => frame,
             Err(e) => {
-                run.error = Some(format!("{e:#}"));
-                break;
+                let Some(unreadable) = unreadable_frame(&e) else {
+                    run.error = Some(format!("{e:#}"));
+                    break;
+                };
+                // Its stamp keeps `frame_stamps` in step with the frame indexes.
+                run.frames += 1;
+                run.frame_stamps.push(unreadable.stamp);
+                if resume_after.is_some_and(|last| unreadable.index as u64 <= last) {
+                    run.skipped += 1;
+                } else {
+                    run.unreadable.skip(source, unreadable);
+                }
+                bar.inc(1);
+                continue;
             }
         };
         run.frames += 1;
@@ -526,6 +572,9 @@ fn replay_frames(
     bar.finish_and_clear();
     if run.frames == 0 && run.error.is_none() {
         bail!("{} holds no images to replay (an empty bag or an image topic without messages)", source.display());
+    }
+    if run.unreadable.count > 0 && run.unreadable.count == run.frames && run.error.is_none() {
+        return Err(run.unreadable.none_readable(source, run.frames));
     }
     if let (Some((id, _, _, db)), None) = (&newest, &run.error) {
         anyhow::ensure!(

@@ -17,6 +17,7 @@ use ecm_lcd::model::weights::resolve;
 use ecm_lcd::pipeline::Pipeline;
 use ecm_lcd::replay::{run_database_queries, run_source};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
+use ecm_lcd::types::Stamp;
 
 fn weights() -> resolve::Resolved {
     resolve::load_file(&support::shared_dir().join("models/mobilenet_v2_1.0_224_quant.tflite")).unwrap()
@@ -392,6 +393,25 @@ fn eval_prints_json_with_loops_file_and_database_query_modes() {
     assert_eq!(json["queries"], 60);
     assert!(json["recall_at_1"].as_f64().unwrap() > 0.8, "{json}");
     assert_eq!(json["policy"], "walk", "queries against a database are a walk");
+
+    // A frame whose image file is cut short is skipped and named; the rest replay and are scored.
+    std::fs::write(&files[70], &std::fs::read(&files[70]).unwrap()[..100]).unwrap();
+    let out = ecm_lcd(&["eval", seq.to_str().unwrap(), "--quiet", "--json"]);
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{log}");
+    assert!(log.contains("skipping frame 70") && log.contains("1 unreadable frame skipped"), "{log}");
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(json["queries"] == 119 && json["unreadable_frames"] == 1 && json["complete"] == true, "{json}");
+    assert!(json["recall_at_1"].as_f64().unwrap() > 0.9, "{json}");
+    let csv = dir.path().join("candidates.csv");
+    let out = ecm_lcd(&["replay", seq.to_str().unwrap(), "--quiet", "-o", csv.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let written = std::fs::read_to_string(&csv).unwrap();
+    assert!(written.lines().count() > 10, "{written}");
+    for line in written.lines().skip(1) {
+        let fields: Vec<&str> = line.split(',').collect();
+        assert!(fields[0] != "70" && fields[2] != "70", "the skipped frame in {line}");
+    }
 }
 
 /// `eval --database reference --queries queries --loops loops --json` with `extra` options: its
@@ -610,45 +630,87 @@ fn match_writes_each_querys_place_without_ground_truth() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("--poses applies to a replayed SOURCE"));
 }
 
-/// Nothing lost when a source breaks off: `match` writes the matches of the queries read before a
-/// query image that does not decode and then fails naming it, and `eval` scores those queries; a
-/// database that breaks off matches no query and leaves an existing output as it was. `--topic` with no bag on either side is refused.
+/// Nothing lost: `match` and `eval` skip a database image and a query image that do not decode,
+/// name them, and match and score the rest; where a source breaks off (a cut bag), `match` writes
+/// the matches of the queries read before and fails naming it, `eval` scores those queries, and a
+/// database that breaks off matches no query and leaves an existing output as it was. `--topic`
+/// with no bag on either side is refused.
 #[test]
-fn match_keeps_the_queries_before_a_source_breaks_off() {
+fn match_skips_unreadable_frames_and_keeps_the_queries_before_a_source_breaks_off() {
     let dir = tempfile::tempdir().unwrap();
     let d = |name: &str| dir.path().join(name).to_str().unwrap().to_string();
+    let image = |i: u8, size: u32| {
+        image::RgbImage::from_fn(size, size * 3 / 4, |x, y| {
+            image::Rgb([(x * 256 / size) as u8 / 2 + i * 30, (y * 256 / size) as u8 / 2, i * 20])
+        })
+    };
     for folder in ["db", "q"] {
         std::fs::create_dir(d(folder)).unwrap();
         for i in 0..8u8 {
-            let image =
-                image::RgbImage::from_fn(64, 48, |x, y| image::Rgb([x as u8 * 4 + i * 30, y as u8 * 5, i * 20]));
-            image.save(d(&format!("{folder}/{i}.png"))).unwrap();
+            image(i, 64).save(d(&format!("{folder}/{i}.png"))).unwrap();
         }
     }
     let cut = |path: String| std::fs::write(&path, &std::fs::read(&path).unwrap()[..100]).unwrap();
+    let stderr = |out: &Output| String::from_utf8_lossy(&out.stderr).to_string();
     let failed = |out: Output, pieces: &[&str]| {
-        let err = String::from_utf8_lossy(&out.stderr).to_string();
+        let err = stderr(&out);
         assert!(!out.status.success(), "{err}");
         pieces.iter().for_each(|piece| assert!(err.contains(piece), "{piece:?} not in {err}"));
     };
-    let run = || ecm_lcd(&["match", "--database", &d("db"), "--queries", &d("q"), "-o", &d("m.csv")]);
+    let run = |queries: &str| ecm_lcd(&["match", "--database", &d("db"), "--queries", queries, "-o", &d("m.csv")]);
     cut(d("q/5.png"));
-    failed(run(), &["the queries", "broke off after 5 frames", "5.png", "queries before it were written"]);
+    cut(d("db/3.png"));
+    let out = run(&d("q"));
+    let err = stderr(&out);
+    assert!(out.status.success(), "{err}");
+    for piece in ["skipping frame 3", "db/3.png", "skipping frame 5", "q/5.png", "2 unreadable frames skipped"] {
+        assert!(err.contains(piece), "{piece:?} not in {err}");
+    }
     let written = std::fs::read_to_string(d("m.csv")).unwrap();
-    assert_eq!(written.lines().count(), 1 + 5, "{written}");
-    assert!(written.lines().skip(1).enumerate().all(|(i, line)| line.starts_with(&format!("{i},{i}.png,"))));
+    let queries: Vec<&str> = written.lines().skip(1).map(|line| line.split(',').next().unwrap()).collect();
+    assert_eq!(queries, ["0", "1", "2", "3", "4", "6", "7"], "{written}");
+    // Each query is named by its own file, and no match names the skipped database image.
+    for line in written.lines().skip(1) {
+        let fields: Vec<&str> = line.split(',').collect();
+        assert_eq!(fields[1], format!("{}.png", fields[0]), "{line}");
+        assert!(fields[2] != "3" && fields[3] == format!("{}.png", fields[2]), "{line}");
+    }
+    std::fs::write(d("loops.csv"), (0..8).map(|i| format!("{i},{i}\n")).collect::<String>()).unwrap();
+    let eval = |queries: &str| {
+        ecm_lcd(&["eval", "--database", &d("db"), "--queries", queries, "--loops", &d("loops.csv"), "--json"])
+    };
+    let out = eval(&d("q"));
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert!(out.status.success(), "{}", stderr(&out));
+    assert!(json["queries"] == 7 && json["unreadable_frames"] == 2 && json["complete"] == true, "{json}");
+
+    // A queries bag cut short: the matches of the queries before the damage, then the error.
+    let bag = d("q.bag");
+    let frames = (0..8u8).map(|i| (Stamp::from_sec_nsec(100 + i as i64, 0), image(i, 320)));
+    write_ros1_bag(Path::new(&bag), "/cam", frames, WireEncoding::Rgb8, Ros1Compression::None).unwrap();
+    let bytes = std::fs::read(&bag).unwrap();
+    std::fs::write(&bag, &bytes[..bytes.len() * 2 / 3]).unwrap();
+    let out = run(&bag);
+    let read = stderr(&out).split("broke off after ").nth(1).and_then(|rest| rest.split(' ').next()?.parse().ok());
+    let read: usize = read.unwrap_or_else(|| panic!("{}", stderr(&out)));
+    assert!((1..8).contains(&read), "{}", stderr(&out));
+    failed(out, &["the queries", "q.bag", "queries before it were written"]);
+    let written = std::fs::read_to_string(d("m.csv")).unwrap();
+    assert_eq!(written.lines().count(), 1 + read, "{written}");
     // eval, as for a replay that broke off, scores the queries read against the truth cut to them,
     // prints the figures, then fails naming the damage.
-    std::fs::write(d("loops.csv"), (0..8).map(|i| format!("{i},{i}\n")).collect::<String>()).unwrap();
-    let out = ecm_lcd(&["eval", "--database", &d("db"), "--queries", &d("q"), "--loops", &d("loops.csv"), "--json"]);
+    let out = eval(&bag);
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-    assert_eq!(json["queries"], 5, "{json}");
-    assert!(json["complete"] == false && json["broke_off"].as_str().unwrap().contains("5.png"), "{json}");
-    failed(out, &["broke off after 5 frames", "the figures above count the 5 read before"]);
+    assert_eq!(json["queries"], read, "{json}");
+    assert!(json["complete"] == false && json["broke_off"].as_str().unwrap().contains("q.bag"), "{json}");
+    failed(
+        out,
+        &[&format!("broke off after {read} frames"), &format!("the figures above count the {read} read before")],
+    );
 
     std::fs::write(d("m.csv"), "kept").unwrap();
-    cut(d("db/3.png"));
-    failed(run(), &["the database", "broke off after 3 frames", "left as it was"]);
+    let out = ecm_lcd(&["match", "--database", &bag, "--queries", &d("q"), "-o", &d("m.csv")]);
+    failed(out, &["the database", "q.bag", "broke off after", "left as it was"]);
     assert_eq!(std::fs::read_to_string(d("m.csv")).unwrap(), "kept");
 
     let with_topic = ecm_lcd(&["match", "--database", &d("db"), "--queries", &d("q"), "--topic", "/camera/image"]);
@@ -725,15 +787,14 @@ fn bad_sources_give_clear_errors_and_truncated_bags_report_what_was_read() {
     let out = ecm_lcd(&["replay", junk.to_str().unwrap(), "--quiet", "-o", csv.to_str().unwrap()]);
     assert_clean_failure(&out, &["junk.bag"]);
     assert!(std::fs::read(&csv).unwrap() == earlier, "a source that cannot be read replaced the earlier CSV");
-    // ... also where the source opens but its first frame is unreadable, and the summary says so.
+    // ... also where the source opens but none of its frames can be read.
     let first_cut = dir.path().join("first_cut");
     std::fs::create_dir_all(&first_cut).unwrap();
     std::fs::write(first_cut.join("0.png"), std::fs::read(&junk).unwrap()).unwrap();
     let out = ecm_lcd(&["replay", first_cut.to_str().unwrap(), "--quiet", "-o", csv.to_str().unwrap()]);
-    assert_clean_failure(&out, &["broke off after 0 frames", "the output was left as it was"]);
+    assert_clean_failure(&out, &["the one frame of", "first_cut cannot be read", "0.png"]);
     assert!(std::fs::read(&csv).unwrap() == earlier, "an unreadable first frame replaced the earlier CSV");
-    let summary = String::from_utf8_lossy(&out.stderr);
-    assert!(summary.contains("0 frames") && !summary.contains("; wrote"), "{summary}");
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("; wrote"));
 
     // A TUM folder whose rgb.txt names a missing image.
     let tum = dir.path().join("tum");

@@ -532,13 +532,13 @@ const CASES: &[Case] = &[
     },
     Case {
         area: "ROS 2 sqlite3 bag",
-        kind: "message cut short",
+        kind: "message cut short (an unreadable frame: the frames after it are read)",
         provoke: |d| {
             let b = ros2_bag(d, Ros2Storage::Sqlite3, WireEncoding::Rgb8, 3, 16);
             sqlite(&b, "UPDATE messages SET data = substr(data, 1, 30) WHERE id = (SELECT MAX(id) FROM messages);");
             replay_expecting_frames_before_damage(&b, 2)
         },
-        expect: &["bag_0.db3", "message 2; read 2 messages before the damage", "row id"],
+        expect: &["frame 2 (stamp 102.000000000) cannot be read", "bag_0.db3", "row id 3", "unexpected end of input"],
     },
     Case {
         area: "ROS 2 bag folder",

@@ -49,6 +49,9 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(error) = &run.error {
         anyhow::bail!("{} broke off after {} frames: {error}", source.display(), run.frames);
     }
+    if let Some(unreadable) = run.unreadable.summary() {
+        log::warn!("{}: {unreadable}", source.display());
+    }
     println!("{} frames, {} keyframes from {}", run.frames, run.keyframes.len(), source.display());
     println!("{} loop candidates (query -> match, score):", run.candidates.len());
     for c in &run.candidates {

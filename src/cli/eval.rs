@@ -121,19 +121,30 @@ pub fn load_truth(args: &Args, query_stamps: &[Stamp]) -> Result<LoopTruth> {
 /// Scores the results, writes the requested outputs and logs the summary; `timings_ms` are
 /// per-stage timings to include in the JSON, `params` what the run used (the JSON names the
 /// matching policy and every parameter).
-/// `broke_off`: why the source ended early, where it did (the figures count what was read); the
-/// JSON says `"complete": false` and carries it, so a script reading only the JSON knows.
+/// `end`: how the sources' reading ended, which the JSON carries, so a script reading only the JSON
+/// knows.
 pub fn run_with_results(
     args: &Args,
     truth: &LoopTruth,
     results: &[QueryResult],
     timings_ms: &[(&str, f64)],
     params: &Params,
-    broke_off: Option<&str>,
+    end: &SourcesEnd,
 ) -> Result<Metrics> {
     let metrics = evaluate(results, truth)?;
-    write_outputs(args, &metrics, timings_ms, params, broke_off)?;
+    write_outputs(args, &metrics, timings_ms, params, end)?;
     Ok(metrics)
+}
+
+/// How the reading of a run's sources ended.
+#[derive(Default)]
+pub struct SourcesEnd<'a> {
+    /// Why a source ended early, where it did (the figures count what was read): the JSON says
+    /// `"complete": false` and carries it as `broke_off`.
+    pub broke_off: Option<&'a str>,
+    /// Frames skipped because their images could not be decoded (`unreadable_frames` in the JSON):
+    /// they are not scored.
+    pub unreadable_frames: usize,
 }
 
 /// `walk`, `sequence` or `single-image`: how a query was matched under `params`. `database_mode`:
@@ -152,13 +163,14 @@ fn write_outputs(
     metrics: &Metrics,
     timings_ms: &[(&str, f64)],
     params: &Params,
-    broke_off: Option<&str>,
+    end: &SourcesEnd,
 ) -> Result<()> {
     let mut summary = summary_json(metrics, timings_ms);
     summary["policy"] = serde_json::json!(policy_name(params, args.database.is_some()));
     summary["parameters"] = params.to_json();
-    summary["complete"] = serde_json::json!(broke_off.is_none());
-    if let Some(why) = broke_off {
+    summary["complete"] = serde_json::json!(end.broke_off.is_none());
+    summary["unreadable_frames"] = serde_json::json!(end.unreadable_frames);
+    if let Some(why) = end.broke_off {
         summary["broke_off"] = serde_json::json!(why);
     }
     if let Some(path) = &args.output {
@@ -255,10 +267,14 @@ pub fn run(args: Args) -> Result<()> {
             }
             // As a replay that broke off: the queries read are evaluated, the truth cut to them.
             log::warn!("{error}; evaluating the {} queries read", run.results.len());
-            truth = truth.between(0..run.results.len(), 0..references);
+            truth = truth.between(0..run.query_stamps.len(), 0..references);
+        }
+        if let Some(unreadable) = run.unreadable.summary() {
+            log::warn!("{unreadable}; they are not scored");
         }
         truth.check_within(run.query_stamps.len(), references)?;
-        run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params(), run.error.as_deref())?;
+        let end = SourcesEnd { broke_off: run.error.as_deref(), unreadable_frames: run.unreadable.count };
+        run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params(), &end)?;
         return match &run.error {
             Some(error) => Err(broke_off(error, run.results.len())),
             None => Ok(()),
@@ -268,6 +284,9 @@ pub fn run(args: Args) -> Result<()> {
     let run = run_source(&mut pipeline, source, &args.source_args.topics(), !args.source_args.quiet)?;
     if let Some(error) = &run.error {
         log::warn!("{} broke off after {} frames; evaluating those: {error}", source.display(), run.frames);
+    }
+    if let Some(unreadable) = run.unreadable.summary() {
+        log::warn!("{}: {unreadable}; they are not scored", source.display());
     }
     if let Some(why) = run.why_nothing_could_match(pipeline.params()) {
         log::warn!("{}: {why}", source.display());
@@ -280,7 +299,8 @@ pub fn run(args: Args) -> Result<()> {
     }
     let mut timings = run.mean_timings();
     timings.push(("wall_s", run.wall_secs));
-    run_with_results(&args, &truth, &results, &timings, pipeline.params(), run.error.as_deref())?;
+    let end = SourcesEnd { broke_off: run.error.as_deref(), unreadable_frames: run.unreadable.count };
+    run_with_results(&args, &truth, &results, &timings, pipeline.params(), &end)?;
     match &run.error {
         Some(error) => Err(broke_off(error, run.frames)),
         None => Ok(()),
@@ -392,7 +412,9 @@ mod tests {
         let args = parse(&["seq", "-o", csv.to_str().unwrap(), "--json", "--plot", png.to_str().unwrap()]).unwrap();
         let truth = ecm_lcd::eval::parse_loops("2,0\n3,1\n").unwrap();
         let results = [QueryResult { query: 2, best: Some((0, 0.8)) }, QueryResult { query: 3, best: Some((0, 0.6)) }];
-        let metrics = run_with_results(&args, &truth, &results, &[("total", 5.0)], &Params::default(), None).unwrap();
+        let metrics =
+            run_with_results(&args, &truth, &results, &[("total", 5.0)], &Params::default(), &SourcesEnd::default())
+                .unwrap();
         assert_eq!(metrics.recall_at_1, Some(0.5));
         assert!(std::fs::read_to_string(&csv).unwrap().starts_with("threshold,precision,recall\n0.8,1,0.5\n"));
         let summary = summary_json(&metrics, &[("total", 5.0)]);

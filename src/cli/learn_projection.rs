@@ -49,7 +49,7 @@ pub fn run(args: Args) -> Result<()> {
     'sources: for source in &args.sources {
         let frames = open_source_topics(source, &args.source_args.topics())?;
         log::info!("learning from {}", frames.describe());
-        for frame in frames.step_by(args.every as usize) {
+        for frame in ecm_lcd::io::skip_unreadable(frames.step_by(args.every as usize), source) {
             let frame = frame.with_context(|| format!("reading {}", source.display()))?;
             samples.push(pipeline.describe(&frame.image)?);
             if samples.len() >= args.max_frames as usize {

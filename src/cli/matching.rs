@@ -58,10 +58,13 @@ pub fn run(args: Args) -> Result<()> {
         &args.source_args.topics(),
         !args.source_args.quiet,
     )?;
-    let database_stamps: Vec<Stamp> = run.database.iter().map(|&(_, stamp)| stamp).collect();
     let database_names: std::collections::HashMap<u64, String> =
-        run.database.iter().map(|&(id, _)| id).zip(frame_names(&args.database, &database_stamps)?).collect();
-    let query_names = frame_names(&args.queries, &run.query_stamps)?;
+        run.database.iter().map(|&(id, _)| id).zip(frame_names(&args.database, &run.database)?).collect();
+    let queries: Vec<(u64, Stamp)> = run.query_stamps.iter().enumerate().map(|(i, &s)| (i as u64, s)).collect();
+    let query_names = frame_names(&args.queries, &queries)?;
+    if let Some(unreadable) = run.unreadable.summary() {
+        log::warn!("{unreadable}; they have no row");
+    }
     let min_score = pipeline.detector().min_score();
     if let (Some(error), true) = (&run.error, run.results.is_empty()) {
         anyhow::bail!("{error} (no query was matched; the output was left as it was)");
@@ -99,7 +102,7 @@ pub fn run(args: Args) -> Result<()> {
     };
     log::info!(
         "{} queries matched against {} database frames ({policy}){verified}; {accepted} at or above the threshold {min_score}",
-        run.query_stamps.len(),
+        run.results.len(),
         run.database.len()
     );
     match run.error {
@@ -108,14 +111,18 @@ pub fn run(args: Args) -> Result<()> {
     }
 }
 
-/// The names of `source`'s frames ([`header`]), `stamps` those it was read with.
-fn frame_names(source: &Path, stamps: &[Stamp]) -> Result<Vec<String>> {
+/// The names of `source`'s `frames` ([`header`]), each its index in the source and the stamp it
+/// was read with.
+fn frame_names(source: &Path, frames: &[(u64, Stamp)]) -> Result<Vec<String>> {
     if ecm_lcd::io::is_image_folder(source) {
-        // The frames read are the folder's first images (all, unless it broke off).
+        // A frame's index is its image's place in name order.
         let files = images_in_name_order(source)?;
-        anyhow::ensure!(files.len() >= stamps.len(), "{} changed while it was read", source.display());
-        let name = |path: &Path| path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-        return Ok(files[..stamps.len()].iter().map(|path| name(path)).collect());
+        let name = |index: u64| {
+            let path =
+                files.get(index as usize).with_context(|| format!("{} changed while it was read", source.display()))?;
+            Ok(path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default())
+        };
+        return frames.iter().map(|&(index, _)| name(index)).collect();
     }
-    Ok(stamps.iter().map(Stamp::to_string).collect())
+    Ok(frames.iter().map(|(_, stamp)| stamp.to_string()).collect())
 }

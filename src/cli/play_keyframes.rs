@@ -88,7 +88,8 @@ pub fn run(args: Args) -> Result<()> {
     }
     let start = Instant::now();
     let mut published = 0usize;
-    for frame in source.skip(args.start).take(args.limit.unwrap_or(usize::MAX)) {
+    let frames = source.skip(args.start).take(args.limit.unwrap_or(usize::MAX));
+    for frame in ecm_lcd::io::skip_unreadable(frames, &args.source) {
         let frame = frame.with_context(|| format!("reading {}", args.source.display()))?;
         let due = start + period.mul_f64(published as f64);
         if let Some(wait) = due.checked_duration_since(Instant::now()) {

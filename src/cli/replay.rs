@@ -209,6 +209,9 @@ pub fn run(args: Args) -> Result<()> {
         t.detector_ms,
         args.output.as_ref().filter(|_| !untouched).map(|p| format!("; wrote {}", p.display())).unwrap_or_default()
     );
+    if let Some(unreadable) = run.unreadable.summary() {
+        log::warn!("{}: {unreadable}", args.source.display());
+    }
     if let Some(why) = run.why_nothing_could_match(pipeline.params()) {
         log::warn!("{}: {why}", args.source.display());
     }

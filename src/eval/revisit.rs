@@ -26,7 +26,7 @@ pub fn two_pass_order(n: usize) -> Vec<usize> {
 /// Writes the two-pass sequence of the TUM folder `source` (with `groundtruth.txt`) into `out`,
 /// one frame every `period_s` seconds from the source's first stamp. Returns the frame count.
 pub fn write_two_pass(source: &Path, out: &Path, period_s: f64, max_offset_s: f64) -> Result<usize> {
-    let frames: Vec<_> = open_source(source, None)?.collect::<Result<_>>()?;
+    let frames: Vec<_> = crate::io::skip_unreadable(open_source(source, None)?, source).collect::<Result<_>>()?;
     ensure!(
         frames.len() >= 3,
         "{} has {} frames; a two-pass sequence needs at least 3",

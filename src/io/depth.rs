@@ -133,7 +133,9 @@ pub struct DepthPaired<S> {
     inner: S,
     /// Whether the source has a depth topic (without one, frames pass straight through).
     paired: bool,
-    pending: VecDeque<Frame>,
+    /// Colour frames waiting for their depth, and unreadable frames ([`super::UnreadableFrame`])
+    /// kept in their place among them.
+    pending: VecDeque<Result<Frame>>,
     depths: VecDeque<(Stamp, DepthImage)>,
     /// Newest colour stamp seen.
     newest_colour: Option<Stamp>,
@@ -157,6 +159,8 @@ impl<S: MessageSource> DepthPaired<S> {
     /// Whether the oldest held frame can no longer be given a nearer depth message.
     fn front_is_ready(&self) -> bool {
         let Some(front) = self.pending.front() else { return false };
+        // An unreadable frame takes no depth: it goes out as soon as it is first.
+        let Ok(front) = front else { return true };
         let window_end = front.stamp.nanos.saturating_add(DEPTH_ASSOCIATION.nanos);
         !self.paired
             || self.ended
@@ -166,16 +170,19 @@ impl<S: MessageSource> DepthPaired<S> {
     }
 
     /// The oldest held frame with the nearest depth message within the window, if any.
-    fn release_front(&mut self) -> Option<Frame> {
-        let mut frame = self.pending.pop_front()?;
+    fn release_front(&mut self) -> Option<Result<Frame>> {
+        let mut frame = match self.pending.pop_front()? {
+            Ok(frame) => frame,
+            unreadable => return Some(unreadable),
+        };
         frame.depth = nearest_within_window(&self.depths, frame.stamp).map(|(_, depth)| depth.clone());
         self.forget_old_depths();
-        Some(frame)
+        Some(Ok(frame))
     }
 
     /// Drops depth messages no held or later colour frame can take.
     fn forget_old_depths(&mut self) {
-        let oldest_wanted = self.pending.front().map(|f| f.stamp).or(self.newest_colour);
+        let oldest_wanted = self.pending.iter().find_map(|f| f.as_ref().ok()).map(|f| f.stamp).or(self.newest_colour);
         if let Some(oldest) = oldest_wanted {
             let cutoff = oldest.nanos.saturating_sub(DEPTH_ASSOCIATION.nanos);
             while self.depths.front().is_some_and(|(stamp, _)| stamp.nanos < cutoff) {
@@ -194,7 +201,7 @@ impl<S: MessageSource> Iterator for DepthPaired<S> {
     fn next(&mut self) -> Option<Result<Frame>> {
         loop {
             if self.front_is_ready() {
-                return self.release_front().map(Ok);
+                return self.release_front();
             }
             if self.ended {
                 // Every held frame is out; a read error comes after them, so nothing read is lost.
@@ -202,13 +209,14 @@ impl<S: MessageSource> Iterator for DepthPaired<S> {
             }
             match self.inner.next() {
                 None => self.ended = true,
+                Some(Err(err)) if super::unreadable_frame(&err).is_some() => self.pending.push_back(Err(err)),
                 Some(Err(err)) => {
                     self.ended = true;
                     self.error = Some(err);
                 }
                 Some(Ok(BagMessage::Colour(frame))) => {
                     self.newest_colour = Some(self.newest_colour.map_or(frame.stamp, |s| s.max(frame.stamp)));
-                    self.pending.push_back(frame);
+                    self.pending.push_back(Ok(frame));
                 }
                 Some(Ok(BagMessage::Depth(stamp, depth))) => {
                     self.depths.push_back((stamp, depth));
@@ -308,6 +316,26 @@ mod tests {
         assert_eq!(frames.len(), 3);
         assert_eq!(depths(&frames[..2]), vec![None, Some(1.0)]);
         assert!(frames[2].as_ref().unwrap_err().to_string().contains("damaged chunk"));
+    }
+
+    #[test]
+    fn an_unreadable_frame_keeps_its_place_and_the_frames_after_it_come_out() {
+        let unreadable = |index, stamp| crate::io::UnreadableFrame::error(index, stamp, &anyhow::anyhow!("cut short"));
+        let frames = paired(vec![
+            Ok(colour(0, ms(0))),
+            Err(unreadable(1, ms(100))),
+            Ok(colour(2, ms(200))),
+            Ok(BagMessage::Depth(ms(201), depth_of(2.0))),
+            Ok(BagMessage::Depth(ms(102), depth_of(1.0))),
+        ]);
+        let order: Vec<String> = frames
+            .iter()
+            .map(|f| match f {
+                Ok(frame) => format!("frame {} depth {:?}", frame.index, frame.depth.as_ref().map(|d| d.metres[0])),
+                Err(err) => format!("unreadable {}", crate::io::unreadable_frame(err).unwrap().index),
+            })
+            .collect();
+        assert_eq!(order, ["frame 0 depth None", "unreadable 1", "frame 2 depth Some(2.0)"]);
     }
 
     #[test]

@@ -3,7 +3,10 @@
 //!
 //! [`open_source`] picks the reader from the path (see its doc). Every source yields frames in
 //! replay order with [`Frame::index`] counting from 0, and turns a bad input into an `Err` item
-//! naming the file and where it went wrong; after an `Err` a source yields nothing more.
+//! naming the file and where it went wrong. A frame whose image alone cannot be decoded (a cut
+//! image file, a message whose pixels do not fit its size) is an [`UnreadableFrame`] error with its
+//! index, and the source goes on with the next frame, as a camera driver drops a bad frame; after
+//! any other `Err` (a damaged bag, a missing file) a source yields nothing more.
 
 pub mod candidates;
 pub mod depth;
@@ -19,6 +22,117 @@ use std::path::Path;
 
 use crate::types::{Frame, Stamp};
 use image_msg::ImageKind;
+
+/// A frame whose container was read but whose image cannot be decoded: the source goes on after
+/// it (module doc). Callers find it with [`unreadable_frame`].
+#[derive(Debug, thiserror::Error)]
+#[error("frame {index} (stamp {stamp}) cannot be read: {reason}")]
+pub struct UnreadableFrame {
+    /// The frame's index in the source: the frames after it keep theirs.
+    pub index: usize,
+    /// The frame's stamp where its message header could be read, else the time the bag recorded it
+    /// or the stamp its file name or `rgb.txt` gives.
+    pub stamp: Stamp,
+    /// Why, with where it lies in the source.
+    pub reason: String,
+}
+
+impl UnreadableFrame {
+    /// The error for frame `index` (`stamp`) that `error` keeps from being read.
+    pub fn error(index: usize, stamp: Stamp, error: &anyhow::Error) -> anyhow::Error {
+        UnreadableFrame { index, stamp, reason: format!("{error:#}") }.into()
+    }
+}
+
+/// The [`UnreadableFrame`] that `error` is (under any context added since), if it is one: a frame
+/// to skip, where any other error ends the source.
+pub fn unreadable_frame(error: &anyhow::Error) -> Option<&UnreadableFrame> {
+    error.downcast_ref::<UnreadableFrame>()
+}
+
+/// The frames a run skipped because their images could not be decoded ([`UnreadableFrame`]): each
+/// of the first few is warned with its reason, the rest counted.
+#[derive(Debug, Default)]
+pub struct UnreadableFrames {
+    pub count: usize,
+    /// The first one's index and reason.
+    pub first: Option<(usize, String)>,
+}
+
+impl UnreadableFrames {
+    /// How many are warned one by one (a source whose every image is unreadable would say the same
+    /// thing for each).
+    const WARNED: usize = 10;
+
+    pub fn skip(&mut self, source: &Path, frame: &UnreadableFrame) {
+        self.count += 1;
+        if self.count <= Self::WARNED {
+            log::warn!(
+                "{}: skipping frame {} (stamp {}): {}",
+                source.display(),
+                frame.index,
+                frame.stamp,
+                frame.reason
+            );
+        }
+        if self.count == Self::WARNED {
+            log::warn!("{}: further unreadable frames are skipped and counted, not named", source.display());
+        }
+        self.first.get_or_insert_with(|| (frame.index, frame.reason.clone()));
+    }
+
+    /// The summary's words for them, e.g. "2 unreadable frames skipped (the first, frame 7: ...)";
+    /// `None` where there were none.
+    pub fn summary(&self) -> Option<String> {
+        let (index, reason) = self.first.as_ref()?;
+        let frames = if self.count == 1 { "frame" } else { "frames" };
+        Some(format!("{} unreadable {frames} skipped (the first, frame {index}: {reason})", self.count))
+    }
+
+    /// The error for a source none of whose `frames` frames could be read.
+    pub fn none_readable(&self, source: &Path, frames: usize) -> anyhow::Error {
+        let reason = self.first.as_ref().map_or("", |(_, reason)| reason.as_str());
+        match frames {
+            1 => anyhow::anyhow!("the one frame of {} cannot be read: {reason}", source.display()),
+            _ => {
+                anyhow::anyhow!("none of the {frames} frames of {} can be read; the first: {reason}", source.display())
+            }
+        }
+    }
+}
+
+/// `frames` less the [`UnreadableFrame`]s, each passed over as [`UnreadableFrames::skip`] says, for
+/// tools that want images rather than every index; any other error still ends them.
+pub fn skip_unreadable<'a>(
+    frames: impl Iterator<Item = Result<Frame>> + 'a,
+    source: &'a Path,
+) -> impl Iterator<Item = Result<Frame>> + 'a {
+    let mut skipped = UnreadableFrames::default();
+    frames.filter_map(move |frame| {
+        let error = match frame {
+            Ok(frame) => return Some(Ok(frame)),
+            Err(error) => error,
+        };
+        if let Some(unreadable) = unreadable_frame(&error) {
+            skipped.skip(source, unreadable);
+            return None;
+        }
+        Some(Err(error))
+    })
+}
+
+/// `error` with `context` added, unless it is an [`UnreadableFrame`]: its reason says where it lies,
+/// and a source's "damage" context would misstate a frame that is only skipped.
+pub(crate) fn context_unless_unreadable<C>(error: anyhow::Error, context: impl FnOnce() -> C) -> anyhow::Error
+where
+    C: std::fmt::Display + Send + Sync + 'static,
+{
+    if unreadable_frame(&error).is_some() {
+        error
+    } else {
+        error.context(context())
+    }
+}
 
 /// A replayable stream of frames.
 pub trait FrameSource: Iterator<Item = Result<Frame>> + Send {
@@ -263,6 +377,33 @@ pub(crate) fn choose_depth_topic(bag: &str, topics: &[TopicInfo], wanted: &str, 
         bail!("{wanted} in {bag} is the colour topic; the depth topic must be another one");
     }
     Ok(found.clone())
+}
+
+/// Checks that `read`, a source's items, are the `expected` frames in order with the one at
+/// `unreadable` an [`UnreadableFrame`] of its index and `recorded` stamp whose reason holds `reason`,
+/// and every other frame read with its own index, stamp and image.
+#[cfg(test)]
+pub(crate) fn assert_skips_unreadable(
+    read: Vec<Result<Frame>>,
+    expected: &[(Stamp, image::RgbImage)],
+    unreadable: usize,
+    recorded: Stamp,
+    reason: &str,
+) {
+    assert_eq!(read.len(), expected.len(), "every frame has an item");
+    for (i, (item, (stamp, image))) in read.into_iter().zip(expected).enumerate() {
+        match item {
+            Ok(frame) => {
+                assert_ne!(i, unreadable, "frame {i} should be unreadable");
+                assert_eq!((frame.index, frame.stamp, &frame.image), (i, *stamp, image));
+            }
+            Err(err) => {
+                let skipped = unreadable_frame(&err).unwrap_or_else(|| panic!("frame {i} ended the source: {err:#}"));
+                assert_eq!((i, skipped.index, skipped.stamp), (unreadable, unreadable, recorded));
+                assert!(skipped.reason.contains(reason), "{reason:?} not in {}", skipped.reason);
+            }
+        }
+    }
 }
 
 /// Small distinct test frames one second apart from `first`.

@@ -22,7 +22,10 @@ use std::path::{Path, PathBuf};
 
 use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
 use super::image_msg::{camera_info_from_ros1, encode_image, ImageKind, ImageMessage, WireEncoding};
-use super::{camera_info_topic, choose_topics, intrinsics_from_camera_info, SourceIntrinsics, TopicInfo, Topics};
+use super::{
+    camera_info_topic, choose_topics, intrinsics_from_camera_info, unreadable_frame, SourceIntrinsics, TopicInfo,
+    Topics, UnreadableFrame,
+};
 use crate::types::{Frame, Stamp};
 
 const MAGIC: &[u8] = b"#ROSBAG V2.0\n";
@@ -511,9 +514,11 @@ impl Ros1BagSource {
                 .and_then(|msg| depth_message(&msg))
                 .with_context(|| format!("{} (depth, sensor_msgs/Image)", at()));
         }
+        // The record was read: only this image is unreadable, and the messages after it are read.
         let decoded = ImageMessage::from_ros1(self.kind, bytes)
             .and_then(|msg| Ok((msg.stamp(), msg.to_rgb()?)))
-            .with_context(|| format!("{} ({})", at(), self.kind.ros1_type()))?;
+            .with_context(|| format!("ROS 1 bag {}: {} ({})", self.path.display(), at(), self.kind.ros1_type()))
+            .map_err(|err| UnreadableFrame::error(colour_index, message.time, &err))?;
         Ok(BagMessage::Colour(Frame { index: colour_index, stamp: decoded.0, image: decoded.1, depth: None }))
     }
 }
@@ -554,6 +559,10 @@ impl Iterator for Ros1BagSource {
         match &message {
             Ok(BagMessage::Colour(_)) => self.colour_read += 1,
             Ok(BagMessage::Depth(..)) => {}
+            Err(err) if unreadable_frame(err).is_some() => {
+                self.colour_read += 1;
+                return Some(message);
+            }
             Err(_) => self.done = true,
         }
         Some(message.map_err(|err| {
@@ -774,6 +783,24 @@ mod tests {
 
     fn frames(n: usize) -> Vec<(Stamp, RgbImage)> {
         crate::io::test_frames(n, 8, 6, Stamp::from_sec_nsec(1_341_847_980, 722_988_000))
+    }
+
+    /// A message whose image does not decode is skipped: the messages after it are read with their
+    /// own indexes.
+    #[test]
+    fn a_message_that_does_not_decode_is_skipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("seq.bag");
+        let written = frames(5);
+        write_ros1_bag(&path, "/cam", written.clone(), WireEncoding::Png, Ros1Compression::None).unwrap();
+        // The third message's PNG signature broken, in place: the bag's records stay intact.
+        let mut bytes = std::fs::read(&path).unwrap();
+        let signature = b"\x89PNG";
+        let third = (0..bytes.len() - 4).filter(|&at| &bytes[at..at + 4] == signature).nth(2).unwrap();
+        bytes[third..third + 4].copy_from_slice(b"JUNK");
+        std::fs::write(&path, bytes).unwrap();
+        let read: Vec<Result<Frame>> = crate::io::open_source(&path, None).unwrap().collect();
+        crate::io::assert_skips_unreadable(read, &written, 2, written[2].0, "seq.bag: message record at offset");
     }
 
     #[test]

@@ -17,18 +17,30 @@ use std::path::{Path, PathBuf};
 
 use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
 use super::image_msg::{camera_info_from_cdr, encode_image, ImageKind, ImageMessage, WireEncoding};
-use super::{camera_info_topic, choose_topics, intrinsics_from_camera_info, SourceIntrinsics, TopicInfo, Topics};
+use super::{
+    camera_info_topic, choose_topics, context_unless_unreadable, intrinsics_from_camera_info, unreadable_frame,
+    SourceIntrinsics, TopicInfo, Topics, UnreadableFrame,
+};
 use crate::types::{Frame, Stamp};
 
-/// Decodes one CDR image payload into a frame.
-/// A CDR message of the colour topic (as frame `index`) or of the depth topic.
-fn cdr_message(kind: ImageKind, is_depth: bool, index: usize, payload: &[u8]) -> Result<BagMessage> {
+/// A CDR message of the colour topic (as frame `index`, recorded at `recorded`) or of the depth topic.
+/// A colour message that does not decode is an [`UnreadableFrame`] (`at` says where it lies): the
+/// messages after it are read.
+fn cdr_message(
+    kind: ImageKind,
+    is_depth: bool,
+    index: usize,
+    recorded: Stamp,
+    payload: &[u8],
+    at: impl Fn() -> String,
+) -> Result<BagMessage> {
     if is_depth {
         return ImageMessage::from_cdr(ImageKind::Raw, payload).and_then(|m| depth_message(&m)).context("depth topic");
     }
     // from_cdr names the message type and size.
-    let message = ImageMessage::from_cdr(kind, payload)?;
-    Ok(BagMessage::Colour(Frame { index, stamp: message.stamp(), image: message.to_rgb()?, depth: None }))
+    let frame = ImageMessage::from_cdr(kind, payload)
+        .and_then(|message| Ok(Frame { index, stamp: message.stamp(), image: message.to_rgb()?, depth: None }));
+    frame.map(BagMessage::Colour).map_err(|err| UnreadableFrame::error(index, recorded, &err.context(at())))
 }
 
 /// Finds the storage file of a rosbag2 folder (one with `metadata.yaml`). A bag whose messages are
@@ -181,12 +193,14 @@ impl SqliteBagSource {
 
     fn read_message(&self, position: usize, colour_index: usize) -> Result<BagMessage> {
         let (id, is_depth) = self.message_ids[position];
-        let payload: Vec<u8> = self
+        let (recorded, payload): (i64, Vec<u8>) = self
             .db
-            .query_row("SELECT data FROM messages WHERE id = ?1", [id], |row| row.get(0))
+            .query_row("SELECT timestamp, data FROM messages WHERE id = ?1", [id], |row| Ok((row.get(0)?, row.get(1)?)))
             .optional()?
             .with_context(|| format!("row id {id} vanished"))?;
-        cdr_message(self.kind, is_depth, colour_index, &payload).with_context(|| format!("row id {id}"))
+        let at = || format!("ROS 2 sqlite3 bag {}: row id {id}", self.path.display());
+        cdr_message(self.kind, is_depth, colour_index, Stamp::from_nanos(recorded), &payload, at)
+            .map_err(|err| context_unless_unreadable(err, || format!("row id {id}")))
     }
 }
 
@@ -199,15 +213,18 @@ impl Iterator for SqliteBagSource {
         }
         let (position, index) = (self.next, self.colour_read);
         self.next += 1;
-        let message = self.read_message(position, index).with_context(|| {
-            format!(
-                "ROS 2 sqlite3 bag {}: message {index}; read {index} messages before the damage",
-                self.path.display()
-            )
+        let message = self.read_message(position, index).map_err(|err| {
+            context_unless_unreadable(err, || {
+                format!(
+                    "ROS 2 sqlite3 bag {}: message {index}; read {index} messages before the damage",
+                    self.path.display()
+                )
+            })
         });
         match &message {
             Ok(BagMessage::Colour(_)) => self.colour_read += 1,
             Ok(BagMessage::Depth(..)) => {}
+            Err(err) if unreadable_frame(err).is_some() => self.colour_read += 1,
             Err(_) => self.done = true,
         }
         Some(message)
@@ -337,13 +354,29 @@ impl Iterator for McapSource {
                 Some(Ok(message)) => {
                     let is_depth = self.depth_topic.as_ref() == Some(&message.channel.topic);
                     if is_depth || message.channel.topic == self.topic {
-                        break cdr_message(self.kind, is_depth, index, &message.data)
-                            .with_context(|| format!("message {index} (log time {} ns)", message.log_time));
+                        let at = || {
+                            format!(
+                                "MCAP file {}: message {index} (log time {} ns)",
+                                self.path.display(),
+                                message.log_time
+                            )
+                        };
+                        let recorded = Stamp::from_nanos(i64::try_from(message.log_time).unwrap_or(i64::MAX));
+                        break cdr_message(self.kind, is_depth, index, recorded, &message.data, at).map_err(|err| {
+                            context_unless_unreadable(err, || {
+                                format!("message {index} (log time {} ns)", message.log_time)
+                            })
+                        });
                     }
                 }
                 Some(Err(err)) => break Err(anyhow!(err)),
             }
         };
+        let unreadable = result.as_ref().err().and_then(unreadable_frame).is_some();
+        if unreadable {
+            self.next += 1;
+            return Some(result);
+        }
         if let Ok(BagMessage::Colour(_)) = result {
             self.next += 1;
         }
@@ -563,6 +596,29 @@ mod tests {
         }
     }
 
+    /// A message whose image does not decode is skipped in both storages: the messages after it are
+    /// read with their own indexes.
+    #[test]
+    fn a_message_that_does_not_decode_is_skipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let written = frames(5);
+        for storage in [Ros2Storage::Sqlite3, Ros2Storage::Mcap] {
+            let messages = written.iter().enumerate().map(|(i, (stamp, image))| {
+                let payload = encode_image(*stamp, "camera", image, WireEncoding::Rgb8)?.to_cdr()?;
+                // The third message's pixels cut short.
+                Ok((*stamp, if i == 2 { payload[..payload.len() - 10].to_vec() } else { payload }))
+            });
+            let file = dir.path().join(format!("bag.{}", if storage == Ros2Storage::Mcap { "mcap" } else { "db3" }));
+            match storage {
+                Ros2Storage::Sqlite3 => write_sqlite(&file, "/cam", ImageKind::Raw, messages).unwrap(),
+                Ros2Storage::Mcap => write_mcap(&file, "/cam", ImageKind::Raw, messages).unwrap(),
+            };
+            let read: Vec<Result<Frame>> = crate::io::open_source(&file, None).unwrap().collect();
+            let at = if storage == Ros2Storage::Mcap { "message 2 (log time" } else { "row id 3" };
+            crate::io::assert_skips_unreadable(read, &written, 2, written[2].0, at);
+        }
+    }
+
     #[test]
     fn corrupted_mcap_bytes_never_panic() {
         let dir = tempfile::tempdir().unwrap();
@@ -614,8 +670,9 @@ mod tests {
         drop(db);
         let results: Vec<Result<Frame>> = crate::io::open_source(&file, None).unwrap().collect();
         assert_eq!(results.len(), 2);
+        // A garbage payload in an intact database is one unreadable frame, not damage.
         let err = format!("{:#}", results[1].as_ref().unwrap_err());
-        assert!(err.contains("message 1; read 1 messages before the damage") && err.contains("row id 2"), "{err}");
+        assert!(err.contains("frame 1 (stamp") && err.contains("s_0.db3: row id 2"), "{err}");
         std::fs::write(&cut, b"not a database at all, just text that goes on for a while..............").unwrap();
         let err = format!("{:#}", crate::io::open_source(&cut, None).err().unwrap());
         assert!(err.contains("cut.mcap"), "{err}");

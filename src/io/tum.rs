@@ -272,8 +272,10 @@ impl Iterator for ImageFilesSource {
         let entry = self.entries.get(self.next)?;
         let index = self.next;
         self.next += 1;
+        // The image alone is unreadable: the frames after it are still read (module doc of `io`).
         let loaded = crate::preprocess::open_image(&entry.path)
-            .with_context(|| format!("{}: cannot decode image {}", entry.origin, entry.path.display()));
+            .with_context(|| format!("{}: cannot decode image {}", entry.origin, entry.path.display()))
+            .map_err(|err| super::UnreadableFrame::error(index, entry.stamp, &err));
         let frame = loaded.and_then(|img| {
             let image = img.into_rgb8();
             let depth = match &entry.depth {
@@ -593,6 +595,32 @@ mod tests {
         fs::write(dir.path().join("rgb.txt"), "1.0 rgb/a.png\n").unwrap();
         let err = format!("{:#}", ImageFilesSource::open_tum(dir.path()).unwrap().next().unwrap().unwrap_err());
         assert!(err.contains("rgb.txt:1: cannot decode image"), "{err}");
+    }
+
+    /// An image that does not decode is skipped, in a TUM folder and in an image folder alike: the
+    /// frames after it are read with their own indexes.
+    #[test]
+    fn an_image_that_does_not_decode_is_skipped() {
+        let dir = tempfile::tempdir().unwrap();
+        let written = crate::io::test_frames(4, 8, 6, Stamp::from_sec_nsec(1_341_847_980, 0));
+        fs::create_dir(dir.path().join("rgb")).unwrap();
+        let mut listing = String::new();
+        for (i, (stamp, image)) in written.iter().enumerate() {
+            image.save(dir.path().join(format!("rgb/{i}.png"))).unwrap();
+            listing.push_str(&format!("{stamp} rgb/{i}.png\n"));
+        }
+        fs::write(dir.path().join("rgb/1.png"), b"not a png").unwrap();
+        fs::write(dir.path().join("rgb.txt"), listing).unwrap();
+        let read = ImageFilesSource::open_tum(dir.path()).unwrap().collect();
+        crate::io::assert_skips_unreadable(read, &written, 1, written[1].0, "rgb.txt:2: cannot decode image");
+        // The image folder's stamps count seconds from 0 by name order.
+        let folder: Vec<_> = written
+            .iter()
+            .enumerate()
+            .map(|(i, (_, image))| (Stamp::from_sec_nsec(i as i64, 0), image.clone()))
+            .collect();
+        let read = ImageFilesSource::open_image_folder(&dir.path().join("rgb")).unwrap().collect();
+        crate::io::assert_skips_unreadable(read, &folder, 1, folder[1].0, "1.png");
     }
 
     #[test]

@@ -382,7 +382,7 @@ pub fn load_unlabelled(source: &Path, keep_side: u32, max_images: usize) -> Resu
     } else {
         let frames = crate::io::open_source(source, None)?;
         let mut all = Vec::new();
-        for frame in frames {
+        for frame in crate::io::skip_unreadable(frames, source) {
             all.push(shrink(frame.with_context(|| format!("cannot read the frames of {}", source.display()))?.image));
         }
         images = spread(&all, max_images).into_iter().cloned().collect();

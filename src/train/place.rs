@@ -127,7 +127,7 @@ fn load_posed(sources: &[PathBuf], keep_side: u32, max_offset_s: f64) -> Result<
         let truth_path = dir.join("groundtruth.txt");
         ensure!(truth_path.is_file(), "{} has no groundtruth.txt: place training needs poses", dir.display());
         let truth = crate::io::tum::read_groundtruth(&truth_path)?;
-        let frames: Vec<crate::types::Frame> = crate::io::open_source(dir, None)?
+        let frames: Vec<crate::types::Frame> = crate::io::skip_unreadable(crate::io::open_source(dir, None)?, dir)
             .collect::<Result<_>>()
             .with_context(|| format!("reading {}", dir.display()))?;
         let stamps: Vec<_> = frames.iter().map(|f| f.stamp).collect();

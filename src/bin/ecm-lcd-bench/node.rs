@@ -150,8 +150,9 @@ pub(crate) fn frames_for_benchmark(
 ) -> Result<Vec<Frame>> {
     if let Some(path) = source {
         let source = ecm_lcd::io::open_source(path, None).with_context(|| format!("opening {}", path.display()))?;
-        let frames: Vec<Frame> =
-            source.take(wanted).collect::<Result<_>>().with_context(|| format!("reading {}", path.display()))?;
+        let frames: Vec<Frame> = ecm_lcd::io::skip_unreadable(source.take(wanted), path)
+            .collect::<Result<_>>()
+            .with_context(|| format!("reading {}", path.display()))?;
         if frames.is_empty() {
             bail!("{} holds no frames", path.display());
         }
