@@ -151,13 +151,14 @@ pub struct DatabaseQueriesRun {
     /// The stamps of the queries, in their order (a query's index is its position here), unreadable
     /// ones' too.
     pub query_stamps: Vec<Stamp>,
-    /// Database frames and queries skipped because their images could not be decoded (none of them
-    /// is in `database` or `results`).
-    pub unreadable: UnreadableFrames,
+    /// Database frames skipped because their images could not be decoded (none is in `database`).
+    pub unreadable_database: UnreadableFrames,
+    /// Queries skipped because their images could not be decoded (none is in `results`).
+    pub unreadable_queries: UnreadableFrames,
     /// Milliseconds per image read and described, database and queries together (a keyframe
     /// database's keyframes are loaded, not described, and not counted).
     pub per_image_ms: f64,
-    /// Set when a source broke off (a truncated bag, an unreadable image): the frames before it
+    /// Set when a source broke off (a truncated bag, a damaged chunk): the frames before it
     /// were matched, and this names the source and what went wrong.
     pub error: Option<String>,
 }
@@ -194,7 +195,9 @@ fn database_query_topics(source: &Path, topics: &Topics, with_depth: bool) -> To
 /// ids. The database's depth images (a TUM folder's `depth.txt`, a bag's `topics.depth`) give
 /// verified matches metric poses,
 /// and the camera intrinsics a source carries (the database's, else the queries') turn
-/// verification on as in a replay. A source that breaks off (a truncated bag, an unreadable image)
+/// verification on as in a replay. A frame whose image does not decode is skipped
+/// ([`DatabaseQueriesRun::unreadable_database`], [`DatabaseQueriesRun::unreadable_queries`]). A
+/// source that breaks off (a truncated bag, a damaged chunk)
 /// ends the reading ([`DatabaseQueriesRun::error`]): the queries read before are matched, and none
 /// where the database broke off. With the default `detector.sequence.length` 0, queries that look like a walk
 /// ([`walk::why_not_a_walk`]) are aligned with the database as a whole walk ([`walk::align_walk`]; a
@@ -247,7 +250,7 @@ pub fn run_database_queries(
                 Ok(frame) => frame,
                 Err(e) => {
                     if let Some(unreadable) = unreadable_frame(&e) {
-                        run.unreadable.skip(database, unreadable);
+                        run.unreadable_database.skip(database, unreadable);
                         bar.inc(1);
                         continue;
                     }
@@ -264,10 +267,9 @@ pub fn run_database_queries(
             bar.inc(1);
         }
     }
-    if !map_from_store && run.database.is_empty() && run.unreadable.count > 0 && run.error.is_none() {
-        return Err(run.unreadable.none_readable(database, run.unreadable.count));
+    if !map_from_store && run.database.is_empty() && run.unreadable_database.count() > 0 && run.error.is_none() {
+        return Err(run.unreadable_database.none_readable(database, run.unreadable_database.count()));
     }
-    let database_unreadable = run.unreadable.count;
     // The readable queries' descriptors and indexes.
     let mut descriptors = Vec::new();
     let mut query_indexes = Vec::new();
@@ -283,7 +285,7 @@ pub fn run_database_queries(
                 }
                 Err(e) if unreadable_frame(&e).is_some() => {
                     let unreadable = unreadable_frame(&e).context("matched above")?;
-                    run.unreadable.skip(queries, unreadable);
+                    run.unreadable_queries.skip(queries, unreadable);
                     run.query_stamps.push(unreadable.stamp);
                     bar.inc(1);
                 }
@@ -295,8 +297,8 @@ pub fn run_database_queries(
         }
     }
     bar.finish_and_clear();
-    if run.unreadable.count > database_unreadable && descriptors.is_empty() && run.error.is_none() {
-        return Err(run.unreadable.none_readable(queries, run.query_stamps.len()));
+    if run.unreadable_queries.count() > 0 && descriptors.is_empty() && run.error.is_none() {
+        return Err(run.unreadable_queries.none_readable(queries, run.query_stamps.len()));
     }
     let tried = pipeline.matches_tried();
     let aligned = if pipeline.params().get("detector.sequence.length") == Some(ParamValue::Integer(0)) {
@@ -366,7 +368,8 @@ pub fn run_database_queries(
         };
         run.results.push(QueryResult { query: index, best: best.map(|m| (m.id as usize, m.score)) });
     }
-    let frames = if map_from_store { 0 } else { run.database.len() } + run.query_stamps.len();
+    // The images described.
+    let frames = if map_from_store { 0 } else { run.database.len() } + descriptors.len();
     run.per_image_ms = started.elapsed().as_secs_f64() * 1e3 / frames.max(1) as f64;
     Ok(run)
 }
@@ -505,6 +508,24 @@ fn replay_frames(
                 // Its stamp keeps `frame_stamps` in step with the frame indexes.
                 run.frames += 1;
                 run.frame_stamps.push(unreadable.stamp);
+                if let Some((id, stamp, _, db)) = newest.as_ref().filter(|newest| newest.0 == unreadable.index as u64) {
+                    // The image cannot be compared, the stamp can.
+                    ensure!(
+                        unreadable.stamp == *stamp,
+                        "keyframe database {} was built from another source: its keyframe {id} has stamp {stamp}, \
+                         frame {id} of {} (unreadable) has stamp {}",
+                        db.display(),
+                        source.display(),
+                        unreadable.stamp
+                    );
+                    log::warn!(
+                        "{}: frame {id}, the keyframe database's newest keyframe, cannot be read now, so only its \
+                         stamp shows that {} was built from this source: {}",
+                        source.display(),
+                        db.display(),
+                        unreadable.reason
+                    );
+                }
                 if resume_after.is_some_and(|last| unreadable.index as u64 <= last) {
                     run.skipped += 1;
                 } else {
@@ -573,7 +594,7 @@ fn replay_frames(
     if run.frames == 0 && run.error.is_none() {
         bail!("{} holds no images to replay (an empty bag or an image topic without messages)", source.display());
     }
-    if run.unreadable.count > 0 && run.unreadable.count == run.frames && run.error.is_none() {
+    if run.unreadable.count() > 0 && run.unreadable.count() == run.frames && run.error.is_none() {
         return Err(run.unreadable.none_readable(source, run.frames));
     }
     if let (Some((id, _, _, db)), None) = (&newest, &run.error) {
@@ -586,8 +607,8 @@ fn replay_frames(
         );
     }
     if let Some(poses) = &tracker_poses {
-        let replayed = run.frames - run.skipped;
-        poses.report(replayed);
+        // The frames that could be given a pose: read, and not by the earlier run.
+        poses.report(run.frames - run.skipped - run.unreadable.count());
     }
     run.wall_secs = started.elapsed().as_secs_f64();
     Ok(run)

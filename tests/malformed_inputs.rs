@@ -460,7 +460,7 @@ const CASES: &[Case] = &[
             patch_all(&b, b"\x04\0\0\0rgb8", b"\x04\0\0\0rgbX");
             replay(&b)
         },
-        expect: &["in.bag", "message 0", "unsupported image encoding \"rgbX\""],
+        expect: &["frame 0 (stamp", "in.bag", "unsupported image encoding \"rgbX\""],
     },
     Case {
         area: "ROS 1 bag",
@@ -528,7 +528,7 @@ const CASES: &[Case] = &[
             relabel_jpeg_as_png(&b);
             replay(&b)
         },
-        expect: &["bag_0.db3", "message 0", "do not decode as Png"],
+        expect: &["frame 0 (stamp", "bag_0.db3", "row id 1", "do not decode as Png"],
     },
     Case {
         area: "ROS 2 sqlite3 bag",

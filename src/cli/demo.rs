@@ -49,7 +49,7 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(error) = &run.error {
         anyhow::bail!("{} broke off after {} frames: {error}", source.display(), run.frames);
     }
-    if let Some(unreadable) = run.unreadable.summary() {
+    if let Some(unreadable) = run.unreadable.summary(ecm_lcd::io::FRAMES) {
         log::warn!("{}: {unreadable}", source.display());
     }
     println!("{} frames, {} keyframes from {}", run.frames, run.keyframes.len(), source.display());

@@ -142,9 +142,11 @@ pub struct SourcesEnd<'a> {
     /// Why a source ended early, where it did (the figures count what was read): the JSON says
     /// `"complete": false` and carries it as `broke_off`.
     pub broke_off: Option<&'a str>,
-    /// Frames skipped because their images could not be decoded (`unreadable_frames` in the JSON):
-    /// they are not scored.
+    /// Frames (queries in the database/query mode) skipped because their images could not be
+    /// decoded (`unreadable_frames` in the JSON): they are not scored.
     pub unreadable_frames: usize,
+    /// In the database/query mode, database frames skipped so (`unreadable_database_frames`).
+    pub unreadable_database_frames: Option<usize>,
 }
 
 /// `walk`, `sequence` or `single-image`: how a query was matched under `params`. `database_mode`:
@@ -170,6 +172,9 @@ fn write_outputs(
     summary["parameters"] = params.to_json();
     summary["complete"] = serde_json::json!(end.broke_off.is_none());
     summary["unreadable_frames"] = serde_json::json!(end.unreadable_frames);
+    if let Some(frames) = end.unreadable_database_frames {
+        summary["unreadable_database_frames"] = serde_json::json!(frames);
+    }
     if let Some(why) = end.broke_off {
         summary["broke_off"] = serde_json::json!(why);
     }
@@ -260,7 +265,10 @@ pub fn run(args: Args) -> Result<()> {
             &args.source_args.topics(),
             !args.source_args.quiet,
         )?;
-        let references = run.database.iter().map(|&(id, _)| id as usize + 1).max().unwrap_or(0);
+        // Every database frame read counts, unreadable ones too: a loops file names them.
+        let unreadable_ids = &run.unreadable_database.indexes;
+        let read_ids = run.database.iter().map(|&(id, _)| id as usize).chain(unreadable_ids.iter().copied());
+        let references = read_ids.map(|id| id + 1).max().unwrap_or(0);
         if let Some(error) = &run.error {
             if run.results.is_empty() {
                 bail!("{error}");
@@ -269,11 +277,19 @@ pub fn run(args: Args) -> Result<()> {
             log::warn!("{error}; evaluating the {} queries read", run.results.len());
             truth = truth.between(0..run.query_stamps.len(), 0..references);
         }
-        if let Some(unreadable) = run.unreadable.summary() {
-            log::warn!("{unreadable}; they are not scored");
+        if let Some(unreadable) = run.unreadable_database.summary(("database frame", "database frames")) {
+            log::warn!("{}: {unreadable}; no query can match them", database.display());
+        }
+        if let Some(unreadable) = run.unreadable_queries.summary(("query", "queries")) {
+            log::warn!("{}: {unreadable}; they are not scored", queries.display());
         }
         truth.check_within(run.query_stamps.len(), references)?;
-        let end = SourcesEnd { broke_off: run.error.as_deref(), unreadable_frames: run.unreadable.count };
+        truth.without_references(unreadable_ids);
+        let end = SourcesEnd {
+            broke_off: run.error.as_deref(),
+            unreadable_frames: run.unreadable_queries.count(),
+            unreadable_database_frames: Some(run.unreadable_database.count()),
+        };
         run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params(), &end)?;
         return match &run.error {
             Some(error) => Err(broke_off(error, run.results.len())),
@@ -285,21 +301,26 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(error) = &run.error {
         log::warn!("{} broke off after {} frames; evaluating those: {error}", source.display(), run.frames);
     }
-    if let Some(unreadable) = run.unreadable.summary() {
-        log::warn!("{}: {unreadable}; they are not scored", source.display());
+    if let Some(unreadable) = run.unreadable.summary(ecm_lcd::io::FRAMES) {
+        log::warn!("{}: {unreadable}; they are neither scored nor matched", source.display());
     }
     if let Some(why) = run.why_nothing_could_match(pipeline.params()) {
         log::warn!("{}: {why}", source.display());
     }
-    let truth = load_truth(&args, &run.frame_stamps)?;
+    let mut truth = load_truth(&args, &run.frame_stamps)?;
     truth.check_within(run.frame_stamps.len(), run.frame_stamps.len())?;
+    truth.without_references(&run.unreadable.indexes);
     let results = run.query_results();
     if let Some(loops) = &args.loops {
-        warn_unscored_loops(loops, &truth, &results);
+        warn_unscored_loops(loops, &truth, &results, &run.unreadable.indexes);
     }
     let mut timings = run.mean_timings();
     timings.push(("wall_s", run.wall_secs));
-    let end = SourcesEnd { broke_off: run.error.as_deref(), unreadable_frames: run.unreadable.count };
+    let end = SourcesEnd {
+        broke_off: run.error.as_deref(),
+        unreadable_frames: run.unreadable.count(),
+        unreadable_database_frames: None,
+    };
     run_with_results(&args, &truth, &results, &timings, pipeline.params(), &end)?;
     match &run.error {
         Some(error) => Err(broke_off(error, run.frames)),
@@ -309,8 +330,15 @@ pub fn run(args: Args) -> Result<()> {
 
 /// Says how many queries with a loop in the loops file are not keyframes: a replay scores the
 /// keyframes the detector selects, so those frames' truth goes unused.
-fn warn_unscored_loops(loops: &std::path::Path, truth: &LoopTruth, results: &[ecm_lcd::eval::QueryResult]) {
-    let scored: std::collections::BTreeSet<usize> = results.iter().map(|r| r.query).collect();
+/// Frames skipped as `unreadable` are warned about on their own.
+fn warn_unscored_loops(
+    loops: &std::path::Path,
+    truth: &LoopTruth,
+    results: &[ecm_lcd::eval::QueryResult],
+    unreadable: &[usize],
+) {
+    let scored: std::collections::BTreeSet<usize> =
+        results.iter().map(|r| r.query).chain(unreadable.iter().copied()).collect();
     let listed = truth.positive_queries().count();
     let unscored = truth.positive_queries().filter(|q| !scored.contains(q)).count();
     if unscored > 0 {

@@ -62,8 +62,11 @@ pub fn run(args: Args) -> Result<()> {
         run.database.iter().map(|&(id, _)| id).zip(frame_names(&args.database, &run.database)?).collect();
     let queries: Vec<(u64, Stamp)> = run.query_stamps.iter().enumerate().map(|(i, &s)| (i as u64, s)).collect();
     let query_names = frame_names(&args.queries, &queries)?;
-    if let Some(unreadable) = run.unreadable.summary() {
-        log::warn!("{unreadable}; they have no row");
+    if let Some(unreadable) = run.unreadable_database.summary(("database frame", "database frames")) {
+        log::warn!("{}: {unreadable}; no query can match them", args.database.display());
+    }
+    if let Some(unreadable) = run.unreadable_queries.summary(("query", "queries")) {
+        log::warn!("{}: {unreadable}; they have no row", args.queries.display());
     }
     let min_score = pipeline.detector().min_score();
     if let (Some(error), true) = (&run.error, run.results.is_empty()) {

@@ -173,7 +173,8 @@ pub fn run(args: Args) -> Result<()> {
             out.write(candidates)
         },
     )?;
-    let untouched = csv.is_none() && run.frames == 0 && run.error.is_some();
+    // Nothing decoded before the source broke off: an earlier output stays as it was.
+    let untouched = csv.is_none() && run.frames == run.unreadable.count() && run.error.is_some();
     if csv.is_none() && !untouched {
         open_csv(stored.take().flatten())?;
     }
@@ -209,7 +210,7 @@ pub fn run(args: Args) -> Result<()> {
         t.detector_ms,
         args.output.as_ref().filter(|_| !untouched).map(|p| format!("; wrote {}", p.display())).unwrap_or_default()
     );
-    if let Some(unreadable) = run.unreadable.summary() {
+    if let Some(unreadable) = run.unreadable.summary(ecm_lcd::io::FRAMES) {
         log::warn!("{}: {unreadable}", args.source.display());
     }
     if let Some(why) = run.why_nothing_could_match(pipeline.params()) {

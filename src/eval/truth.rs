@@ -88,6 +88,16 @@ impl LoopTruth {
         self.unknown_matches.contains(&matched)
     }
 
+    /// Takes `frames` out of every query's true matches: references that could not be read, which
+    /// no query can match. A query left with none revisits no place the detector was given.
+    pub fn without_references(&mut self, frames: &[usize]) {
+        for matched in self.matches.values_mut() {
+            frames.iter().for_each(|frame| {
+                matched.remove(frame);
+            });
+        }
+    }
+
     /// The truth of a database/query set cut from one sequence: the frames `queries`, in the order
     /// given, against the frames `references`, each renumbered from 0. A query keeps only its
     /// matches among the references, and stays unknown where it was.

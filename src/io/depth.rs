@@ -113,6 +113,30 @@ pub enum BagMessage {
     Colour(Frame),
     /// A depth image and its header stamp.
     Depth(Stamp, DepthImage),
+    /// A message of the depth topic that does not decode, in an intact bag: passed over
+    /// ([`UnreadableDepths`]).
+    UnreadableDepth(anyhow::Error),
+}
+
+/// Depth images that cannot be decoded: a frame that would have taken one goes on without depth
+/// (unverified, or verified up to scale), as one unreadable colour frame is skipped and the rest
+/// replayed. The first few are warned, the rest counted.
+#[derive(Debug, Default)]
+pub struct UnreadableDepths {
+    count: usize,
+}
+
+impl UnreadableDepths {
+    const WARNED: usize = 10;
+
+    pub fn skip(&mut self, error: &anyhow::Error) {
+        self.count += 1;
+        if self.count <= Self::WARNED {
+            log::warn!("a depth image cannot be read, so it is passed over: {error:#}");
+        } else if self.count == Self::WARNED + 1 {
+            log::warn!("further depth images that cannot be read are passed over unnamed");
+        }
+    }
 }
 
 /// A bag reader's messages of its colour topic and, if chosen, its depth topic.
@@ -141,6 +165,7 @@ pub struct DepthPaired<S> {
     newest_colour: Option<Stamp>,
     ended: bool,
     error: Option<anyhow::Error>,
+    unreadable_depths: UnreadableDepths,
 }
 
 impl<S: MessageSource> DepthPaired<S> {
@@ -153,6 +178,7 @@ impl<S: MessageSource> DepthPaired<S> {
             newest_colour: None,
             ended: false,
             error: None,
+            unreadable_depths: UnreadableDepths::default(),
         }
     }
 
@@ -222,6 +248,7 @@ impl<S: MessageSource> Iterator for DepthPaired<S> {
                     self.depths.push_back((stamp, depth));
                     self.forget_old_depths();
                 }
+                Some(Ok(BagMessage::UnreadableDepth(error))) => self.unreadable_depths.skip(&error),
             }
         }
     }
@@ -336,6 +363,14 @@ mod tests {
             })
             .collect();
         assert_eq!(order, ["frame 0 depth None", "unreadable 1", "frame 2 depth Some(2.0)"]);
+        // A depth message that does not decode is passed over; the frames go on.
+        let frames = paired(vec![
+            Ok(colour(0, ms(0))),
+            Ok(BagMessage::UnreadableDepth(anyhow::anyhow!("cut short"))),
+            Ok(BagMessage::Depth(ms(101), depth_of(1.0))),
+            Ok(colour(1, ms(100))),
+        ]);
+        assert_eq!(depths(&frames), vec![None, Some(1.0)]);
     }
 
     #[test]

@@ -54,9 +54,10 @@ pub fn unreadable_frame(error: &anyhow::Error) -> Option<&UnreadableFrame> {
 /// of the first few is warned with its reason, the rest counted.
 #[derive(Debug, Default)]
 pub struct UnreadableFrames {
-    pub count: usize,
-    /// The first one's index and reason.
-    pub first: Option<(usize, String)>,
+    /// Their indexes in the source, in the order met.
+    pub indexes: Vec<usize>,
+    /// The first one's reason.
+    first_reason: Option<String>,
 }
 
 impl UnreadableFrames {
@@ -64,34 +65,41 @@ impl UnreadableFrames {
     /// thing for each).
     const WARNED: usize = 10;
 
+    pub fn count(&self) -> usize {
+        self.indexes.len()
+    }
+
     pub fn skip(&mut self, source: &Path, frame: &UnreadableFrame) {
-        self.count += 1;
-        if self.count <= Self::WARNED {
-            log::warn!(
+        self.indexes.push(frame.index);
+        match self.indexes.len() {
+            n if n <= Self::WARNED => log::warn!(
                 "{}: skipping frame {} (stamp {}): {}",
                 source.display(),
                 frame.index,
                 frame.stamp,
                 frame.reason
-            );
+            ),
+            n if n == Self::WARNED + 1 => log::warn!(
+                "{}: skipping frame {}, and further unreadable frames are skipped and counted, not named",
+                source.display(),
+                frame.index
+            ),
+            _ => {}
         }
-        if self.count == Self::WARNED {
-            log::warn!("{}: further unreadable frames are skipped and counted, not named", source.display());
-        }
-        self.first.get_or_insert_with(|| (frame.index, frame.reason.clone()));
+        self.first_reason.get_or_insert_with(|| frame.reason.clone());
     }
 
-    /// The summary's words for them, e.g. "2 unreadable frames skipped (the first, frame 7: ...)";
-    /// `None` where there were none.
-    pub fn summary(&self) -> Option<String> {
-        let (index, reason) = self.first.as_ref()?;
-        let frames = if self.count == 1 { "frame" } else { "frames" };
-        Some(format!("{} unreadable {frames} skipped (the first, frame {index}: {reason})", self.count))
+    /// The summary's words for them, e.g. "2 unreadable frames skipped (the first, frame 7: ...)",
+    /// where `frames` names one and several of them; `None` where there were none.
+    pub fn summary(&self, (one, several): (&str, &str)) -> Option<String> {
+        let (index, reason) = (self.indexes.first()?, self.first_reason.as_deref().unwrap_or_default());
+        let (count, noun) = (self.count(), if self.count() == 1 { one } else { several });
+        Some(format!("{count} unreadable {noun} skipped (the first, frame {index}: {reason})"))
     }
 
     /// The error for a source none of whose `frames` frames could be read.
     pub fn none_readable(&self, source: &Path, frames: usize) -> anyhow::Error {
-        let reason = self.first.as_ref().map_or("", |(_, reason)| reason.as_str());
+        let reason = self.first_reason.as_deref().unwrap_or_default();
         match frames {
             1 => anyhow::anyhow!("the one frame of {} cannot be read: {reason}", source.display()),
             _ => {
@@ -100,6 +108,9 @@ impl UnreadableFrames {
         }
     }
 }
+
+/// [`UnreadableFrames::summary`]'s words for a replayed source's frames.
+pub const FRAMES: (&str, &str) = ("frame", "frames");
 
 /// `frames` less the [`UnreadableFrame`]s, each passed over as [`UnreadableFrames::skip`] says, for
 /// tools that want images rather than every index; any other error still ends them.

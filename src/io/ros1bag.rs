@@ -510,16 +510,20 @@ impl Ros1BagSource {
         let at = || record_at(&message, chunk);
         let bytes = message_data(data, &message, chunk)?;
         if is_depth {
-            return ImageMessage::from_ros1(ImageKind::Raw, bytes)
+            let depth = ImageMessage::from_ros1(ImageKind::Raw, bytes)
                 .and_then(|msg| depth_message(&msg))
-                .with_context(|| format!("{} (depth, sensor_msgs/Image)", at()));
+                .with_context(|| format!("ROS 1 bag {}: {} (depth, sensor_msgs/Image)", self.path.display(), at()));
+            return Ok(depth.unwrap_or_else(BagMessage::UnreadableDepth));
         }
         // The record was read: only this image is unreadable, and the messages after it are read.
-        let decoded = ImageMessage::from_ros1(self.kind, bytes)
-            .and_then(|msg| Ok((msg.stamp(), msg.to_rgb()?)))
+        let decoded = ImageMessage::from_ros1(self.kind, bytes);
+        // Its header's stamp where the header reads, else the time the bag recorded it.
+        let stamp = decoded.as_ref().map_or(message.time, |msg| msg.stamp());
+        let image = decoded
+            .and_then(|msg| msg.to_rgb())
             .with_context(|| format!("ROS 1 bag {}: {} ({})", self.path.display(), at(), self.kind.ros1_type()))
-            .map_err(|err| UnreadableFrame::error(colour_index, message.time, &err))?;
-        Ok(BagMessage::Colour(Frame { index: colour_index, stamp: decoded.0, image: decoded.1, depth: None }))
+            .map_err(|err| UnreadableFrame::error(colour_index, stamp, &err))?;
+        Ok(BagMessage::Colour(Frame { index: colour_index, stamp, image, depth: None }))
     }
 }
 
@@ -558,7 +562,7 @@ impl Iterator for Ros1BagSource {
         let message = self.read_message(position, index);
         match &message {
             Ok(BagMessage::Colour(_)) => self.colour_read += 1,
-            Ok(BagMessage::Depth(..)) => {}
+            Ok(BagMessage::Depth(..) | BagMessage::UnreadableDepth(_)) => {}
             Err(err) if unreadable_frame(err).is_some() => {
                 self.colour_read += 1;
                 return Some(message);

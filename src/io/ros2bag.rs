@@ -35,12 +35,18 @@ fn cdr_message(
     at: impl Fn() -> String,
 ) -> Result<BagMessage> {
     if is_depth {
-        return ImageMessage::from_cdr(ImageKind::Raw, payload).and_then(|m| depth_message(&m)).context("depth topic");
+        let depth = ImageMessage::from_cdr(ImageKind::Raw, payload).and_then(|m| depth_message(&m));
+        return Ok(depth
+            .with_context(|| format!("{} (depth topic)", at()))
+            .unwrap_or_else(BagMessage::UnreadableDepth));
     }
     // from_cdr names the message type and size.
-    let frame = ImageMessage::from_cdr(kind, payload)
-        .and_then(|message| Ok(Frame { index, stamp: message.stamp(), image: message.to_rgb()?, depth: None }));
-    frame.map(BagMessage::Colour).map_err(|err| UnreadableFrame::error(index, recorded, &err.context(at())))
+    let decoded = ImageMessage::from_cdr(kind, payload);
+    // Its header's stamp where the header reads, else the time the bag recorded it.
+    let stamp = decoded.as_ref().map_or(recorded, |message| message.stamp());
+    let image = decoded.and_then(|message| message.to_rgb());
+    let image = image.map_err(|err| UnreadableFrame::error(index, stamp, &err.context(at())))?;
+    Ok(BagMessage::Colour(Frame { index, stamp, image, depth: None }))
 }
 
 /// Finds the storage file of a rosbag2 folder (one with `metadata.yaml`). A bag whose messages are
@@ -223,7 +229,7 @@ impl Iterator for SqliteBagSource {
         });
         match &message {
             Ok(BagMessage::Colour(_)) => self.colour_read += 1,
-            Ok(BagMessage::Depth(..)) => {}
+            Ok(BagMessage::Depth(..) | BagMessage::UnreadableDepth(_)) => {}
             Err(err) if unreadable_frame(err).is_some() => self.colour_read += 1,
             Err(_) => self.done = true,
         }

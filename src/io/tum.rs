@@ -76,6 +76,7 @@ pub struct ImageFilesSource {
     entries: Vec<ImageEntry>,
     next: usize,
     intrinsics: Option<SourceIntrinsics>,
+    unreadable_depths: super::depth::UnreadableDepths,
 }
 
 /// The calibration of the TUM camera a TUM folder's name gives: the benchmark names its sequences
@@ -116,7 +117,8 @@ impl ImageFilesSource {
             );
         }
         let description = format!("TUM folder {} ({} images)", dir.display(), entries.len());
-        Ok(ImageFilesSource { description, entries, next: 0, intrinsics: intrinsics_from_folder_name(dir) })
+        let intrinsics = intrinsics_from_folder_name(dir);
+        Ok(ImageFilesSource { description, entries, next: 0, intrinsics, unreadable_depths: Default::default() })
     }
 
     /// A folder of image files in name order; stamps are the index in seconds.
@@ -134,7 +136,7 @@ impl ImageFilesSource {
             })
             .collect();
         let description = format!("image folder {} ({} images)", dir.display(), entries.len());
-        Ok(ImageFilesSource { description, entries, next: 0, intrinsics: None })
+        Ok(ImageFilesSource { description, entries, next: 0, intrinsics: None, unreadable_depths: Default::default() })
     }
 }
 
@@ -276,15 +278,14 @@ impl Iterator for ImageFilesSource {
         let loaded = crate::preprocess::open_image(&entry.path)
             .with_context(|| format!("{}: cannot decode image {}", entry.origin, entry.path.display()))
             .map_err(|err| super::UnreadableFrame::error(index, entry.stamp, &err));
-        let frame = loaded.and_then(|img| {
+        let frame = loaded.map(|img| {
             let image = img.into_rgb8();
-            let depth = match &entry.depth {
-                Some(path) => {
-                    Some(load_depth(path, image.width(), image.height()).with_context(|| entry.origin.clone())?)
-                }
-                None => None,
-            };
-            Ok(Frame { index, stamp: entry.stamp, image, depth })
+            // A depth image that cannot be read leaves its frame without depth.
+            let depth = entry.depth.as_ref().and_then(|path| {
+                let depth = load_depth(path, image.width(), image.height()).with_context(|| entry.origin.clone());
+                depth.map_err(|err| self.unreadable_depths.skip(&err)).ok()
+            });
+            Frame { index, stamp: entry.stamp, image, depth }
         });
         Some(frame)
     }
@@ -563,11 +564,17 @@ mod tests {
         let depth_at = |f: &Frame| f.depth.as_ref().map(|d| d.at(1.5, 1.5).unwrap());
         // The second depth (95 ms) is nearer the second image; the first (15 ms) the first image.
         assert_eq!(frames.iter().map(depth_at).collect::<Vec<_>>(), [Some(1.0), Some(2.0), None]);
-        // A depth image of another size is refused, naming it.
+        // A depth image of another size, or one that does not decode, is passed over (warned): its
+        // frame goes on without depth, the others keep theirs.
         let wrong = DepthImage { width: 2, height: 2, metres: vec![1.0; 4] };
         wrong.to_tum().save(seq.join("depth/10.095000.png")).unwrap();
-        let err = format!("{:#}", ImageFilesSource::open_tum(&seq).unwrap().nth(1).unwrap().unwrap_err());
+        let err = format!("{:#}", load_depth(&seq.join("depth/10.095000.png"), 4, 3).unwrap_err());
         assert!(err.contains("10.095000.png") && err.contains("2x2"), "{err}");
+        let frames: Vec<Frame> = ImageFilesSource::open_tum(&seq).unwrap().map(|f| f.unwrap()).collect();
+        assert_eq!(frames.iter().map(depth_at).collect::<Vec<_>>(), [Some(1.0), None, None]);
+        fs::write(seq.join("depth/10.015000.png"), b"cut").unwrap();
+        let frames: Vec<Frame> = ImageFilesSource::open_tum(&seq).unwrap().map(|f| f.unwrap()).collect();
+        assert_eq!(frames.iter().map(depth_at).collect::<Vec<_>>(), [None, None, None]);
     }
 
     #[test]
