@@ -142,6 +142,16 @@ impl std::fmt::Debug for KeyframeStore {
     }
 }
 
+/// The suffixes of the files SQLite and the vector file keep beside a store (`<db>-wal`, ...).
+pub const FILES_BESIDE: [&str; 3] = ["-wal", "-shm", "-vectors"];
+
+/// A read-only connection to the store at `path` ([`read_only_uri`]: immutable where it is at rest).
+fn open_for_reading(path: &Path) -> Result<Connection> {
+    let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX | OpenFlags::SQLITE_OPEN_URI;
+    open_connection(Path::new(&read_only_uri(path)?), flags)
+        .with_context(|| format!("cannot open keyframe database {}", path.display()))
+}
+
 fn open_connection(path: &Path, flags: OpenFlags) -> Result<Connection> {
     let connection = Connection::open_with_flags(path, flags)
         .with_context(|| format!("cannot open keyframe database {}", path.display()))?;
@@ -253,6 +263,7 @@ impl KeyframeStore {
             Ok(_) => bail!("keyframe database {} is not a regular file; give a file path", path.display()),
         };
         if created {
+            refuse_orphaned_log(path)?;
             create_store_file(path, identity)
                 .with_context(|| format!("creating keyframe database {}", path.display()))?;
         }
@@ -280,20 +291,7 @@ impl KeyframeStore {
     /// is opened immutable, which needs no shared-memory file and works on a read-only file system.
     pub fn open_read_only(path: &Path) -> Result<Self> {
         ensure_database_file(path)?;
-        let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX;
-        let mut wal = path.as_os_str().to_owned();
-        wal.push("-wal");
-        let connection = if Path::new(&wal).exists() {
-            open_connection(path, flags)?
-        } else {
-            let text = path.to_str().with_context(|| format!("{} is not a UTF-8 path", path.display()))?;
-            let uri = format!("file:{}?immutable=1", text.replace('%', "%25").replace('?', "%3f").replace('#', "%23"));
-            let c = Connection::open_with_flags(&uri, flags | OpenFlags::SQLITE_OPEN_URI)
-                .with_context(|| format!("cannot open keyframe database {}", path.display()))?;
-            c.busy_timeout(std::time::Duration::from_secs(5))?;
-            c
-        };
-        Self::from_connection(connection, path, false)
+        Self::from_connection(open_for_reading(path)?, path, false)
     }
 
     fn from_connection(connection: Connection, path: &Path, writable: bool) -> Result<Self> {
@@ -789,6 +787,8 @@ impl KeyframeStore {
         let starts =
             (0..len).step_by(rows_per_thread).map(|row| self.seq_at(first + row as u64)).collect::<Result<Vec<_>>>()?;
         let path = self.path.as_path();
+        // A store opened read-only is read so by every thread: nothing is created beside it.
+        let read_only = self.connection.is_readonly(rusqlite::MAIN_DB)?;
         let descriptor_parts =
             descriptors.chunks_mut(rows_per_thread * dim.max(1)).map(Some).chain(std::iter::repeat_with(|| None));
         let parts = ids.chunks_mut(rows_per_thread).zip(stamps.chunks_mut(rows_per_thread)).zip(descriptor_parts);
@@ -798,8 +798,12 @@ impl KeyframeStore {
                 let first_seq = first_seq
                     .with_context(|| format!("keyframe database {}: changed while loading", path.display()))?;
                 workers.push(scope.spawn(move || -> Result<()> {
-                    let connection =
-                        open_connection(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)?;
+                    let connection = match read_only {
+                        true => open_for_reading(path)?,
+                        false => {
+                            open_connection(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)?
+                        }
+                    };
                     if let Some(descriptors) = descriptors.as_deref_mut() {
                         prefault(descriptors);
                     }
@@ -1003,6 +1007,26 @@ fn decode_descriptor_into(blob: &[u8], out: &mut [f32]) {
     }
 }
 
+/// Refuses to create a store at `path` beside a write-ahead log (`-wal`) or shared-memory file (`-shm`)
+/// of that name: left by a database deleted while in use, SQLite would replay the log into the new
+/// file and the new store would start with another's keyframes.
+fn refuse_orphaned_log(path: &Path) -> Result<()> {
+    for suffix in ["-wal", "-shm"] {
+        let mut file = path.as_os_str().to_owned();
+        file.push(suffix);
+        let file = PathBuf::from(file);
+        ensure!(
+            !file.exists(),
+            "{} is there but its keyframe database {} is not (or is empty): a log left by a database that was \
+             deleted, which a new database would take over; remove {0} (and the -wal/-shm beside it) or restore \
+             the database",
+            file.display(),
+            path.display()
+        );
+    }
+    Ok(())
+}
+
 /// Writes an empty store for `identity` next to `path`, then renames it to `path` (and syncs the folder).
 fn create_store_file(path: &Path, identity: &StoreIdentity) -> Result<()> {
     let mut temporary = path.as_os_str().to_owned();
@@ -1093,12 +1117,15 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
             second.display()
         );
     }
-    let path_text =
-        |p: &Path| p.to_str().map(str::to_string).with_context(|| format!("{} is not a UTF-8 path", p.display()));
-    a.connection.execute("ATTACH DATABASE ?1 AS other", [path_text(second)?])?;
+    refuse_orphaned_log(output)?;
+    let inputs = attach_inputs(
+        Connection::open_with_flags(":memory:", OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_URI)?,
+        first,
+        second,
+    )?;
     let clashes: Vec<i64> = {
-        let mut query = a.connection.prepare(
-            "SELECT main.keyframes.id FROM other.keyframes JOIN main.keyframes ON other.keyframes.id + ?1 = main.keyframes.id ORDER BY 1",
+        let mut query = inputs.prepare(
+            "SELECT first.keyframes.id FROM second.keyframes JOIN first.keyframes ON second.keyframes.id + ?1 = first.keyframes.id ORDER BY 1",
         )?;
         let ids = query.query_map([offset], |r| r.get(0))?.collect::<rusqlite::Result<_>>()?;
         ids
@@ -1115,30 +1142,46 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
             a.max_id.map_or(0, |m| m + 1)
         );
     }
+    // Built under a temporary name and renamed into place when complete, so that a merge killed
+    // half-way leaves no database at `output` (an empty one would pass for a map).
+    let mut merging = output.as_os_str().to_owned();
+    merging.push(".merging");
+    let merging = PathBuf::from(merging);
+    let remove_merging = || {
+        for suffix in ["", "-wal", "-shm", "-vectors"] {
+            let mut p = merging.as_os_str().to_owned();
+            p.push(suffix);
+            let _ = std::fs::remove_file(PathBuf::from(p));
+        }
+    };
+    // Left by a merge killed before.
+    remove_merging();
+    drop(inputs);
     let result = (|| -> Result<MergeReport> {
-        let out = KeyframeStore::open_or_create(output, &a.identity)?;
+        let out = KeyframeStore::open_or_create(&merging, &a.identity)?;
         // Only keyframes are merged, not their candidates.
         out.connection.execute("UPDATE meta SET value = 'partial' WHERE key = 'candidates'", [])?;
-        out.connection.execute("ATTACH DATABASE ?1 AS first", [path_text(first)?])?;
-        out.connection.execute("ATTACH DATABASE ?1 AS second", [path_text(second)?])?;
-        out.connection.execute_batch("BEGIN")?;
+        drop(out);
+        let flags = OpenFlags::SQLITE_OPEN_READ_WRITE | OpenFlags::SQLITE_OPEN_URI;
+        let out = attach_inputs(open_connection(&merging, flags)?, first, second)?;
+        out.execute_batch("BEGIN")?;
         let copy =
             "INSERT INTO main.keyframes (id, stamp_nanos, descriptor) SELECT id + ?1, stamp_nanos, descriptor FROM";
-        let from_first = out.connection.execute(&format!("{copy} first.keyframes ORDER BY seq"), [0i64])? as u64;
-        let from_second = out.connection.execute(&format!("{copy} second.keyframes ORDER BY seq"), [offset])? as u64;
+        let from_first = out.execute(&format!("{copy} first.keyframes ORDER BY seq"), [0i64])? as u64;
+        let from_second = out.execute(&format!("{copy} second.keyframes ORDER BY seq"), [offset])? as u64;
         let mut with_local_features = 0;
         for (source, shift) in [("first", 0i64), ("second", offset)] {
             // A store written before these tables existed has none to copy (opened read-only, it
             // was not given them).
             let has = |table: &str| -> rusqlite::Result<bool> {
-                out.connection.query_row(
+                out.query_row(
                     &format!("SELECT count(*) FROM {source}.sqlite_master WHERE type = 'table' AND name = ?1"),
                     [table],
                     |r| r.get::<_, i64>(0).map(|n| n > 0),
                 )
             };
             if has("local_features")? {
-                with_local_features += out.connection.execute(
+                with_local_features += out.execute(
                     &format!(
                         "INSERT INTO main.local_features (id, data) SELECT id + ?1, data FROM {source}.local_features"
                     ),
@@ -1146,7 +1189,7 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
                 )? as u64;
             }
             if has("frames")? {
-                out.connection.execute(
+                out.execute(
                     &format!(
                         "INSERT INTO main.frames (id, frame_id, pose) SELECT id + ?1, frame_id, pose FROM {source}.frames"
                     ),
@@ -1154,19 +1197,52 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
                 )?;
             }
         }
-        out.connection.execute_batch("COMMIT")?;
+        out.execute_batch("COMMIT")?;
+        drop(out);
+        // The vector file filled now, so that the first read-only use (`match --database`) finds it
+        // complete and writes nothing beside the store.
+        KeyframeStore::open_existing(&merging)?.load_db(None)?;
+        for suffix in ["-vectors", ""] {
+            let (mut from, mut to) = (merging.as_os_str().to_owned(), output.as_os_str().to_owned());
+            from.push(suffix);
+            to.push(suffix);
+            if suffix.is_empty() || Path::new(&from).exists() {
+                std::fs::rename(&from, &to).with_context(|| format!("renaming {} into place", Path::new(&from).display()))?;
+            }
+        }
         Ok(MergeReport { from_first, from_second, with_local_features })
     })()
     .with_context(|| format!("merging into {}", output.display()));
     if result.is_err() {
         // Leave no half-written output behind.
-        for suffix in ["", "-wal", "-shm", "-vectors"] {
-            let mut p = output.as_os_str().to_owned();
-            p.push(suffix);
-            let _ = std::fs::remove_file(PathBuf::from(p));
-        }
+        remove_merging();
     }
     result
+}
+
+/// `connection` with the stores `first` and `second` attached under those names, read-only
+/// ([`read_only_uri`]; the connection must take URIs).
+fn attach_inputs(connection: Connection, first: &Path, second: &Path) -> Result<Connection> {
+    for (name, path) in [("first", first), ("second", second)] {
+        connection
+            .execute(&format!("ATTACH DATABASE ?1 AS {name}"), [read_only_uri(path)?])
+            .with_context(|| format!("cannot read keyframe database {}", path.display()))?;
+    }
+    Ok(connection)
+}
+
+/// An SQLite URI that opens the store at `path` for reading (to attach a merge's inputs): immutable
+/// where it is at rest, so that nothing is created beside it and a read-only file system serves;
+/// through its log where it is in use (its `-wal` is there), as [`KeyframeStore::open_read_only`].
+fn read_only_uri(path: &Path) -> Result<String> {
+    let text = path.to_str().with_context(|| format!("{} is not a UTF-8 path", path.display()))?;
+    let mut wal = path.as_os_str().to_owned();
+    wal.push("-wal");
+    let escaped = text.replace('%', "%25").replace('?', "%3f").replace('#', "%23");
+    Ok(match Path::new(&wal).exists() {
+        true => format!("file:{escaped}?mode=ro"),
+        false => format!("file:{escaped}?mode=ro&immutable=1"),
+    })
 }
 
 #[cfg(test)]

@@ -144,6 +144,8 @@ pub fn ensure_not_in_source(output: &Path, sources: &[&Path]) -> Result<()> {
 
 /// Refuses `output` when it is the same file as one of `inputs` (an input that does not exist yet,
 /// or an output that does not, never clashes: [`ensure_writable_outputs`] checks outputs).
+/// A keyframe database's files beside it (its write-ahead log, shared memory and vector file) count
+/// as the input too, whether they are there now or not.
 pub fn ensure_not_an_input(output: &Path, inputs: &[&Path]) -> Result<()> {
     if let Some(input) = inputs.iter().find(|input| same_file(output, input)) {
         bail!(
@@ -152,12 +154,43 @@ pub fn ensure_not_an_input(output: &Path, inputs: &[&Path]) -> Result<()> {
             input.display()
         );
     }
+    for input in inputs.iter().filter(|input| crate::detector::store::is_keyframe_store(input)) {
+        for suffix in crate::detector::store::FILES_BESIDE {
+            let mut beside = input.as_os_str().to_owned();
+            beside.push(suffix);
+            let beside = PathBuf::from(beside);
+            if same_file(output, &beside) || resolved(output).is_some_and(|o| resolved(&beside) == Some(o)) {
+                bail!(
+                    "the output {} is the keyframe database {}'s own {suffix} file; writing it would damage the \
+                     database (choose another output path)",
+                    output.display(),
+                    input.display()
+                );
+            }
+        }
+    }
     Ok(())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_keyframe_databases_files_beside_it_are_inputs_too() {
+        let dir = tempfile::tempdir().unwrap();
+        let db = dir.path().join("k.db");
+        rusqlite::Connection::open(&db).unwrap().execute_batch("CREATE TABLE t (x)").unwrap();
+        for beside in ["k.db-wal", "k.db-shm", "k.db-vectors"] {
+            let err = ensure_not_an_input(&dir.path().join(beside), &[&db]).unwrap_err().to_string();
+            assert!(err.contains("k.db's own") && err.contains(&beside[4..]), "{err}");
+        }
+        ensure_not_an_input(&dir.path().join("k.db-export.csv"), &[&db]).unwrap();
+        // Beside a file that is not a keyframe database, such names are free.
+        let text = dir.path().join("notes.txt");
+        std::fs::write(&text, "x").unwrap();
+        ensure_not_an_input(&dir.path().join("notes.txt-wal"), &[&text]).unwrap();
+    }
 
     #[test]
     fn whole_file_outputs_replace_regular_files_and_write_through_everything_else() {

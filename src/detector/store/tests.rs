@@ -166,6 +166,50 @@ fn merge_keeps_ids_refuses_clashes_and_other_identities() {
     assert!(!out2.exists());
 }
 
+/// A merge writes nothing beside its inputs (they may lie on a read-only disk), leaves no half-made
+/// file, and its output is complete: a read-only load writes nothing beside it either. A store is not
+/// created over a log left by a deleted one.
+#[test]
+fn merge_touches_no_input_and_no_store_takes_over_an_orphaned_log() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b, out) = (dir.path().join("a.db"), dir.path().join("b.db"), dir.path().join("out.db"));
+    drop(store_with(&a, 0..5, 8));
+    drop(store_with(&b, 0..4, 8));
+    let listing = || {
+        let mut names: Vec<String> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    };
+    let before = listing();
+    merge(&a, &b, &out, 100).unwrap();
+    let mut expected = before.clone();
+    expected.extend(["out.db".to_string(), "out.db-vectors".to_string()]);
+    expected.sort();
+    assert_eq!(listing(), expected);
+    let vectors = std::fs::metadata(dir.path().join("out.db-vectors")).unwrap().len();
+    assert_eq!(KeyframeStore::open_read_only(&out).unwrap().load_db(None).unwrap().len(), 9);
+    assert_eq!(listing(), expected, "a read-only load wrote beside the merged store");
+    assert_eq!(std::fs::metadata(dir.path().join("out.db-vectors")).unwrap().len(), vectors);
+
+    // The log of a store deleted while in use is refused, not replayed into a new store.
+    let orphan = dir.path().join("orphan.db");
+    let mut store = KeyframeStore::open_or_create(&orphan, &identity(8)).unwrap();
+    store.append(7, stamp(7), &descriptor(7, 8)).unwrap();
+    std::fs::copy(dir.path().join("orphan.db-wal"), dir.path().join("saved-wal")).unwrap();
+    drop(store);
+    std::fs::remove_file(&orphan).unwrap();
+    std::fs::copy(dir.path().join("saved-wal"), dir.path().join("orphan.db-wal")).unwrap();
+    let err = format!("{:#}", KeyframeStore::open_or_create(&orphan, &identity(8)).unwrap_err());
+    assert!(err.contains("orphan.db-wal is there") && err.contains("remove"), "{err}");
+    assert!(!orphan.exists());
+    let err = format!("{:#}", merge(&a, &b, &orphan, 100).unwrap_err());
+    assert!(err.contains("orphan.db-wal is there"), "{err}");
+    assert!(dir.path().join("orphan.db-wal").exists(), "the refusal removed the log");
+}
+
 /// A merged map verifies as its parts did: each keyframe's local features and frame come with it,
 /// under its new id.
 #[test]
