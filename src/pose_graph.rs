@@ -121,6 +121,8 @@ pub struct PoseGraphResult {
     pub self_loops: usize,
     /// Loops that cannot be a relative pose within this map (not used, [`plausible`]).
     pub implausible_loops: usize,
+    /// Of `loops`, those up to scale (a bearing, not a metric translation).
+    pub loops_up_to_scale: usize,
     pub nodes: usize,
 }
 
@@ -400,7 +402,16 @@ pub fn optimise(
     }
     let loops = tied.iter().zip(&weights).map(|(&(q, m, _), &w)| (q, m, w)).collect();
     let implausible_loops = implausible.len();
-    Ok(PoseGraphResult { trajectory, loops, unmatched_loops, self_loops, implausible_loops, nodes: nodes.len() })
+    let loops_up_to_scale = tied.iter().filter(|(_, _, constraint)| !constraint.metric).count();
+    Ok(PoseGraphResult {
+        trajectory,
+        loops,
+        unmatched_loops,
+        self_loops,
+        implausible_loops,
+        loops_up_to_scale,
+        nodes: nodes.len(),
+    })
 }
 
 #[cfg(test)]

@@ -291,6 +291,15 @@ fn plots_must_be_png_and_empty_sources_and_foreign_databases_are_refused() {
     // A plot in a folder that cannot be made (its parent is a file).
     refused_pose_graph("out.txt", &["--plot", &d("c.csv/p.png")], &["--plot", "cannot create"]);
     refused(&["eval", &d("seq"), "-o", &d("pr.csv"), "--plot", &d("c.csv/x.png")], &["--plot", "cannot create"]);
+    // Candidates of which none gives a loop edge would leave the odometry as it was, unsaid: no
+    // relative pose (not verified), or keyframes stamped in another time base than the odometry.
+    let header = "query_id,query_stamp,match_id,match_stamp,distance,score";
+    std::fs::write(d("c.csv"), format!("{header}\n1,2.0,0,1.0,0.5,0.9\n")).unwrap();
+    refused_pose_graph("out.txt", &[], &["none of the 1 candidates", "1 carry no relative pose"]);
+    let posed = "inliers,qx,qy,qz,qw,tx,ty,tz,metric";
+    std::fs::write(d("c.csv"), format!("{header},{posed}\n1,102.0,0,101.0,0.5,0.9,30,0,0,0,1,1,0,0,1\n")).unwrap();
+    refused_pose_graph("out.txt", &[], &["1 name keyframes with no odometry pose", "101.000000000 to 102.000000000"]);
+    std::fs::write(d("c.csv"), format!("{header}\n")).unwrap();
     assert!(!Path::new(&d("out.txt")).exists() && !Path::new(&d("pr.csv")).exists());
     // Options that only a replayed source uses are refused where they would be ignored.
     refused(&["learn-projection", &d("seq"), "-o", &d("p.safetensors"), "--db", &d("k.db")], &["--db"]);

@@ -83,7 +83,6 @@ pub fn run(args: Args) -> Result<()> {
         None => None,
     };
     let (loops, left_out) = LoopConstraint::from_candidates(&candidates, args.metric_only);
-    let up_to_scale = loops.iter().filter(|l| !l.metric).count();
     if left_out > 0 {
         let pose = if args.metric_only { "metric relative pose (no depth" } else { "relative pose (not verified" };
         log::warn!("{left_out} of {} candidates have no {pose}, or no intrinsics) and are not used", candidates.len());
@@ -96,7 +95,8 @@ pub fn run(args: Args) -> Result<()> {
         ..PoseGraphParams::default()
     };
     let started = std::time::Instant::now();
-    let result = optimise(&odometry, &loops, &params)?;
+    let result =
+        optimise(&odometry, &loops, &params).with_context(|| format!("the odometry {}", args.odometry.display()))?;
     let seconds = started.elapsed().as_secs_f64();
     if result.unmatched_loops > 0 {
         log::warn!(
@@ -119,14 +119,37 @@ pub fn run(args: Args) -> Result<()> {
             result.implausible_loops
         );
     }
+    if !candidates.is_empty() && result.loops.is_empty() {
+        let stamps = |poses: &[(ecm_lcd::types::Stamp, _)]| format!("{} to {}", poses[0].0, poses[poses.len() - 1].0);
+        let mut candidate_stamps: Vec<_> = candidates.iter().flat_map(|c| [c.query_stamp, c.match_stamp]).collect();
+        candidate_stamps.sort();
+        bail!(
+            "none of the {} candidates in {} gives a loop edge, so nothing would be corrected: {left_out} carry no \
+             {}, {} name keyframes with no odometry pose within {} s (the odometry runs from {}, the candidates' \
+             keyframes from {} to {}: stamps in another time base?), {} tie both keyframes to one pose, {} are \
+             implausible",
+            candidates.len(),
+            args.candidates.display(),
+            if args.metric_only { "metric relative pose" } else { "relative pose (replay with camera intrinsics)" },
+            result.unmatched_loops,
+            params.max_stamp_offset_s,
+            stamps(&odometry),
+            candidate_stamps[0],
+            candidate_stamps[candidate_stamps.len() - 1],
+            result.self_loops,
+            result.implausible_loops
+        );
+    }
     let kept = result.loops.iter().filter(|&&(_, _, w)| w >= 0.5).count();
-    // Everything that can fail is done before the outputs are written.
+    // Everything that can fail is done before the outputs are written; the corrected trajectory,
+    // the main output, is written first, so that a failing -o leaves no plot of it.
     let errors = match &groundtruth {
         Some(truth) => {
             Some((absolute_trajectory_error(&odometry, truth)?, absolute_trajectory_error(&result.trajectory, truth)?))
         }
         None => None,
     };
+    write_trajectory(&args.output, &result.trajectory)?;
     if let Some(path) = &args.plot {
         let positions = |poses: &[(ecm_lcd::types::Stamp, nalgebra::Isometry3<f64>)],
                          alignment: nalgebra::Isometry3<f64>|
@@ -156,7 +179,6 @@ pub fn run(args: Args) -> Result<()> {
             path,
         )?;
     }
-    write_trajectory(&args.output, &result.trajectory)?;
     if args.json {
         let summary = serde_json::json!({
             "poses": result.trajectory.len(),
@@ -164,7 +186,7 @@ pub fn run(args: Args) -> Result<()> {
             "candidates": candidates.len(),
             "loops": result.loops.len(),
             "loops_kept": kept,
-            "loops_up_to_scale": up_to_scale,
+            "loops_up_to_scale": result.loops_up_to_scale,
             "loops_not_used": left_out,
             "loops_unmatched": result.unmatched_loops,
             "loops_implausible": result.implausible_loops,
@@ -176,11 +198,12 @@ pub fn run(args: Args) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {
         println!(
-            "{} poses, {} nodes, {} loop edges ({up_to_scale} up to scale; {kept} kept by the robust kernel), {:.2} s; \
+            "{} poses, {} nodes, {} loop edges ({} up to scale; {kept} kept by the robust kernel), {:.2} s; \
              corrected trajectory in {}",
             result.trajectory.len(),
             result.nodes,
             result.loops.len(),
+            result.loops_up_to_scale,
             seconds,
             args.output.display()
         );

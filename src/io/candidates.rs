@@ -175,7 +175,8 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
     // Comment lines (`#`, as in TUM files) are read as blank lines, which the reader skips but counts.
     let text: Vec<&str> = text.lines().map(|l| if l.trim_start().starts_with('#') { "" } else { l }).collect();
     let text = text.join("\n");
-    let mut reader = csv::ReaderBuilder::new().has_headers(true).from_reader(text.as_bytes());
+    // Spaces around fields (`a, b`, as a spreadsheet or a hand edit writes them) are not part of them.
+    let mut reader = csv::ReaderBuilder::new().has_headers(true).trim(csv::Trim::All).from_reader(text.as_bytes());
     let header = reader.headers().with_context(|| format!("{}: no header line", path.display()))?.clone();
     let column = |name: &str| header.iter().position(|h| h == name);
     let required = |name: &str| {
@@ -185,11 +186,24 @@ pub fn read_candidates_csv(path: &Path) -> Result<Vec<LoopCandidate>> {
         ["query_id", "query_stamp", "match_id", "match_stamp", "distance", "score"].map(required);
     let (query_id, query_stamp, match_id, match_stamp, distance, score) =
         (query_id?, query_stamp?, match_id?, match_stamp?, distance?, score?);
-    let pose_columns: Option<Vec<usize>> =
-        ["inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz"].iter().map(|n| column(n)).collect();
+    // A group of columns is there in whole or not at all (a file from before it): one column of it
+    // missing would drop every relative pose without a word.
+    let whole_group = |names: &[String], what: &str| -> Result<Option<Vec<usize>>> {
+        let found: Vec<Option<usize>> = names.iter().map(|n| column(n)).collect();
+        if found.iter().all(Option::is_none) {
+            return Ok(None);
+        }
+        let missing: Vec<&str> =
+            names.iter().zip(&found).filter(|(_, f)| f.is_none()).map(|(n, _)| n.as_str()).collect();
+        ensure!(missing.is_empty(), "{}: the {what} columns lack `{}`", path.display(), missing.join("`, `"));
+        Ok(Some(found.into_iter().flatten().collect()))
+    };
+    let pose_names = ["inliers", "qx", "qy", "qz", "qw", "tx", "ty", "tz"].map(str::to_string);
+    let pose_columns = whole_group(&pose_names, "relative pose")?;
     let metric = column("metric");
-    let covariance_columns: Option<Vec<(usize, usize, usize)>> =
-        covariance_columns().map(|(name, row, col)| column(&name).map(|i| (i, row, col))).collect();
+    let covariance_names: Vec<String> = covariance_columns().map(|(name, _, _)| name).collect();
+    let covariance_columns: Option<Vec<(usize, usize, usize)>> = whole_group(&covariance_names, "covariance")?
+        .map(|found| found.into_iter().zip(covariance_columns()).map(|(i, (_, row, col))| (i, row, col)).collect());
     let mut candidates: Vec<LoopCandidate> = Vec::new();
     // The file's own line numbers: the reader skips empty lines (and the comments, blanked), and its
     // own count of lines does not hold across them. A record is one line in these files (no quoted
@@ -359,5 +373,16 @@ mod tests {
         std::fs::write(&path, format!("{header}\n\n{good}\n1,2\n")).unwrap();
         let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
         assert!(err.contains("c.csv:4: malformed"), "{err}");
+        // Spaces after the commas are no part of the fields.
+        std::fs::write(&path, format!("{}\n{}\n", header.replace(',', ", "), good.replace(',', ", "))).unwrap();
+        let read = read_candidates_csv(&path).unwrap();
+        assert_eq!(read[0].verified.map(|v| v.inliers), Some(30));
+        // One pose column missing loses every pose: refused, naming it.
+        let without_tz = |line: &str| {
+            line.split(',').enumerate().filter(|(i, _)| *i != 13).map(|(_, f)| f).collect::<Vec<_>>().join(",")
+        };
+        std::fs::write(&path, format!("{}\n{}\n", without_tz(&header), without_tz(good))).unwrap();
+        let err = format!("{:#}", read_candidates_csv(&path).unwrap_err());
+        assert!(err.contains("c.csv: the relative pose columns lack `tz`"), "{err}");
     }
 }

@@ -442,9 +442,10 @@ fn write_trajectory_line(text: &mut String, stamp: Stamp, pose: &Isometry3<f64>)
     let _ = writeln!(text, "{} {} {} {} {} {} {} {}", tum_stamp(stamp), t.x, t.y, t.z, q.i, q.j, q.k, q.w);
 }
 
-/// `sec.micros`, as TUM files print stamps.
+/// `sec.micros`, as TUM files print stamps; `sec.nanos` for a stamp that is not whole microseconds
+/// (a ROS header's), so that it joins its frame's exactly.
 fn tum_stamp(stamp: Stamp) -> String {
-    stamp.to_decimal(6)
+    stamp.to_decimal(if stamp.nanos % 1000 == 0 { 6 } else { 9 })
 }
 
 /// A tracker's trajectory (TUM format, camera-to-world) looked up by frame stamp: each frame takes
@@ -537,6 +538,14 @@ mod tests {
         assert!((poses[2].1.translation.vector - pose.translation.vector).norm() < 1e-9);
         assert!(poses[2].1.rotation.angle_to(&pose.rotation) < 1e-8);
         assert!(frames.iter().all(|f| f.depth.is_none()), "no depth.txt, no depth");
+        // A trajectory at a ROS header's nanosecond stamps keeps them, and whole microseconds keep
+        // TUM's six decimals.
+        let nanos = [Stamp::from_sec_nsec(1_600_000_000, 789), Stamp::from_sec_nsec(1_600_000_000, 500_000_000)];
+        let path = dir.path().join("corrected.txt");
+        write_trajectory(&path, &nanos.map(|stamp| (stamp, pose))).unwrap();
+        let read: Vec<Stamp> = read_groundtruth(&path).unwrap().iter().map(|(stamp, _)| *stamp).collect();
+        assert_eq!(read, nanos);
+        assert!(std::fs::read_to_string(&path).unwrap().contains("\n1600000000.500000 "));
     }
 
     #[test]
