@@ -85,6 +85,8 @@ pub fn run(args: Args) -> Result<()> {
             Ok(())
         }
         DbCommand::Merge { first, second, output, offset } => {
+            // The output may name a new folder, as every other output may.
+            ecm_lcd::io::output::create_folder_of(&output)?;
             let report = store::merge(&first, &second, &output, offset)?;
             eprintln!(
                 "{} keyframes from {} and {} from {} written to {} ({} with local features for verification)",

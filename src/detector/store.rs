@@ -300,7 +300,7 @@ impl KeyframeStore {
             // WAL and FULL: see the module doc. journal_mode is stored in the file; synchronous is per connection.
             connection
                 .query_row("PRAGMA journal_mode = WAL", [], |r| r.get::<_, String>(0))
-                .with_context(|| format!("{} is not a keyframe database", path.display()))?;
+                .with_context(|| format!("{} is not a keyframe database (or is damaged)", path.display()))?;
             connection.pragma_update(None, "synchronous", "FULL").with_context(context)?;
             // Stores made before candidates (or local features) were stored get the table (and keep
             // no `all` mark).
@@ -317,7 +317,7 @@ impl KeyframeStore {
             connection
                 .query_row("SELECT value FROM meta WHERE key = ?1", [key], |r| r.get::<_, String>(0))
                 .optional()
-                .with_context(|| format!("{} is not a keyframe database", path.display()))?
+                .with_context(|| format!("{} is not a keyframe database (or is damaged)", path.display()))?
                 .with_context(|| format!("{}: no `{key}` entry in its meta table", context()))
         };
         let format = meta("format")?;
@@ -1109,7 +1109,8 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
     let b = KeyframeStore::open_read_only(second)?;
     a.identity.check_same(&format!("{}", first.display()), &b.identity, &format!("{}", second.display()))?;
     ensure!(!output.exists(), "{} already exists; merge writes a new database", output.display());
-    let offset = to_sql_id(second_id_offset)?;
+    let offset = i64::try_from(second_id_offset)
+        .map_err(|_| anyhow::anyhow!("the id offset {second_id_offset} is too large (at most {})", i64::MAX))?;
     if let Some(max) = b.max_id {
         ensure!(
             max.checked_add(second_id_offset).is_some_and(|m| m <= i64::MAX as u64),
@@ -1236,6 +1237,11 @@ fn attach_inputs(connection: Connection, first: &Path, second: &Path) -> Result<
 /// through its log where it is in use (its `-wal` is there), as [`KeyframeStore::open_read_only`].
 fn read_only_uri(path: &Path) -> Result<String> {
     let text = path.to_str().with_context(|| format!("{} is not a UTF-8 path", path.display()))?;
+    // `file://x/...` would name a host `x`: a path starting `//` is the path starting `/`.
+    let text = match text.starts_with("//") {
+        true => format!("/{}", text.trim_start_matches('/')),
+        false => text.to_string(),
+    };
     let mut wal = path.as_os_str().to_owned();
     wal.push("-wal");
     let escaped = text.replace('%', "%25").replace('?', "%3f").replace('#', "%23");

@@ -208,6 +208,11 @@ fn merge_touches_no_input_and_no_store_takes_over_an_orphaned_log() {
     let err = format!("{:#}", merge(&a, &b, &orphan, 100).unwrap_err());
     assert!(err.contains("orphan.db-wal is there"), "{err}");
     assert!(dir.path().join("orphan.db-wal").exists(), "the refusal removed the log");
+    // A path written with a doubled leading slash is the same path, not a URI's host.
+    let doubled = PathBuf::from(format!("/{}", out.display()));
+    assert_eq!(KeyframeStore::open_read_only(&doubled).unwrap().len(), 9);
+    let err = format!("{:#}", merge(&a, &b, &dir.path().join("big.db"), u64::MAX).unwrap_err());
+    assert!(err.contains("the id offset 18446744073709551615 is too large"), "{err}");
 }
 
 /// A merged map verifies as its parts did: each keyframe's local features and frame come with it,
