@@ -414,6 +414,24 @@ fn a_database_refuses_to_continue_another_source() {
     }
     // The same source again is fine.
     assert!(run(&a).status.success());
+    // Where the frame of the newest stored keyframe cannot be read now, its stamp still tells
+    // another source apart, and the same source goes on with a warning.
+    let newest = *stored_ids(&db).last().unwrap() as usize;
+    for source in [&a, &other_stamps] {
+        let mut images: Vec<PathBuf> =
+            std::fs::read_dir(Path::new(source).join("rgb")).unwrap().map(|e| e.unwrap().path()).collect();
+        images.sort();
+        std::fs::write(&images[newest], b"cut").unwrap();
+    }
+    let out = run(&other_stamps);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("built from another source") && err.contains("(unreadable)"),
+        "{err}"
+    );
+    let out = run(&a);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains(&format!("frame {newest}, the keyframe database's newest")), "{err}");
 }
 
 /// A two-lap synthetic sequence (240 frames at 5 Hz, seed 5) written into a folder, its frames, and
