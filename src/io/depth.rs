@@ -34,13 +34,28 @@ pub const MAX_HELD_FRAMES: usize = 64;
 /// Millimetres per metre in `16UC1` depth images.
 const UNITS_PER_METRE_16UC1: f32 = 1000.0;
 
+/// A depth topic whose images are in an encoding that is no depth: a topic chosen wrongly (a colour
+/// topic), which ends the replay, where one depth image that does not decode is passed over.
+#[derive(Debug, thiserror::Error)]
+#[error("unsupported depth encoding {0:?} (supported: 16UC1 in millimetres, 32FC1 in metres)")]
+pub struct UnsupportedDepthEncoding(pub String);
+
+/// A depth message of a bag that does not decode: [`BagMessage::UnreadableDepth`], or the error
+/// itself where its encoding is no depth encoding ([`UnsupportedDepthEncoding`]).
+pub(crate) fn unreadable_depth(error: anyhow::Error) -> Result<BagMessage> {
+    match error.downcast_ref::<UnsupportedDepthEncoding>() {
+        Some(_) => Err(error),
+        None => Ok(BagMessage::UnreadableDepth(error)),
+    }
+}
+
 /// Decodes a depth `sensor_msgs/Image` (module doc) to metres.
 pub fn depth_from_image(msg: &Image) -> Result<DepthImage> {
     let encoding = msg.encoding.as_str();
     let bytes_per_pixel = match encoding {
         "16UC1" | "mono16" => 2,
         "32FC1" => 4,
-        _ => bail!("unsupported depth encoding {encoding:?} (supported: 16UC1 in millimetres, 32FC1 in metres)"),
+        _ => return Err(UnsupportedDepthEncoding(encoding.to_string()).into()),
     };
     let (row_bytes, step) = checked_layout(msg, bytes_per_pixel, &format!("{encoding} depth image"))?;
     let (width, height) = (msg.width as usize, msg.height as usize);

@@ -20,7 +20,7 @@ use std::fs::File;
 use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
-use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
+use super::depth::{depth_message, describe_topics, unreadable_depth, BagMessage, MessageSource};
 use super::image_msg::{camera_info_from_ros1, encode_image, ImageKind, ImageMessage, WireEncoding};
 use super::{
     camera_info_topic, choose_topics, intrinsics_from_camera_info, unreadable_frame, SourceIntrinsics, TopicInfo,
@@ -513,7 +513,7 @@ impl Ros1BagSource {
             let depth = ImageMessage::from_ros1(ImageKind::Raw, bytes)
                 .and_then(|msg| depth_message(&msg))
                 .with_context(|| format!("ROS 1 bag {}: {} (depth, sensor_msgs/Image)", self.path.display(), at()));
-            return Ok(depth.unwrap_or_else(BagMessage::UnreadableDepth));
+            return depth.or_else(unreadable_depth);
         }
         // The record was read: only this image is unreadable, and the messages after it are read.
         let decoded = ImageMessage::from_ros1(self.kind, bytes);

@@ -15,7 +15,7 @@ use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
-use super::depth::{depth_message, describe_topics, BagMessage, MessageSource};
+use super::depth::{depth_message, describe_topics, unreadable_depth, BagMessage, MessageSource};
 use super::image_msg::{camera_info_from_cdr, encode_image, ImageKind, ImageMessage, WireEncoding};
 use super::{
     camera_info_topic, choose_topics, context_unless_unreadable, intrinsics_from_camera_info, unreadable_frame,
@@ -36,9 +36,7 @@ fn cdr_message(
 ) -> Result<BagMessage> {
     if is_depth {
         let depth = ImageMessage::from_cdr(ImageKind::Raw, payload).and_then(|m| depth_message(&m));
-        return Ok(depth
-            .with_context(|| format!("{} (depth topic)", at()))
-            .unwrap_or_else(BagMessage::UnreadableDepth));
+        return depth.with_context(|| format!("{} (depth topic)", at())).or_else(unreadable_depth);
     }
     // from_cdr names the message type and size.
     let decoded = ImageMessage::from_cdr(kind, payload);
