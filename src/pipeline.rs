@@ -237,6 +237,15 @@ impl Pipeline {
                     descriptor.mode != DescriptorMode::Paper,
                     "the paper descriptor is the reproduction: it takes no projection"
                 );
+                let network =
+                    crate::descriptor::projection::network_name(params.arch(), &weights.sha256, params.input_size());
+                if let Some(learned_on) = projection.network.as_ref().filter(|learned_on| **learned_on != network) {
+                    anyhow::bail!(
+                        "projection {} was learned on another network's descriptors ({learned_on}); this pipeline's \
+                         is {network}: learn one for it (ecm-lcd learn-projection with the same --weights and params)",
+                        path.display()
+                    );
+                }
                 descriptor.projected_dim = Some(projection.out_dim());
                 Some(projection)
             }
@@ -319,6 +328,11 @@ impl Pipeline {
     }
 
     /// What this pipeline's descriptors depend on (a store must match it).
+    /// The network whose descriptors this pipeline computes ([`crate::descriptor::projection::network_name`]).
+    pub fn network_name(&self) -> String {
+        crate::descriptor::projection::network_name(self.params.arch(), &self.weights.sha256, self.params.input_size())
+    }
+
     pub fn store_identity(&self) -> StoreIdentity {
         StoreIdentity {
             weights_sha256: self.weights.sha256.clone(),

@@ -894,4 +894,7 @@ fn a_learned_projection_shrinks_descriptors_and_names_itself_in_the_store() {
     assert!(distance(&a, &b) < distance(&a, &far), "{} vs {}", distance(&a, &b), distance(&a, &far));
     let err = format!("{:#}", with(&[("descriptor.projection", path), ("descriptor.tap", "blocks.13")]).err().unwrap());
     assert!(err.contains("regional-3x3-mac@blocks.16") && err.contains("blocks.13"), "{err}");
+    // The same descriptor of another input size (or network) has other values.
+    let err = format!("{:#}", with(&[("descriptor.projection", path), ("input_size", "192")]).err().unwrap());
+    assert!(err.contains("learned on another network's descriptors") && err.contains("input 224"), "{err}");
 }

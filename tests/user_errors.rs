@@ -195,6 +195,24 @@ fn numbers_far_out_of_range_are_refused_at_once() {
     refused(&["--threads", "100000", "classify", image], &["100000", "--threads"]);
     refused(&["--threads", "0", "classify", image], &["--threads"]);
     refused(&["train", "--data", image, "-o", "x.safetensors", "--target-accuracy", "90"], &["'90'", "(0, 1]"]);
+    // Values no schedule can use: they used to crash the batch loader into an epoch of no steps
+    // reported as done, or to train to a loss of 0.
+    refused(
+        &["train", "--data", image, "-o", "x.safetensors", "--colour-jitter", "inf"],
+        &["--colour-jitter", "[0, 1]"],
+    );
+    refused(&["distill", "--data", image, "-o", "x.safetensors", "--lr", "0"], &["--lr must be positive"]);
+    refused(&["train-place", image, "-o", "x.safetensors", "--margin=-5"], &["--margin must be in (0, 4]"]);
+    // A run's weights never replace the weights it starts from.
+    let dir = tempfile::tempdir().unwrap();
+    let tflite = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/models/mobilenet_v2_1.0_224_quant.tflite");
+    let own = dir.path().join("teacher.tflite");
+    std::fs::copy(&tflite, &own).unwrap();
+    let own = own.to_str().unwrap();
+    refused(&["distill", "--teacher", own, "--data", image, "-o", own], &["destroy"]);
+    refused(&["train", "--init", own, "--data", image, "-o", own], &["destroy"]);
+    refused(&["train-place", image, "--init", own, "-o", own], &["destroy"]);
+    assert_eq!(std::fs::read(own).unwrap(), std::fs::read(&tflite).unwrap());
     #[cfg(unix)]
     refused(&["embed", image, "-o", "/dev/full"], &["cannot write /dev/full"]);
     #[cfg(unix)]

@@ -63,6 +63,15 @@ pub fn run(args: Args) -> Result<()> {
     } else {
         resolve::load_file(std::path::Path::new(&args.teacher))?
     };
+    ecm_lcd::io::output::ensure_not_an_input(&args.out, &[&teacher.path])?;
+    // The student learns MobileNetV2's descriptor; another network's (a student of an earlier run,
+    // through --teacher or $ECM_LCD_WEIGHTS) would teach it something else under that name.
+    anyhow::ensure!(
+        teacher.weights.arch == ecm_lcd::model::Arch::MobileNetV2,
+        "the teacher {} is {}, not MobileNetV2: distillation teaches MobileNetV2's descriptor",
+        teacher.path.display(),
+        teacher.weights.arch
+    );
     let config = DistillConfig {
         data: args.data,
         size: args.size,

@@ -39,6 +39,7 @@ pub fn run(args: Args) -> Result<()> {
     let inputs: Vec<&std::path::Path> = args.sources.iter().map(PathBuf::as_path).collect();
     args.source_args.refuse_source_only("learn-projection (it reads only images)")?;
     ecm_lcd::io::output::ensure_not_an_input(&args.output, &inputs)?;
+    ecm_lcd::io::output::ensure_not_in_source(&args.output, &inputs)?;
     ecm_lcd::io::output::ensure_writable_outputs(&[("-o", &args.output)])?;
     let mut params = args.source_args.params()?;
     // Learned on the descriptor itself, never on a projection of it.
@@ -66,6 +67,7 @@ pub fn run(args: Args) -> Result<()> {
     );
     let started = std::time::Instant::now();
     let mut projection = Projection::learn(&samples, args.dims as usize, args.whiten, &name)?;
+    projection.network = Some(pipeline.network_name());
     projection.save(&args.output)?;
     println!(
         "learned {} -> {} dimensions{} from {} frames in {:.1} s; wrote {} (use --param descriptor.projection={})",

@@ -99,6 +99,9 @@ pub fn run(args: Args) -> Result<()> {
             _ => bail!("--classes '{n}' is neither 'auto' nor a number of at least 2"),
         },
     };
+    // The run's weights must not replace those it starts from.
+    let inputs: Vec<&std::path::Path> = args.init.iter().map(PathBuf::as_path).collect();
+    ecm_lcd::io::output::ensure_not_an_input(&args.out, &inputs)?;
     let hyper = Hyper {
         size: args.size,
         opt: Optimisation {

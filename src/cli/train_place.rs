@@ -76,6 +76,9 @@ pub fn run(args: Args) -> Result<()> {
     check_device(&args.device)?;
     let params = super::replay::params_from(args.config.as_deref(), &args.params)?;
     let init = resolve::resolve(args.init.as_deref())?;
+    let sources: Vec<&std::path::Path> = args.data.iter().map(PathBuf::as_path).collect();
+    ecm_lcd::io::output::ensure_not_an_input(&args.out, &[&[init.path.as_path()], &sources[..]].concat())?;
+    ecm_lcd::io::output::ensure_not_in_source(&args.out, &sources)?;
     let descriptor = params.descriptor()?;
     let tap = params.tap()?;
     let config = PlaceConfig {

@@ -14,7 +14,7 @@
 //! descriptor it applies to (`descriptor`, e.g. `regional-3x3-mac@blocks.16`) and `whitened`. The
 //! file's SHA-256 is part of the keyframe database's identity ([`Projection::identity`]).
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
 use anyhow::{bail, ensure, Context, Result};
@@ -34,6 +34,9 @@ pub struct Projection {
     pub whitened: bool,
     /// The descriptor (name, tap included) the projection was learned on and applies to.
     pub descriptor: String,
+    /// The network whose descriptors it was learned on ([`network_name`]; `None` in files from
+    /// before it was recorded): another network's descriptors of the same name are other values.
+    pub network: Option<String>,
     /// SHA-256 of the saved file (hex), empty until saved or loaded.
     pub sha256: String,
 }
@@ -101,6 +104,7 @@ impl Projection {
             rows,
             whitened: whiten,
             descriptor: descriptor.to_string(),
+            network: None,
             sha256: String::new(),
         })
     }
@@ -150,10 +154,15 @@ impl Projection {
                 )?,
             ),
         ];
-        let metadata = HashMap::from([
-            ("descriptor".to_string(), self.descriptor.clone()),
-            ("whitened".to_string(), self.whitened.to_string()),
-        ]);
+        // One entry holding the fields as sorted JSON: safetensors writes its metadata map in hash
+        // order, which differs from run to run, and the file's SHA-256 is part of a keyframe
+        // database's identity, so the same projection must always give the same bytes.
+        let mut fields =
+            BTreeMap::from([("descriptor", self.descriptor.clone()), ("whitened", self.whitened.to_string())]);
+        if let Some(network) = &self.network {
+            fields.insert("network", network.clone());
+        }
+        let metadata = HashMap::from([(METADATA_KEY.to_string(), serde_json::to_string(&fields)?)]);
         let bytes = safetensors::serialize(tensors, Some(metadata)).context("serialising the projection")?;
         crate::io::output::write_replacing(path, &bytes)?;
         self.sha256 = hex(&Sha256::digest(&bytes));
@@ -166,7 +175,14 @@ impl Projection {
         let context = || format!("{} is not a descriptor projection (safetensors with mean and rows)", path.display());
         let (_, header) = safetensors::SafeTensors::read_metadata(&bytes).with_context(context)?;
         let tensors = safetensors::SafeTensors::deserialize(&bytes).with_context(context)?;
-        let metadata = header.metadata().clone().unwrap_or_default();
+        let mut metadata = header.metadata().clone().unwrap_or_default();
+        // Files from before the fields were one JSON entry hold them as entries of their own.
+        if let Some(fields) = metadata.get(METADATA_KEY) {
+            let fields: HashMap<String, String> = serde_json::from_str(fields)
+                .with_context(|| format!("{}: its `{METADATA_KEY}` metadata is not JSON", path.display()))?;
+            metadata.extend(fields);
+        }
+        let network = metadata.get("network").cloned();
         let Some(descriptor) = metadata.get("descriptor").cloned() else {
             bail!("{}: no `descriptor` in its metadata", path.display())
         };
@@ -187,8 +203,17 @@ impl Projection {
             path.display()
         );
         let rows = flat.chunks_exact(rows_shape[1]).map(<[f32]>::to_vec).collect();
-        Ok(Projection { mean, rows, whitened, descriptor, sha256: hex(&Sha256::digest(&bytes)) })
+        Ok(Projection { mean, rows, whitened, descriptor, network, sha256: hex(&Sha256::digest(&bytes)) })
     }
+}
+
+/// The metadata entry of a projection file.
+const METADATA_KEY: &str = "ecm_lcd_projection";
+
+/// What tells networks apart for a projection: the architecture, the weights' SHA-256 and the input
+/// size, which all change the descriptors' values.
+pub fn network_name(arch: &str, weights_sha256: &str, input_size: usize) -> String {
+    format!("{arch}, weights sha256 {weights_sha256}, input {input_size}")
 }
 
 fn hex(bytes: &[u8]) -> String {
@@ -283,9 +308,16 @@ mod tests {
         assert!(v0 > 0.5 && v0 < 1.0 && v1 > 0.5 && v1 < 1.0, "whitened variances {v0}, {v1}");
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("p.safetensors");
+        projection.network = Some(network_name("mobilenetv2", "ab", 224));
         projection.save(&path).unwrap();
         let loaded = Projection::load(&path).unwrap();
         assert_eq!(loaded, projection);
+        // The same projection always gives the same bytes (its hash is part of a database's identity).
+        let bytes = std::fs::read(&path).unwrap();
+        for _ in 0..8 {
+            projection.save(&path).unwrap();
+            assert_eq!(std::fs::read(&path).unwrap(), bytes);
+        }
         assert!(loaded.identity().starts_with("+pca2w:") && loaded.identity().len() == "+pca2w:".len() + 12);
         std::fs::write(&path, b"not a projection").unwrap();
         assert!(format!("{:#}", Projection::load(&path).unwrap_err()).contains("p.safetensors"));

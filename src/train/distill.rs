@@ -129,6 +129,7 @@ pub fn distill(teacher: &Weights, teacher_name: &str, config: &DistillConfig) ->
     let report_path = super::report_beside(&config.out)?;
     check_input_size(config.size)?;
     ensure!(config.opt.batch >= 2, "batch size {} is below 2", config.opt.batch);
+    config.opt.check()?;
     ensure!(
         (0.0..1.0).contains(&config.val_fraction) && config.val_fraction > 0.0,
         "--val-fraction {} is not in (0, 1)",

@@ -89,6 +89,36 @@ pub struct Optimisation {
 }
 
 impl Optimisation {
+    /// Refuses values no schedule can use (they used to train to a loss of 0, or crash the loader
+    /// into an epoch of no steps that was reported as done).
+    pub fn check(&self) -> Result<()> {
+        ensure!(self.epochs >= 1, "--epochs must be at least 1");
+        ensure!(self.lr.is_finite() && self.lr > 0.0, "--lr must be positive and finite, got {}", self.lr);
+        ensure!((0.0..1.0).contains(&self.momentum), "--momentum must be in [0, 1), got {}", self.momentum);
+        ensure!(
+            self.weight_decay.is_finite() && self.weight_decay >= 0.0,
+            "--weight-decay must be finite and not negative, got {}",
+            self.weight_decay
+        );
+        ensure!(
+            self.warmup_epochs.is_finite() && self.warmup_epochs >= 0.0,
+            "--warmup-epochs must be finite and not negative, got {}",
+            self.warmup_epochs
+        );
+        let augment = &self.augment;
+        ensure!(
+            augment.min_crop_area > 0.0 && augment.min_crop_area <= 1.0,
+            "--min-crop-area must be in (0, 1], got {}",
+            augment.min_crop_area
+        );
+        ensure!(
+            (0.0..=1.0).contains(&augment.colour_jitter),
+            "--colour-jitter must be in [0, 1], got {}",
+            augment.colour_jitter
+        );
+        Ok(())
+    }
+
     /// Steps in an epoch of `images` (a last batch of one image is dropped: BatchNorm needs two).
     pub fn steps_per_epoch(&self, images: usize) -> usize {
         images / self.batch + usize::from(images % self.batch >= 2)
@@ -506,8 +536,12 @@ pub struct RunFiles {
 
 impl RunFiles {
     pub fn new(out: &Path) -> Self {
-        let stem = out.with_extension("");
-        let with = |suffix: &str| PathBuf::from(format!("{}{suffix}", stem.display()));
+        let stem = weights_stem(out);
+        let with = |suffix: &str| {
+            let mut path = stem.as_os_str().to_owned();
+            path.push(suffix);
+            PathBuf::from(path)
+        };
         RunFiles {
             best: out.to_path_buf(),
             last: with(".last.safetensors"),
@@ -605,7 +639,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
     };
     check_input_size(hyper.size)?;
     ensure!(hyper.opt.batch >= 2, "batch size {} is below 2 (BatchNorm needs two images)", hyper.opt.batch);
-    ensure!(hyper.opt.epochs >= 1, "--epochs must be at least 1");
+    hyper.opt.check()?;
     let folder = ImageFolder::open(&config.data, hyper.opt.seed, config.val_fraction)?;
     if let Some(k) = config.classes {
         ensure!(
@@ -802,9 +836,21 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
 /// can be written ([`crate::io::output::ensure_writable_outputs`]; `-o x.json` would be replaced by
 /// its own report).
 pub fn report_beside(out: &Path) -> Result<PathBuf> {
-    let json = out.with_extension("json");
+    let mut json = weights_stem(out).into_os_string();
+    json.push(".json");
+    let json = PathBuf::from(json);
     crate::io::output::ensure_writable_outputs(&[("-o", out), ("the report", &json)])?;
     Ok(json)
+}
+
+/// `out` less a `.safetensors` extension, the name a run's other files are made from: any other dot
+/// is part of the name (`-o lr0.001` and `-o lr0.003` are two runs, with `lr0.001.json` and
+/// `lr0.003.json`).
+fn weights_stem(out: &Path) -> PathBuf {
+    match out.to_str().and_then(|text| text.strip_suffix(".safetensors")) {
+        Some(stem) => PathBuf::from(stem),
+        None => out.to_path_buf(),
+    }
 }
 
 /// Writes `value` as pretty JSON to `path`.

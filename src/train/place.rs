@@ -240,7 +240,12 @@ pub fn train_place(
     let report_path = super::report_beside(&config.out)?;
     check_input_size(config.size)?;
     ensure!(config.opt.batch >= 1, "--batch (anchors per step) must be at least 1");
-    ensure!(config.opt.epochs >= 1, "--epochs must be at least 1");
+    config.opt.check()?;
+    ensure!(
+        config.margin > 0.0 && config.margin <= 4.0,
+        "--margin must be in (0, 4] (squared distances of unit descriptors), got {}",
+        config.margin
+    );
     ensure!(!config.data.is_empty(), "no training sequences");
     let mut tensors = training_form(&init.for_arch(config.arch)?.tensors)?;
     tensors.retain(|n, _| !n.starts_with("classifier."));

@@ -386,3 +386,21 @@ fn profile_training_step() -> Result<()> {
     }
     Ok(())
 }
+
+/// `-o lr0.001` and `-o lr0.003` are two runs: only a `.safetensors` extension is left out of the
+/// names of a run's other files.
+#[test]
+fn a_dot_in_the_output_name_is_part_of_the_run_name() {
+    let files = RunFiles::new(std::path::Path::new("runs/lr0.001"));
+    assert_eq!(files.json, std::path::Path::new("runs/lr0.001.json"));
+    assert_eq!(files.last, std::path::Path::new("runs/lr0.001.last.safetensors"));
+    let files = RunFiles::new(std::path::Path::new("runs/best.safetensors"));
+    assert_eq!(
+        (files.json.as_path(), files.best.as_path()),
+        (std::path::Path::new("runs/best.json"), std::path::Path::new("runs/best.safetensors"))
+    );
+    assert_eq!(
+        super::report_beside(&std::env::temp_dir().join("ecm-lcd-test-lr0.003")).unwrap(),
+        std::env::temp_dir().join("ecm-lcd-test-lr0.003.json")
+    );
+}
