@@ -113,7 +113,19 @@ fn an_output_that_is_an_input_is_refused_and_the_input_kept() {
     // synth writes new bags only, and checks before it renders anything.
     refused(&["synth", "-o", &d("synth"), "--frames", "4", "--ros1-bag", &d("k.db")], &["k.db", "already exists"]);
     refused(&["synth", "-o", &d("synth"), "--frames", "4", "--ros2-bag", &d("seq")], &["already exists"]);
+    refused(&["synth", "-o", &d("synth"), "--frames", "4", "--ros2-bag", &d("synth")], &["is the output folder"]);
+    let both = ["--ros1-bag", &d("b.bag"), "--ros2-bag", &d("b.bag")];
+    refused(&[&["synth", "-o", &d("synth"), "--frames", "4"][..], &both].concat(), &["both", "choose two paths"]);
     assert!(!dir.path().join("synth").exists(), "a refused synth wrote its folder");
+    // A bag inside the output folder, which synth makes.
+    let inside = d("synth/synth.bag");
+    let out = command()
+        .args(["synth", "-o", &d("synth"), "--frames", "4", "--width", "32", "--height", "24", "--ros1-bag", &inside])
+        .output()
+        .unwrap();
+    assert!(out.status.success() && Path::new(&inside).is_file(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(!Path::new(&format!("{inside}.writing")).exists());
+    std::fs::remove_dir_all(d("synth")).unwrap();
 
     assert_eq!(snapshot(dir.path()), before, "a refused command changed a file");
     assert_eq!(snapshot(&dir.path().join("seq")), source_before, "a refused command changed a source file");

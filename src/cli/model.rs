@@ -22,9 +22,10 @@ pub struct NetworkArgs {
     /// with it, and ecmobilenet elsewhere).
     #[arg(long)]
     pub arch: Option<Arch>,
-    /// Input size (a multiple of 32).
-    #[arg(long, default_value_t = 224)]
-    pub size: usize,
+    /// Input size (a multiple of 32; default: the size a training run beside the weights trained at,
+    /// else 224).
+    #[arg(long)]
+    pub size: Option<usize>,
     /// Run stock candle operations instead of the fast kernels (for verification).
     #[arg(long)]
     pub reference: bool,
@@ -34,8 +35,11 @@ impl NetworkArgs {
     /// Resolves the weights, logs which ones run, and builds the embedder (`default_arch` unless
     /// `--arch` or ECMobileNet weights say otherwise).
     pub fn embedder(&self, default_arch: Arch, with_classifier: bool) -> Result<(Embedder, resolve::Resolved)> {
+        // A network trained at another size answers wrongly at 224 without a word.
+        let trained_at = self.weights.as_deref().and_then(ecm_lcd::train::input_size_of);
+        let size = self.size.or(trained_at).unwrap_or(224);
         let (mut embedder, resolved) =
-            Embedder::from_weights(self.weights.as_deref(), self.arch, default_arch, self.size, with_classifier)?;
+            Embedder::from_weights(self.weights.as_deref(), self.arch, default_arch, size, with_classifier)?;
         embedder.set_reference(self.reference);
         Ok((embedder, resolved))
     }

@@ -102,15 +102,24 @@ pub fn run(args: Args) -> Result<()> {
     if args.output.join("rgb.txt").exists() {
         bail!("{} already holds a sequence (rgb.txt); choose an empty folder", args.output.display());
     }
-    // Before anything is written: a bag is always new, in a folder that exists.
+    // Before anything is written: a bag is always new, in a folder that exists (or is the output
+    // folder, which synth makes), and no two outputs are one path.
     for (flag, bag) in [("--ros1-bag", &args.ros1_bag), ("--ros2-bag", &args.ros2_bag)] {
         let Some(bag) = bag else { continue };
         if bag.exists() {
             bail!("{flag} {} already exists; synth writes a new bag (choose another path)", bag.display());
         }
+        if bag == &args.output {
+            bail!("{flag} {} is the output folder -o; choose another path", bag.display());
+        }
         let folder = bag.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
-        if !folder.is_dir() {
+        if !folder.is_dir() && folder != args.output {
             bail!("{flag} {}: the folder {} does not exist", bag.display(), folder.display());
+        }
+    }
+    if let (Some(ros1), Some(ros2)) = (&args.ros1_bag, &args.ros2_bag) {
+        if ros1 == ros2 {
+            bail!("--ros1-bag and --ros2-bag are both {}; choose two paths", ros1.display());
         }
     }
     let base = match args.preset {

@@ -657,9 +657,14 @@ pub fn write_ros1_bag(
     encoding: WireEncoding,
     compression: Ros1Compression,
 ) -> Result<usize> {
+    // Written beside it and renamed into place when complete (its header names the index, written
+    // last): a writer killed half-way leaves no bag under the final name.
+    let mut writing = path.as_os_str().to_owned();
+    writing.push(".writing");
+    let writing = PathBuf::from(writing);
     let write = || -> Result<usize> {
         let kind = encoding.kind();
-        let mut file = std::io::BufWriter::new(File::create(path)?);
+        let mut file = std::io::BufWriter::new(File::create(&writing)?);
         file.write_all(MAGIC)?;
         file.write_all(&bag_header_record(0, 0, 0))?;
         let mut pos = (MAGIC.len() + 4096) as u64;
@@ -758,9 +763,14 @@ pub fn write_ros1_bag(
         file.seek(SeekFrom::Start(MAGIC.len() as u64))?;
         file.write_all(&bag_header_record(index_pos, conn_count, chunk_infos.len() as u32))?;
         file.sync_all()?;
+        std::fs::rename(&writing, path).with_context(|| format!("renaming {} into place", writing.display()))?;
         Ok(count)
     };
-    write().with_context(|| format!("cannot write ROS 1 bag {}", path.display()))
+    let written = write();
+    if written.is_err() {
+        let _ = std::fs::remove_file(&writing);
+    }
+    written.with_context(|| format!("cannot write ROS 1 bag {}", path.display()))
 }
 
 fn compress(data: &[u8], compression: Ros1Compression) -> Result<Vec<u8>> {

@@ -439,9 +439,17 @@ pub fn write_ros2_bag(
     frames: impl IntoIterator<Item = (Stamp, RgbImage)>,
     encoding: WireEncoding,
 ) -> Result<usize> {
+    // Written in a folder beside it and renamed into place when complete: a writer killed half-way
+    // leaves no bag under the final name.
+    let mut writing = dir.as_os_str().to_owned();
+    writing.push(".writing");
+    let writing = PathBuf::from(writing);
     let write = || -> Result<usize> {
         ensure!(!dir.exists(), "{} already exists", dir.display());
-        std::fs::create_dir_all(dir)?;
+        if writing.exists() {
+            std::fs::remove_dir_all(&writing).with_context(|| format!("removing {}", writing.display()))?;
+        }
+        std::fs::create_dir_all(&writing)?;
         let base = dir.file_name().and_then(|n| n.to_str()).context("bag folder has no UTF-8 name")?;
         let kind = encoding.kind();
         let messages = frames.into_iter().map(|(stamp, image)| {
@@ -451,18 +459,23 @@ pub fn write_ros2_bag(
         let (file_name, stamps) = match storage {
             Ros2Storage::Sqlite3 => {
                 let file_name = format!("{base}_0.db3");
-                (file_name.clone(), write_sqlite(&dir.join(&file_name), topic, kind, messages)?)
+                (file_name.clone(), write_sqlite(&writing.join(&file_name), topic, kind, messages)?)
             }
             Ros2Storage::Mcap => {
                 let file_name = format!("{base}_0.mcap");
-                (file_name.clone(), write_mcap(&dir.join(&file_name), topic, kind, messages)?)
+                (file_name.clone(), write_mcap(&writing.join(&file_name), topic, kind, messages)?)
             }
         };
         let storage_name = if storage == Ros2Storage::Sqlite3 { "sqlite3" } else { "mcap" };
-        std::fs::write(dir.join("metadata.yaml"), metadata_yaml(storage_name, &file_name, topic, kind, &stamps))?;
+        std::fs::write(writing.join("metadata.yaml"), metadata_yaml(storage_name, &file_name, topic, kind, &stamps))?;
+        std::fs::rename(&writing, dir).with_context(|| format!("renaming {} into place", writing.display()))?;
         Ok(stamps.len())
     };
-    write().with_context(|| format!("cannot write ROS 2 bag {}", dir.display()))
+    let written = write();
+    if written.is_err() {
+        let _ = std::fs::remove_dir_all(&writing);
+    }
+    written.with_context(|| format!("cannot write ROS 2 bag {}", dir.display()))
 }
 
 fn write_sqlite(

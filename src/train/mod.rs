@@ -551,8 +551,8 @@ impl RunFiles {
     }
 
     /// Makes the run's folder and refuses files that could not all be written, before any
-    /// training ([`crate::io::output::ensure_writable_outputs`]): an `-o` that is a folder, or one
-    /// named so that the record would replace the weights (`-o run.json`).
+    /// training ([`crate::io::output::ensure_writable_outputs`]): an `-o` that is a folder, or a
+    /// run file that is one.
     pub fn check(&self) -> Result<()> {
         crate::io::output::ensure_writable_outputs(&[
             ("-o", &self.best),
@@ -584,6 +584,14 @@ pub fn class_names_of(weights_path: &Path, classes: usize) -> Option<Vec<String>
     let names: Vec<String> =
         value.get("classes")?.as_array()?.iter().map(|v| v.as_str().map(str::to_string)).collect::<Option<_>>()?;
     (names.len() == classes).then_some(names)
+}
+
+/// The input size the training run that wrote `weights_path` (any of its files) trained at, from
+/// its run record; `None` for weights no training run wrote.
+pub fn input_size_of(weights_path: &Path) -> Option<usize> {
+    let text = std::fs::read_to_string(RunFiles::of_checkpoint(weights_path).json).ok()?;
+    let value: serde_json::Value = serde_json::from_str(&text).ok()?;
+    value.get("hyper")?.get("size")?.as_u64().map(|size| size as usize)
 }
 
 /// A classification training run.
