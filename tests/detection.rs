@@ -894,6 +894,30 @@ fn a_learned_projection_shrinks_descriptors_and_names_itself_in_the_store() {
     assert!(distance(&a, &b) < distance(&a, &far), "{} vs {}", distance(&a, &b), distance(&a, &far));
     let err = format!("{:#}", with(&[("descriptor.projection", path), ("descriptor.tap", "blocks.13")]).err().unwrap());
     assert!(err.contains("regional-3x3-mac@blocks.16") && err.contains("blocks.13"), "{err}");
+    // --max-frames is shared out over the sources: a first source longer than it leaves frames
+    // for the second.
+    let shared_out = dir.path().join("shared.safetensors");
+    let seq_text = seq.to_str().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_ecm-lcd"))
+        .env("RUST_LOG", "info")
+        .args([
+            "learn-projection",
+            seq_text,
+            seq_text,
+            "--dims",
+            "4",
+            "--max-frames",
+            "12",
+            "-o",
+            shared_out.to_str().unwrap(),
+            "--weights",
+            weights_file.to_str().unwrap(),
+        ])
+        .output()
+        .unwrap();
+    let log = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && log.matches("(at most 6 frames)").count() == 2, "{log}");
+    assert!(String::from_utf8_lossy(&out.stdout).contains("from 12 frames"));
     // The same descriptor of another input size (or network) has other values.
     let err = format!("{:#}", with(&[("descriptor.projection", path), ("input_size", "192")]).err().unwrap());
     assert!(err.contains("learned on another network's descriptors") && err.contains("input 224"), "{err}");

@@ -30,7 +30,7 @@ pub struct Args {
     /// Use every N-th frame of each source.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=100_000))]
     pub every: u32,
-    /// Use at most this many frames in all.
+    /// Use at most this many frames in all, shared out over the sources and spread over each.
     #[arg(long, default_value_t = 4000, value_parser = clap::value_parser!(u32).range(2..=20_000))]
     pub max_frames: u32,
 }
@@ -47,14 +47,32 @@ pub fn run(args: Args) -> Result<()> {
     let mut pipeline = args.source_args.pipeline_with(params)?;
     let name = pipeline.descriptor_name();
     let mut samples = Vec::new();
-    'sources: for source in &args.sources {
+    // --max-frames is shared out over the sources (what one leaves unused goes to those after it),
+    // and spread over each source's length where it is known: a long first source does not take
+    // the whole budget from its first minutes.
+    for (k, source) in args.sources.iter().enumerate() {
+        let share = (args.max_frames as usize).saturating_sub(samples.len()).div_ceil(args.sources.len() - k);
         let frames = open_source_topics(source, &args.source_args.topics())?;
-        log::info!("learning from {}", frames.describe());
-        for frame in ecm_lcd::io::skip_unreadable(frames.step_by(args.every as usize), source) {
+        let every = args.every as usize;
+        // Of every `--every`th frame, `share` evenly spread where the length is known.
+        let picked: Option<std::collections::BTreeSet<usize>> = frames.len_hint().map(|len| {
+            let candidates: Vec<usize> = (0..len).step_by(every).collect();
+            let n = share.min(candidates.len());
+            (0..n).map(|i| candidates[i * candidates.len() / n]).collect()
+        });
+        log::info!("learning from {} (at most {share} frames)", frames.describe());
+        let before = samples.len();
+        for frame in ecm_lcd::io::skip_unreadable(frames, source) {
             let frame = frame.with_context(|| format!("reading {}", source.display()))?;
-            samples.push(pipeline.describe(&frame.image)?);
-            if samples.len() >= args.max_frames as usize {
-                break 'sources;
+            let wanted = match &picked {
+                Some(picked) => picked.contains(&frame.index),
+                None => frame.index % every == 0,
+            };
+            if wanted {
+                samples.push(pipeline.describe(&frame.image)?);
+            }
+            if samples.len() - before >= share {
+                break;
             }
         }
     }

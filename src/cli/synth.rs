@@ -158,6 +158,22 @@ pub fn run(args: Args) -> Result<()> {
         seconds,
         seconds * 1e3 / scene.len() as f64
     );
+    // The renderer's pinhole camera, which verification needs and the folder cannot name: as a
+    // params file beside the frames, for `--config`.
+    let (focal, cx, cy) = (scene.focal_length(), scene.config().width as f64 / 2.0, scene.config().height as f64 / 2.0);
+    let camera = args.output.join("camera.yaml");
+    let yaml = format!(
+        "# The camera `ecm-lcd synth` rendered these frames with: `--config {}` turns verification on.\n\
+         ecm_lcd:\n  ros__parameters:\n    camera.fx: {focal}\n    camera.fy: {focal}\n    camera.cx: {cx}\n    camera.cy: {cy}\n",
+        camera.display()
+    );
+    ecm_lcd::io::output::write_replacing(&camera, yaml.as_bytes())?;
+    log::info!(
+        "camera fx = fy = {focal}, cx = {cx}, cy = {cy} (principal point at the centre), in {}: give \
+         --config {} for verified loops",
+        camera.display(),
+        camera.display()
+    );
     let (encoding, topic) = match args.bag_images {
         BagImages::Rgb8 => (WireEncoding::Rgb8, RAW_TOPIC),
         BagImages::Jpeg => (WireEncoding::Jpeg { quality: args.jpeg_quality }, COMPRESSED_TOPIC),

@@ -641,6 +641,18 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
                 );
             }
             hyper = record.hyper.clone();
+            // Resumed into another -o: the best epoch so far is the resumed run's, whose weights
+            // must be there too, or a run whose later epochs do not beat it would name a file it
+            // never wrote.
+            if record.best_epoch > 0 && !crate::io::output::same_file(&from.best, &files.best) {
+                std::fs::copy(&from.best, &files.best).with_context(|| {
+                    format!(
+                        "copying the resumed run's best weights {} to {}",
+                        from.best.display(),
+                        files.best.display()
+                    )
+                })?;
+            }
             Some((record, Weights::load(&from.training)?))
         }
         None => None,

@@ -283,6 +283,12 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     other_split.val_fraction = 0.5;
     let err = format!("{:#}", train(&other_split).unwrap_err());
     assert!(err.contains("differs from the resumed run's"), "{err}");
+    // Resumed into another -o, the run has its best weights there whichever epoch was best.
+    let moved = dir.path().join("moved/run.safetensors");
+    let mut resumed_elsewhere = config(&data, &moved, Arch::EcMobileNet, h.clone());
+    resumed_elsewhere.resume = Some(RunFiles::new(&other_split.out).training);
+    let record = train(&resumed_elsewhere)?;
+    assert!(record.best_epoch >= 1 && moved.is_file(), "{record:?}");
     // A run named `.json` keeps its record apart: only `.safetensors` is left out of the name.
     assert_eq!(RunFiles::new(&dir.path().join("run.json")).json, dir.path().join("run.json.json"));
     Ok(())
