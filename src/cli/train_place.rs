@@ -27,8 +27,10 @@ pub struct Args {
     /// Override a parameter: `--param arch=ecmobilenet` (repeatable).
     #[arg(long = "param", value_name = "NAME=VALUE")]
     pub params: Vec<String>,
-    #[arg(long, default_value_t = 224)]
-    pub size: usize,
+    /// Input size to train at (default: the parameters' `input_size`, which the trained weights are
+    /// then used at).
+    #[arg(long)]
+    pub size: Option<usize>,
     /// Each epoch takes every frame that has a revisit once as an anchor.
     #[arg(long, default_value_t = 2)]
     pub epochs: usize,
@@ -86,7 +88,7 @@ pub fn run(args: Args) -> Result<()> {
         arch: params.arch().parse()?,
         tap: tap.to_string(),
         descriptor: descriptor.name(),
-        size: args.size,
+        size: args.size.unwrap_or(params.input_size()),
         opt: Optimisation {
             epochs: args.epochs,
             batch: args.batch,
