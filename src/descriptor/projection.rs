@@ -17,8 +17,8 @@
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;
 
+use crate::model::weights::fetch::sha256_hex;
 use anyhow::{bail, ensure, Context, Result};
-use sha2::{Digest, Sha256};
 
 use super::l2_normalise;
 
@@ -165,7 +165,7 @@ impl Projection {
         let metadata = HashMap::from([(METADATA_KEY.to_string(), serde_json::to_string(&fields)?)]);
         let bytes = safetensors::serialize(tensors, Some(metadata)).context("serialising the projection")?;
         crate::io::output::write_replacing(path, &bytes)?;
-        self.sha256 = hex(&Sha256::digest(&bytes));
+        self.sha256 = sha256_hex(&bytes);
         Ok(())
     }
 
@@ -203,7 +203,7 @@ impl Projection {
             path.display()
         );
         let rows = flat.chunks_exact(rows_shape[1]).map(<[f32]>::to_vec).collect();
-        Ok(Projection { mean, rows, whitened, descriptor, network, sha256: hex(&Sha256::digest(&bytes)) })
+        Ok(Projection { mean, rows, whitened, descriptor, network, sha256: sha256_hex(&bytes) })
     }
 }
 
@@ -214,10 +214,6 @@ const METADATA_KEY: &str = "ecm_lcd_projection";
 /// size, which all change the descriptors' values.
 pub fn network_name(arch: &str, weights_sha256: &str, input_size: usize) -> String {
     format!("{arch}, weights sha256 {weights_sha256}, input {input_size}")
-}
-
-fn hex(bytes: &[u8]) -> String {
-    bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
 #[cfg(test)]

@@ -55,6 +55,7 @@ use candle_nn::{VarBuilder, VarMap};
 use serde::{Deserialize, Serialize};
 
 use crate::model::layers::{Mode, BN_EPS, BN_MOMENTUM};
+use crate::model::weights::fetch::sha256_hex;
 use crate::model::weights::{inference_tensors, Weights};
 use crate::model::{check_input_size, Arch, Network};
 use data::{Augment, FileSet, ImageFolder, ImageSet, Loader};
@@ -523,6 +524,11 @@ pub struct RunRecord {
     pub best_val_accuracy: f64,
     pub best_epoch: usize,
     pub history: Vec<EpochResult>,
+    /// SHA-256 of the training form saved with `epochs_done` (records from before it have none): a
+    /// resume checks that the training form is the record's, not one of an epoch whose record a
+    /// kill kept from being written.
+    #[serde(default)]
+    pub training_sha256: Option<String>,
 }
 
 /// The files of a run whose best weights go to `out`.
@@ -560,6 +566,38 @@ impl RunFiles {
             ("the training form", &self.training),
             ("the run record", &self.json),
         ])
+    }
+
+    /// The training form written before its record names it ([`RunRecord::training_sha256`]).
+    pub fn training_next(&self) -> PathBuf {
+        let mut path = self.training.as_os_str().to_owned();
+        path.push(".next");
+        PathBuf::from(path)
+    }
+
+    /// The training form that belongs to `record`: the one in place, or the one written just before
+    /// the record where a kill came before it was renamed into place. A form of another epoch (a
+    /// kill after the form, before its record) is refused: resuming from it would train an epoch
+    /// twice under a schedule that does not know it.
+    pub fn training_of(&self, record: &RunRecord) -> Result<PathBuf> {
+        let Some(wanted) = &record.training_sha256 else { return Ok(self.training.clone()) };
+        let hash = |path: &Path| std::fs::read(path).ok().map(|bytes| sha256_hex(&bytes));
+        if hash(&self.training).as_ref() == Some(wanted) {
+            return Ok(self.training.clone());
+        }
+        if hash(&self.training_next()).as_ref() == Some(wanted) {
+            std::fs::rename(self.training_next(), &self.training)
+                .with_context(|| format!("renaming {} into place", self.training_next().display()))?;
+            return Ok(self.training.clone());
+        }
+        bail!(
+            "{} is not the training form its run record {} names (epoch {}): the run was stopped while saving \
+             an epoch; it cannot be resumed exactly (train anew, or from {} with --init)",
+            self.training.display(),
+            self.json.display(),
+            record.epochs_done,
+            self.last.display()
+        )
     }
 
     /// The files of the run that wrote `checkpoint` (any of its files, or `-o` of that run).
@@ -653,7 +691,8 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
                     )
                 })?;
             }
-            Some((record, Weights::load(&from.training)?))
+            let training = from.training_of(&record)?;
+            Some((record, Weights::load(&training)?))
         }
         None => None,
     };
@@ -746,6 +785,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             best_val_accuracy: -1.0,
             best_epoch: 0,
             history: Vec::new(),
+            training_sha256: None,
         },
     };
     ensure!(
@@ -843,8 +883,15 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             record.best_epoch = epoch + 1;
             weights.save(&files.best)?;
         }
-        training.save(&files.training)?;
+        // The training form is written under a name of its own, the record naming its hash next,
+        // then the form renamed into place: a kill at any point leaves a record and a form that
+        // belong together (`RunFiles::training_of`).
+        let bytes = training.to_bytes()?;
+        crate::io::output::write_replacing(&files.training_next(), &bytes)?;
+        record.training_sha256 = Some(sha256_hex(&bytes));
         write_json(&files.json, &record)?;
+        std::fs::rename(files.training_next(), &files.training)
+            .with_context(|| format!("renaming {} into place", files.training_next().display()))?;
         if config.target_accuracy.is_some_and(|target| val_accuracy >= target) {
             break;
         }

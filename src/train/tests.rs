@@ -231,6 +231,19 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     assert_eq!(class_names_of(&init, 4), None);
     // ... and its input size, which `classify` uses unless told another.
     assert_eq!((super::input_size_of(&part_out), super::input_size_of(&init)), (Some(32), None));
+    // A kill between the epoch's files: after the record, before the training form was renamed into
+    // place, the form is found beside it; before the record, a form of another epoch is refused.
+    let files = RunFiles::new(&part_out);
+    let record: super::RunRecord = serde_json::from_str(&std::fs::read_to_string(&files.json)?)?;
+    assert!(record.training_sha256.is_some() && !files.training_next().exists());
+    std::fs::rename(&files.training, files.training_next())?;
+    assert_eq!(files.training_of(&record)?, files.training);
+    assert!(files.training.is_file() && !files.training_next().exists());
+    let kept = std::fs::read(&files.training)?;
+    std::fs::copy(&init, &files.training)?;
+    let err = format!("{:#}", files.training_of(&record).unwrap_err());
+    assert!(err.contains("is not the training form its run record") && err.contains("epoch 1"), "{err}");
+    std::fs::write(&files.training, kept)?;
     let mut second = config(&data, &part_out, Arch::EcMobileNet, h.clone());
     second.resume = Some(RunFiles::new(&part_out).training);
     let resumed = train(&second)?;
