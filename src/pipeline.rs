@@ -327,12 +327,12 @@ impl Pipeline {
         })
     }
 
-    /// What this pipeline's descriptors depend on (a store must match it).
     /// The network whose descriptors this pipeline computes ([`crate::descriptor::projection::network_name`]).
     pub fn network_name(&self) -> String {
         crate::descriptor::projection::network_name(self.params.arch(), &self.weights.sha256, self.params.input_size())
     }
 
+    /// What this pipeline's descriptors depend on (a store must match it).
     pub fn store_identity(&self) -> StoreIdentity {
         StoreIdentity {
             weights_sha256: self.weights.sha256.clone(),

@@ -30,17 +30,23 @@ pub fn read_image(path: &Path) -> Result<RgbImage> {
 /// portrait photo is stored sideways with a tag, and OpenCV's `imread`, which a map made by other
 /// tools went through, applies it too.
 pub fn open_image(path: &Path) -> Result<image::DynamicImage> {
-    use image::ImageDecoder as _;
     // Read once: the bytes serve the JPEG end check and the decoder both (the file is smaller than
     // the image it decodes to).
     let bytes = std::fs::read(path).with_context(|| format!("cannot open image {}", path.display()))?;
-    let reader = image::ImageReader::new(std::io::Cursor::new(&bytes))
+    decode_image_file(path, &bytes)
+}
+
+/// Decodes `bytes`, the contents of the image file `path` (named in errors and warnings), as
+/// [`open_image`] does.
+pub fn decode_image_file(path: &Path, bytes: &[u8]) -> Result<image::DynamicImage> {
+    use image::ImageDecoder as _;
+    let reader = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
         .with_context(|| format!("cannot read image {}", path.display()))?;
     let unreadable = || format!("{} is not a readable image", path.display());
     // A JPEG cut short still decodes, its missing rows filled in, and would pass as a frame unsaid
     // (OpenCV's `imread` warns the same way: "Premature end of JPEG file").
-    if reader.format() == Some(image::ImageFormat::Jpeg) && jpeg_cut_short(&bytes) {
+    if reader.format() == Some(image::ImageFormat::Jpeg) && jpeg_cut_short(bytes) {
         log::warn!(
             "{} ends before its end-of-image marker ({} bytes): cut short? its missing part decodes as filler",
             path.display(),

@@ -114,6 +114,8 @@ fn an_output_that_is_an_input_is_refused_and_the_input_kept() {
     refused(&["synth", "-o", &d("synth"), "--frames", "4", "--ros1-bag", &d("k.db")], &["k.db", "already exists"]);
     refused(&["synth", "-o", &d("synth"), "--frames", "4", "--ros2-bag", &d("seq")], &["already exists"]);
     refused(&["synth", "-o", &d("synth"), "--frames", "4", "--ros2-bag", &d("synth")], &["is the output folder"]);
+    let own_file = d("synth/rgb.txt");
+    refused(&["synth", "-o", &d("synth"), "--frames", "4", "--ros1-bag", &own_file], &["a file of the sequence"]);
     let both = ["--ros1-bag", &d("b.bag"), "--ros2-bag", &d("b.bag")];
     refused(&[&["synth", "-o", &d("synth"), "--frames", "4"][..], &both].concat(), &["both", "choose two paths"]);
     assert!(!dir.path().join("synth").exists(), "a refused synth wrote its folder");

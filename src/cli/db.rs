@@ -85,7 +85,8 @@ pub fn run(args: Args) -> Result<()> {
             Ok(())
         }
         DbCommand::Merge { first, second, output, offset } => {
-            // The output may name a new folder, as every other output may.
+            // Not an input, nor a file beside one (`a.db-wal`); the output may name a new folder.
+            ecm_lcd::io::output::ensure_not_an_input(&output, &[&first, &second])?;
             ecm_lcd::io::output::create_folder_of(&output)?;
             let report = store::merge(&first, &second, &output, offset)?;
             eprintln!(

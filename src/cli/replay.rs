@@ -130,6 +130,9 @@ pub fn run(args: Args) -> Result<()> {
         let mut read = inputs.clone();
         read.extend(args.source_args.db.as_deref());
         ecm_lcd::io::output::ensure_not_an_input(output, &read)?;
+        if let Some(db) = &args.source_args.db {
+            ecm_lcd::io::output::ensure_not_beside_database(output, db)?;
+        }
         ecm_lcd::io::output::ensure_not_in_source(output, &[&args.source])?;
     }
     let outputs: Vec<(&str, &Path)> = [("--db", &args.source_args.db), ("-o", &args.output)]

@@ -109,16 +109,26 @@ pub fn run(args: Args) -> Result<()> {
         if bag.exists() {
             bail!("{flag} {} already exists; synth writes a new bag (choose another path)", bag.display());
         }
-        if bag == &args.output {
+        let absolute = |path: &std::path::Path| std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+        let output = absolute(&args.output);
+        if absolute(bag) == output {
             bail!("{flag} {} is the output folder -o; choose another path", bag.display());
         }
         let folder = bag.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
-        if !folder.is_dir() && folder != args.output {
+        let in_output = absolute(folder) == output;
+        // Inside the output folder, not one of the sequence's own files.
+        let name = bag.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+        const SEQUENCE: [&str; 7] =
+            ["rgb.txt", "depth.txt", "groundtruth.txt", "odometry.txt", "camera.yaml", "rgb", "depth"];
+        if in_output && SEQUENCE.contains(&name) {
+            bail!("{flag} {} is a file of the sequence synth writes in -o; choose another name", bag.display());
+        }
+        if !folder.is_dir() && !in_output {
             bail!("{flag} {}: the folder {} does not exist", bag.display(), folder.display());
         }
     }
     if let (Some(ros1), Some(ros2)) = (&args.ros1_bag, &args.ros2_bag) {
-        if ros1 == ros2 {
+        if std::path::absolute(ros1).ok() == std::path::absolute(ros2).ok() {
             bail!("--ros1-bag and --ros2-bag are both {}; choose two paths", ros1.display());
         }
     }
@@ -160,7 +170,10 @@ pub fn run(args: Args) -> Result<()> {
     );
     // The renderer's pinhole camera, which verification needs and the folder cannot name: as a
     // params file beside the frames, for `--config`.
-    let (focal, cx, cy) = (scene.focal_length(), scene.config().width as f64 / 2.0, scene.config().height as f64 / 2.0);
+    // The renderer casts its rays through pixel centres at x + 0.5 about the image's centre: the
+    // principal point, in pixel-centre coordinates, is (W - 1) / 2, (H - 1) / 2.
+    let (width, height) = (scene.config().width as f64, scene.config().height as f64);
+    let (focal, cx, cy) = (scene.focal_length(), (width - 1.0) / 2.0, (height - 1.0) / 2.0);
     let camera = args.output.join("camera.yaml");
     let yaml = format!(
         "# The camera `ecm-lcd synth` rendered these frames with: `--config {}` turns verification on.\n\
@@ -169,7 +182,7 @@ pub fn run(args: Args) -> Result<()> {
     );
     ecm_lcd::io::output::write_replacing(&camera, yaml.as_bytes())?;
     log::info!(
-        "camera fx = fy = {focal}, cx = {cx}, cy = {cy} (principal point at the centre), in {}: give \
+        "camera fx = fy = {focal}, cx = {cx}, cy = {cy} in {}: give \
          --config {} for verified loops",
         camera.display(),
         camera.display()

@@ -10,9 +10,12 @@
 //! is small when descriptors are longer than the training set is large. At most `samples - 1`
 //! dimensions can be learned.
 //!
-//! Saved as safetensors: tensors `mean` `[in]` and `rows` `[out, in]` (f32), with metadata naming the
-//! descriptor it applies to (`descriptor`, e.g. `regional-3x3-mac@blocks.16`) and `whitened`. The
-//! file's SHA-256 is part of the keyframe database's identity ([`Projection::identity`]).
+//! Saved as safetensors: tensors `mean` `[in]` and `rows` `[out, in]` (f32), with one metadata entry
+//! (`ecm_lcd_projection`, sorted JSON) naming the descriptor it applies to (`descriptor`, e.g.
+//! `regional-3x3-mac@blocks.16`), `whitened`, and the network it was learned on (`network`: another
+//! network's descriptors of that name are refused); files from before hold `descriptor` and
+//! `whitened` as entries of their own. The file's SHA-256 is part of the keyframe database's
+//! identity ([`Projection::identity`]).
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::Path;

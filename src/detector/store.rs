@@ -147,9 +147,13 @@ pub const FILES_BESIDE: [&str; 3] = ["-wal", "-shm", "-vectors"];
 
 /// A read-only connection to the store at `path` ([`read_only_uri`]: immutable where it is at rest).
 fn open_for_reading(path: &Path) -> Result<Connection> {
-    let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX | OpenFlags::SQLITE_OPEN_URI;
-    open_connection(Path::new(&read_only_uri(path)?), flags)
-        .with_context(|| format!("cannot open keyframe database {}", path.display()))
+    let flags = OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX;
+    match read_only_uri(path) {
+        Ok(uri) => open_connection(Path::new(&uri), flags | OpenFlags::SQLITE_OPEN_URI)
+            .with_context(|| format!("cannot open keyframe database {}", path.display())),
+        // A path a URI cannot spell (not UTF-8) is opened by name.
+        Err(_) => open_connection(path, flags),
+    }
 }
 
 fn open_connection(path: &Path, flags: OpenFlags) -> Result<Connection> {
@@ -1144,10 +1148,9 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
         );
     }
     // Built under a temporary name and renamed into place when complete, so that a merge killed
-    // half-way leaves no database at `output` (an empty one would pass for a map).
-    let mut merging = output.as_os_str().to_owned();
-    merging.push(".merging");
-    let merging = PathBuf::from(merging);
+    // half-way leaves no database at `output` (an empty one would pass for a map). The name is this
+    // merge's own, so that only what it made is ever removed.
+    let merging = crate::io::output::unused_name_beside(output, "merging")?;
     let remove_merging = || {
         for suffix in ["", "-wal", "-shm", "-vectors"] {
             let mut p = merging.as_os_str().to_owned();
@@ -1155,8 +1158,6 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
             let _ = std::fs::remove_file(PathBuf::from(p));
         }
     };
-    // Left by a merge killed before.
-    remove_merging();
     drop(inputs);
     let result = (|| -> Result<MergeReport> {
         let out = KeyframeStore::open_or_create(&merging, &a.identity)?;
@@ -1203,7 +1204,7 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
         // The vector file filled now, so that the first read-only use (`match --database`) finds it
         // complete and writes nothing beside the store.
         KeyframeStore::open_existing(&merging)?.load_db(None)?;
-        for suffix in ["-vectors", ""] {
+        for suffix in ["", "-vectors"] {
             let (mut from, mut to) = (merging.as_os_str().to_owned(), output.as_os_str().to_owned());
             from.push(suffix);
             to.push(suffix);

@@ -89,12 +89,18 @@ impl LoopTruth {
     }
 
     /// Takes `frames` out of every query's true matches: references that could not be read, which
-    /// no query can match. A query left with none revisits no place the detector was given.
+    /// no query can match. A query left with none is unknown (left out of the metrics, as one
+    /// without a pose): it revisits a place the detector was not given, so no answer of its is
+    /// right, nor is a match to the unreadable frame's neighbour plainly wrong.
     pub fn without_references(&mut self, frames: &[usize]) {
-        for matched in self.matches.values_mut() {
+        for (query, matched) in self.matches.iter_mut() {
+            let had = !matched.is_empty();
             frames.iter().for_each(|frame| {
                 matched.remove(frame);
             });
+            if had && matched.is_empty() {
+                self.unknown.insert(*query);
+            }
         }
     }
 

@@ -139,6 +139,7 @@ pub enum BagMessage {
 #[derive(Debug, Default)]
 pub struct UnreadableDepths {
     count: usize,
+    reported: bool,
 }
 
 impl UnreadableDepths {
@@ -151,6 +152,14 @@ impl UnreadableDepths {
         } else if self.count == Self::WARNED + 1 {
             log::warn!("further depth images that cannot be read are passed over unnamed");
         }
+    }
+
+    /// Says, once, at the end of a source, how many were passed over in all.
+    pub fn report_end(&mut self) {
+        if self.count > 0 && !self.reported {
+            log::warn!("{} depth images could not be read; their frames went on without depth", self.count);
+        }
+        self.reported = true;
     }
 }
 
@@ -245,6 +254,7 @@ impl<S: MessageSource> Iterator for DepthPaired<S> {
                 return self.release_front();
             }
             if self.ended {
+                self.unreadable_depths.report_end();
                 // Every held frame is out; a read error comes after them, so nothing read is lost.
                 return self.error.take().map(Err);
             }

@@ -145,7 +145,7 @@ pub fn ensure_not_in_source(output: &Path, sources: &[&Path]) -> Result<()> {
 /// Refuses `output` when it is the same file as one of `inputs` (an input that does not exist yet,
 /// or an output that does not, never clashes: [`ensure_writable_outputs`] checks outputs).
 /// A keyframe database's files beside it (its write-ahead log, shared memory and vector file) count
-/// as the input too, whether they are there now or not.
+/// as the input too ([`ensure_not_beside_database`]), where the database is there.
 pub fn ensure_not_an_input(output: &Path, inputs: &[&Path]) -> Result<()> {
     if let Some(input) = inputs.iter().find(|input| same_file(output, input)) {
         bail!(
@@ -155,18 +155,45 @@ pub fn ensure_not_an_input(output: &Path, inputs: &[&Path]) -> Result<()> {
         );
     }
     for input in inputs.iter().filter(|input| crate::detector::store::is_keyframe_store(input)) {
-        for suffix in crate::detector::store::FILES_BESIDE {
-            let mut beside = input.as_os_str().to_owned();
+        ensure_not_beside_database(output, input)?;
+    }
+    Ok(())
+}
+
+/// A path beside `path` named for `what` and this process, with no file there (nor beside it as a
+/// store's `-wal`, `-shm`, `-vectors`): a temporary name only this writer uses, so that cleaning up
+/// removes nothing it did not make.
+pub fn unused_name_beside(path: &Path, what: &str) -> Result<PathBuf> {
+    for attempt in 0..100u32 {
+        let mut name = path.as_os_str().to_owned();
+        name.push(format!(".{what}-{}-{attempt}", std::process::id()));
+        let name = PathBuf::from(name);
+        let taken = ["", "-wal", "-shm", "-vectors", ".creating"].iter().any(|suffix| {
+            let mut beside = name.as_os_str().to_owned();
             beside.push(suffix);
-            let beside = PathBuf::from(beside);
-            if same_file(output, &beside) || resolved(output).is_some_and(|o| resolved(&beside) == Some(o)) {
-                bail!(
-                    "the output {} is the keyframe database {}'s own {suffix} file; writing it would damage the \
-                     database (choose another output path)",
-                    output.display(),
-                    input.display()
-                );
-            }
+            std::fs::symlink_metadata(PathBuf::from(beside)).is_ok()
+        });
+        if !taken {
+            return Ok(name);
+        }
+    }
+    bail!("no unused temporary name beside {}", path.display())
+}
+
+/// Refuses an `output` that is one of the files SQLite and the vector file keep beside the keyframe
+/// database `database` (`<db>-wal`, ...), whether the database or the file is there yet or not.
+pub fn ensure_not_beside_database(output: &Path, database: &Path) -> Result<()> {
+    for suffix in crate::detector::store::FILES_BESIDE {
+        let mut beside = database.as_os_str().to_owned();
+        beside.push(suffix);
+        let beside = PathBuf::from(beside);
+        if same_file(output, &beside) || resolved(output).is_some_and(|o| resolved(&beside) == Some(o)) {
+            bail!(
+                "the output {} is the keyframe database {}'s own {suffix} file; writing it would damage the \
+                 database (choose another output path)",
+                output.display(),
+                database.display()
+            );
         }
     }
     Ok(())
@@ -190,6 +217,15 @@ mod tests {
         let text = dir.path().join("notes.txt");
         std::fs::write(&text, "x").unwrap();
         ensure_not_an_input(&dir.path().join("notes.txt-wal"), &[&text]).unwrap();
+        // A --db not made yet has them too.
+        let new = dir.path().join("new.db");
+        let err = ensure_not_beside_database(&dir.path().join("new.db-wal"), &new).unwrap_err().to_string();
+        assert!(err.contains("new.db's own -wal file"), "{err}");
+        // A temporary name beside a path is free, and another than one taken.
+        let taken = unused_name_beside(&db, "merging").unwrap();
+        assert!(!taken.exists() && taken.to_string_lossy().contains("k.db.merging-"));
+        std::fs::write(&taken, "x").unwrap();
+        assert_ne!(unused_name_beside(&db, "merging").unwrap(), taken);
     }
 
     #[test]

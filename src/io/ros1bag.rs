@@ -659,12 +659,10 @@ pub fn write_ros1_bag(
 ) -> Result<usize> {
     // Written beside it and renamed into place when complete (its header names the index, written
     // last): a writer killed half-way leaves no bag under the final name.
-    let mut writing = path.as_os_str().to_owned();
-    writing.push(".writing");
-    let writing = PathBuf::from(writing);
+    let writing = crate::io::output::unused_name_beside(path, "writing")?;
     let write = || -> Result<usize> {
         let kind = encoding.kind();
-        let mut file = std::io::BufWriter::new(File::create(&writing)?);
+        let mut file = std::io::BufWriter::new(File::options().write(true).create_new(true).open(&writing)?);
         file.write_all(MAGIC)?;
         file.write_all(&bag_header_record(0, 0, 0))?;
         let mut pos = (MAGIC.len() + 4096) as u64;

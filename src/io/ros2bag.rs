@@ -441,15 +441,11 @@ pub fn write_ros2_bag(
 ) -> Result<usize> {
     // Written in a folder beside it and renamed into place when complete: a writer killed half-way
     // leaves no bag under the final name.
-    let mut writing = dir.as_os_str().to_owned();
-    writing.push(".writing");
-    let writing = PathBuf::from(writing);
+    ensure!(!dir.exists(), "cannot write ROS 2 bag {}: it already exists", dir.display());
+    let writing = crate::io::output::unused_name_beside(dir, "writing")?;
     let write = || -> Result<usize> {
-        ensure!(!dir.exists(), "{} already exists", dir.display());
-        if writing.exists() {
-            std::fs::remove_dir_all(&writing).with_context(|| format!("removing {}", writing.display()))?;
-        }
-        std::fs::create_dir_all(&writing)?;
+        std::fs::create_dir_all(dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")))?;
+        std::fs::create_dir(&writing)?;
         let base = dir.file_name().and_then(|n| n.to_str()).context("bag folder has no UTF-8 name")?;
         let kind = encoding.kind();
         let messages = frames.into_iter().map(|(stamp, image)| {

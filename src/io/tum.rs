@@ -180,9 +180,23 @@ fn associate_depth(entries: &mut [ImageEntry], depths: Vec<(String, Stamp, PathB
 }
 
 /// Reads a TUM 16-bit depth PNG; it must have the colour image's size.
-fn load_depth(path: &Path, width: u32, height: u32) -> Result<DepthImage> {
-    let image =
-        crate::preprocess::open_image(path).with_context(|| format!("cannot decode depth image {}", path.display()))?;
+/// The depth image `path` of a `width` x `height` colour image: `None` (counted in `unreadable`) where
+/// the file does not decode, an error where it cannot be read or is no TUM depth image of that size
+/// (a `depth.txt` naming other images: every frame would go on without depth).
+fn load_depth(
+    path: &Path,
+    width: u32,
+    height: u32,
+    unreadable: &mut super::depth::UnreadableDepths,
+) -> Result<Option<DepthImage>> {
+    let bytes = std::fs::read(path).with_context(|| format!("cannot read depth image {}", path.display()))?;
+    let image = match crate::preprocess::decode_image_file(path, &bytes) {
+        Ok(image) => image,
+        Err(err) => {
+            unreadable.skip(&err.context(format!("cannot decode depth image {}", path.display())));
+            return Ok(None);
+        }
+    };
     let image::DynamicImage::ImageLuma16(depth) = image else {
         bail!("depth image {} is not a 16-bit grayscale PNG (TUM depth: 5000 units per metre)", path.display());
     };
@@ -193,7 +207,7 @@ fn load_depth(path: &Path, width: u32, height: u32) -> Result<DepthImage> {
         depth.width(),
         depth.height()
     );
-    Ok(DepthImage::from_tum(&depth))
+    Ok(Some(DepthImage::from_tum(&depth)))
 }
 
 /// Whether `path`'s name ends in an image folder's extension: png, jpg, jpeg or bmp, in any case.
@@ -274,19 +288,30 @@ impl Iterator for ImageFilesSource {
         let entry = self.entries.get(self.next)?;
         let index = self.next;
         self.next += 1;
-        // The image alone is unreadable: the frames after it are still read (module doc of `io`).
-        let loaded = crate::preprocess::open_image(&entry.path)
+        // A file that cannot be read (a disk gone) ends the source; one that does not decode is an
+        // unreadable frame, and the frames after it are still read (module doc of `io`).
+        let bytes = match std::fs::read(&entry.path) {
+            Ok(bytes) => bytes,
+            Err(err) => {
+                let err = anyhow::Error::new(err);
+                return Some(Err(err.context(format!("{}: cannot read image {}", entry.origin, entry.path.display()))));
+            }
+        };
+        let loaded = crate::preprocess::decode_image_file(&entry.path, &bytes)
             .with_context(|| format!("{}: cannot decode image {}", entry.origin, entry.path.display()))
             .map_err(|err| super::UnreadableFrame::error(index, entry.stamp, &err));
-        let frame = loaded.map(|img| {
+        let frame = loaded.and_then(|img| {
             let image = img.into_rgb8();
-            // A depth image that cannot be read leaves its frame without depth.
-            let depth = entry.depth.as_ref().and_then(|path| {
-                let depth = load_depth(path, image.width(), image.height()).with_context(|| entry.origin.clone());
-                depth.map_err(|err| self.unreadable_depths.skip(&err)).ok()
-            });
-            Frame { index, stamp: entry.stamp, image, depth }
+            let depth = match &entry.depth {
+                Some(path) => load_depth(path, image.width(), image.height(), &mut self.unreadable_depths)
+                    .with_context(|| entry.origin.clone())?,
+                None => None,
+            };
+            Ok(Frame { index, stamp: entry.stamp, image, depth })
         });
+        if self.next == self.entries.len() {
+            self.unreadable_depths.report_end();
+        }
         Some(frame)
     }
 
@@ -573,17 +598,19 @@ mod tests {
         let depth_at = |f: &Frame| f.depth.as_ref().map(|d| d.at(1.5, 1.5).unwrap());
         // The second depth (95 ms) is nearer the second image; the first (15 ms) the first image.
         assert_eq!(frames.iter().map(depth_at).collect::<Vec<_>>(), [Some(1.0), Some(2.0), None]);
-        // A depth image of another size, or one that does not decode, is passed over (warned): its
-        // frame goes on without depth, the others keep theirs.
-        let wrong = DepthImage { width: 2, height: 2, metres: vec![1.0; 4] };
-        wrong.to_tum().save(seq.join("depth/10.095000.png")).unwrap();
-        let err = format!("{:#}", load_depth(&seq.join("depth/10.095000.png"), 4, 3).unwrap_err());
-        assert!(err.contains("10.095000.png") && err.contains("2x2"), "{err}");
+        // A depth image that does not decode is passed over (warned): its frame goes on without
+        // depth, the others keep theirs.
+        let kept = fs::read(seq.join("depth/10.095000.png")).unwrap();
+        fs::write(seq.join("depth/10.095000.png"), b"cut").unwrap();
         let frames: Vec<Frame> = ImageFilesSource::open_tum(&seq).unwrap().map(|f| f.unwrap()).collect();
         assert_eq!(frames.iter().map(depth_at).collect::<Vec<_>>(), [Some(1.0), None, None]);
-        fs::write(seq.join("depth/10.015000.png"), b"cut").unwrap();
-        let frames: Vec<Frame> = ImageFilesSource::open_tum(&seq).unwrap().map(|f| f.unwrap()).collect();
-        assert_eq!(frames.iter().map(depth_at).collect::<Vec<_>>(), [None, None, None]);
+        fs::write(seq.join("depth/10.095000.png"), kept).unwrap();
+        // One of another size is no depth image of this camera (depth.txt naming other images): the
+        // error names it.
+        let wrong = DepthImage { width: 2, height: 2, metres: vec![1.0; 4] };
+        wrong.to_tum().save(seq.join("depth/10.095000.png")).unwrap();
+        let err = format!("{:#}", ImageFilesSource::open_tum(&seq).unwrap().nth(1).unwrap().unwrap_err());
+        assert!(err.contains("10.095000.png") && err.contains("2x2"), "{err}");
     }
 
     #[test]
@@ -637,6 +664,17 @@ mod tests {
             .collect();
         let read = ImageFilesSource::open_image_folder(&dir.path().join("rgb")).unwrap().collect();
         crate::io::assert_skips_unreadable(read, &folder, 1, folder[1].0, "1.png");
+        // A file that cannot be read at all (an I/O error: a disk gone) is no unreadable frame: it
+        // ends the source, where skipping would pass over every frame after it.
+        #[cfg(target_os = "linux")]
+        {
+            fs::remove_file(dir.path().join("rgb/2.png")).unwrap();
+            std::os::unix::fs::symlink("/proc/self/mem", dir.path().join("rgb/2.png")).unwrap();
+            let read: Vec<Result<Frame>> = ImageFilesSource::open_tum(dir.path()).unwrap().collect();
+            let err = read[2].as_ref().unwrap_err();
+            assert!(crate::io::unreadable_frame(err).is_none(), "{err:#}");
+            assert!(format!("{err:#}").contains("rgb.txt:3: cannot read image"), "{err:#}");
+        }
     }
 
     #[test]

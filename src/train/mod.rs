@@ -608,7 +608,13 @@ impl RunFiles {
             .find_map(|suffix| s.strip_suffix(suffix))
             .unwrap_or(&s)
             .to_string();
-        RunFiles::new(Path::new(&format!("{base}.safetensors")))
+        // The run's -o: `base.safetensors`, or `base` itself for an -o without that extension.
+        let with_extension = PathBuf::from(format!("{base}.safetensors"));
+        let bare = PathBuf::from(&base);
+        match !with_extension.exists() && RunFiles::new(&bare).json.exists() {
+            true => RunFiles::new(&bare),
+            false => RunFiles::new(&with_extension),
+        }
     }
 }
 
@@ -625,11 +631,13 @@ pub fn class_names_of(weights_path: &Path, classes: usize) -> Option<Vec<String>
 }
 
 /// The input size the training run that wrote `weights_path` (any of its files) trained at, from
-/// its run record; `None` for weights no training run wrote.
+/// its run record or report (`distill`, `train-place`); `None` for weights no training run wrote.
 pub fn input_size_of(weights_path: &Path) -> Option<usize> {
     let text = std::fs::read_to_string(RunFiles::of_checkpoint(weights_path).json).ok()?;
     let value: serde_json::Value = serde_json::from_str(&text).ok()?;
-    value.get("hyper")?.get("size")?.as_u64().map(|size| size as usize)
+    // `train` records it under `hyper`, `distill` and `train-place` reports under `config`.
+    let size = value.get("hyper").or_else(|| value.get("config"))?.get("size")?;
+    size.as_u64().map(|size| size as usize)
 }
 
 /// A classification training run.
@@ -657,7 +665,8 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
     let mut hyper = config.hyper.clone();
     let files = RunFiles::new(&config.out);
     files.check()?;
-    let resumed: Option<(RunRecord, Weights)> = match &config.resume {
+    // The resumed run's record, training form and best weights.
+    let resumed: Option<(RunRecord, Weights, PathBuf)> = match &config.resume {
         Some(checkpoint) => {
             let from = RunFiles::of_checkpoint(checkpoint);
             let text = std::fs::read_to_string(&from.json)
@@ -679,20 +688,8 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
                 );
             }
             hyper = record.hyper.clone();
-            // Resumed into another -o: the best epoch so far is the resumed run's, whose weights
-            // must be there too, or a run whose later epochs do not beat it would name a file it
-            // never wrote.
-            if record.best_epoch > 0 && !crate::io::output::same_file(&from.best, &files.best) {
-                std::fs::copy(&from.best, &files.best).with_context(|| {
-                    format!(
-                        "copying the resumed run's best weights {} to {}",
-                        from.best.display(),
-                        files.best.display()
-                    )
-                })?;
-            }
             let training = from.training_of(&record)?;
-            Some((record, Weights::load(&training)?))
+            Some((record, Weights::load(&training)?, from.best))
         }
         None => None,
     };
@@ -708,7 +705,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
             folder.classes.len()
         );
     }
-    if let Some((record, _)) = &resumed {
+    if let Some((record, _, _)) = &resumed {
         ensure!(
             record.classes == folder.classes,
             "the classes of {} differ from those of the resumed run",
@@ -736,7 +733,7 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
     let warmup = hyper.opt.warmup_steps(steps_per_epoch);
 
     let init_tensors: HashMap<String, Tensor> = match (&resumed, &config.init) {
-        (Some((_, w)), _) => w
+        (Some((_, w, _)), _) => w
             .tensors
             .iter()
             .filter(|(n, _)| !n.starts_with("optimizer."))
@@ -765,8 +762,16 @@ pub fn train(config: &TrainConfig) -> Result<RunRecord> {
     }
     let mut optimizer = hyper.opt.optimizer(params)?;
     let mut record = match resumed {
-        Some((record, w)) => {
+        Some((record, w, best)) => {
             optimizer.restore(&w.tensors, record.steps_done)?;
+            // Resumed into another -o, once every check has passed: the best epoch so far is the
+            // resumed run's, whose weights must be there too, or a run whose later epochs do not
+            // beat it would name a file it never wrote.
+            if record.best_epoch > 0 && !crate::io::output::same_file(&best, &files.best) {
+                let bytes = std::fs::read(&best)
+                    .with_context(|| format!("reading the resumed run's best weights {}", best.display()))?;
+                crate::io::output::write_replacing(&files.best, &bytes)?;
+            }
             record
         }
         None => RunRecord {

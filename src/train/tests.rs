@@ -300,8 +300,24 @@ fn checkpoints_round_trip_and_resume_continues_the_schedule() -> Result<()> {
     let moved = dir.path().join("moved/run.safetensors");
     let mut resumed_elsewhere = config(&data, &moved, Arch::EcMobileNet, h.clone());
     resumed_elsewhere.resume = Some(RunFiles::new(&other_split.out).training);
+    let mut refused = resumed_elsewhere.clone();
+    refused.out = dir.path().join("refused/run.safetensors");
+    refused.val_fraction = 0.5;
+    assert!(train(&refused).is_err() && !refused.out.exists(), "a refused resume left weights behind");
+    let earlier_best = std::fs::read(&other_split.out)?;
     let record = train(&resumed_elsewhere)?;
     assert!(record.best_epoch >= 1 && moved.is_file(), "{record:?}");
+    if record.best_epoch == 1 {
+        assert_eq!(std::fs::read(&moved)?, earlier_best, "the best weights are the resumed run's");
+    }
+    // A run whose -o has no .safetensors extension resumes from its own files.
+    let bare = dir.path().join("bare/lr0.001");
+    let mut first_bare = config(&data, &bare, Arch::EcMobileNet, h.clone());
+    first_bare.stop_after = Some(1);
+    train(&first_bare)?;
+    let mut resume_bare = config(&data, &bare, Arch::EcMobileNet, h.clone());
+    resume_bare.resume = Some(bare.clone());
+    assert_eq!(train(&resume_bare)?.epochs_done, 2);
     // A run named `.json` keeps its record apart: only `.safetensors` is left out of the name.
     assert_eq!(RunFiles::new(&dir.path().join("run.json")).json, dir.path().join("run.json.json"));
     Ok(())
