@@ -300,55 +300,43 @@ impl Loader {
         let (tx, rx) = sync_channel(3);
         let thread = std::thread::spawn(move || {
             // A panic here would only close the channel, and the epoch would end as if done.
-            let failed = tx.clone();
+            let on_panic = tx.clone();
             let loaded = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                load(set, batch, size, augment, shuffle, seed, tx)
+                let mut rng = StdRng::seed_from_u64(seed);
+                let mut order: Vec<usize> = (0..set.len()).collect();
+                if shuffle {
+                    order.shuffle(&mut rng);
+                }
+                let mut pre = Preprocessor::new(size);
+                for chunk in order.chunks(batch.max(1)) {
+                    if chunk.len() < 2 && shuffle {
+                        break;
+                    }
+                    let mut out = Batch {
+                        data: Vec::with_capacity(chunk.len() * 3 * size * size),
+                        labels: Vec::with_capacity(chunk.len()),
+                    };
+                    let result = chunk.iter().try_for_each(|&i| {
+                        let image = set.image(i)?;
+                        out.data.extend(augmented_chw(&image, &augment, &mut pre, &mut rng)?);
+                        out.labels.push(set.label(i) as u32);
+                        Ok(())
+                    });
+                    let failed = result.is_err();
+                    if tx.send(result.map(|_| out)).is_err() || failed {
+                        return;
+                    }
+                }
             }));
             if let Err(panic) = loaded {
                 let why = panic
                     .downcast_ref::<&str>()
                     .map(|s| s.to_string())
                     .or_else(|| panic.downcast_ref::<String>().cloned());
-                let _ = failed.send(Err(anyhow::anyhow!("the batch loader failed: {}", why.unwrap_or_default())));
+                let _ = on_panic.send(Err(anyhow::anyhow!("the batch loader failed: {}", why.unwrap_or_default())));
             }
         });
         Loader { batches: rx, thread: Some(thread) }
-    }
-}
-
-/// The loader thread's work: `set`'s images in batches, sent on `tx` until the receiver is gone or an
-/// image fails (sent as the last item).
-fn load(
-    set: Arc<dyn ImageSet>,
-    batch: usize,
-    size: usize,
-    augment: Augment,
-    shuffle: bool,
-    seed: u64,
-    tx: std::sync::mpsc::SyncSender<Result<Batch>>,
-) {
-    let mut rng = StdRng::seed_from_u64(seed);
-    let mut order: Vec<usize> = (0..set.len()).collect();
-    if shuffle {
-        order.shuffle(&mut rng);
-    }
-    let mut pre = Preprocessor::new(size);
-    for chunk in order.chunks(batch.max(1)) {
-        if chunk.len() < 2 && shuffle {
-            break;
-        }
-        let mut out =
-            Batch { data: Vec::with_capacity(chunk.len() * 3 * size * size), labels: Vec::with_capacity(chunk.len()) };
-        let result = chunk.iter().try_for_each(|&i| {
-            let image = set.image(i)?;
-            out.data.extend(augmented_chw(&image, &augment, &mut pre, &mut rng)?);
-            out.labels.push(set.label(i) as u32);
-            Ok(())
-        });
-        let failed = result.is_err();
-        if tx.send(result.map(|_| out)).is_err() || failed {
-            return;
-        }
     }
 }
 
