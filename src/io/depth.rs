@@ -135,29 +135,24 @@ pub enum BagMessage {
 
 /// Depth images that cannot be decoded: a frame that would have taken one goes on without depth
 /// (unverified, or verified up to scale), as one unreadable colour frame is skipped and the rest
-/// replayed. The first few are warned, the rest counted.
+/// replayed. Each is counted, and named in the log as [`crate::types::Recurring`] says.
 #[derive(Debug, Default)]
 pub struct UnreadableDepths {
-    count: usize,
+    count: crate::types::Recurring,
     reported: bool,
 }
 
 impl UnreadableDepths {
-    const WARNED: usize = 10;
-
     pub fn skip(&mut self, error: &anyhow::Error) {
-        self.count += 1;
-        if self.count <= Self::WARNED {
-            log::warn!("a depth image cannot be read, so it is passed over: {error:#}");
-        } else if self.count == Self::WARNED + 1 {
-            log::warn!("further depth images that cannot be read are passed over unnamed");
+        if let Some(n) = self.count.occurred() {
+            log::warn!("a depth image cannot be read, so it is passed over: {error:#} ({n} so far)");
         }
     }
 
     /// Says, once, at the end of a source, how many were passed over in all.
     pub fn report_end(&mut self) {
-        if self.count > 0 && !self.reported {
-            log::warn!("{} depth images could not be read; their frames went on without depth", self.count);
+        if self.count.count() > 0 && !self.reported {
+            log::warn!("{} depth images could not be read; their frames went on without depth", self.count.count());
         }
         self.reported = true;
     }

@@ -50,41 +50,32 @@ pub fn unreadable_frame(error: &anyhow::Error) -> Option<&UnreadableFrame> {
     error.downcast_ref::<UnreadableFrame>()
 }
 
-/// The frames a run skipped because their images could not be decoded ([`UnreadableFrame`]): each
-/// of the first few is warned with its reason, the rest counted.
+/// The frames a run skipped because their images could not be decoded ([`UnreadableFrame`]): each is
+/// counted, and named in the log as [`crate::types::Recurring`] says (the first and every hundredth).
 #[derive(Debug, Default)]
 pub struct UnreadableFrames {
     /// Their indexes in the source, in the order met.
     pub indexes: Vec<usize>,
     /// The first one's reason.
     first_reason: Option<String>,
+    logged: crate::types::Recurring,
 }
 
 impl UnreadableFrames {
-    /// How many are warned one by one (a source whose every image is unreadable would say the same
-    /// thing for each).
-    const WARNED: usize = 10;
-
     pub fn count(&self) -> usize {
         self.indexes.len()
     }
 
     pub fn skip(&mut self, source: &Path, frame: &UnreadableFrame) {
         self.indexes.push(frame.index);
-        match self.indexes.len() {
-            n if n <= Self::WARNED => log::warn!(
-                "{}: skipping frame {} (stamp {}): {}",
+        if let Some(n) = self.logged.occurred() {
+            log::warn!(
+                "{}: skipping frame {} (stamp {}): {} ({n} unreadable so far)",
                 source.display(),
                 frame.index,
                 frame.stamp,
                 frame.reason
-            ),
-            n if n == Self::WARNED + 1 => log::warn!(
-                "{}: skipping frame {}, and further unreadable frames are skipped and counted, not named",
-                source.display(),
-                frame.index
-            ),
-            _ => {}
+            );
         }
         self.first_reason.get_or_insert_with(|| frame.reason.clone());
     }
