@@ -467,7 +467,7 @@ static PARAM_SPECS: LazyLock<Vec<ParamSpec>> = LazyLock::new(|| {
             0.5,
             0.0,
             1.0e4,
-            "A keyframe is at least this many seconds after the previous one (0 = off).",
+            "A keyframe is at least this many seconds from the previous one, either side (0 = off).",
         ),
         double(
             "selection.novelty_max_score",

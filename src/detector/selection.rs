@@ -3,9 +3,10 @@
 //! A frame becomes a keyframe when every enabled rule accepts it:
 //! - `every_nth`: at least N frames after the previous keyframe (counted over every frame offered,
 //!   so with N = 3 frames 0, 3, 6, ... are taken when nothing else rejects);
-//! - `min_period_secs`: at least this many seconds after the previous keyframe's stamp (a stamp earlier
-//!   than the previous keyframe's, e.g. a replay that restarts, passes: time went backwards, so the
-//!   previous keyframe says nothing about this one);
+//! - `min_period_secs`: at least this many seconds from the previous keyframe's stamp, on either side: a
+//!   frame delivered late, stamped a moment before the last keyframe, is as close to it as one a moment
+//!   after. A jump back by more than the period (a replay that restarts) passes: time went backwards,
+//!   so the previous keyframe says nothing about this one;
 //! - `novelty_min_distance`: the descriptor is at least this far (Euclidean) from the previous keyframe's.
 //!
 //! The first frame is always a keyframe. The default (`config/ecm_lcd.yaml`) is the time rule alone at
@@ -82,7 +83,7 @@ impl KeyframeSelector {
         }
         let min_period_nanos = (self.params.min_period_secs * 1e9).round() as i64;
         let elapsed = stamp.nanos.saturating_sub(last_stamp.nanos);
-        if elapsed >= 0 && elapsed < min_period_nanos {
+        if elapsed.saturating_abs() < min_period_nanos {
             return Verdict::Reject;
         }
         self.accept_unless_novelty_pending(stamp)
@@ -182,8 +183,14 @@ mod tests {
         assert_eq!(accepted(&mut s, 10), vec![0, 3, 6, 9]);
         let mut s = KeyframeSelector::new(SelectionParams { min_period_secs: 0.5, ..off() });
         assert_eq!(accepted(&mut s, 31), vec![0, 15, 30]);
-        // Time going backwards passes the time rule.
+        // A frame delivered late, stamped within the period before the last keyframe, is rejected;
+        // time jumping back by more (a replay that restarts) passes the time rule.
+        assert!(!s.accept(frame_stamp(29), None).unwrap());
+        assert!(!s.accept(frame_stamp(16), None).unwrap());
         assert!(s.accept(frame_stamp(2), None).unwrap());
+        // The period is then measured from the restarted frame.
+        assert!(!s.accept(frame_stamp(3), None).unwrap());
+        assert!(s.accept(frame_stamp(17), None).unwrap());
     }
 
     #[test]
