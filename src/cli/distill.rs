@@ -14,7 +14,8 @@ pub struct Args {
     /// Teacher weights (safetensors or .tflite), or `default` for the project's MobileNetV2.
     #[arg(long, default_value = "default")]
     pub teacher: String,
-    /// Unlabelled images: an image folder (flat or with sub-folders) or any replay source.
+    /// Unlabelled images: an image folder, a folder of such folders or replay sources (TUM folders,
+    /// ROS 2 bag folders), or any replay source.
     #[arg(long)]
     pub data: PathBuf,
     /// Student weights (inference form); the report goes beside it as `.json`.

@@ -361,16 +361,12 @@ pub fn shrink_to_short_side(image: RgbImage, keep_side: u32) -> RgbImage {
     image::imageops::resize(&image, scale(image.width()), scale(image.height()), image::imageops::FilterType::Triangle)
 }
 
-/// Every image of `source` (an image folder with class sub-folders, or anything
-/// [`crate::io::open_source`] replays), each scaled so its shorter side is `keep_side` (memory
-/// stays small), at most `max_images` evenly spread over the source.
+/// Every image of `source` (an image folder with sub-folders, or anything [`crate::io::open_source`]
+/// replays), each scaled so its shorter side is `keep_side` (memory stays small), at most
+/// `max_images` evenly spread over the source. A sub-folder is read as what it is: a folder of
+/// images, or a replay source (a TUM folder, a ROS 2 bag folder).
 pub fn load_unlabelled(source: &Path, keep_side: u32, max_images: usize) -> Result<Vec<RgbImage>> {
-    let shrink = |img: RgbImage| shrink_to_short_side(img, keep_side);
-    let subfolders: Vec<PathBuf> = if source.is_dir()
-        && !source.join("rgb.txt").exists()
-        && !source.join("metadata.yaml").exists()
-        && image_files(source)?.is_empty()
-    {
+    let subfolders: Vec<PathBuf> = if crate::io::is_image_folder(source) && image_files(source)?.is_empty() {
         let mut dirs: Vec<PathBuf> = std::fs::read_dir(source)
             .with_context(|| format!("cannot list {}", source.display()))?
             .filter_map(|e| e.ok().map(|e| e.path()))
@@ -381,22 +377,36 @@ pub fn load_unlabelled(source: &Path, keep_side: u32, max_images: usize) -> Resu
     } else {
         Vec::new()
     };
+    // Image files are read only once chosen; a replay source's frames are decoded as it plays.
+    enum Item {
+        File(PathBuf),
+        Frame(RgbImage),
+    }
+    let mut items = Vec::new();
+    let add_source = |path: &Path, items: &mut Vec<Item>| -> Result<()> {
+        let frames = crate::io::open_source(path, None)?;
+        for frame in crate::io::skip_unreadable(frames, path) {
+            let frame = frame.with_context(|| format!("cannot read the frames of {}", path.display()))?;
+            items.push(Item::Frame(shrink_to_short_side(frame.image, keep_side)));
+        }
+        Ok(())
+    };
+    if subfolders.is_empty() {
+        add_source(source, &mut items)?;
+    }
+    for folder in &subfolders {
+        if crate::io::is_image_folder(folder) {
+            items.extend(image_files(folder)?.into_iter().map(Item::File));
+        } else {
+            add_source(folder, &mut items)?;
+        }
+    }
     let mut images = Vec::new();
-    if !subfolders.is_empty() {
-        let mut files = Vec::new();
-        for d in &subfolders {
-            files.extend(image_files(d)?);
-        }
-        for f in spread(&files, max_images) {
-            images.push(shrink(read_image(f)?));
-        }
-    } else {
-        let frames = crate::io::open_source(source, None)?;
-        let mut all = Vec::new();
-        for frame in crate::io::skip_unreadable(frames, source) {
-            all.push(shrink(frame.with_context(|| format!("cannot read the frames of {}", source.display()))?.image));
-        }
-        images = spread(&all, max_images).into_iter().cloned().collect();
+    for item in spread(&items, max_images) {
+        images.push(match item {
+            Item::File(path) => shrink_to_short_side(read_image(path)?, keep_side),
+            Item::Frame(image) => image.clone(),
+        });
     }
     if images.len() < 4 {
         bail!("{} has {} images; distillation needs at least 4", source.display(), images.len());
@@ -450,5 +460,34 @@ mod tests {
             (listed.classes.clone(), listed.train.len(), listed.val.len()),
             (vec!["a".into(), "b".into()], 2, 2)
         );
+    }
+
+    /// Sub-folders are read as what they are: a folder of images, or a TUM folder whose images are
+    /// listed in `rgb.txt` under `rgb/`.
+    #[test]
+    fn unlabelled_sub_folders_may_be_replay_sources() {
+        let dir = tempfile::tempdir().unwrap();
+        let frames = crate::io::test_frames(6, 16, 12, crate::types::Stamp::from_nanos(0));
+        let plain = dir.path().join("a_images");
+        let tum = dir.path().join("b_tum");
+        std::fs::create_dir_all(&plain).unwrap();
+        std::fs::create_dir_all(tum.join("rgb")).unwrap();
+        let mut list = String::new();
+        for (i, (_, image)) in frames.iter().enumerate() {
+            if i < 2 {
+                image.save(plain.join(format!("{i}.png"))).unwrap();
+            } else {
+                image.save(tum.join(format!("rgb/{i}.png"))).unwrap();
+                list.push_str(&format!("{i}.0 rgb/{i}.png\n"));
+            }
+        }
+        std::fs::write(tum.join("rgb.txt"), list).unwrap();
+        let images = load_unlabelled(dir.path(), 64, 100).unwrap();
+        assert_eq!(images.len(), 6);
+        let blue: Vec<u8> = images.iter().map(|image| image.get_pixel(0, 0)[2]).collect();
+        assert_eq!(blue, vec![0, 20, 40, 60, 80, 100]);
+        // At most `max_images`, spread over both.
+        let blue: Vec<u8> = load_unlabelled(dir.path(), 64, 4).unwrap().iter().map(|i| i.get_pixel(0, 0)[2]).collect();
+        assert_eq!(blue, vec![0, 20, 60, 80]);
     }
 }
