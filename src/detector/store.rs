@@ -64,6 +64,8 @@ use vectors::VectorFile;
 
 /// Fewer rows than this per thread are not worth a thread of their own when loading.
 const LOAD_ROWS_PER_THREAD_MIN: usize = 4096;
+/// Rows `db merge` reads at a time to fill the merged store's vector file (tens of MB).
+const MERGE_ROWS_PER_STEP: usize = 4096;
 
 /// Written into every store; a file with another format value is refused.
 const FORMAT: &str = "ecm-lcd keyframes 1";
@@ -720,6 +722,27 @@ impl KeyframeStore {
         Ok(db)
     }
 
+    /// Brings the vector file up to date with the database, reading `rows_per_step` rows at a time,
+    /// so that memory stays bounded whatever the store's size (a whole [`KeyframeStore::load_db`]
+    /// would hold every descriptor at once).
+    #[cfg(unix)]
+    fn fill_vector_file(&self, rows_per_step: usize) -> Result<()> {
+        let Some((file, header, _)) = self.checked_vector_file(0) else { return Ok(()) };
+        let (mut covered, mut prev_seq) = (header.rows, (header.rows > 0).then_some(header.last_seq));
+        while covered < self.count {
+            let len = (self.count - covered).min(rows_per_step.max(1) as u64) as usize;
+            let (_, _, values) = self.read_range(covered, len, rayon::current_num_threads(), Columns::All)?;
+            let last_seq = self.seq_at(covered + len as u64 - 1)?.context("keyframe database changed while reading")?;
+            ensure!(
+                file.append_after(self.identity.dim, &self.uid, prev_seq, last_seq, &values)?,
+                "{} changed while it was filled",
+                vectors::path_for(&self.path).display()
+            );
+            (covered, prev_seq) = (covered + len as u64, Some(last_seq));
+        }
+        Ok(())
+    }
+
     /// The vector file with its header and its rows mapped, once it checks out ([`vectors`]);
     /// otherwise (the reason logged) a new empty one to rebuild, or `None` where none can be written
     /// (the load then reads every row from the database).
@@ -1203,7 +1226,8 @@ pub fn merge(first: &Path, second: &Path, output: &Path, second_id_offset: u64) 
         drop(out);
         // The vector file filled now, so that the first read-only use (`match --database`) finds it
         // complete and writes nothing beside the store.
-        KeyframeStore::open_existing(&merging)?.load_db(None)?;
+        #[cfg(unix)]
+        KeyframeStore::open_existing(&merging)?.fill_vector_file(MERGE_ROWS_PER_STEP)?;
         for suffix in ["", "-vectors"] {
             let (mut from, mut to) = (merging.as_os_str().to_owned(), output.as_os_str().to_owned());
             from.push(suffix);

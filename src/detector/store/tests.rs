@@ -190,6 +190,8 @@ fn merge_touches_no_input_and_no_store_takes_over_an_orphaned_log() {
     expected.sort();
     assert_eq!(listing(), expected);
     let vectors = std::fs::metadata(dir.path().join("out.db-vectors")).unwrap().len();
+    #[cfg(unix)]
+    assert_eq!(vector_rows(&out), 9);
     assert_eq!(KeyframeStore::open_read_only(&out).unwrap().load_db(None).unwrap().len(), 9);
     assert_eq!(listing(), expected, "a read-only load wrote beside the merged store");
     assert_eq!(std::fs::metadata(dir.path().join("out.db-vectors")).unwrap().len(), vectors);
@@ -271,6 +273,21 @@ fn vector_file_inode(path: &Path) -> u64 {
 #[cfg(unix)]
 fn vector_rows(path: &Path) -> u64 {
     VectorFile::open(&vectors::path_for(path)).unwrap().unwrap().header().unwrap().rows
+}
+
+/// Filling the vector file a few rows at a time (as `db merge` does, to bound its memory) writes the
+/// same file as appending each row as it is stored.
+#[cfg(unix)]
+#[test]
+fn the_vector_file_fills_in_steps() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("kf.db");
+    drop(store_with(&path, 0..9, 8));
+    let appended = std::fs::read(vectors::path_for(&path)).unwrap();
+    std::fs::remove_file(vectors::path_for(&path)).unwrap();
+    KeyframeStore::open_existing(&path).unwrap().fill_vector_file(2).unwrap();
+    assert_eq!(vector_rows(&path), 9);
+    assert_eq!(std::fs::read(vectors::path_for(&path)).unwrap(), appended);
 }
 
 /// Rows stored behind the vector file's back (as by a crash between a commit and the append, or a
