@@ -104,6 +104,13 @@ fn an_output_that_is_an_input_is_refused_and_the_input_kept() {
     refused(&["match", database[0], database[1], queries[0], queries[1], "-o", &d("seq/0.png")], &["source folder"]);
     let eval = ["eval", database[0], database[1], queries[0], queries[1], "--loops", &d("loops.csv")];
     refused(&[&eval[..], &["-o", &d("loops.csv")]].concat(), &["loops.csv", "destroy"]);
+    // eval's --db, which it reads and writes, as replay's.
+    let eval_source = ["eval", &d("seq"), "--loops", &d("loops.csv")];
+    refused(&[&eval_source[..], &["--db", &d("loops.csv")]].concat(), &["loops.csv", "destroy"]);
+    refused(&[&eval_source[..], &["--db", &d("n.db"), "-o", &d("n.db")]].concat(), &["--db and -o both name"]);
+    refused(&[&eval_source[..], &["--db", &d("n.db"), "-o", &d("n.db-wal")]].concat(), &["own -wal file"]);
+    // A new image directly in an image folder would be read as one more frame.
+    refused(&[&eval_source[..], &["--plot", &d("seq/pr.png")]].concat(), &["seq/pr.png", "source folder"]);
     // Two outputs under one name, whether the file exists yet or not.
     refused(&["replay", &d("seq"), "--db", &d("new.db"), "-o", &d("new.db")], &["--db and -o both name", "new.db"]);
     refused(&[&eval[..], &["-o", &d("pr.png"), "--plot", &d("pr.png")]].concat(), &["-o and --plot both name"]);

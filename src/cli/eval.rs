@@ -229,18 +229,13 @@ pub fn run(args: Args) -> Result<()> {
     // Before anything is opened: no output may be an input, a source's file or the other output.
     let sources: Vec<&Path> =
         [&args.source, &args.database, &args.queries].into_iter().flatten().map(PathBuf::as_path).collect();
-    let mut inputs = sources.clone();
-    inputs.extend([&args.loops, &args.groundtruth].into_iter().flatten().map(PathBuf::as_path));
+    let mut inputs: Vec<&Path> = [&args.loops, &args.groundtruth].into_iter().flatten().map(PathBuf::as_path).collect();
     inputs.extend(args.source_args.files_read());
     let outputs: Vec<(&str, &Path)> = [("-o", &args.output), ("--plot", &args.plot)]
         .into_iter()
         .filter_map(|(flag, path)| Some((flag, path.as_deref()?)))
         .collect();
-    for &(_, output) in &outputs {
-        ecm_lcd::io::output::ensure_not_an_input(output, &inputs)?;
-        ecm_lcd::io::output::ensure_not_in_source(output, &sources)?;
-    }
-    ecm_lcd::io::output::ensure_writable_outputs(&outputs)?;
+    ecm_lcd::io::output::ensure_outputs(&sources, &inputs, args.source_args.db.as_deref(), &outputs)?;
     // Before the pipeline opens (and creates) a --db that database/query mode refuses.
     let database_and_queries = args.database_and_queries()?;
     let mut pipeline = match (&args.source, &args.loops) {

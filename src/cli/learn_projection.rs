@@ -38,9 +38,7 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     let inputs: Vec<&std::path::Path> = args.sources.iter().map(PathBuf::as_path).collect();
     args.source_args.refuse_source_only("learn-projection (it reads only images)")?;
-    ecm_lcd::io::output::ensure_not_an_input(&args.output, &inputs)?;
-    ecm_lcd::io::output::ensure_not_in_source(&args.output, &inputs)?;
-    ecm_lcd::io::output::ensure_writable_outputs(&[("-o", &args.output)])?;
+    ecm_lcd::io::output::ensure_outputs(&inputs, &args.source_args.files_read(), None, &[("-o", &args.output)])?;
     let mut params = args.source_args.params()?;
     // Learned on the descriptor itself, never on a projection of it.
     params.set_from_str("descriptor.projection", "").map_err(anyhow::Error::msg)?;

@@ -43,13 +43,9 @@ pub fn header() -> Vec<String> {
 pub fn run(args: Args) -> Result<()> {
     args.source_args.refuse_source_only("--database/--queries")?;
     let sources = [args.database.as_path(), args.queries.as_path()];
-    let mut inputs = sources.to_vec();
-    inputs.extend(args.source_args.files_read());
-    if let Some(output) = &args.output {
-        ecm_lcd::io::output::ensure_not_an_input(output, &inputs)?;
-        ecm_lcd::io::output::ensure_not_in_source(output, &sources)?;
-        ecm_lcd::io::output::ensure_writable_outputs(&[("-o", output)])?;
-    }
+    let outputs: Vec<(&str, &std::path::Path)> =
+        args.output.as_deref().map(|output| ("-o", output)).into_iter().collect();
+    ecm_lcd::io::output::ensure_outputs(&sources, &args.source_args.files_read(), None, &outputs)?;
     let mut pipeline = args.source_args.pipeline()?;
     let run = run_database_queries(
         &mut pipeline,

@@ -121,25 +121,13 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     // Before anything is opened: neither output may be one of the inputs (or the other output).
-    let mut inputs = vec![args.source.as_path()];
-    inputs.extend(args.source_args.files_read());
-    if let Some(db) = &args.source_args.db {
-        ecm_lcd::io::output::ensure_not_an_input(db, &inputs)?;
-    }
-    if let Some(output) = &args.output {
-        let mut read = inputs.clone();
-        read.extend(args.source_args.db.as_deref());
-        ecm_lcd::io::output::ensure_not_an_input(output, &read)?;
-        if let Some(db) = &args.source_args.db {
-            ecm_lcd::io::output::ensure_not_beside_database(output, db)?;
-        }
-        ecm_lcd::io::output::ensure_not_in_source(output, &[&args.source])?;
-    }
-    let outputs: Vec<(&str, &Path)> = [("--db", &args.source_args.db), ("-o", &args.output)]
-        .into_iter()
-        .filter_map(|(flag, path)| Some((flag, path.as_deref()?)))
-        .collect();
-    ecm_lcd::io::output::ensure_writable_outputs(&outputs)?;
+    let outputs: Vec<(&str, &Path)> = args.output.as_deref().map(|output| ("-o", output)).into_iter().collect();
+    ecm_lcd::io::output::ensure_outputs(
+        &[&args.source],
+        &args.source_args.files_read(),
+        args.source_args.db.as_deref(),
+        &outputs,
+    )?;
     let mut pipeline = args.source_args.pipeline()?;
     let resuming = pipeline.store().is_some_and(|store| !store.is_empty());
     let stored = match pipeline.store() {

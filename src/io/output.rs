@@ -117,23 +117,58 @@ pub fn ensure_writable_outputs(outputs: &[(&str, &Path)]) -> Result<()> {
     Ok(())
 }
 
+/// Every check a command's outputs need before it reads anything: none may be one of the `inputs`
+/// (the `sources` among them), a file a source folder reads ([`ensure_not_in_source`]), or another
+/// output; the keyframe database `database` (`--db`), which is read and written, is none of the
+/// inputs, and no other output is it or one of its files beside it.
+pub fn ensure_outputs(
+    sources: &[&Path],
+    inputs: &[&Path],
+    database: Option<&Path>,
+    outputs: &[(&str, &Path)],
+) -> Result<()> {
+    let mut read: Vec<&Path> = sources.iter().chain(inputs).copied().collect();
+    if let Some(database) = database {
+        ensure_not_an_input(database, &read)?;
+        ensure_not_in_source(database, sources)?;
+    }
+    read.extend(database);
+    for &(_, output) in outputs {
+        ensure_not_an_input(output, &read)?;
+        if let Some(database) = database {
+            ensure_not_beside_database(output, database)?;
+        }
+        ensure_not_in_source(output, sources)?;
+    }
+    let all: Vec<(&str, &Path)> = database.map(|db| ("--db", db)).into_iter().chain(outputs.iter().copied()).collect();
+    ensure_writable_outputs(&all)
+}
+
 /// The text files of a TUM folder (the benchmark's, and `odometry.txt` from `synth`).
 const TUM_FILES: [&str; 5] = ["rgb.txt", "depth.txt", "groundtruth.txt", "accelerometer.txt", "odometry.txt"];
 
-/// Refuses `output` when it is an existing file inside one of the `sources` that are folders and
-/// that sources read: an image, or a TUM folder's lists (`rgb.txt`, ...). Other files there (a CSV
-/// written before) may be replaced.
+/// Refuses `output` where it would change what one of the `sources` that are folders reads:
+/// - an existing image, or a TUM folder's lists (`rgb.txt`, ...), anywhere inside one;
+/// - any existing file inside a ROS 2 bag folder (its `metadata.yaml` and storage files);
+/// - an image name directly inside an image folder, even a new one: it would be read as a frame
+///   the next time, and every later frame's index would shift.
+///
+/// Other files there (a CSV written before) may be replaced.
 pub fn ensure_not_in_source(output: &Path, sources: &[&Path]) -> Result<()> {
-    let read_by_sources = crate::io::tum::has_image_extension(output)
-        || output.file_name().and_then(|n| n.to_str()).is_some_and(|n| TUM_FILES.contains(&n));
-    if !read_by_sources || !output.is_file() {
-        return Ok(());
-    }
+    let is_image = crate::io::tum::has_image_extension(output);
+    let is_tum_list = output.file_name().and_then(|n| n.to_str()).is_some_and(|n| TUM_FILES.contains(&n));
     let Some(absolute) = resolved(output) else { return Ok(()) };
+    let exists = output.is_file();
     for source in sources.iter().filter(|s| s.is_dir()) {
-        if source.canonicalize().is_ok_and(|folder| absolute.starts_with(folder)) {
+        let Ok(folder) = source.canonicalize() else { continue };
+        if !absolute.starts_with(&folder) {
+            continue;
+        }
+        let read_by_source = (exists && (is_image || is_tum_list || folder.join("metadata.yaml").is_file()))
+            || (is_image && crate::io::is_image_folder(&folder) && absolute.parent() == Some(folder.as_path()));
+        if read_by_source {
             bail!(
-                "the output {} is a file of the source folder {}; writing it would destroy the source (choose another output path)",
+                "the output {} is a file of the source folder {}; writing it would change the source (choose another output path)",
                 output.display(),
                 source.display()
             );
@@ -202,6 +237,33 @@ pub fn ensure_not_beside_database(output: &Path, database: &Path) -> Result<()> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_output_that_a_source_folder_would_read_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = |name: &str| dir.path().join(name);
+        for folder in ["bag", "images/sub", "tum/rgb"] {
+            std::fs::create_dir_all(path(folder)).unwrap();
+        }
+        for file in ["bag/metadata.yaml", "bag/bag_0.mcap", "images/0.png", "tum/rgb.txt", "tum/rgb/0.png", "old.csv"] {
+            std::fs::write(path(file), b"x").unwrap();
+        }
+        let sources = [path("bag"), path("images"), path("tum")];
+        let sources: Vec<&Path> = sources.iter().map(PathBuf::as_path).collect();
+        let refused = |name: &str| ensure_not_in_source(&path(name), &sources).is_err();
+        // A bag folder's files, the images and lists a folder reads, and a new image an image
+        // folder would read as a frame.
+        for name in
+            ["bag/bag_0.mcap", "bag/metadata.yaml", "images/0.png", "images/new.PNG", "tum/rgb.txt", "tum/rgb/0.png"]
+        {
+            assert!(refused(name), "{name} allowed");
+        }
+        // New files no source reads, and files outside the sources.
+        for name in ["bag/new.csv", "images/new.csv", "images/sub/new.png", "tum/rgb/new.png", "tum/new.png", "old.csv"]
+        {
+            assert!(!refused(name), "{name} refused");
+        }
+    }
 
     #[test]
     fn a_keyframe_databases_files_beside_it_are_inputs_too() {
