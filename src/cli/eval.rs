@@ -70,6 +70,10 @@ impl Args {
                 bail!("{name} must be a non-negative number, got {value}");
             }
         }
+        // The angle between two viewing axes is at most 180 degrees; a larger bound would wrap.
+        if self.max_angle > 180.0 {
+            bail!("--max-angle must be at most 180 (degrees between the viewing axes), got {}", self.max_angle);
+        }
         Ok(PoseLoopCriteria {
             max_distance_m: self.max_distance,
             max_angle_deg: self.max_angle,

@@ -199,7 +199,8 @@ pub fn loop_truth_from_poses(
         .into_par_iter()
         .map(|q| {
             let (position, axis) = axes[q]?;
-            let found = (0..stamps.len())
+            // Only frames replayed before the query are in its history (with a gap of 0, not itself).
+            let found = (0..q)
                 .filter(|&m| stamps[q].nanos - stamps[m].nanos >= min_gap)
                 .filter(|&m| match axes[m] {
                     Some((p, a)) => (p - position).norm() <= criteria.max_distance_m && a.dot(&axis) >= cos_max,
@@ -365,6 +366,12 @@ mod tests {
         assert_eq!(truth.matches(2), Some(&set(&[0])));
         assert_eq!(truth.matches(6), Some(&set(&[0])));
         assert_eq!(truth.positive_queries().collect::<Vec<_>>(), vec![2, 4, 6]);
+        // With no gap, a frame's matches are the frames replayed before it, never itself.
+        let no_gap = PoseLoopCriteria { min_gap_s: 0.0, ..PoseLoopCriteria::default() };
+        let truth = loop_truth_from_poses(&stamps, &groundtruth, &no_gap);
+        assert_eq!(truth.matches(0), Some(&set(&[])));
+        assert_eq!(truth.matches(1), Some(&set(&[0])));
+        assert_eq!(truth.matches(6), Some(&set(&[0, 1, 2, 4])));
     }
 
     #[test]
