@@ -756,15 +756,27 @@ fn match_skips_unreadable_frames_and_keeps_the_queries_before_a_source_breaks_of
 #[test]
 fn demo_replays_the_bundled_sample() {
     let out_dir = tempfile::tempdir().unwrap();
-    let out = ecm_lcd(&["demo", "--quiet", "--out", out_dir.path().to_str().unwrap()]);
+    let db = out_dir.path().join("k.db");
+    let db = db.to_str().unwrap();
+    let out = ecm_lcd(&["demo", "--quiet", "--out", out_dir.path().to_str().unwrap(), "--db", db]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout.contains("160 frames, 80 keyframes"), "{stdout}");
     assert!(stdout.contains("(0 false)"), "{stdout}");
     assert!(stdout.contains("average precision"), "{stdout}");
-    for file in ["demo_candidates.csv", "demo_pr.csv", "demo_pr.png"] {
-        assert!(out_dir.path().join(file).is_file(), "{file} missing");
+    let files = ["demo_candidates.csv", "demo_pr.csv", "demo_pr.png"];
+    let written: Vec<Vec<u8>> = files.iter().map(|file| std::fs::read(out_dir.path().join(file)).unwrap()).collect();
+    // Again with the same database: its keyframes would be skipped and nothing scored, so it is
+    // refused and the first run's outputs are kept.
+    let again = ecm_lcd(&["demo", "--quiet", "--out", out_dir.path().to_str().unwrap(), "--db", db]);
+    assert_clean_failure(&again, &["already holds 80 keyframes", "demo would skip"]);
+    for (file, bytes) in files.iter().zip(&written) {
+        assert_eq!(&std::fs::read(out_dir.path().join(file)).unwrap(), bytes, "{file} changed");
     }
+    // An --out that is a file is refused before the replay.
+    let not_a_folder = out_dir.path().join("demo_pr.csv");
+    let out = ecm_lcd(&["demo", "--quiet", "--out", not_a_folder.to_str().unwrap()]);
+    assert_clean_failure(&out, &["is a file", "into a folder"]);
 }
 
 fn assert_clean_failure(out: &Output, needles: &[&str]) {

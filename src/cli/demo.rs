@@ -4,9 +4,9 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 
-use super::eval::{pipeline_for_pose_truth, print_summary};
+use super::eval::{pipeline_for_pose_truth, print_summary, refuse_stored_keyframes};
 use super::replay::{write_candidates_csv, SourceArgs};
 use ecm_lcd::eval::{evaluate, loop_truth_from_poses, plot_pr_curve, write_curve_csv, PoseLoopCriteria};
 use ecm_lcd::io::tum::read_groundtruth;
@@ -43,8 +43,19 @@ fn bundled(path: &Path) -> PathBuf {
 
 pub fn run(args: Args) -> Result<()> {
     let (source, groundtruth) = (bundled(&args.source), bundled(&args.groundtruth));
+    // Before anything is read: the outputs can all be written, and none is an input.
+    if args.out.exists() && !args.out.is_dir() {
+        bail!("--out {} is a file; demo writes three files into a folder of that name", args.out.display());
+    }
+    let (candidates, curve, plot) =
+        (args.out.join("demo_candidates.csv"), args.out.join("demo_pr.csv"), args.out.join("demo_pr.png"));
+    let outputs = [("demo_candidates.csv", candidates.as_path()), ("demo_pr.csv", &curve), ("demo_pr.png", &plot)];
+    let mut inputs = vec![groundtruth.as_path()];
+    inputs.extend(args.source_args.files_read());
+    ecm_lcd::io::output::ensure_outputs(&[&source], &inputs, args.source_args.db.as_deref(), &outputs)?;
     let criteria = PoseLoopCriteria::default();
     let mut pipeline = pipeline_for_pose_truth(&args.source_args, &criteria)?;
+    refuse_stored_keyframes(&pipeline, "demo")?;
     let run = run_source(&mut pipeline, &source, &args.source_args.topics(), !args.source_args.quiet)?;
     if let Some(error) = &run.error {
         anyhow::bail!("{} broke off after {} frames: {error}", source.display(), run.frames);
@@ -71,12 +82,9 @@ pub fn run(args: Args) -> Result<()> {
     println!("\nagainst the ground-truth poses (same place: within 1 m and 30 degrees, at least 20 s apart):");
     println!("reported candidates      {} ({} false)", run.candidates.len(), false_loops);
     print_summary(&metrics, &run.mean_timings());
-    std::fs::create_dir_all(&args.out).with_context(|| format!("cannot create {}", args.out.display()))?;
-    let (candidates, curve, plot) =
-        (args.out.join("demo_candidates.csv"), args.out.join("demo_pr.csv"), args.out.join("demo_pr.png"));
     write_candidates_csv(&run.candidates, &candidates)?;
     write_curve_csv(&metrics, &curve)?;
-    plot_pr_curve(&metrics, "ecm-lcd demo: bags/sample_loop.bag", &plot)?;
+    plot_pr_curve(&metrics, &format!("ecm-lcd demo: {}", args.source.display()), &plot)?;
     println!("wrote {}, {} and {}", candidates.display(), curve.display(), plot.display());
     Ok(())
 }

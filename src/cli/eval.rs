@@ -225,6 +225,19 @@ pub fn print_summary(metrics: &Metrics, timings_ms: &[(&str, f64)]) {
     println!("per keyframe            {}", timings.join(", "));
 }
 
+/// Refuses a `--db` that already holds keyframes: frames stored by an earlier run are skipped, not
+/// replayed, so they would not be scored and the figures would be of part of the sequence.
+pub fn refuse_stored_keyframes(pipeline: &Pipeline, command: &str) -> Result<()> {
+    if let Some(store) = pipeline.store().filter(|store| !store.is_empty()) {
+        bail!(
+            "{} already holds {} keyframes, which {command} would skip and not score; give a new database (or none)",
+            store.path().display(),
+            store.len()
+        );
+    }
+    Ok(())
+}
+
 /// `ecm-lcd eval`: replays the source (or embeds the database and query folders), then scores.
 pub fn run(args: Args) -> Result<()> {
     if let Some(plot) = &args.plot {
@@ -246,15 +259,7 @@ pub fn run(args: Args) -> Result<()> {
         (Some(_), None) => pipeline_for_pose_truth(&args.source_args, &args.criteria()?)?,
         _ => args.source_args.pipeline()?,
     };
-    // Frames stored by an earlier run are skipped, not replayed, so they would not be scored: the
-    // figures would be of part of the sequence.
-    if let Some(store) = pipeline.store().filter(|store| !store.is_empty()) {
-        bail!(
-            "{} already holds {} keyframes, which eval would skip and not score; give a new database (or none)",
-            store.path().display(),
-            store.len()
-        );
-    }
+    refuse_stored_keyframes(&pipeline, "eval")?;
     if let Some((database, queries)) = database_and_queries {
         let mut truth = load_truth(&args, &[])?;
         let run = run_database_queries(

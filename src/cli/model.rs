@@ -18,8 +18,8 @@ pub struct NetworkArgs {
     #[arg(long)]
     pub weights: Option<PathBuf>,
     /// Network architecture: ecmobilenet or mobilenetv2 (default: that of ECMobileNet weights, which
-    /// serve no other; otherwise mobilenetv2 for `classify`, whose ImageNet classifier was trained
-    /// with it, and ecmobilenet elsewhere).
+    /// serve no other; otherwise mobilenetv2, the detector's default network, whose ImageNet
+    /// classifier the weights are).
     #[arg(long)]
     pub arch: Option<Arch>,
     /// Input size (a multiple of 32; default: the size a training run beside the weights trained at,
@@ -211,10 +211,13 @@ pub struct EmbedArgs {
 }
 
 pub fn embed(args: EmbedArgs) -> Result<()> {
-    let images: Vec<&std::path::Path> = args.images.iter().map(PathBuf::as_path).collect();
-    ecm_lcd::io::output::ensure_not_an_input(&args.output, &images)?;
+    let mut inputs: Vec<&std::path::Path> = args.images.iter().map(PathBuf::as_path).collect();
+    inputs.extend(args.network.weights.as_deref());
+    ecm_lcd::io::output::ensure_not_an_input(&args.output, &inputs)?;
     ecm_lcd::io::output::ensure_writable_outputs(&[("-o", &args.output)])?;
-    let (mut embedder, _) = args.network.embedder(Arch::EcMobileNet, false)?;
+    let (mut embedder, resolved) = args.network.embedder(Arch::MobileNetV2, false)?;
+    // The weights may come from $ECM_LCD_WEIGHTS or the cache rather than --weights.
+    ecm_lcd::io::output::ensure_not_an_input(&args.output, &[&resolved.path])?;
     // Every image is read before the output is opened, so a bad image leaves an existing file as it was.
     let mut records = Vec::with_capacity(args.images.len());
     for path in &args.images {
