@@ -11,12 +11,22 @@
 //!   ros__parameters:
 //!     detector.top_k: 1
 //! ```
-//! Interpretation of the node key, following ROS 2: `/**` matches every node, `/**/NAME` matches the node
-//! `NAME` in any namespace, a key without a leading slash names the node in any namespace, and a key
-//! `/ns/NAME` names a namespaced node (it matches a bare `NAME` given to [`Params::load`]; when a fully
-//! qualified `/ns/NAME` is given, it must match exactly). Every matching section is applied in file order,
-//! later values overriding earlier ones; sections for other nodes are ignored. Integers are accepted for
-//! double parameters (ROS itself would refuse `1` for a double; accepting it avoids a pointless trap).
+//! Interpretation of the node key, following ROS 2 (rclcpp's wildcards): a key `/ns/NAME` names a node by
+//! its fully qualified name, where a `*` part matches one name and a `**` part any number (`/**` every
+//! node, `/**/NAME` the node `NAME` in any namespace, `/*` every node outside a namespace); nested keys
+//! above `ros__parameters` are namespaces (`ns: {NAME: {ros__parameters: ...}}` is `/ns/NAME`), as rcl
+//! reads them. Where [`Params::load`] is given a bare `NAME` (the offline commands, which have no
+//! namespace), only the key's last part must match it. One deliberate difference: a key without a leading
+//! slash names the node in any namespace (rclcpp reads `NAME` as `/NAME`), so the shipped file serves a
+//! node started in a namespace (`-r __ns:=/robot1`). Every matching section is applied in file order,
+//! later values overriding earlier ones; sections for other nodes are ignored.
+//!
+//! Values, more lenient than ROS where ROS's own tools disagree: integers are accepted for double
+//! parameters (ROS itself would refuse `1` for a double; accepting it avoids a pointless trap); the
+//! YAML 1.1 words that rcl and `ros2 param` read as bools (`yes`, `no`, `on`, `off`, `y`, `n`, in
+//! their three cases) are bools for a bool parameter here too, although this file's YAML 1.2 parser reads
+//! them as strings; and a bool given to a string parameter whose values are `on` and `off`
+//! (`verification.mode`), as `ros2 param set /ecm_lcd verification.mode off` sends it, is that word.
 //!
 //! The detector's threshold is given as a score (`detector.min_score`) unless `detector.max_distance` is
 //! set (non-zero), which then wins; the score-to-distance mapping is the descriptor mode's
@@ -108,8 +118,17 @@ impl ParamSpec {
     /// Checks `value` against the type and range; returns it in this parameter's type (an integer given
     /// for a double becomes a double) or the reason it is refused.
     pub fn validate(&self, value: ParamValue) -> Result<ParamValue, ParamError> {
+        // The conversions the module doc lists.
+        let on_off =
+            matches!(self.range, ParamRange::OneOf(allowed) if allowed.contains(&"on") && allowed.contains(&"off"));
         let value = match (self.kind, value) {
             (ParamKind::Double, ParamValue::Integer(i)) => ParamValue::Double(i as f64),
+            (ParamKind::Bool, ParamValue::String(s)) if yaml_bool(&s).is_some() => {
+                ParamValue::Bool(yaml_bool(&s) == Some(true))
+            }
+            (ParamKind::String, ParamValue::Bool(b)) if on_off => {
+                ParamValue::String(if b { "on" } else { "off" }.into())
+            }
             (_, value) => value,
         };
         if value.kind() != self.kind {
@@ -141,6 +160,18 @@ impl ParamSpec {
             _ => {}
         }
         Ok(value)
+    }
+}
+
+/// The bool a YAML 1.1 plain scalar stands for, as rcl's parameter parser and `ros2 param` (PyYAML)
+/// read them.
+fn yaml_bool(text: &str) -> Option<bool> {
+    const TRUE: [&str; 11] = ["y", "Y", "yes", "Yes", "YES", "true", "True", "TRUE", "on", "On", "ON"];
+    const FALSE: [&str; 11] = ["n", "N", "no", "No", "NO", "false", "False", "FALSE", "off", "Off", "OFF"];
+    match text {
+        t if TRUE.contains(&t) => Some(true),
+        t if FALSE.contains(&t) => Some(false),
+        _ => None,
     }
 }
 
@@ -525,18 +556,20 @@ impl Params {
         let mut params = Params::default();
         let mut keys_seen = Vec::new();
         let (mut matched, mut matched_by_name, mut left_out) = (false, false, Vec::new());
-        for (key, section) in nodes {
-            let key = key.as_str().with_context(|| format!("node key {key:?} is not a string"))?;
+        let mut sections = Vec::new();
+        node_sections(nodes, "", &mut sections)?;
+        let without_parameters: Vec<String> =
+            sections.iter().filter(|(_, parameters)| parameters.is_none()).map(|(key, _)| key.clone()).collect();
+        for (key, parameters) in sections {
+            let key = key.as_str();
             keys_seen.push(key.to_string());
             if !node_key_matches(key, node_name) {
                 left_out.push(key.to_string());
                 continue;
             }
             matched = true;
-            matched_by_name |= key != "/**";
-            let parameters = section
-                .get("ros__parameters")
-                .with_context(|| format!("node section {key:?} has no `ros__parameters`"))?;
+            matched_by_name |= !key.split('/').any(|part| matches!(part, "*" | "**"));
+            let parameters = parameters.with_context(|| format!("node section {key:?} has no `ros__parameters`"))?;
             let mut flat = Vec::new();
             flatten(parameters, String::new(), &mut flat).with_context(|| format!("node section {key:?}"))?;
             for (name, value) in flat {
@@ -553,7 +586,13 @@ impl Params {
             }
         }
         if !matched {
-            anyhow::bail!("no section applies to node {node_name:?} (node keys found: {keys_seen:?})");
+            let hint = match without_parameters.is_empty() {
+                true => String::new(),
+                false => {
+                    format!("; {without_parameters:?} have no `ros__parameters`, under which a node's parameters go")
+                }
+            };
+            anyhow::bail!("no section applies to node {node_name:?} (node keys found: {keys_seen:?}{hint})");
         }
         // Sections for other nodes are normal in a file shared by several; but where only a wildcard
         // section applied, a section meant for this node may be misnamed.
@@ -590,7 +629,7 @@ impl Params {
         let text = text.trim();
         let refused = |expected: &str| ParamError::invalid(name, expected, format!("{text:?}"));
         let value = match spec.kind {
-            ParamKind::Bool => ParamValue::Bool(text.parse().map_err(|_| refused("true or false"))?),
+            ParamKind::Bool => ParamValue::Bool(yaml_bool(text).ok_or_else(|| refused("true or false"))?),
             ParamKind::Integer => ParamValue::Integer(text.parse().map_err(|_| refused("an integer"))?),
             ParamKind::Double => ParamValue::Double(text.parse().map_err(|_| refused("a number"))?),
             ParamKind::String => ParamValue::String(text.to_string()),
@@ -806,16 +845,52 @@ impl Params {
     }
 }
 
+/// The node sections of a params file in file order: each node key (namespaces above it joined, as
+/// `/ns/NAME`) with its `ros__parameters`, or `None` where a section has none (an error only if it
+/// applies). A section without `ros__parameters` all of whose values are mappings is a namespace.
+fn node_sections<'a>(
+    mapping: &'a serde_yaml_ng::Mapping,
+    namespace: &str,
+    out: &mut Vec<(String, Option<&'a serde_yaml_ng::Value>)>,
+) -> anyhow::Result<()> {
+    for (key, section) in mapping {
+        let key = key.as_str().with_context(|| format!("node key {key:?} is not a string"))?;
+        let key = match namespace.is_empty() {
+            true => key.to_string(),
+            false => format!("/{}/{}", namespace.trim_matches('/'), key.trim_matches('/')),
+        };
+        match (section.get("ros__parameters"), section.as_mapping()) {
+            (Some(parameters), _) => out.push((key, Some(parameters))),
+            (None, Some(inner)) if !inner.is_empty() && inner.values().all(serde_yaml_ng::Value::is_mapping) => {
+                node_sections(inner, &key, out)?
+            }
+            (None, _) => out.push((key, None)),
+        }
+    }
+    Ok(())
+}
+
 /// Whether the params-file node key `key` applies to the node `node_name` (module doc).
 fn node_key_matches(key: &str, node_name: &str) -> bool {
     let base = node_name.rsplit('/').next().unwrap_or(node_name);
-    if key == "/**" || key.strip_prefix("/**/") == Some(base) {
-        return true;
+    let Some(path) = key.strip_prefix('/') else { return key == base };
+    let pattern: Vec<&str> = path.split('/').collect();
+    match node_name.strip_prefix('/') {
+        Some(fqn) => name_parts_match(&pattern, &fqn.split('/').collect::<Vec<_>>()),
+        // No namespace to match: the key's last part against the name.
+        None => pattern.last().is_some_and(|last| matches!(*last, "*" | "**") || *last == base),
     }
-    match key.strip_prefix('/') {
-        None => key == base,
-        Some(_) if node_name.starts_with('/') => key == node_name,
-        Some(path) => path.rsplit('/').next() == Some(base),
+}
+
+/// Whether the parts of a fully qualified name match a key's parts: `*` matches one part, `**` any
+/// number of parts (none included), anything else itself.
+fn name_parts_match(pattern: &[&str], name: &[&str]) -> bool {
+    match pattern.split_first() {
+        None => name.is_empty(),
+        Some((&"**", rest)) => (0..=name.len()).any(|skip| name_parts_match(rest, &name[skip..])),
+        Some((&part, rest)) => name
+            .split_first()
+            .is_some_and(|(first, tail)| (part == "*" || part == *first) && name_parts_match(rest, tail)),
     }
 }
 
@@ -827,12 +902,23 @@ const MAX_FLOW_DEPTH: usize = 32;
 
 fn check_flow_depth(text: &str) -> anyhow::Result<()> {
     let (mut depth, mut quote, mut line) = (0usize, None, 1usize);
+    // A comment (`#` after a space or at a line's start) and a quote start only where YAML starts
+    // them: brackets in `# in [0, 1)` or apostrophes in `don't` are no syntax.
+    let (mut in_comment, mut escaped, mut previous) = (false, false, '\n');
     for c in text.chars() {
+        let starts_token = previous.is_whitespace() || matches!(previous, '[' | '{' | ',' | ':');
         match (quote, c) {
-            (_, '\n') => line += 1,
+            (_, '\n') => {
+                line += 1;
+                in_comment = false;
+            }
+            _ if in_comment => {}
+            (Some('"'), _) if escaped => escaped = false,
+            (Some('"'), '\\') => escaped = true,
             (Some(q), c) if c == q => quote = None,
             (Some(_), _) => {}
-            (None, '"' | '\'') => quote = Some(c),
+            (None, '#') if previous.is_whitespace() => in_comment = true,
+            (None, '"' | '\'') if starts_token => quote = Some(c),
             (None, '[' | '{') => {
                 depth += 1;
                 anyhow::ensure!(depth <= MAX_FLOW_DEPTH, "line {line}: brackets nested deeper than {MAX_FLOW_DEPTH}");
@@ -840,6 +926,7 @@ fn check_flow_depth(text: &str) -> anyhow::Result<()> {
             (None, ']' | '}') => depth = depth.saturating_sub(1),
             _ => {}
         }
+        previous = c;
     }
     Ok(())
 }
@@ -1057,6 +1144,60 @@ mod tests {
         assert!(!node_key_matches("/other/ecm_lcd", "/ns/ecm_lcd"));
         assert!(!node_key_matches("camera", "ecm_lcd"));
         assert!(!node_key_matches("/ns/camera", "ecm_lcd"));
+        // Wildcards part by part: `*` one name, `**` any number.
+        assert!(node_key_matches("/*", "/ecm_lcd"));
+        assert!(!node_key_matches("/*", "/robot1/ecm_lcd"));
+        assert!(node_key_matches("/*/ecm_lcd", "/robot1/ecm_lcd"));
+        assert!(node_key_matches("/robot1/**", "/robot1/ecm_lcd"));
+        assert!(node_key_matches("/**/ecm_lcd", "/ecm_lcd"));
+        assert!(node_key_matches("/a/**/ecm_lcd", "/a/b/c/ecm_lcd"));
+        assert!(!node_key_matches("/robot2/**", "/robot1/ecm_lcd"));
+        assert!(!node_key_matches("/*/*/ecm_lcd", "/robot1/ecm_lcd"));
+        assert!(node_key_matches("/*", "ecm_lcd"), "no namespace to match offline");
+        // The deliberate difference: a bare key names the node in any namespace.
+        assert!(node_key_matches("ecm_lcd", "/robot1/ecm_lcd"));
+    }
+
+    #[test]
+    fn namespaces_nest_above_the_node_and_yaml_1_1_bools_are_read_as_ros_reads_them() {
+        let text = "
+robot1:
+  ecm_lcd:
+    ros__parameters:
+      detector.top_k: 3
+      verification.equalise: yes
+robot2:
+  ecm_lcd:
+    ros__parameters:
+      detector.top_k: 4
+# a comment with brackets [0, 1) and {, which are no syntax
+";
+        let top_k = |p: &Params| p.detector().top_k;
+        assert_eq!(top_k(&Params::from_yaml_str(text, "/robot1/ecm_lcd").unwrap()), 3);
+        assert_eq!(top_k(&Params::from_yaml_str(text, "/robot2/ecm_lcd").unwrap()), 4);
+        let err = format!("{:#}", Params::from_yaml_str(text, "/ecm_lcd").unwrap_err());
+        assert!(err.contains("/robot1/ecm_lcd") && err.contains("/robot2/ecm_lcd"), "{err}");
+        assert_eq!(
+            Params::from_yaml_str(text, "/robot1/ecm_lcd").unwrap().get("verification.equalise"),
+            Some(ParamValue::Bool(true))
+        );
+        // A bool for the on/off string parameter, as `ros2 param set ... off` sends it.
+        let mut p = Params::default();
+        p.set("verification.mode", ParamValue::Bool(false)).unwrap();
+        assert_eq!(p.get("verification.mode"), Some(ParamValue::String("off".into())));
+        assert!(p.set("descriptor.mode", ParamValue::Bool(true)).is_err(), "only the on/off parameters");
+        for (text, value) in [("True", true), ("on", true), ("N", false), ("OFF", false)] {
+            p.set_from_str("verification.equalise", text).unwrap();
+            assert_eq!(p.get("verification.equalise"), Some(ParamValue::Bool(value)), "{text}");
+        }
+        assert!(p.set_from_str("verification.equalise", "1").is_err());
+        assert!(p.set_from_str("verification.equalise", "oN").is_err());
+        // 40 comment lines with brackets are no nesting; 40 real brackets are.
+        let comments =
+            format!("ecm_lcd:\n  ros__parameters:\n{}    detector.top_k: 2\n", "    # in [0, {1}) it's\n".repeat(40));
+        assert_eq!(top_k(&Params::from_yaml_str(&comments, NODE_NAME).unwrap()), 2);
+        let nested = format!("ecm_lcd:\n  ros__parameters:\n    x: {}1{}\n", "[".repeat(40), "]".repeat(40));
+        assert!(format!("{:#}", Params::from_yaml_str(&nested, NODE_NAME).unwrap_err()).contains("nested deeper"));
     }
 
     #[test]

@@ -1,8 +1,8 @@
 //! `ecm-lcd param get|set NODE NAME [VALUE]`: reads or changes a parameter of a running node through the
 //! standard ROS 2 parameter services, like `ros2 param get|set` (for machines without a ROS 2 install).
-//! VALUE is read as `-p` reads it (YAML scalar: `true`, `3`, `0.4`, `text`); as with `ros2 param set`,
-//! the type must match the parameter's (`0.9`, not `1`, for a double). A refused value is an error that
-//! carries the node's reason (exit status 1).
+//! VALUE is read as `-p` reads it (YAML scalar: `true`, `3`, `0.4`, `text`) and must be of the
+//! parameter's type, with the node's few conversions (`crate::config`'s module doc: an integer serves a
+//! double, `yes` a bool). A refused value is an error that carries the node's reason (exit status 1).
 
 use anyhow::{bail, Context as _, Result};
 
