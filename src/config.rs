@@ -540,6 +540,13 @@ impl Default for Params {
     }
 }
 
+/// A params file none of whose sections is for the node: an error offline (`--config`), where the
+/// file was given for this node alone, but passed over by the node, as ROS 2 passes over a file shared
+/// by several nodes.
+#[derive(Debug, thiserror::Error)]
+#[error("no section applies to {0}")]
+pub struct NoSectionApplies(String);
+
 impl Params {
     /// Defaults overridden by the sections of the ROS 2 params file `path` that apply to `node_name`
     /// (see the module doc for the matching rules).
@@ -592,7 +599,7 @@ impl Params {
                     format!("; {without_parameters:?} have no `ros__parameters`, under which a node's parameters go")
                 }
             };
-            anyhow::bail!("no section applies to node {node_name:?} (node keys found: {keys_seen:?}{hint})");
+            return Err(NoSectionApplies(format!("node {node_name:?} (node keys found: {keys_seen:?}{hint})")).into());
         }
         // Sections for other nodes are normal in a file shared by several; but where only a wildcard
         // section applied, a section meant for this node may be misnamed.

@@ -2,7 +2,8 @@
 //! `--params-file` and `-p`, conversion to and from ros2-client's values, and the validator the parameter
 //! services call before a change is accepted.
 //!
-//! Several `--params-file`s: each is loaded with [`Params::load`]; a file's values that differ from the
+//! Several `--params-file`s: each is loaded with [`Params::load`] (one with no section for this node is
+//! passed over with a warning, as ROS 2 does); a file's values that differ from the
 //! defaults override the earlier files' (so a later file cannot set a value back to its default over an
 //! earlier file - a limitation of loading whole files; use `-p` for that). `-p` values come last and win.
 
@@ -10,7 +11,7 @@ use anyhow::{anyhow, Context, Result};
 use ros2_client::ParameterValue;
 
 use super::args::RosArgs;
-use crate::config::{param_spec, param_specs, ParamError, ParamValue, Params};
+use crate::config::{param_spec, param_specs, NoSectionApplies, ParamError, ParamValue, Params};
 
 pub use crate::config::USE_SIM_TIME;
 
@@ -21,7 +22,13 @@ pub fn initial_params(args: &RosArgs, fully_qualified_node_name: &str) -> Result
     let defaults = Params::default();
     let mut use_sim_time = None;
     for path in &args.params_files {
-        let loaded = Params::load(path, fully_qualified_node_name)?;
+        let loaded = match Params::load(path, fully_qualified_node_name) {
+            Err(e) if e.downcast_ref::<NoSectionApplies>().is_some() => {
+                log::warn!("{e:#}; the file is passed over");
+                continue;
+            }
+            loaded => loaded?,
+        };
         use_sim_time = loaded.use_sim_time().or(use_sim_time);
         for spec in param_specs() {
             let value = loaded.get(spec.name);
@@ -148,5 +155,15 @@ mod tests {
         std::fs::write(&sim_file, "/**:\n  ros__parameters:\n    use_sim_time: 1\n").unwrap();
         let err = format!("{:#}", initial_params(&from_files, "/ecm_lcd").unwrap_err());
         assert!(err.contains("use_sim_time") && err.contains("true or false"), "{err}");
+        // A file for other nodes only is passed over (a shared file); a broken one is still an error.
+        let others = dir.path().join("others.yaml");
+        std::fs::write(&others, "camera:\n  ros__parameters:\n    exposure: 3\n").unwrap();
+        let shared = RosArgs { params_files: vec![others.clone(), file.clone()], ..RosArgs::default() };
+        assert_eq!(
+            initial_params(&shared, "/ecm_lcd").unwrap().0.get(spec.name),
+            Some(ParamValue::Double(default * 0.5))
+        );
+        std::fs::write(&others, "camera: [\n").unwrap();
+        assert!(initial_params(&shared, "/ecm_lcd").is_err());
     }
 }
