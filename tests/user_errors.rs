@@ -110,6 +110,8 @@ fn an_output_that_is_an_input_is_refused_and_the_input_kept() {
     refused(&[&eval_source[..], &["--db", &d("n.db"), "-o", &d("n.db")]].concat(), &["--db and -o both name"]);
     refused(&[&eval_source[..], &["--db", &d("n.db"), "-o", &d("n.db-wal")]].concat(), &["own -wal file"]);
     refused(&["eval", &d("seq"), "--max-angle", "200"], &["--max-angle must be at most 180"]);
+    // Pose-truth options beside a loops file, which would be ignored.
+    refused(&[&eval_source[..], &["--max-angle", "10"]].concat(), &["--max-angle", "cannot be used with"]);
     // A new image directly in an image folder would be read as one more frame.
     refused(&[&eval_source[..], &["--plot", &d("seq/pr.png")]].concat(), &["seq/pr.png", "source folder"]);
     // Two outputs under one name, whether the file exists yet or not.

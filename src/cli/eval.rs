@@ -22,7 +22,7 @@ pub struct Args {
     pub source: Option<PathBuf>,
     /// TUM ground-truth poses (`timestamp tx ty tz qx qy qz qw`); default: SOURCE/groundtruth.txt
     /// when SOURCE is a folder holding one.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "loops")]
     pub groundtruth: Option<PathBuf>,
     /// Explicit loop truth instead of poses: lines `query_index,match_index match_index ...`.
     #[arg(long)]
@@ -49,13 +49,13 @@ pub struct Args {
     #[arg(short, long)]
     pub output: Option<PathBuf>,
     /// Pose truth: largest distance between camera centres of the same place (metres).
-    #[arg(long, default_value_t = PoseLoopCriteria::default().max_distance_m)]
+    #[arg(long, default_value_t = PoseLoopCriteria::default().max_distance_m, conflicts_with = "loops")]
     pub max_distance: f64,
     /// Pose truth: largest angle between optical axes of the same place (degrees).
-    #[arg(long, default_value_t = PoseLoopCriteria::default().max_angle_deg)]
+    #[arg(long, default_value_t = PoseLoopCriteria::default().max_angle_deg, conflicts_with = "loops")]
     pub max_angle: f64,
     /// Pose truth: smallest time between a query and its match (seconds).
-    #[arg(long, default_value_t = PoseLoopCriteria::default().min_gap_s)]
+    #[arg(long, default_value_t = PoseLoopCriteria::default().min_gap_s, conflicts_with = "loops")]
     pub min_gap: f64,
     #[command(flatten)]
     pub source_args: SourceArgs,
@@ -151,6 +151,8 @@ pub struct SourcesEnd<'a> {
     pub unreadable_frames: usize,
     /// In the database/query mode, database frames skipped so (`unreadable_database_frames`).
     pub unreadable_database_frames: Option<usize>,
+    /// The replay's wall time in seconds, where there was one (`wall_s`).
+    pub wall_secs: Option<f64>,
 }
 
 /// `walk`, `sequence` or `single-image`: how a query was matched under `params`. `database_mode`:
@@ -182,6 +184,9 @@ fn write_outputs(
     if let Some(why) = end.broke_off {
         summary["broke_off"] = serde_json::json!(why);
     }
+    if let Some(seconds) = end.wall_secs {
+        summary["wall_s"] = serde_json::json!(seconds);
+    }
     if let Some(path) = &args.output {
         write_curve_csv(metrics, path)?;
     }
@@ -189,6 +194,9 @@ fn write_outputs(
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {
         print_summary(metrics, timings_ms);
+        if let Some(seconds) = end.wall_secs {
+            println!("replay wall time        {seconds:.2} s");
+        }
         let detector = params.detector();
         let policy = match policy_name(params, args.database.is_some()) {
             "sequence" => format!("sequence of {}", detector.sequence_length),
@@ -209,7 +217,11 @@ fn write_outputs(
 
 /// The figures as text.
 pub fn print_summary(metrics: &Metrics, timings_ms: &[(&str, f64)]) {
-    let show = |v: Option<f64>| v.map(|v| format!("{v:.3}")).unwrap_or_else(|| "n/a (no loops in the truth)".into());
+    let why_none = match metrics.queries {
+        0 => "n/a (no query scored)",
+        _ => "n/a (no loops in the truth)",
+    };
+    let show = |v: Option<f64>| v.map(|v| format!("{v:.3}")).unwrap_or_else(|| why_none.into());
     let unknown_matches = match metrics.unknown_matches {
         0 => String::new(),
         n => format!(", {n} whose best match has none"),
@@ -293,6 +305,7 @@ pub fn run(args: Args) -> Result<()> {
             broke_off: run.error.as_deref(),
             unreadable_frames: run.unreadable_queries.count(),
             unreadable_database_frames: Some(run.unreadable_database.count()),
+            wall_secs: None,
         };
         run_with_results(&args, &truth, &run.results, &run.timings(), pipeline.params(), &end)?;
         return match &run.error {
@@ -318,12 +331,12 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(loops) = &args.loops {
         warn_unscored_loops(loops, &truth, &results, &run.unreadable.indexes);
     }
-    let mut timings = run.mean_timings();
-    timings.push(("wall_s", run.wall_secs));
+    let timings = run.mean_timings();
     let end = SourcesEnd {
         broke_off: run.error.as_deref(),
         unreadable_frames: run.unreadable.count(),
         unreadable_database_frames: None,
+        wall_secs: Some(run.wall_secs),
     };
     run_with_results(&args, &truth, &results, &timings, pipeline.params(), &end)?;
     match &run.error {
