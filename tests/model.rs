@@ -275,8 +275,9 @@ fn embed_writes_a_header_and_one_row_per_image() {
         assert_eq!((row[0], row.len()), (image.to_str().unwrap(), 1281));
         assert!(row[1..].iter().all(|v| v.parse::<f32>().is_ok_and(f32::is_finite)));
     }
-    // The weights are an input too, whether named by --weights or by $ECM_LCD_WEIGHTS.
-    let weights = dir.path().join("w.tflite");
+    // The weights are an input too, whether named by --weights or by $ECM_LCD_WEIGHTS (here a
+    // TFLite model under another extension, known by its content).
+    let weights = dir.path().join("w.model");
     std::fs::copy(tflite(), &weights).unwrap();
     let (weights, image) = (weights.to_str().unwrap(), images[0].to_str().unwrap());
     let out = ecm_lcd(dir.path(), &["embed", "--weights", weights, image, "-o", weights]).output().unwrap();

@@ -75,9 +75,9 @@ pub fn import_weights(args: ImportArgs) -> Result<()> {
 pub struct InfoArgs {
     #[arg(long, default_value = "ecmobilenet")]
     pub arch: Arch,
-    /// Classifier outputs (none: feature extractor only).
-    #[arg(long)]
-    pub classes: Option<usize>,
+    /// Classifier outputs, 1 to 1,000,000 (none: feature extractor only).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+    pub classes: Option<u32>,
     #[arg(long, default_value_t = 224)]
     pub size: usize,
     #[arg(long)]
@@ -86,7 +86,7 @@ pub struct InfoArgs {
 
 pub fn model_info(args: InfoArgs) -> Result<()> {
     ecm_lcd::model::check_input_size(args.size)?;
-    let cost = args.arch.spec().cost(args.classes, args.size);
+    let cost = args.arch.spec().cost(args.classes.map(|k| k as usize), args.size);
     if args.json {
         println!("{}", serde_json::to_string(&cost)?);
     } else {

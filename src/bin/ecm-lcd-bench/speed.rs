@@ -80,9 +80,9 @@ pub struct BenchArgs {
     /// Timed runs per configuration (after warm-up).
     #[arg(long, default_value_t = 50)]
     pub runs: usize,
-    /// Thread counts to measure.
-    #[arg(long, value_delimiter = ',', default_value = "1,2")]
-    pub threads: Vec<usize>,
+    /// Thread counts to measure (each 1 to 1024; the top-level --threads sets the other sections').
+    #[arg(long, value_delimiter = ',', default_value = "1,2", value_parser = ecm_lcd::runtime::parse_threads)]
+    pub thread_counts: Vec<usize>,
     /// Also time the stock-candle reference path.
     #[arg(long)]
     pub reference: bool,
@@ -129,6 +129,23 @@ pub struct BenchArgs {
     /// Internal: run one memory measurement (`stored:dim`) and print it as JSON.
     #[arg(long, hide = true)]
     pub memory_child: Option<String>,
+}
+
+impl BenchArgs {
+    /// Refuses values that would measure nothing or abort, before any work.
+    fn check(&self) -> Result<()> {
+        ecm_lcd::model::check_input_size(self.size)?;
+        anyhow::ensure!(self.runs >= 1, "--runs must be at least 1");
+        anyhow::ensure!(self.queries >= 1 && self.k >= 1, "--queries and --k must be at least 1");
+        let dims = self.search_dims.iter().chain(&self.search_coded_dims);
+        anyhow::ensure!(dims.clone().all(|&d| d >= 1), "--search-dims and --search-coded-dims must be at least 1");
+        if let Some(&small) = self.search_sizes.iter().find(|&&n| n <= BENCH_EXCLUDE_RECENT) {
+            anyhow::bail!(
+                "--search-sizes {small}: a search excludes the newest {BENCH_EXCLUDE_RECENT} rows, so give more than that"
+            );
+        }
+        Ok(())
+    }
 }
 
 #[derive(Serialize, Debug)]
@@ -339,7 +356,7 @@ fn profile(args: &BenchArgs, image: &RgbImage) -> Result<Vec<ProfileRow>> {
         Embedder::from_weights(args.weights.as_deref(), Some(Arch::EcMobileNet), Arch::EcMobileNet, args.size, false)?;
     let costs = Arch::EcMobileNet.spec().stage_costs(None, args.size);
     let mut rows = Vec::new();
-    for &threads in &args.threads {
+    for &threads in &args.thread_counts {
         let stages = with_threads(threads, || Ok(embedder.network.profile(&x, Mode::Inference, args.runs)?))?;
         for (stage, time) in stages {
             // A fused stage ("stem+blocks.0") costs what its parts do.
@@ -356,6 +373,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         println!("{}", serde_json::to_string(&memory_child(stored, dim)?)?);
         return Ok(());
     }
+    args.check()?;
     let wanted = |s: Section| args.only.is_empty() || args.only.contains(&s);
     let mut report = Report { machine: Some(Machine::this()), ..Default::default() };
     let frame = bench_frame()?;
@@ -437,7 +455,7 @@ fn forward(args: &BenchArgs, image: &RgbImage) -> Result<Vec<Timing>> {
             let (embedder, _) = Embedder::from_weights(args.weights.as_deref(), Some(arch), arch, args.size, false)?;
             let mode = if reference { Mode::Reference } else { Mode::Inference };
             let cost = arch.spec().cost(None, args.size);
-            for &threads in &args.threads {
+            for &threads in &args.thread_counts {
                 let stats = with_threads(threads, || {
                     Stats::time(5, args.runs, || embedder.network.features(&x, mode).map(drop).map_err(Into::into))
                 })?;
@@ -566,7 +584,7 @@ fn ort(args: &BenchArgs, image: &RgbImage) -> Result<Ort> {
                 onnx_path.as_ref(),
             ],
         )?;
-        let threads = args.threads.iter().map(|t| t.to_string()).collect::<Vec<_>>().join(",");
+        let threads = args.thread_counts.iter().map(|t| t.to_string()).collect::<Vec<_>>().join(",");
         let (size, runs) = (args.size.to_string(), args.runs.to_string());
         let out = run_python(
             &python,
@@ -1035,7 +1053,7 @@ fn print_report(args: &BenchArgs, report: &Report) {
     if let Some(rows) = &report.profile {
         println!("\nprofile: ECMobileNet stage by stage, mean of {} runs", args.runs);
         println!("{:<10} {:>7} {:>10} {:>9} {:>8} {:>7}", "stage", "threads", "MACs", "ms", "GMAC/s", "share");
-        for &threads in &args.threads {
+        for &threads in &args.thread_counts {
             let total: f64 = rows.iter().filter(|r| r.threads == threads).map(|r| r.ms).sum();
             for r in rows.iter().filter(|r| r.threads == threads) {
                 let rate = r.macs as f64 / r.ms / 1e6;
@@ -1096,7 +1114,7 @@ fn print_report(args: &BenchArgs, report: &Report) {
                 println!("  ORT {} output vs ecm-lcd: max abs diff {:.2e}", a.arch.name(), a.max_abs_diff);
             }
         }
-        for &threads in &args.threads {
+        for &threads in &args.thread_counts {
             let ours = |arch| {
                 report
                     .forward

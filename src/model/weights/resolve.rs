@@ -54,10 +54,12 @@ pub fn cache_dir() -> Option<PathBuf> {
     std::env::var_os("ECM_LCD_CACHE").map(PathBuf::from).or_else(|| dirs::cache_dir().map(|d| d.join("ecm-lcd")))
 }
 
-/// Reads a weights file: `.tflite` is imported, anything else is read as safetensors.
+/// Reads a weights file: a TFLite model (named `.tflite`, or carrying TFLite's `TFL3` file
+/// identifier) is imported, anything else is read as safetensors.
 pub fn load_file(path: &Path) -> Result<Resolved> {
     let bytes = crate::io::read_capped(path, crate::io::limits::WEIGHTS_FILE, "weights file")?;
-    let is_tflite = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("tflite"));
+    let is_tflite =
+        path.extension().is_some_and(|e| e.eq_ignore_ascii_case("tflite")) || bytes.get(4..8) == Some(b"TFL3");
     let (weights, sha256) = if is_tflite {
         let weights = super::import::import_tflite_file(path, &bytes)?;
         let sha256 = sha256_hex(&weights.to_bytes()?);
