@@ -1,10 +1,12 @@
 //! `ecm-lcd synth`: renders a synthetic looping indoor sequence into a TUM RGB-D folder.
 
 use anyhow::{bail, Result};
+use ecm_lcd::io::image_msg::written_topics;
 use ecm_lcd::io::image_msg::WireEncoding;
-use ecm_lcd::io::ros1bag::{write_ros1_bag, Ros1Compression};
-use ecm_lcd::io::ros2bag::{write_ros2_bag, Ros2Storage};
+use ecm_lcd::io::ros1bag::{write_ros1_bag_calibrated, Ros1Compression};
+use ecm_lcd::io::ros2bag::{write_ros2_bag_calibrated, Ros2Storage};
 use ecm_lcd::synth::{write_tum_folder, Scene, SynthConfig};
+use ecm_lcd::verification::Intrinsics;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -59,10 +61,12 @@ pub struct Args {
     /// Frame rate of the stamps (frames per second).
     #[arg(long, default_value_t = SynthConfig::default().rate_hz)]
     pub rate: f64,
-    /// Also write the frames as a ROS 1 bag (lz4 chunks) to this file.
+    /// Also write the frames as a ROS 1 bag (lz4 chunks) to this file, with the camera's
+    /// `sensor_msgs/CameraInfo` beside each frame on `/camera/rgb/camera_info`.
     #[arg(long)]
     pub ros1_bag: Option<PathBuf>,
-    /// Also write the frames as a ROS 2 bag into this (new) folder.
+    /// Also write the frames as a ROS 2 bag into this (new) folder, with the camera's `CameraInfo`
+    /// as in the ROS 1 bag.
     #[arg(long)]
     pub ros2_bag: Option<PathBuf>,
     /// Storage of the ROS 2 bag.
@@ -192,17 +196,21 @@ pub fn run(args: Args) -> Result<()> {
         BagImages::Jpeg => (WireEncoding::Jpeg { quality: args.jpeg_quality }, COMPRESSED_TOPIC),
     };
     let frames = || (0..scene.len()).map(|i| (scene.stamp(i), scene.render(i)));
+    // The bags carry the camera too, as a driver's `camera_info` beside the images.
+    let intrinsics =
+        Intrinsics { fx: focal, fy: focal, cx, cy, size: Some([scene.config().width, scene.config().height]) };
+    let info_topic = &written_topics(topic, encoding, Some(&intrinsics))[1].0;
     if let Some(path) = &args.ros1_bag {
-        let n = write_ros1_bag(path, topic, frames(), encoding, Ros1Compression::Lz4)?;
-        log::info!("wrote {n} messages on {topic} to the ROS 1 bag {}", path.display());
+        let n = write_ros1_bag_calibrated(path, topic, frames(), encoding, Ros1Compression::Lz4, Some(&intrinsics))?;
+        log::info!("wrote {n} messages on {topic} and {info_topic} to the ROS 1 bag {}", path.display());
     }
     if let Some(dir) = &args.ros2_bag {
         let storage = match args.ros2_storage {
             Ros2StorageArg::Sqlite3 => Ros2Storage::Sqlite3,
             Ros2StorageArg::Mcap => Ros2Storage::Mcap,
         };
-        let n = write_ros2_bag(dir, storage, topic, frames(), encoding)?;
-        log::info!("wrote {n} messages on {topic} to the ROS 2 bag {}", dir.display());
+        let n = write_ros2_bag_calibrated(dir, storage, topic, frames(), encoding, Some(&intrinsics))?;
+        log::info!("wrote {n} messages on {topic} and {info_topic} to the ROS 2 bag {}", dir.display());
     }
     Ok(())
 }

@@ -20,6 +20,7 @@ use image::RgbImage;
 
 use super::msgs::{CameraInfo, CompressedImage, Header, Image, RegionOfInterest};
 use crate::types::Stamp;
+use crate::verification::Intrinsics;
 
 /// The two image message types a source can carry.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -50,6 +51,129 @@ impl ImageKind {
             ImageKind::Raw => "sensor_msgs/msg/Image",
             ImageKind::Compressed => "sensor_msgs/msg/CompressedImage",
         }
+    }
+}
+
+/// `sensor_msgs/RegionOfInterest`'s definition, the same in ROS 1 and ROS 2 (bags carry it).
+pub const REGION_OF_INTEREST_DEFINITION: &str =
+    "uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\nbool do_rectify\n";
+
+/// What a topic of a bag this crate writes carries: images, or the calibration beside them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum WrittenKind {
+    Image(ImageKind),
+    CameraInfo,
+}
+
+impl WrittenKind {
+    pub fn ros1_type(self) -> &'static str {
+        match self {
+            WrittenKind::Image(kind) => kind.ros1_type(),
+            WrittenKind::CameraInfo => "sensor_msgs/CameraInfo",
+        }
+    }
+
+    pub fn ros2_type(self) -> &'static str {
+        match self {
+            WrittenKind::Image(kind) => kind.ros2_type(),
+            WrittenKind::CameraInfo => "sensor_msgs/msg/CameraInfo",
+        }
+    }
+}
+
+/// The topics of a bag of `frames` on `image_topic` and, where `camera` is given, a `CameraInfo`
+/// beside each frame on its `camera_info` topic (image_transport's naming, as the readers look for
+/// it: [`crate::io::camera_info_topic`]).
+pub fn written_topics(
+    image_topic: &str,
+    encoding: WireEncoding,
+    camera: Option<&Intrinsics>,
+) -> Vec<(String, WrittenKind)> {
+    let mut topics = vec![(image_topic.to_string(), WrittenKind::Image(encoding.kind()))];
+    if camera.is_some() {
+        let base = image_topic.strip_suffix("/compressed").unwrap_or(image_topic);
+        let namespace = base.rsplit_once('/').map_or("", |(namespace, _)| namespace);
+        topics.push((format!("{namespace}/camera_info"), WrittenKind::CameraInfo));
+    }
+    topics
+}
+
+/// One message of a bag this crate writes, of either kind.
+pub enum WrittenMessage {
+    Image(ImageMessage),
+    CameraInfo(Box<CameraInfo>),
+}
+
+impl WrittenMessage {
+    pub fn to_ros1(&self, seq: u32) -> Vec<u8> {
+        match self {
+            WrittenMessage::Image(image) => image.to_ros1(seq),
+            WrittenMessage::CameraInfo(info) => info.to_ros1(seq),
+        }
+    }
+
+    pub fn to_cdr(&self) -> Result<Vec<u8>> {
+        match self {
+            WrittenMessage::Image(image) => image.to_cdr(),
+            WrittenMessage::CameraInfo(info) => {
+                with_encapsulation(cdr_encoding::to_vec::<_, LittleEndian>(info.as_ref()))
+            }
+        }
+    }
+}
+
+/// The messages of `frames` for the topics [`written_topics`] gives: each frame's image, then its
+/// calibration where `camera` is given, with the topic's index.
+pub fn written_messages<'a>(
+    frames: impl IntoIterator<Item = (Stamp, RgbImage)> + 'a,
+    encoding: WireEncoding,
+    camera: Option<&'a Intrinsics>,
+) -> impl Iterator<Item = Result<(usize, Stamp, WrittenMessage)>> + 'a {
+    frames.into_iter().flat_map(move |(stamp, image)| {
+        let info = camera.map(|camera| camera_info_message(stamp, "camera", [image.width(), image.height()], camera));
+        let image = encode_image(stamp, "camera", &image, encoding).map(|m| (0, stamp, WrittenMessage::Image(m)));
+        std::iter::once(image).chain(info.map(|info| Ok((1, stamp, WrittenMessage::CameraInfo(Box::new(info))))))
+    })
+}
+
+/// The `sensor_msgs/CameraInfo` of a pinhole camera without distortion whose images are `size`
+/// (`intrinsics` scaled to it where they describe another size), stamped like its image.
+pub fn camera_info_message(stamp: Stamp, frame_id: &str, size: [u32; 2], intrinsics: &Intrinsics) -> CameraInfo {
+    let at = intrinsics.for_image(size).unwrap_or(*intrinsics);
+    let (fx, fy, cx, cy) = (at.fx, at.fy, at.cx, at.cy);
+    CameraInfo {
+        header: Header { stamp: stamp.into(), frame_id: frame_id.into() },
+        width: size[0],
+        height: size[1],
+        distortion_model: "plumb_bob".into(),
+        d: vec![0.0; 5],
+        k: [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
+        r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        p: [fx, 0.0, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+        binning_x: 0,
+        binning_y: 0,
+        roi: RegionOfInterest::default(),
+    }
+}
+
+impl CameraInfo {
+    /// Serialises to ROS 1 bytes; `seq` goes into the ROS 1 header.
+    pub fn to_ros1(&self, seq: u32) -> Vec<u8> {
+        let mut out = Vec::new();
+        put_ros1_header(&mut out, &self.header, seq);
+        out.extend_from_slice(&self.height.to_le_bytes());
+        out.extend_from_slice(&self.width.to_le_bytes());
+        put_ros1_bytes(&mut out, self.distortion_model.as_bytes());
+        out.extend_from_slice(&(self.d.len() as u32).to_le_bytes());
+        for v in self.d.iter().chain(&self.k).chain(&self.r).chain(&self.p) {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        let roi = &self.roi;
+        for v in [self.binning_x, self.binning_y, roi.x_offset, roi.y_offset, roi.height, roi.width] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+        out.push(roi.do_rectify as u8);
+        out
     }
 }
 
@@ -121,11 +245,7 @@ impl ImageMessage {
     /// Serialises to ROS 1 bytes; `seq` goes into the ROS 1 header.
     pub fn to_ros1(&self, seq: u32) -> Vec<u8> {
         let mut out = Vec::new();
-        let header = self.header();
-        out.extend_from_slice(&seq.to_le_bytes());
-        out.extend_from_slice(&(header.stamp.sec as u32).to_le_bytes());
-        out.extend_from_slice(&header.stamp.nanosec.to_le_bytes());
-        put_ros1_bytes(&mut out, header.frame_id.as_bytes());
+        put_ros1_header(&mut out, self.header(), seq);
         match self {
             ImageMessage::Raw(m) => {
                 out.extend_from_slice(&m.height.to_le_bytes());
@@ -154,16 +274,28 @@ impl ImageMessage {
 
     /// Serialises to little-endian CDR with the encapsulation header, as rosbag2 stores it.
     pub fn to_cdr(&self) -> Result<Vec<u8>> {
-        let body = match self {
+        with_encapsulation(match self {
             ImageMessage::Raw(m) => cdr_encoding::to_vec::<_, LittleEndian>(m),
             ImageMessage::Compressed(m) => cdr_encoding::to_vec::<_, LittleEndian>(m),
-        }
-        .map_err(|e| anyhow::anyhow!("CDR serialisation failed: {e}"))?;
-        let mut out = Vec::with_capacity(body.len() + 4);
-        out.extend_from_slice(&[0, 1, 0, 0]);
-        out.extend_from_slice(&body);
-        Ok(out)
+        })
     }
+}
+
+/// A little-endian CDR body behind its 4-byte encapsulation header, as rosbag2 stores messages.
+fn with_encapsulation<E: std::fmt::Display>(body: std::result::Result<Vec<u8>, E>) -> Result<Vec<u8>> {
+    let body = body.map_err(|e| anyhow::anyhow!("CDR serialisation failed: {e}"))?;
+    let mut out = Vec::with_capacity(body.len() + 4);
+    out.extend_from_slice(&[0, 1, 0, 0]);
+    out.extend_from_slice(&body);
+    Ok(out)
+}
+
+/// A ROS 1 `std_msgs/Header`: `seq`, the stamp (seconds as `uint32`), the frame id.
+fn put_ros1_header(out: &mut Vec<u8>, header: &Header, seq: u32) {
+    out.extend_from_slice(&seq.to_le_bytes());
+    out.extend_from_slice(&(header.stamp.sec as u32).to_le_bytes());
+    out.extend_from_slice(&header.stamp.nanosec.to_le_bytes());
+    put_ros1_bytes(out, header.frame_id.as_bytes());
 }
 
 /// Parses a CDR payload: its 4-byte encapsulation header, then the message.

@@ -21,12 +21,15 @@ use std::io::{Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 
 use super::depth::{depth_message, describe_topics, unreadable_depth, BagMessage, MessageSource};
-use super::image_msg::{camera_info_from_ros1, encode_image, ImageKind, ImageMessage, WireEncoding};
+use super::image_msg::{
+    camera_info_from_ros1, written_messages, written_topics, ImageKind, ImageMessage, WireEncoding, WrittenKind,
+};
 use super::{
     camera_info_topic, choose_topics, intrinsics_from_camera_info, unreadable_frame, SourceIntrinsics, TopicInfo,
     Topics, UnreadableFrame,
 };
 use crate::types::{Frame, Stamp};
+use crate::verification::Intrinsics;
 
 const MAGIC: &[u8] = b"#ROSBAG V2.0\n";
 const OP_MESSAGE: u8 = 0x02;
@@ -600,15 +603,24 @@ const COMPRESSED_IMAGE_MD5: &str = "8f7a12909da2c9d3332d540a0977563f";
 const HEADER_DEFINITION: &str = "uint32 seq\ntime stamp\nstring frame_id\n";
 const IMAGE_DEFINITION: &str = "std_msgs/Header header\nuint32 height\nuint32 width\nstring encoding\nuint8 is_bigendian\nuint32 step\nuint8[] data\n";
 const COMPRESSED_IMAGE_DEFINITION: &str = "std_msgs/Header header\nstring format\nuint8[] data\n";
+const CAMERA_INFO_MD5: &str = "c9a58c1b0b154e0e6da7578cb991d214";
+const CAMERA_INFO_DEFINITION: &str = "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\nfloat64[] D\nfloat64[9] K\nfloat64[9] R\nfloat64[12] P\nuint32 binning_x\nuint32 binning_y\nRegionOfInterest roi\n";
 /// Uncompressed bytes after which a chunk is closed (rosbag's default chunk threshold).
 const CHUNK_THRESHOLD: usize = 768 * 1024;
 
-fn message_definition(kind: ImageKind) -> String {
+fn message_definition(kind: WrittenKind) -> String {
+    let line = "=".repeat(80);
     let body = match kind {
-        ImageKind::Raw => IMAGE_DEFINITION,
-        ImageKind::Compressed => COMPRESSED_IMAGE_DEFINITION,
+        WrittenKind::Image(ImageKind::Raw) => IMAGE_DEFINITION,
+        WrittenKind::Image(ImageKind::Compressed) => COMPRESSED_IMAGE_DEFINITION,
+        WrittenKind::CameraInfo => {
+            return format!(
+                "{CAMERA_INFO_DEFINITION}\n{line}\nMSG: std_msgs/Header\n{HEADER_DEFINITION}\n{line}\nMSG: sensor_msgs/RegionOfInterest\n{}",
+                super::image_msg::REGION_OF_INTEREST_DEFINITION
+            )
+        }
     };
-    format!("{body}\n{}\nMSG: std_msgs/Header\n{HEADER_DEFINITION}", "=".repeat(80))
+    format!("{body}\n{line}\nMSG: std_msgs/Header\n{HEADER_DEFINITION}")
 }
 
 fn put_field(out: &mut Vec<u8>, name: &str, value: &[u8]) {
@@ -649,7 +661,7 @@ fn bag_header_record(index_pos: u64, conn_count: u32, chunk_count: u32) -> Vec<u
 /// Writes an uncompressed-or-compressed ROS 1 bag v2.0 with one connection (id 0) on `topic`,
 /// carrying `frames` in `encoding`, with index-data records after each chunk and connection
 /// and chunk-info records in the index section (what `rosbag` and `rosbags` need). The record
-/// time of each message is its stamp. Returns the number of messages written.
+/// time of each message is its stamp. Returns the number of frames written.
 pub fn write_ros1_bag(
     path: &Path,
     topic: &str,
@@ -657,39 +669,43 @@ pub fn write_ros1_bag(
     encoding: WireEncoding,
     compression: Ros1Compression,
 ) -> Result<usize> {
+    write_ros1_bag_calibrated(path, topic, frames, encoding, compression, None)
+}
+
+/// [`write_ros1_bag`], with a `sensor_msgs/CameraInfo` of `camera` beside each frame on the image
+/// topic's `camera_info` (connection 1, [`written_topics`]) where it is given.
+pub fn write_ros1_bag_calibrated(
+    path: &Path,
+    topic: &str,
+    frames: impl IntoIterator<Item = (Stamp, RgbImage)>,
+    encoding: WireEncoding,
+    compression: Ros1Compression,
+    camera: Option<&Intrinsics>,
+) -> Result<usize> {
     // Written beside it and renamed into place when complete (its header names the index, written
     // last): a writer killed half-way leaves no bag under the final name.
     let writing = crate::io::output::unused_name_beside(path, "writing")?;
     let write = || -> Result<usize> {
-        let kind = encoding.kind();
         let mut file = std::io::BufWriter::new(File::options().write(true).create_new(true).open(&writing)?);
         file.write_all(MAGIC)?;
         file.write_all(&bag_header_record(0, 0, 0))?;
         let mut pos = (MAGIC.len() + 4096) as u64;
 
-        let mut connection_header = Vec::new();
-        put_field(&mut connection_header, "op", &[OP_CONNECTION]);
-        put_field(&mut connection_header, "conn", &0u32.to_le_bytes());
-        put_field(&mut connection_header, "topic", topic.as_bytes());
-        let mut connection_data = Vec::new();
-        put_field(&mut connection_data, "topic", topic.as_bytes());
-        put_field(&mut connection_data, "type", kind.ros1_type().as_bytes());
-        let md5 = if kind == ImageKind::Raw { IMAGE_MD5 } else { COMPRESSED_IMAGE_MD5 };
-        put_field(&mut connection_data, "md5sum", md5.as_bytes());
-        put_field(&mut connection_data, "message_definition", message_definition(kind).as_bytes());
-        put_field(&mut connection_data, "callerid", b"/ecm_lcd");
-        put_field(&mut connection_data, "latching", b"0");
-
-        let mut chunk_infos: Vec<(u64, Stamp, Stamp, u32)> = Vec::new();
+        let topics = written_topics(topic, encoding, camera);
+        let connections: Vec<(Vec<u8>, Vec<u8>)> =
+            topics.iter().enumerate().map(|(conn, (name, kind))| connection_record(conn as u32, name, *kind)).collect();
+        // Per chunk: its position, first and last stamp, and messages per connection.
+        let mut chunk_infos: Vec<(u64, Stamp, Stamp, Vec<u32>)> = Vec::new();
         let mut chunk = Vec::new();
-        let mut chunk_entries: Vec<(Stamp, u32)> = Vec::new();
-        let mut count = 0usize;
+        // Per connection: (stamp, offset in the chunk) of its messages in the open chunk.
+        let mut chunk_entries: Vec<Vec<(Stamp, u32)>> = vec![Vec::new(); topics.len()];
+        let (mut count, mut frames_written) = (0usize, 0usize);
         let mut flush = |file: &mut std::io::BufWriter<File>,
                          chunk: &mut Vec<u8>,
-                         entries: &mut Vec<(Stamp, u32)>,
+                         entries: &mut Vec<Vec<(Stamp, u32)>>,
                          pos: &mut u64|
          -> Result<()> {
-            if entries.is_empty() {
+            if entries.iter().all(Vec::is_empty) {
                 return Ok(());
             }
             let compressed = compress(chunk, compression)?;
@@ -699,38 +715,47 @@ pub fn write_ros1_bag(
             put_field(&mut header, "size", &(chunk.len() as u32).to_le_bytes());
             let mut out = Vec::new();
             put_record(&mut out, &header, &compressed);
-            let mut index_header = Vec::new();
-            put_field(&mut index_header, "op", &[OP_INDEX_DATA]);
-            put_field(&mut index_header, "ver", &1u32.to_le_bytes());
-            put_field(&mut index_header, "conn", &0u32.to_le_bytes());
-            put_field(&mut index_header, "count", &(entries.len() as u32).to_le_bytes());
-            let mut index_data = Vec::new();
-            for (stamp, offset) in entries.iter() {
-                index_data.extend_from_slice(&time_bytes(*stamp)?);
-                index_data.extend_from_slice(&offset.to_le_bytes());
+            for (conn, entries) in entries.iter().enumerate().filter(|(_, e)| !e.is_empty()) {
+                let mut index_header = Vec::new();
+                put_field(&mut index_header, "op", &[OP_INDEX_DATA]);
+                put_field(&mut index_header, "ver", &1u32.to_le_bytes());
+                put_field(&mut index_header, "conn", &(conn as u32).to_le_bytes());
+                put_field(&mut index_header, "count", &(entries.len() as u32).to_le_bytes());
+                let mut index_data = Vec::new();
+                for (stamp, offset) in entries {
+                    index_data.extend_from_slice(&time_bytes(*stamp)?);
+                    index_data.extend_from_slice(&offset.to_le_bytes());
+                }
+                put_record(&mut out, &index_header, &index_data);
             }
-            put_record(&mut out, &index_header, &index_data);
-            let start = entries.iter().map(|e| e.0).min().context("non-empty")?;
-            let end = entries.iter().map(|e| e.0).max().context("non-empty")?;
-            chunk_infos.push((*pos, start, end, entries.len() as u32));
+            let stamps = entries.iter().flatten().map(|e| e.0);
+            let start = stamps.clone().min().context("non-empty")?;
+            let end = stamps.max().context("non-empty")?;
+            chunk_infos.push((*pos, start, end, entries.iter().map(|e| e.len() as u32).collect()));
             file.write_all(&out)?;
             *pos += out.len() as u64;
             chunk.clear();
-            entries.clear();
+            entries.iter_mut().for_each(Vec::clear);
             Ok(())
         };
-        for (seq, (stamp, image)) in frames.into_iter().enumerate() {
+        let mut seqs = vec![0u32; topics.len()];
+        for message in written_messages(frames, encoding, camera) {
+            let (conn, stamp, message) = message?;
             if count == 0 {
-                put_record(&mut chunk, &connection_header, &connection_data);
+                for (header, data) in &connections {
+                    put_record(&mut chunk, header, data);
+                }
             }
-            let payload = encode_image(stamp, "camera", &image, encoding)?.to_ros1(seq as u32);
+            let payload = message.to_ros1(seqs[conn]);
+            seqs[conn] += 1;
             let mut header = Vec::new();
             put_field(&mut header, "op", &[OP_MESSAGE]);
-            put_field(&mut header, "conn", &0u32.to_le_bytes());
+            put_field(&mut header, "conn", &(conn as u32).to_le_bytes());
             put_field(&mut header, "time", &time_bytes(stamp)?);
-            chunk_entries.push((stamp, chunk.len() as u32));
+            chunk_entries[conn].push((stamp, chunk.len() as u32));
             put_record(&mut chunk, &header, &payload);
             count += 1;
+            frames_written += usize::from(conn == 0);
             if chunk.len() >= CHUNK_THRESHOLD {
                 flush(&mut file, &mut chunk, &mut chunk_entries, &mut pos)?;
             }
@@ -739,21 +764,27 @@ pub fn write_ros1_bag(
 
         let index_pos = pos;
         let mut index = Vec::new();
-        let conn_count = if count > 0 { 1 } else { 0 };
+        let conn_count = if count > 0 { connections.len() as u32 } else { 0 };
         if count > 0 {
-            put_record(&mut index, &connection_header, &connection_data);
+            for (header, data) in &connections {
+                put_record(&mut index, header, data);
+            }
         }
-        for (chunk_pos, start, end, n) in &chunk_infos {
+        for (chunk_pos, start, end, counts) in &chunk_infos {
             let mut header = Vec::new();
             put_field(&mut header, "op", &[OP_CHUNK_INFO]);
             put_field(&mut header, "ver", &1u32.to_le_bytes());
             put_field(&mut header, "chunk_pos", &chunk_pos.to_le_bytes());
             put_field(&mut header, "start_time", &time_bytes(*start)?);
             put_field(&mut header, "end_time", &time_bytes(*end)?);
-            put_field(&mut header, "count", &1u32.to_le_bytes());
+            let present: Vec<(u32, u32)> =
+                counts.iter().enumerate().filter(|(_, n)| **n > 0).map(|(conn, n)| (conn as u32, *n)).collect();
+            put_field(&mut header, "count", &(present.len() as u32).to_le_bytes());
             let mut data = Vec::new();
-            data.extend_from_slice(&0u32.to_le_bytes());
-            data.extend_from_slice(&n.to_le_bytes());
+            for (conn, n) in present {
+                data.extend_from_slice(&conn.to_le_bytes());
+                data.extend_from_slice(&n.to_le_bytes());
+            }
             put_record(&mut index, &header, &data);
         }
         file.write_all(&index)?;
@@ -762,13 +793,34 @@ pub fn write_ros1_bag(
         file.write_all(&bag_header_record(index_pos, conn_count, chunk_infos.len() as u32))?;
         file.sync_all()?;
         std::fs::rename(&writing, path).with_context(|| format!("renaming {} into place", writing.display()))?;
-        Ok(count)
+        Ok(frames_written)
     };
     let written = write();
     if written.is_err() {
         let _ = std::fs::remove_file(&writing);
     }
     written.with_context(|| format!("cannot write ROS 1 bag {}", path.display()))
+}
+
+/// A connection record's header and data for connection `conn` on `topic`.
+fn connection_record(conn: u32, topic: &str, kind: WrittenKind) -> (Vec<u8>, Vec<u8>) {
+    let mut header = Vec::new();
+    put_field(&mut header, "op", &[OP_CONNECTION]);
+    put_field(&mut header, "conn", &conn.to_le_bytes());
+    put_field(&mut header, "topic", topic.as_bytes());
+    let mut data = Vec::new();
+    put_field(&mut data, "topic", topic.as_bytes());
+    put_field(&mut data, "type", kind.ros1_type().as_bytes());
+    let md5 = match kind {
+        WrittenKind::Image(ImageKind::Raw) => IMAGE_MD5,
+        WrittenKind::Image(ImageKind::Compressed) => COMPRESSED_IMAGE_MD5,
+        WrittenKind::CameraInfo => CAMERA_INFO_MD5,
+    };
+    put_field(&mut data, "md5sum", md5.as_bytes());
+    put_field(&mut data, "message_definition", message_definition(kind).as_bytes());
+    put_field(&mut data, "callerid", b"/ecm_lcd");
+    put_field(&mut data, "latching", b"0");
+    (header, data)
 }
 
 fn compress(data: &[u8], compression: Ros1Compression) -> Result<Vec<u8>> {
@@ -833,6 +885,33 @@ mod tests {
                 assert_eq!((frame.index, frame.stamp), (i, stamp));
                 assert_eq!(frame.image, image);
             }
+        }
+    }
+
+    /// A `camera_info` beside the images, over several chunks: every frame reads back, with the
+    /// intrinsics.
+    #[test]
+    fn a_calibrated_bag_carries_its_camera() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("calibrated.bag");
+        let frames = crate::io::test_frames(10, 320, 240, Stamp::from_sec_nsec(1_341_847_980, 5));
+        let camera = Intrinsics { fx: 300.0, fy: 301.0, cx: 159.5, cy: 119.5, size: Some([320, 240]) };
+        let written = write_ros1_bag_calibrated(
+            &path,
+            "/cam/rgb/image_raw",
+            frames.clone(),
+            WireEncoding::Rgb8,
+            Ros1Compression::None,
+            Some(&camera),
+        );
+        assert_eq!(written.unwrap(), 10);
+        let source = crate::io::open_source(&path, None).unwrap();
+        let found = source.intrinsics().unwrap();
+        assert_eq!((found.intrinsics, found.origin.as_str()), (camera, "topic /cam/rgb/camera_info"));
+        let read: Vec<Frame> = source.map(|f| f.unwrap()).collect();
+        assert_eq!(read.len(), 10);
+        for (frame, (stamp, image)) in read.iter().zip(&frames) {
+            assert_eq!((&frame.stamp, &frame.image), (stamp, image));
         }
     }
 

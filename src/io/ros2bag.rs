@@ -16,12 +16,16 @@ use std::io::BufReader;
 use std::path::{Path, PathBuf};
 
 use super::depth::{depth_message, describe_topics, unreadable_depth, BagMessage, MessageSource};
-use super::image_msg::{camera_info_from_cdr, encode_image, ImageKind, ImageMessage, WireEncoding};
+use super::image_msg::{
+    camera_info_from_cdr, written_messages, written_topics, ImageKind, ImageMessage, WireEncoding, WrittenKind,
+    REGION_OF_INTEREST_DEFINITION,
+};
 use super::{
     camera_info_topic, choose_topics, context_unless_unreadable, intrinsics_from_camera_info, unreadable_frame,
     SourceIntrinsics, TopicInfo, Topics, UnreadableFrame,
 };
 use crate::types::{Frame, Stamp};
+use crate::verification::Intrinsics;
 
 /// A CDR message of the colour topic (as frame `index`, recorded at `recorded`) or of the depth topic.
 /// A colour message that does not decode is an [`UnreadableFrame`] (`at` says where it lies): the
@@ -419,25 +423,43 @@ const IMAGE_MSG_DEFINITION: &str = "std_msgs/Header header\nuint32 height\nuint3
 const COMPRESSED_IMAGE_MSG_DEFINITION: &str = "std_msgs/Header header\nstring format\nuint8[] data\n";
 const HEADER_MSG_DEFINITION: &str = "builtin_interfaces/Time stamp\nstring frame_id\n";
 const TIME_MSG_DEFINITION: &str = "int32 sec\nuint32 nanosec\n";
+const CAMERA_INFO_MSG_DEFINITION: &str = "std_msgs/Header header\nuint32 height\nuint32 width\nstring distortion_model\nfloat64[] d\nfloat64[9] k\nfloat64[9] r\nfloat64[12] p\nuint32 binning_x\nuint32 binning_y\nRegionOfInterest roi\n";
 
 /// The `ros2msg` schema text rosbag2 stores in MCAP files.
-fn ros2msg_definition(kind: ImageKind) -> String {
-    let body = match kind {
-        ImageKind::Raw => IMAGE_MSG_DEFINITION,
-        ImageKind::Compressed => COMPRESSED_IMAGE_MSG_DEFINITION,
-    };
+fn ros2msg_definition(kind: WrittenKind) -> String {
     let line = "=".repeat(80);
-    format!("{body}\n{line}\nMSG: std_msgs/Header\n{HEADER_MSG_DEFINITION}\n{line}\nMSG: builtin_interfaces/Time\n{TIME_MSG_DEFINITION}")
+    let (body, more) = match kind {
+        WrittenKind::Image(ImageKind::Raw) => (IMAGE_MSG_DEFINITION, String::new()),
+        WrittenKind::Image(ImageKind::Compressed) => (COMPRESSED_IMAGE_MSG_DEFINITION, String::new()),
+        WrittenKind::CameraInfo => (
+            CAMERA_INFO_MSG_DEFINITION,
+            format!("\n{line}\nMSG: sensor_msgs/RegionOfInterest\n{REGION_OF_INTEREST_DEFINITION}"),
+        ),
+    };
+    format!("{body}\n{line}\nMSG: std_msgs/Header\n{HEADER_MSG_DEFINITION}\n{line}\nMSG: builtin_interfaces/Time\n{TIME_MSG_DEFINITION}{more}")
 }
 
 /// Writes a rosbag2 folder `dir` (created; must not exist, as with `ros2 bag record -o`) with
-/// one topic carrying `frames` in `encoding`; receive time = stamp. Returns the message count.
+/// one topic carrying `frames` in `encoding`; receive time = stamp. Returns the frame count.
 pub fn write_ros2_bag(
     dir: &Path,
     storage: Ros2Storage,
     topic: &str,
     frames: impl IntoIterator<Item = (Stamp, RgbImage)>,
     encoding: WireEncoding,
+) -> Result<usize> {
+    write_ros2_bag_calibrated(dir, storage, topic, frames, encoding, None)
+}
+
+/// [`write_ros2_bag`], with a `sensor_msgs/msg/CameraInfo` of `camera` beside each frame on the
+/// image topic's `camera_info` ([`written_topics`]) where it is given.
+pub fn write_ros2_bag_calibrated(
+    dir: &Path,
+    storage: Ros2Storage,
+    topic: &str,
+    frames: impl IntoIterator<Item = (Stamp, RgbImage)>,
+    encoding: WireEncoding,
+    camera: Option<&Intrinsics>,
 ) -> Result<usize> {
     // Written in a folder beside it and renamed into place when complete: a writer killed half-way
     // leaves no bag under the final name.
@@ -447,25 +469,23 @@ pub fn write_ros2_bag(
         std::fs::create_dir_all(dir.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")))?;
         std::fs::create_dir(&writing)?;
         let base = dir.file_name().and_then(|n| n.to_str()).context("bag folder has no UTF-8 name")?;
-        let kind = encoding.kind();
-        let messages = frames.into_iter().map(|(stamp, image)| {
-            let payload = encode_image(stamp, "camera", &image, encoding)?.to_cdr()?;
-            Ok((stamp, payload))
-        });
+        let topics = written_topics(topic, encoding, camera);
+        let messages = written_messages(frames, encoding, camera)
+            .map(|message| message.and_then(|(topic, stamp, message)| Ok((topic, stamp, message.to_cdr()?))));
         let (file_name, stamps) = match storage {
             Ros2Storage::Sqlite3 => {
                 let file_name = format!("{base}_0.db3");
-                (file_name.clone(), write_sqlite(&writing.join(&file_name), topic, kind, messages)?)
+                (file_name.clone(), write_sqlite(&writing.join(&file_name), &topics, messages)?)
             }
             Ros2Storage::Mcap => {
                 let file_name = format!("{base}_0.mcap");
-                (file_name.clone(), write_mcap(&writing.join(&file_name), topic, kind, messages)?)
+                (file_name.clone(), write_mcap(&writing.join(&file_name), &topics, messages)?)
             }
         };
         let storage_name = if storage == Ros2Storage::Sqlite3 { "sqlite3" } else { "mcap" };
-        std::fs::write(writing.join("metadata.yaml"), metadata_yaml(storage_name, &file_name, topic, kind, &stamps))?;
+        std::fs::write(writing.join("metadata.yaml"), metadata_yaml(storage_name, &file_name, &topics, &stamps))?;
         std::fs::rename(&writing, dir).with_context(|| format!("renaming {} into place", writing.display()))?;
-        Ok(stamps.len())
+        Ok(stamps.iter().filter(|(topic, _)| *topic == 0).count())
     };
     let written = write();
     if written.is_err() {
@@ -474,12 +494,14 @@ pub fn write_ros2_bag(
     written.with_context(|| format!("cannot write ROS 2 bag {}", dir.display()))
 }
 
+/// Each message's topic index and stamp, in the order written.
+type Written = Vec<(usize, Stamp)>;
+
 fn write_sqlite(
     path: &Path,
-    topic: &str,
-    kind: ImageKind,
-    messages: impl Iterator<Item = Result<(Stamp, Vec<u8>)>>,
-) -> Result<Vec<Stamp>> {
+    topics: &[(String, WrittenKind)],
+    messages: impl Iterator<Item = Result<(usize, Stamp, Vec<u8>)>>,
+) -> Result<Written> {
     let mut db = Connection::open(path)?;
     db.execute_batch(
         "CREATE TABLE topics(id INTEGER PRIMARY KEY, name TEXT NOT NULL, type TEXT NOT NULL, \
@@ -489,55 +511,75 @@ fn write_sqlite(
          CREATE INDEX timestamp_idx ON messages (timestamp ASC);",
     )?;
     let tx = db.transaction()?;
-    tx.execute(
-        "INSERT INTO topics(id, name, type, serialization_format, offered_qos_profiles) VALUES (1, ?1, ?2, 'cdr', '')",
-        [topic, kind.ros2_type()],
-    )?;
-    let mut stamps = Vec::new();
+    for (id, (name, kind)) in topics.iter().enumerate() {
+        tx.execute(
+            "INSERT INTO topics(id, name, type, serialization_format, offered_qos_profiles) VALUES (?1, ?2, ?3, 'cdr', '')",
+            rusqlite::params![id as i64 + 1, name, kind.ros2_type()],
+        )?;
+    }
+    let mut written = Vec::new();
     {
-        let mut insert = tx.prepare("INSERT INTO messages(topic_id, timestamp, data) VALUES (1, ?1, ?2)")?;
+        let mut insert = tx.prepare("INSERT INTO messages(topic_id, timestamp, data) VALUES (?1, ?2, ?3)")?;
         for message in messages {
-            let (stamp, payload) = message?;
-            insert.execute(rusqlite::params![stamp.nanos, payload])?;
-            stamps.push(stamp);
+            let (topic, stamp, payload) = message?;
+            insert.execute(rusqlite::params![topic as i64 + 1, stamp.nanos, payload])?;
+            written.push((topic, stamp));
         }
     }
     tx.commit()?;
-    Ok(stamps)
+    Ok(written)
 }
 
 fn write_mcap(
     path: &Path,
-    topic: &str,
-    kind: ImageKind,
-    messages: impl Iterator<Item = Result<(Stamp, Vec<u8>)>>,
-) -> Result<Vec<Stamp>> {
+    topics: &[(String, WrittenKind)],
+    messages: impl Iterator<Item = Result<(usize, Stamp, Vec<u8>)>>,
+) -> Result<Written> {
     let file = std::io::BufWriter::new(File::create(path)?);
     let mut writer = mcap::WriteOptions::new().profile("ros2").create(file)?;
-    let schema = writer.add_schema(kind.ros2_type(), "ros2msg", ros2msg_definition(kind).as_bytes())?;
-    let channel = writer.add_channel(schema, topic, "cdr", &BTreeMap::new())?;
-    let mut stamps = Vec::new();
-    for (sequence, message) in messages.enumerate() {
-        let (stamp, payload) = message?;
+    let mut channels = Vec::new();
+    for (name, kind) in topics {
+        let schema = writer.add_schema(kind.ros2_type(), "ros2msg", ros2msg_definition(*kind).as_bytes())?;
+        channels.push(writer.add_channel(schema, name, "cdr", &BTreeMap::new())?);
+    }
+    let mut written = Vec::new();
+    let mut sequences = vec![0u32; topics.len()];
+    for message in messages {
+        let (topic, stamp, payload) = message?;
         let time = u64::try_from(stamp.nanos).with_context(|| format!("negative stamp {stamp}"))?;
         let header = mcap::records::MessageHeader {
-            channel_id: channel,
-            sequence: sequence as u32,
+            channel_id: channels[topic],
+            sequence: sequences[topic],
             log_time: time,
             publish_time: time,
         };
+        sequences[topic] += 1;
         writer.write_to_known_channel(&header, &payload)?;
-        stamps.push(stamp);
+        written.push((topic, stamp));
     }
     writer.finish()?;
-    Ok(stamps)
+    Ok(written)
 }
 
 /// rosbag2 `metadata.yaml` (version 5, which rosbag2 since Humble and `rosbags` read).
-fn metadata_yaml(storage: &str, file_name: &str, topic: &str, kind: ImageKind, stamps: &[Stamp]) -> String {
-    let start = stamps.iter().min().map_or(0, |s| s.nanos);
-    let duration = stamps.iter().max().map_or(0, |s| s.nanos) - start;
-    let count = stamps.len();
+fn metadata_yaml(storage: &str, file_name: &str, topics: &[(String, WrittenKind)], written: &Written) -> String {
+    let start = written.iter().map(|(_, s)| s.nanos).min().unwrap_or(0);
+    let duration = written.iter().map(|(_, s)| s.nanos).max().unwrap_or(0) - start;
+    let count = written.len();
+    let mut topic_entries = String::new();
+    for (index, (name, kind)) in topics.iter().enumerate() {
+        let messages = written.iter().filter(|(topic, _)| *topic == index).count();
+        topic_entries.push_str(&format!(
+            "    - topic_metadata:
+        name: {name}
+        type: {ty}
+        serialization_format: cdr
+        offered_qos_profiles: \"\"
+      message_count: {messages}
+",
+            ty = kind.ros2_type()
+        ));
+    }
     format!(
         "rosbag2_bagfile_information:
   version: 5
@@ -548,13 +590,7 @@ fn metadata_yaml(storage: &str, file_name: &str, topic: &str, kind: ImageKind, s
     nanoseconds_since_epoch: {start}
   message_count: {count}
   topics_with_message_count:
-    - topic_metadata:
-        name: {topic}
-        type: {ty}
-        serialization_format: cdr
-        offered_qos_profiles: \"\"
-      message_count: {count}
-  compression_format: \"\"
+{topic_entries}  compression_format: \"\"
   compression_mode: \"\"
   relative_file_paths:
     - {file_name}
@@ -565,14 +601,14 @@ fn metadata_yaml(storage: &str, file_name: &str, topic: &str, kind: ImageKind, s
       duration:
         nanoseconds: {duration}
       message_count: {count}
-",
-        ty = kind.ros2_type()
+"
     )
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::io::image_msg::encode_image;
 
     fn frames(n: usize) -> Vec<(Stamp, RgbImage)> {
         crate::io::test_frames(n, 7, 5, Stamp::from_sec_nsec(1_700_000_000, 123_456_789))
@@ -609,6 +645,32 @@ mod tests {
         }
     }
 
+    /// A `camera_info` beside the images, in both storages: every frame reads back, with the
+    /// intrinsics.
+    #[test]
+    fn a_calibrated_bag_carries_its_camera() {
+        let dir = tempfile::tempdir().unwrap();
+        let camera = Intrinsics { fx: 10.0, fy: 11.0, cx: 3.0, cy: 2.0, size: Some([7, 5]) };
+        for storage in [Ros2Storage::Sqlite3, Ros2Storage::Mcap] {
+            let bag = dir.path().join(format!("{storage:?}"));
+            let written = write_ros2_bag_calibrated(
+                &bag,
+                storage,
+                "/cam/image_raw",
+                frames(4),
+                WireEncoding::Rgb8,
+                Some(&camera),
+            );
+            assert_eq!(written.unwrap(), 4);
+            let metadata = std::fs::read_to_string(bag.join("metadata.yaml")).unwrap();
+            assert!(metadata.contains("message_count: 8") && metadata.contains("name: /cam/camera_info"), "{metadata}");
+            let source = crate::io::open_source(&bag, Some("/cam/image_raw")).unwrap();
+            assert_eq!(source.intrinsics().map(|found| found.intrinsics), Some(camera), "{storage:?}");
+            let read: Vec<Frame> = source.map(|f| f.unwrap()).collect();
+            assert_eq!(read.iter().map(|f| (f.stamp, f.image.clone())).collect::<Vec<_>>(), frames(4));
+        }
+    }
+
     /// A message whose image does not decode is skipped in both storages: the messages after it are
     /// read with their own indexes.
     #[test]
@@ -619,12 +681,13 @@ mod tests {
             let messages = written.iter().enumerate().map(|(i, (stamp, image))| {
                 let payload = encode_image(*stamp, "camera", image, WireEncoding::Rgb8)?.to_cdr()?;
                 // The third message's pixels cut short.
-                Ok((*stamp, if i == 2 { payload[..payload.len() - 10].to_vec() } else { payload }))
+                Ok((0, *stamp, if i == 2 { payload[..payload.len() - 10].to_vec() } else { payload }))
             });
+            let topics = [("/cam".to_string(), WrittenKind::Image(ImageKind::Raw))];
             let file = dir.path().join(format!("bag.{}", if storage == Ros2Storage::Mcap { "mcap" } else { "db3" }));
             match storage {
-                Ros2Storage::Sqlite3 => write_sqlite(&file, "/cam", ImageKind::Raw, messages).unwrap(),
-                Ros2Storage::Mcap => write_mcap(&file, "/cam", ImageKind::Raw, messages).unwrap(),
+                Ros2Storage::Sqlite3 => write_sqlite(&file, &topics, messages).unwrap(),
+                Ros2Storage::Mcap => write_mcap(&file, &topics, messages).unwrap(),
             };
             let read: Vec<Result<Frame>> = crate::io::open_source(&file, None).unwrap().collect();
             let at = if storage == Ros2Storage::Mcap { "message 2 (log time" } else { "row id 3" };
