@@ -610,8 +610,12 @@ impl Detector {
     /// the newest ([`Detector::consistency_state`]), which applies only with consistency on. Matches
     /// of keyframes no longer in the history (the memory budget) are dropped.
     pub fn resume(&mut self, recent: &[Vec<f32>], consistency: Option<ConsistencyState>) {
-        for descriptor in recent {
-            self.recent_queries.push(descriptor);
+        // They are the history's newest keyframes: the one at position `q` was matched against the
+        // `q` before it.
+        let first = self.db.len().saturating_sub(recent.len());
+        for (position, descriptor) in (first..).zip(recent) {
+            let stamp = self.db.stamps().get(position).copied().unwrap_or(Stamp::from_nanos(0));
+            self.recent_queries.push(descriptor, stamp, position);
         }
         let Some(state) = consistency.filter(|_| self.params.consistency_queries > 1) else { return };
         let wanted: std::collections::HashSet<u64> =
@@ -670,6 +674,7 @@ impl Detector {
             add_into(&mut self.history_sum, &self.db.descriptor(position), -1.0);
         }
         self.db.drop_oldest(excess);
+        self.recent_queries.history_dropped(excess);
         for recent in &mut self.recent_matches {
             recent.matches.retain(|&((p, ..), _)| p >= excess);
             recent.matches.iter_mut().for_each(|((p, ..), _)| *p -= excess);
@@ -705,9 +710,14 @@ impl Detector {
         }
     }
 
+    /// Whether a ranked match passes the threshold. Where the sequence or centring policy sets the
+    /// score, the threshold applies to that score (a distance threshold as its score), not to the
+    /// query's own distance.
     fn passes(&self, distance: f32, score: f32) -> bool {
+        let policy_scored = self.params.sequence_length > 1 || self.centring_applies();
         match self.params.threshold {
-            Threshold::MaxDistance(d) => distance <= d,
+            Threshold::MaxDistance(d) if !policy_scored => distance <= d,
+            Threshold::MaxDistance(_) => score >= self.min_score(),
             Threshold::MinScore(s) => score >= s,
         }
     }
@@ -726,7 +736,13 @@ impl Detector {
     /// Whether the keyframe at a position may match a query at `stamp` (the recency rules); the
     /// rule's values are worked out once, as the scan calls it for every keyframe.
     fn eligibility(&self, stamp: Stamp) -> impl Fn(usize) -> bool + '_ {
-        let last_eligible = self.db.len().saturating_sub(self.params.exclude_recent_count);
+        self.eligibility_against(stamp, self.db.len())
+    }
+
+    /// [`Detector::eligibility`] for a query that came when the history held `history_len`
+    /// keyframes (an earlier query of a sequence window).
+    fn eligibility_against(&self, stamp: Stamp, history_len: usize) -> impl Fn(usize) -> bool + '_ {
+        let last_eligible = history_len.saturating_sub(self.params.exclude_recent_count);
         let min_age_nanos = (self.params.exclude_recent_secs * 1e9).round() as i64;
         let time_rule = self.params.exclude_recent_secs > 0.0;
         let stamps = self.db.stamps();
@@ -755,7 +771,17 @@ impl Detector {
                 .collect());
         }
         let neighbours = self.eligible_nearest(stamp, descriptor, top_k.max(sequence::CANDIDATES))?;
-        let eligible = self.eligibility(stamp);
+        // Each query of the window by its own recency rules: the current one's for it and for the
+        // later ones (which are not in the history), and an earlier one's as they were when it came.
+        let eligible_now = self.eligibility(stamp);
+        let earlier: Vec<Box<dyn Fn(usize) -> bool + '_>> = (1..self.params.sequence_length)
+            .map_while(|age| self.recent_queries.judged_by(age))
+            .map(|(stamp, len)| Box::new(self.eligibility_against(stamp, len)) as Box<dyn Fn(usize) -> bool>)
+            .collect();
+        let eligible = |offset: isize, p: usize| match offset {
+            0.. => eligible_now(p),
+            _ => earlier.get(offset.unsigned_abs() - 1).is_some_and(|rule| rule(p)),
+        };
         // The window's queries: the current one, the kept earlier ones (by age), then the later ones;
         // each prepared once for the rows.
         let ahead = &ahead[..ahead.len().min(self.params.sequence_length.saturating_sub(1))];
@@ -791,7 +817,7 @@ impl Detector {
                         n.position,
                         self.db.len(),
                         |offset, p| compare(offset, p).1,
-                        &eligible,
+                        eligible,
                     )
                 } else {
                     single
@@ -805,10 +831,15 @@ impl Detector {
         Ok(ranked)
     }
 
+    /// Whether centring applies ([`Detector::centring`]).
+    fn centring_applies(&self) -> bool {
+        let unit_vectors = self.descriptor.mode != crate::descriptor::DescriptorMode::Paper;
+        self.params.centre_on_history && unit_vectors && !self.db.is_empty()
+    }
+
     /// The mean the history's descriptors are centred on, when centring applies (module doc).
     fn centring(&self) -> Option<Vec<f32>> {
-        let unit_vectors = self.descriptor.mode != crate::descriptor::DescriptorMode::Paper;
-        (self.params.centre_on_history && unit_vectors && !self.db.is_empty()).then(|| {
+        self.centring_applies().then(|| {
             let shrunk = (self.db.len() + 1) as f64;
             self.history_sum.iter().map(|s| (s / shrunk) as f32).collect()
         })
@@ -854,8 +885,9 @@ impl Detector {
         let own: Vec<(usize, f32, f32)> = matches.iter().filter(|(_, held)| !held).map(|&(m, _)| m).collect();
         let candidates: Vec<LoopCandidate> =
             own.iter().enumerate().map(|(rank, &m)| self.candidate(id, stamp, m, rank)).collect();
+        let history_len = self.db.len();
         self.store(id, stamp, descriptor)?;
-        self.recent_queries.push(descriptor);
+        self.recent_queries.push(descriptor, stamp, history_len);
         if needed > 0 {
             let reported = own.len().min(top_k);
             self.recent_matches.push_back(RecentQuery { id, stamp, matches, reported });
@@ -894,7 +926,7 @@ impl Detector {
         depth: usize,
     ) -> anyhow::Result<Vec<Match>> {
         let ranked = self.ranked_matches(stamp, descriptor, ahead, depth)?;
-        self.recent_queries.push(descriptor);
+        self.recent_queries.push(descriptor, stamp, self.db.len());
         Ok(ranked.into_iter().map(|m| self.to_match(m)).collect())
     }
 

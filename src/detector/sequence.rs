@@ -31,20 +31,24 @@
 
 use std::collections::VecDeque;
 
+use crate::types::Stamp;
+
 /// Keyframes nearest to the current query that the sequence score re-ranks.
 pub const CANDIDATES: usize = 10;
 
-/// The descriptors of the last `length - 1` queries, oldest first.
+/// The descriptors of the last `length - 1` queries, oldest first, each with what the recency rules
+/// judged it by: its stamp and the history's length when it was matched.
 #[derive(Clone, Debug, Default)]
 pub struct RecentQueries {
     length: usize,
     queries: VecDeque<Vec<f32>>,
+    judged_by: VecDeque<(Stamp, usize)>,
 }
 
 impl RecentQueries {
     /// Room for a sequence of `length` queries (the current one and `length - 1` kept).
     pub fn new(length: usize) -> Self {
-        RecentQueries { length, queries: VecDeque::new() }
+        RecentQueries { length, queries: VecDeque::new(), judged_by: VecDeque::new() }
     }
 
     pub fn set_length(&mut self, length: usize) {
@@ -54,19 +58,35 @@ impl RecentQueries {
 
     pub fn clear(&mut self) {
         self.queries.clear();
+        self.judged_by.clear();
     }
 
-    /// Remembers a query that has been matched (kept only while the sequence policy is on).
-    pub fn push(&mut self, descriptor: &[f32]) {
+    /// Remembers a query that has been matched at `stamp` against a history of `history_len`
+    /// keyframes (kept only while the sequence policy is on).
+    pub fn push(&mut self, descriptor: &[f32], stamp: Stamp, history_len: usize) {
         if self.length > 1 {
             self.queries.push_back(descriptor.to_vec());
+            self.judged_by.push_back((stamp, history_len));
             self.trim();
         }
+    }
+
+    /// The history lost its `dropped` oldest keyframes (a memory budget): the lengths the kept
+    /// queries were matched against shrink with it, so positions still line up.
+    pub fn history_dropped(&mut self, dropped: usize) {
+        self.judged_by.iter_mut().for_each(|(_, len)| *len = len.saturating_sub(dropped));
+    }
+
+    /// The stamp and history length of the kept query `age` steps before the current one (1: the
+    /// newest kept).
+    pub fn judged_by(&self, age: usize) -> Option<(Stamp, usize)> {
+        self.judged_by.len().checked_sub(age).map(|i| self.judged_by[i])
     }
 
     fn trim(&mut self) {
         while self.queries.len() > self.length.saturating_sub(1) {
             self.queries.pop_front();
+            self.judged_by.pop_front();
         }
     }
 
@@ -86,19 +106,21 @@ impl RecentQueries {
     /// ones and `ahead` later ones. `pair_score(offset, p)` is the single-image score against
     /// keyframe `p` of the query `offset` steps from the current one (0: the current one, -1: the one
     /// before it, i.e. item 0 of [`RecentQueries::newest_first`], 1: the one after it), and
-    /// `eligible(p)` whether the recency rules let `p` match.
+    /// `eligible(offset, p)` whether the recency rules let `p` match that query: an earlier query is
+    /// judged as it was when it came, so that it is never compared with itself or with keyframes
+    /// too recent for it.
     pub fn sequence_score(
         &self,
         ahead: usize,
         position: usize,
         len: usize,
         pair_score: impl Fn(isize, usize) -> f32,
-        eligible: impl Fn(usize) -> bool,
+        eligible: impl Fn(isize, usize) -> bool,
     ) -> f32 {
         let first = pair_score(0, position);
         let step_score = |offset: isize, centre: isize| -> Option<f32> {
             (centre - 1..=centre + 1)
-                .filter(|&p| p >= 0 && (p as usize) < len && eligible(p as usize))
+                .filter(|&p| p >= 0 && (p as usize) < len && eligible(offset, p as usize))
                 .map(|p| pair_score(offset, p as usize))
                 .reduce(f32::max)
         };
@@ -143,7 +165,7 @@ mod tests {
         let history: Vec<Vec<f32>> = (0..10).map(|i| unit(i as f32 * 0.1)).collect();
         let mut recent = RecentQueries::new(3);
         for angle in [0.5, 0.3, 0.4] {
-            recent.push(&unit(angle));
+            recent.push(&unit(angle), Stamp::from_nanos(0), 0);
         }
         assert_eq!(recent.queries.len(), 2, "length 3 keeps the two before the current");
         let current = unit(0.5);
@@ -151,22 +173,22 @@ mod tests {
         let pair = |offset: isize, p: usize| d.score(distance(queries[offset.unsigned_abs()], &history[p]));
         // The current query equals keyframe 5; the earlier ones were 0.3 (k=2) and 0.4 (k=1): forwards
         // (p-1 = 4, p-2 = 3) they match exactly, so the sequence score is 1.
-        let score = recent.sequence_score(0, 5, history.len(), pair, |_| true);
+        let score = recent.sequence_score(0, 5, history.len(), pair, |_, _| true);
         assert!((score - 1.0).abs() < 1e-6, "{score}");
         // Against keyframe 8, forwards the steps take the best of 6..=8 for 0.4 and of 5..=7 for 0.3;
         // backwards of 8..=9 and of 9 alone (10 and 11 are past the history).
         let single = |a: f32, b: f32| d.score(distance(&unit(a), &unit(b)));
         let expected_forwards = (single(0.5, 0.8) + single(0.4, 0.6) + single(0.3, 0.5)) / 3.0;
         let expected_backwards = (single(0.5, 0.8) + single(0.4, 0.8) + single(0.3, 0.9)) / 3.0;
-        let score = recent.sequence_score(0, 8, history.len(), pair, |_| true);
+        let score = recent.sequence_score(0, 8, history.len(), pair, |_, _| true);
         assert!((score - expected_forwards.max(expected_backwards)).abs() < 1e-6, "{score}");
         // Excluded keyframes are not steps: with only keyframe 5 eligible, the step of 0.4 (centre 4 or
         // 6) still reaches 5, the step of 0.3 (centre 3 or 7) reaches nothing and is left out.
-        let score = recent.sequence_score(0, 5, history.len(), pair, |p| p == 5);
+        let score = recent.sequence_score(0, 5, history.len(), pair, |_, p| p == 5);
         assert!((score - (1.0 + single(0.4, 0.5)) / 2.0).abs() < 1e-6, "{score}");
         // Length 1 keeps nothing.
         let mut off = RecentQueries::new(1);
-        off.push(&unit(0.0));
+        off.push(&unit(0.0), Stamp::from_nanos(0), 0);
         assert!(off.queries.is_empty());
     }
 
@@ -175,7 +197,7 @@ mod tests {
         let d = Descriptor::new(DescriptorMode::L2, 2);
         let history: Vec<Vec<f32>> = (0..10).map(|i| unit(i as f32 * 0.1)).collect();
         let mut recent = RecentQueries::new(3);
-        recent.push(&unit(0.4));
+        recent.push(&unit(0.4), Stamp::from_nanos(0), 0);
         // Query 0.5 with the one before it (0.4) and one after it (0.6): a walk along the history.
         let (current, later) = (unit(0.5), unit(0.6));
         let pair = |offset: isize, p: usize| {
@@ -188,7 +210,7 @@ mod tests {
             d.score(distance(q, &history[p]))
         };
         assert_eq!(recent.behind(1), 1);
-        let score = recent.sequence_score(1, 5, history.len(), pair, |_| true);
+        let score = recent.sequence_score(1, 5, history.len(), pair, |_, _| true);
         assert!((score - 1.0).abs() < 1e-6, "{score}");
         // Against keyframe 7 the later query's step takes the best of 7..=9 forwards (0.6 vs 0.7) and
         // of 5..=7 backwards (0.6 exactly), the earlier one's the best of 5..=7 forwards (0.4 vs 0.5)
@@ -196,7 +218,7 @@ mod tests {
         let single = |a: f32, b: f32| d.score(distance(&unit(a), &unit(b)));
         let forwards = (single(0.5, 0.7) + single(0.6, 0.7) + single(0.4, 0.5)) / 3.0;
         let backwards = (single(0.5, 0.7) + 1.0 + single(0.4, 0.7)) / 3.0;
-        let score = recent.sequence_score(1, 7, history.len(), pair, |_| true);
+        let score = recent.sequence_score(1, 7, history.len(), pair, |_, _| true);
         assert!((score - forwards.max(backwards)).abs() < 1e-6, "{score}");
         // Two later queries fill the window of 3: no kept query is used.
         assert_eq!(recent.behind(2), 0);

@@ -471,6 +471,51 @@ fn sequence_matching_finds_a_loop_that_single_images_miss() {
     assert_eq!(sequence[3..], expected[..], "the run of matches puts query 10 at place 10");
 }
 
+/// A walk with no revisit: an earlier query of a sequence window is never compared with itself or
+/// with keyframes too recent for it, which would score the walk as a loop with its own past.
+#[test]
+fn sequence_windows_judge_each_earlier_query_by_its_own_recency() {
+    // Keyframe i shares a random component with its two neighbours on each side and none with
+    // keyframes four or more away, as a camera's overlapping views do.
+    let component = |i: usize| -> Vec<f32> { pseudo_random(9000 + i as u64, 64).iter().map(|x| x - 0.5).collect() };
+    let view = |i: usize| -> Vec<f32> {
+        let mut v = vec![0f32; 64];
+        (i..i + 3).for_each(|c| v.iter_mut().zip(component(c)).for_each(|(x, y)| *x += y));
+        let norm = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+        v.iter_mut().for_each(|x| *x /= norm);
+        v
+    };
+    for budget in [0, 12] {
+        let params = DetectorParams {
+            sequence_length: 5,
+            exclude_recent_count: 3,
+            min_history: 2,
+            max_keyframes: budget,
+            ..params_all_off()
+        };
+        let mut det = Detector::new(Descriptor::new(DescriptorMode::L2, 64), params);
+        let mut best = 0f32;
+        for i in 0..40 {
+            let (nearest, _) = det.process_ranked(i as u64, secs(i as f64), &view(i), 1).unwrap();
+            best = nearest.first().map_or(best, |m| best.max(m.score));
+        }
+        // Unrelated views score about 0.5; a window that met its own queries scored 0.7 and more.
+        assert!(best < 0.66, "budget {budget}: a walk without a revisit scored {best}");
+    }
+    // The threshold applies to the sequence score, given as a score or as the same distance.
+    let descriptor = Descriptor::new(DescriptorMode::L2, 64);
+    let reported = |threshold: Threshold| -> Vec<(u64, u64, f32)> {
+        let params = DetectorParams { sequence_length: 5, exclude_recent_count: 3, threshold, ..params_all_off() };
+        let mut det = Detector::new(descriptor, params);
+        let walk = (0..30).chain(5..20).enumerate();
+        let candidates = walk.flat_map(|(i, place)| det.process(i as u64, secs(i as f64), &view(place)).unwrap());
+        candidates.map(|c| (c.query_id, c.match_id, c.score)).collect()
+    };
+    let by_score = reported(Threshold::MinScore(0.8));
+    assert!(by_score.len() >= 8 && by_score.iter().all(|c| c.2 >= 0.8), "{by_score:?}");
+    assert_eq!(reported(Threshold::MaxDistance(descriptor.distance_for_score(0.8))), by_score);
+}
+
 /// The centred comparison, written out plainly: subtract the mean, then the cosine.
 fn centred_reference(a: &[f32], b: &[f32], mean: &[f64]) -> f64 {
     let a: Vec<f64> = a.iter().zip(mean).map(|(x, m)| *x as f64 - m).collect();
