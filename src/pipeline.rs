@@ -32,7 +32,7 @@ use crate::model::weights::resolve::{self, Resolved};
 use crate::model::{Arch, Tap};
 use crate::types::{DepthImage, FeatureMap, Frame, LoopCandidate, Recurring, RelativePose, Stamp, Verified};
 use crate::verification::{
-    best_supported, Intrinsics, LocalFeatureKind, LocalFeatures, OdometryTrack, Tracked, Verification, Verifier,
+    best_supported_passing, Intrinsics, LocalFeatureKind, LocalFeatures, OdometryTrack, Tracked, Verification, Verifier,
 };
 
 /// Milliseconds spent per stage on one frame.
@@ -941,7 +941,10 @@ impl Pipeline {
         let best_is_candidate =
             outcome.best.is_some_and(|best| outcome.candidates.iter().any(|c| c.match_id == best.id));
         if self.verify_best {
-            if let Some(chosen) = best_supported(nearest.iter().map(|m| Some(check(m.id).0))) {
+            let verifications: Vec<_> = nearest.iter().map(|m| Some(check(m.id).0)).collect();
+            let min_score = self.detector.min_score();
+            let passes: Vec<bool> = nearest.iter().map(|m| m.score >= min_score).collect();
+            if let Some(chosen) = best_supported_passing(&verifications, &passes) {
                 outcome.best = Some(nearest[chosen]);
             }
         }

@@ -23,7 +23,7 @@ use crate::io::tum::TrackerPoses;
 use crate::io::{open_source_topics, unreadable_frame, Topics, UnreadableFrames};
 use crate::pipeline::{Pipeline, Timings};
 use crate::types::{LoopCandidate, Stamp, Verified};
-use crate::verification::best_supported;
+use crate::verification::best_supported_passing;
 
 /// One keyframe of a replay.
 #[derive(Clone, Debug)]
@@ -320,8 +320,8 @@ pub fn run_database_queries(
     let mut again = if pipeline.verifies() { Some(open(queries, false)?) } else { None };
     for (position, (descriptor, &index)) in descriptors.iter().zip(&query_indexes).enumerate() {
         let ahead = &descriptors[position + 1..][..sequence::queries_ahead(length, position, descriptors.len())];
-        // With verification, the nearest verified with the most inliers ([`best_supported`]); none
-        // passing counts as no match.
+        // With verification, the nearest verified with the most inliers, those passing the threshold
+        // first ([`best_supported_passing`]); none verified counts as no match.
         let nearest = match &aligned {
             Some(aligned) => aligned[position].clone(),
             None => pipeline.detector_mut().query_ranked(Stamp::from_nanos(i64::MAX), descriptor, ahead, tried)?,
@@ -356,7 +356,9 @@ pub fn run_database_queries(
                     verification
                 });
                 let verifications: Vec<_> = verifications.collect();
-                let chosen = best_supported(verifications.iter().cloned());
+                let min_score = pipeline.detector().min_score();
+                let passes: Vec<bool> = nearest.iter().map(|m| m.score >= min_score).collect();
+                let chosen = best_supported_passing(&verifications, &passes);
                 let verified = chosen.and_then(|i| verifications[i].as_ref());
                 run.verified.push(verified.map(|v| Verified { inliers: v.inliers as u32, pose: v.pose }));
                 chosen.map(|i| nearest[i])

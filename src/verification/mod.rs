@@ -382,6 +382,14 @@ pub fn best_supported(verifications: impl IntoIterator<Item = Option<Verificatio
         .map(|(i, _)| i)
 }
 
+/// [`best_supported`] among the matches that pass the detector's threshold (`passes`, one each)
+/// where one of them is verified, else among all: a verified match above the threshold is never
+/// passed over for a better-supported one below it, which would not be reported as a loop.
+pub fn best_supported_passing(verifications: &[Option<Verification>], passes: &[bool]) -> Option<usize> {
+    let passing = verifications.iter().zip(passes).map(|(v, &passes)| v.filter(|_| passes));
+    best_supported(passing).or_else(|| best_supported(verifications.iter().copied()))
+}
+
 /// ORB features of `image` (converted to grayscale), at most `max_features`.
 pub fn extract(image: &RgbImage, max_features: usize) -> Result<LocalFeatures> {
     extract_gray(image::imageops::grayscale(image), max_features)
@@ -884,6 +892,11 @@ mod tests {
         assert_eq!(best_supported([verdict(40, false), None, verdict(16, true)]), Some(2));
         assert_eq!(best_supported([verdict(40, false), None]), None);
         assert_eq!(best_supported(std::iter::empty()), None);
+        // Among the verified matches that pass the threshold first, then among all.
+        let tried = [verdict(40, true), verdict(20, true), verdict(30, true)];
+        assert_eq!(best_supported_passing(&tried, &[false, true, true]), Some(2));
+        assert_eq!(best_supported_passing(&tried, &[false, false, false]), Some(0));
+        assert_eq!(best_supported_passing(&[verdict(40, true), verdict(20, false)], &[false, true]), Some(0));
     }
 
     #[test]
