@@ -96,6 +96,9 @@ impl ReplayRun {
             return None;
         }
         let detector = params.detector();
+        if let Some(why) = detector.never_matches() {
+            return Some(format!("no keyframe could be matched: {why}"));
+        }
         let span = (last.stamp.nanos - first.stamp.nanos) as f64 / 1e9;
         Some(format!(
             "no keyframe could be matched: a match must be at least detector.exclude_recent.seconds ({} s) and \

@@ -104,6 +104,29 @@ pub struct DetectorParams {
     pub storage: Storage,
 }
 
+impl DetectorParams {
+    /// Why nothing can ever match under these values, where that is so: a memory budget that keeps
+    /// no keyframe old enough for the recency rules, or fewer keyframes than the minimum history.
+    pub fn never_matches(&self) -> Option<String> {
+        let budget = self.max_keyframes;
+        if budget == 0 {
+            return None;
+        }
+        if budget <= self.exclude_recent_count {
+            return Some(format!(
+                "detector.max_keyframes ({budget}) keeps no keyframe beyond the detector.exclude_recent.count ({}) newest, which never match: nothing can match",
+                self.exclude_recent_count
+            ));
+        }
+        (budget < self.min_history).then(|| {
+            format!(
+                "detector.max_keyframes ({budget}) keeps fewer keyframes than detector.min_history ({}) asks for before matching: nothing can match",
+                self.min_history
+            )
+        })
+    }
+}
+
 /// How the keyframe database keeps descriptors (`detector.storage`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum Storage {
@@ -538,6 +561,9 @@ pub struct Detector {
 impl Detector {
     /// An empty detector for descriptors of `descriptor`'s mode (whose score defines the threshold).
     pub fn new(descriptor: Descriptor, params: DetectorParams) -> Self {
+        if let Some(why) = params.never_matches() {
+            log::warn!("{why}");
+        }
         let recent_queries = sequence::RecentQueries::new(params.sequence_length);
         let history_sum = vec![0.0; descriptor.dim()];
         Detector {
@@ -557,6 +583,9 @@ impl Detector {
     /// Changes the policy at run time (a node's `set_parameters`); the database is kept (in the new
     /// storage format, if that changed), and the consistency history is trimmed to the new length.
     pub fn set_params(&mut self, params: DetectorParams) {
+        if let Some(why) = params.never_matches().filter(|_| params.never_matches() != self.params.never_matches()) {
+            log::warn!("{why}");
+        }
         self.params = params;
         let format = self.params.storage.format_for(&self.descriptor);
         if format != self.db.format() {

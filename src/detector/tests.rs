@@ -613,3 +613,21 @@ fn a_coded_detector_finds_the_revisits_an_exact_one_finds_with_nearly_its_scores
     coded.replace_history(history).unwrap();
     assert_eq!((coded.db().format(), coded.db().len()), (RowFormat::Levels6, 300));
 }
+
+#[test]
+fn a_budget_that_leaves_nothing_to_match_is_named() {
+    let params = |max_keyframes, exclude_recent_count, min_history| DetectorParams {
+        max_keyframes,
+        exclude_recent_count,
+        min_history,
+        ..params_all_off()
+    };
+    assert_eq!(params(0, 5, 5).never_matches(), None);
+    assert_eq!(params(6, 5, 6).never_matches(), None);
+    assert!(params(5, 5, 0).never_matches().unwrap().contains("detector.exclude_recent.count (5)"));
+    assert!(params(4, 0, 5).never_matches().unwrap().contains("detector.min_history (5)"));
+    // And indeed nothing matches.
+    let mut det = l2_detector(params(2, 2, 0));
+    let reported: usize = (0..10).map(|i| det.process(i, secs(i as f64), &unit(0.0)).unwrap().len()).sum();
+    assert_eq!(reported, 0);
+}
