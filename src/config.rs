@@ -565,8 +565,13 @@ impl Params {
         let (mut matched, mut matched_by_name, mut left_out) = (false, false, Vec::new());
         let mut sections = Vec::new();
         node_sections(nodes, "", &mut sections)?;
-        let without_parameters: Vec<String> =
-            sections.iter().filter(|(_, parameters)| parameters.is_none()).map(|(key, _)| key.clone()).collect();
+        // As rcl, which refuses the whole file: a section without `ros__parameters` is a mistake
+        // wherever it is, and one meant for this node must not pass for a namespace of other nodes.
+        if let Some((key, _)) = sections.iter().find(|(_, parameters)| parameters.is_none()) {
+            anyhow::bail!(
+                "node section {key:?} has no `ros__parameters` (a node's parameters go under `NODE: {{ros__parameters: ...}}`, namespaces above it)"
+            );
+        }
         for (key, parameters) in sections {
             let key = key.as_str();
             keys_seen.push(key.to_string());
@@ -576,7 +581,7 @@ impl Params {
             }
             matched = true;
             matched_by_name |= !key.split('/').any(|part| matches!(part, "*" | "**"));
-            let parameters = parameters.with_context(|| format!("node section {key:?} has no `ros__parameters`"))?;
+            let parameters = parameters.context("checked above")?;
             let mut flat = Vec::new();
             flatten(parameters, String::new(), &mut flat).with_context(|| format!("node section {key:?}"))?;
             for (name, value) in flat {
@@ -593,13 +598,7 @@ impl Params {
             }
         }
         if !matched {
-            let hint = match without_parameters.is_empty() {
-                true => String::new(),
-                false => {
-                    format!("; {without_parameters:?} have no `ros__parameters`, under which a node's parameters go")
-                }
-            };
-            return Err(NoSectionApplies(format!("node {node_name:?} (node keys found: {keys_seen:?}{hint})")).into());
+            return Err(NoSectionApplies(format!("node {node_name:?} (node keys found: {keys_seen:?})")).into());
         }
         // Sections for other nodes are normal in a file shared by several; but where only a wildcard
         // section applied, a section meant for this node may be misnamed.
@@ -880,7 +879,13 @@ fn node_sections<'a>(
 /// Whether the params-file node key `key` applies to the node `node_name` (module doc).
 fn node_key_matches(key: &str, node_name: &str) -> bool {
     let base = node_name.rsplit('/').next().unwrap_or(node_name);
-    let Some(path) = key.strip_prefix('/') else { return key == base };
+    // A bare name is this node's in any namespace (module doc); a relative path is read from the
+    // root, as rclcpp reads it.
+    let path = match key.strip_prefix('/') {
+        Some(path) => path,
+        None if !key.contains('/') => return key == base,
+        None => key,
+    };
     let pattern: Vec<&str> = path.split('/').collect();
     match node_name.strip_prefix('/') {
         Some(fqn) => name_parts_match(&pattern, &fqn.split('/').collect::<Vec<_>>()),
@@ -911,13 +916,16 @@ fn check_flow_depth(text: &str) -> anyhow::Result<()> {
     let (mut depth, mut quote, mut line) = (0usize, None, 1usize);
     // A comment (`#` after a space or at a line's start) and a quote start only where YAML starts
     // them: brackets in `# in [0, 1)` or apostrophes in `don't` are no syntax.
-    let (mut in_comment, mut escaped, mut previous) = (false, false, '\n');
+    // A quote opens a scalar only where a value starts (a line's start, after `:`, `-`, `[`, `{`
+    // or `,` and spaces), not inside a plain scalar such as `it is 'fine`.
+    let (mut in_comment, mut escaped, mut previous, mut value_start) = (false, false, '\n', true);
     for c in text.chars() {
-        let starts_token = previous.is_whitespace() || matches!(previous, '[' | '{' | ',' | ':');
         match (quote, c) {
             (_, '\n') => {
                 line += 1;
                 in_comment = false;
+                // A backslash before a line break in a double-quoted scalar escapes the break.
+                escaped = false;
             }
             _ if in_comment => {}
             (Some('"'), _) if escaped => escaped = false,
@@ -925,13 +933,20 @@ fn check_flow_depth(text: &str) -> anyhow::Result<()> {
             (Some(q), c) if c == q => quote = None,
             (Some(_), _) => {}
             (None, '#') if previous.is_whitespace() => in_comment = true,
-            (None, '"' | '\'') if starts_token => quote = Some(c),
+            (None, '"' | '\'') if value_start => quote = Some(c),
             (None, '[' | '{') => {
                 depth += 1;
                 anyhow::ensure!(depth <= MAX_FLOW_DEPTH, "line {line}: brackets nested deeper than {MAX_FLOW_DEPTH}");
             }
             (None, ']' | '}') => depth = depth.saturating_sub(1),
             _ => {}
+        }
+        if quote.is_none() && !in_comment {
+            value_start = match c {
+                '\n' | ':' | '-' | '[' | '{' | ',' => true,
+                c if c.is_whitespace() => value_start,
+                _ => false,
+            };
         }
         previous = c;
     }
@@ -1161,8 +1176,12 @@ mod tests {
         assert!(!node_key_matches("/robot2/**", "/robot1/ecm_lcd"));
         assert!(!node_key_matches("/*/*/ecm_lcd", "/robot1/ecm_lcd"));
         assert!(node_key_matches("/*", "ecm_lcd"), "no namespace to match offline");
-        // The deliberate difference: a bare key names the node in any namespace.
+        // The deliberate difference: a bare key names the node in any namespace; a relative path
+        // is read from the root.
         assert!(node_key_matches("ecm_lcd", "/robot1/ecm_lcd"));
+        assert!(node_key_matches("robot1/ecm_lcd", "/robot1/ecm_lcd"));
+        assert!(!node_key_matches("robot1/ecm_lcd", "/robot2/ecm_lcd"));
+        assert!(node_key_matches("robot1/ecm_lcd", "ecm_lcd"));
     }
 
     #[test]
@@ -1205,6 +1224,17 @@ robot2:
         assert_eq!(top_k(&Params::from_yaml_str(&comments, NODE_NAME).unwrap()), 2);
         let nested = format!("ecm_lcd:\n  ros__parameters:\n    x: {}1{}\n", "[".repeat(40), "]".repeat(40));
         assert!(format!("{:#}", Params::from_yaml_str(&nested, NODE_NAME).unwrap_err()).contains("nested deeper"));
+        // Nor can a quote hide them: one inside a plain scalar opens nothing, and a backslash
+        // before a line break in a double-quoted scalar escapes only the break.
+        for before in ["a: it is 'fine\n", "a: \"x\\\n\"\n"] {
+            let text = format!("{before}b: {}1{}\n", "[".repeat(40), "]".repeat(40));
+            let err = format!("{:#}", Params::from_yaml_str(&text, NODE_NAME).unwrap_err());
+            assert!(err.contains("nested deeper"), "{before:?}: {err}");
+        }
+        // A section for this node that forgot `ros__parameters` is an error, not a namespace.
+        let forgot = "ecm_lcd:\n  detector:\n    top_k: 3\n";
+        let err = format!("{:#}", Params::from_yaml_str(forgot, NODE_NAME).unwrap_err());
+        assert!(err.contains("\"/ecm_lcd/detector\" has no `ros__parameters`"), "{err}");
     }
 
     #[test]

@@ -149,23 +149,30 @@ const TUM_FILES: [&str; 5] = ["rgb.txt", "depth.txt", "groundtruth.txt", "accele
 
 /// Refuses `output` where it would change what one of the `sources` that are folders reads:
 /// - an existing image, or a TUM folder's lists (`rgb.txt`, ...), anywhere inside one;
-/// - any existing file inside a ROS 2 bag folder (its `metadata.yaml` and storage files);
+/// - a ROS 2 bag folder's `metadata.yaml` and storage files (`.db3`, `.mcap`, compressed `.zstd`);
 /// - an image name directly inside an image folder, even a new one: it would be read as a frame
 ///   the next time, and every later frame's index would shift.
 ///
-/// Other files there (a CSV written before) may be replaced.
+/// Both where the output is and, for a symlink, where it leads are checked (writing follows the
+/// link). Other files there (a CSV written before, a keyframe database) may be replaced.
 pub fn ensure_not_in_source(output: &Path, sources: &[&Path]) -> Result<()> {
     let is_image = crate::io::tum::has_image_extension(output);
     let is_tum_list = output.file_name().and_then(|n| n.to_str()).is_some_and(|n| TUM_FILES.contains(&n));
-    let Some(absolute) = resolved(output) else { return Ok(()) };
     let exists = output.is_file();
+    let name = output.file_name().and_then(|n| n.to_str()).unwrap_or_default();
+    let is_bag_file = name == "metadata.yaml"
+        || Path::new(name).extension().and_then(|e| e.to_str()).is_some_and(|e| ["db3", "mcap", "zstd"].contains(&e));
+    // Where the output is named (its folder resolved, its own name kept), and where it leads.
+    let folder = output.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let named = folder.canonicalize().ok().zip(output.file_name()).map(|(folder, name)| folder.join(name));
+    let places: Vec<PathBuf> = named.into_iter().chain(output.canonicalize().ok()).collect();
     for source in sources.iter().filter(|s| s.is_dir()) {
         let Ok(folder) = source.canonicalize() else { continue };
-        if !absolute.starts_with(&folder) {
-            continue;
-        }
-        let read_by_source = (exists && (is_image || is_tum_list || folder.join("metadata.yaml").is_file()))
-            || (is_image && crate::io::is_image_folder(&folder) && absolute.parent() == Some(folder.as_path()));
+        let read_by_source = places.iter().filter(|place| place.starts_with(&folder)).any(|place| {
+            (exists && (is_image || is_tum_list))
+                || (exists && is_bag_file && folder.join("metadata.yaml").is_file())
+                || (is_image && crate::io::is_image_folder(&folder) && place.parent() == Some(folder.as_path()))
+        });
         if read_by_source {
             bail!(
                 "the output {} is a file of the source folder {}; writing it would change the source (choose another output path)",
@@ -258,10 +265,28 @@ mod tests {
         {
             assert!(refused(name), "{name} allowed");
         }
-        // New files no source reads, and files outside the sources.
-        for name in ["bag/new.csv", "images/new.csv", "images/sub/new.png", "tum/rgb/new.png", "tum/new.png", "old.csv"]
-        {
+        // New files no source reads, files outside the sources, and a bag folder's other files,
+        // existing or not (a keyframe database kept there is written again on every run).
+        std::fs::write(path("bag/k.db"), b"x").unwrap();
+        for name in [
+            "bag/new.csv",
+            "bag/k.db",
+            "images/new.csv",
+            "images/sub/new.png",
+            "tum/rgb/new.png",
+            "tum/new.png",
+            "old.csv",
+        ] {
             assert!(!refused(name), "{name} refused");
+        }
+        // A symlink in a source folder to a file elsewhere, and one elsewhere to a source's file:
+        // writing follows the link.
+        #[cfg(unix)]
+        {
+            std::os::unix::fs::symlink(path("old.csv"), path("images/linked.png")).unwrap();
+            std::os::unix::fs::symlink(path("images/0.png"), path("outside.png")).unwrap();
+            assert!(refused("images/linked.png"));
+            assert!(refused("outside.png"));
         }
     }
 

@@ -377,18 +377,22 @@ pub fn load_unlabelled(source: &Path, keep_side: u32, max_images: usize) -> Resu
     } else {
         Vec::new()
     };
-    // Image files are read only once chosen; a replay source's frames are decoded as it plays.
+    // Only the images chosen are kept: image files are read once chosen, and a replay source is
+    // played twice, to count its frames and then to keep the chosen ones.
     enum Item {
         File(PathBuf),
-        Frame(RgbImage),
+        Frame { source: usize, index: usize },
     }
     let mut items = Vec::new();
-    let add_source = |path: &Path, items: &mut Vec<Item>| -> Result<()> {
+    let mut replayed: Vec<PathBuf> = Vec::new();
+    let mut add_source = |path: &Path, items: &mut Vec<Item>| -> Result<()> {
         let frames = crate::io::open_source(path, None)?;
-        for frame in crate::io::skip_unreadable(frames, path) {
-            let frame = frame.with_context(|| format!("cannot read the frames of {}", path.display()))?;
-            items.push(Item::Frame(shrink_to_short_side(frame.image, keep_side)));
-        }
+        let count = match frames.len_hint() {
+            Some(count) => count,
+            None => frames.count(),
+        };
+        items.extend((0..count).map(|index| Item::Frame { source: replayed.len(), index }));
+        replayed.push(path.to_path_buf());
         Ok(())
     };
     if subfolders.is_empty() {
@@ -401,12 +405,30 @@ pub fn load_unlabelled(source: &Path, keep_side: u32, max_images: usize) -> Resu
             add_source(folder, &mut items)?;
         }
     }
+    let chosen = spread(&items, max_images);
+    let mut kept: std::collections::HashMap<(usize, usize), RgbImage> = std::collections::HashMap::new();
+    for (number, path) in replayed.iter().enumerate() {
+        let wanted: std::collections::HashSet<usize> = chosen
+            .iter()
+            .filter_map(|item| match item {
+                Item::Frame { source, index } if *source == number => Some(*index),
+                _ => None,
+            })
+            .collect();
+        for frame in crate::io::skip_unreadable(crate::io::open_source(path, None)?, path) {
+            let frame = frame.with_context(|| format!("cannot read the frames of {}", path.display()))?;
+            if wanted.contains(&frame.index) {
+                kept.insert((number, frame.index), shrink_to_short_side(frame.image, keep_side));
+            }
+        }
+    }
     let mut images = Vec::new();
-    for item in spread(&items, max_images) {
-        images.push(match item {
-            Item::File(path) => shrink_to_short_side(read_image(path)?, keep_side),
-            Item::Frame(image) => image.clone(),
-        });
+    for item in chosen {
+        match item {
+            Item::File(path) => images.push(shrink_to_short_side(read_image(path)?, keep_side)),
+            // An unreadable frame (passed over with a warning) is missing.
+            Item::Frame { source, index } => images.extend(kept.remove(&(*source, *index))),
+        }
     }
     if images.len() < 4 {
         bail!("{} has {} images; distillation needs at least 4", source.display(), images.len());
