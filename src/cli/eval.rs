@@ -380,6 +380,15 @@ fn broke_off(error: &dyn std::fmt::Display, read: usize) -> anyhow::Error {
 /// ([`PoseLoopCriteria::exclude_younger_than_the_gap`]; logged where that raises the setting).
 pub fn pipeline_for_pose_truth(source_args: &SourceArgs, criteria: &PoseLoopCriteria) -> Result<Pipeline> {
     let mut params = source_args.params()?;
+    let excluded = params.detector().exclude_recent_secs;
+    if excluded > criteria.min_gap_s {
+        log::warn!(
+            "the loop truth counts matches from {} s apart (--min-gap), but the detector excludes keyframes younger \
+             than {excluded} s (detector.exclude_recent.seconds): loops between the two cannot be found, and recall \
+             counts them as missed",
+            criteria.min_gap_s
+        );
+    }
     if let Some(configured) = criteria.exclude_younger_than_the_gap(&mut params)? {
         log::info!(
             "the loop truth counts no match younger than {} s, so the detector does not look there either \
