@@ -26,7 +26,8 @@
 //! YAML 1.1 words that rcl and `ros2 param` read as bools (`yes`, `no`, `on`, `off`, `y`, `n`, in
 //! their three cases) are bools for a bool parameter here too, although this file's YAML 1.2 parser reads
 //! them as strings; and a bool given to a string parameter whose values are `on` and `off`
-//! (`verification.mode`), as `ros2 param set /ecm_lcd verification.mode off` sends it, is that word.
+//! (`verification.mode`), as ROS's tools read an unquoted `off`, is that word. The node applies the
+//! same conversions to values set at run time (`crate::ros::param_services`).
 //!
 //! The detector's threshold is given as a score (`detector.min_score`) unless `detector.max_distance` is
 //! set (non-zero), which then wins; the score-to-distance mapping is the descriptor mode's

@@ -306,6 +306,16 @@ fn node_layer_over_dds() {
     assert!(!ok, "{reason}");
     let (ok, reason) = call("detector.min_score", ParameterValue::Double(0.5));
     assert!(ok, "{reason}");
+    // The node's conversions hold at run time too: an integer for a double (`ros2 param set ...
+    // selection.min_period 0`), `yes` for a bool; the store keeps the parameter's own type.
+    let (ok, reason) = call("selection.min_period", ParameterValue::Integer(0));
+    assert!(ok, "{reason}");
+    let (ok, reason) = call("detector.consistency.delayed", ParameterValue::String("no".into()));
+    assert!(ok, "{reason}");
+    let (ok, reason) = call("selection.min_period", ParameterValue::Double(0.5));
+    assert!(ok, "the double stays a double: {reason}");
+    let (ok, reason) = call("detector.consistency.delayed", ParameterValue::String("yes".into()));
+    assert!(ok, "{reason}");
     // describe_parameters carries the table's description and range.
     let described = futures::executor::block_on(async {
         describe_client.wait_for_service(&peer).await;
@@ -332,12 +342,19 @@ fn node_layer_over_dds() {
     assert_eq!(seen.calls.len(), 6, "{:?}", seen.calls);
     assert_eq!(seen.calls[0], (Some(1), Stamp::from_sec_nsec(100, 500), 32, 24));
     assert_eq!(seen.calls[4].0, None);
-    assert_eq!(seen.params, vec![("detector.min_score".to_string(), ParamValue::Double(0.5))]);
+    let applied = [
+        ("detector.min_score", ParamValue::Double(0.5)),
+        ("selection.min_period", ParamValue::Double(0.0)),
+        ("detector.consistency.delayed", ParamValue::Bool(false)),
+        ("selection.min_period", ParamValue::Double(0.5)),
+        ("detector.consistency.delayed", ParamValue::Bool(true)),
+    ];
+    assert_eq!(seen.params, applied.clone().map(|(name, value)| (name.to_string(), value)));
     assert_eq!(final_counters.processed, 6);
     assert_eq!(final_counters.malformed, 5);
     assert_eq!(final_counters.received, 10);
     assert_eq!(final_counters.candidates, 9);
-    assert_eq!(final_counters.param_changes, 1);
+    assert_eq!(final_counters.param_changes, applied.len() as u64);
     println!("INNER-DONE {final_counters}");
 }
 

@@ -19,7 +19,7 @@ use ros2_client::{
     Context, Node, Parameter, ParameterValue,
 };
 
-use super::params::{validate_change, USE_SIM_TIME};
+use super::params::{to_ros, validate_change, USE_SIM_TIME};
 use super::service::FramedServer;
 use crate::config::{param_spec, ParamRange, Params};
 
@@ -152,7 +152,7 @@ impl ParamServices {
                 .parameter
                 .into_iter()
                 .map(Parameter::from)
-                .map(|Parameter { name, value }| node.set_parameter(&name, value).into())
+                .map(|Parameter { name, value }| node.set_parameter(&name, converted(live, &name, value)).into())
                 .collect();
             self.reply(self.set.reply(&id, &SetParametersResponse { results }), "set_parameters");
         }
@@ -160,21 +160,25 @@ impl ParamServices {
             let params: Vec<Parameter> = req.parameter.into_iter().map(Parameter::from).collect();
             // All or nothing: check every change against one trial copy first.
             let mut trial = live.lock().unwrap_or_else(|e| e.into_inner()).clone();
+            let mut checked = Vec::new();
             let check = params.iter().try_for_each(|p| {
-                // The node's store refuses a change of type (an integer for a double), after the
-                // changes before it were applied: refused here, nothing is.
-                if changes_type(node.get_parameter(&p.name).as_ref(), &p.value) {
-                    return Err(format!("{}: cannot change the parameter's type", p.name));
-                }
                 if p.name == USE_SIM_TIME {
+                    checked.push((p.name.clone(), p.value.clone()));
                     return matches!(p.value, ParameterValue::Boolean(_))
                         .then_some(())
                         .ok_or_else(|| "use_sim_time must be a bool".to_string());
                 }
                 let value = validate_change(&trial, &p.name, &p.value).map_err(|e| e.to_string())?;
+                // The node's store refuses a change of type after the changes before it were
+                // applied: what the conversions leave of another type is refused here, so nothing is.
+                if changes_type(node.get_parameter(&p.name).as_ref(), &to_ros(&value)) {
+                    return Err(format!("{}: cannot change the parameter's type", p.name));
+                }
+                checked.push((p.name.clone(), to_ros(&value)));
                 trial.set(&p.name, value).map_err(|e| format!("{}: {e}", p.name))
             });
-            let result = check.and_then(|()| params.into_iter().try_for_each(|p| node.set_parameter(&p.name, p.value)));
+            let result =
+                check.and_then(|()| checked.into_iter().try_for_each(|(name, value)| node.set_parameter(&name, value)));
             self.reply(
                 self.set_atomically.reply(&id, &SetParametersAtomicallyResponse { result: result.into() }),
                 "set_parameters_atomically",
@@ -200,6 +204,18 @@ impl ParamServices {
 
 /// Whether setting `new` on a parameter holding `existing` changes its type, which ros2-client's
 /// parameter store refuses (an unset value on either side is no type).
+/// `value` for the parameter `name` in the node's own type, where the node's conversions apply (an
+/// integer for a double, `yes` for a bool, a bool for `on`/`off`: `crate::config`): the node's store
+/// refuses a change of type before the validator sees it. Other values go as they came, for the
+/// validator to refuse with its reason.
+fn converted(live: &std::sync::Mutex<Params>, name: &str, value: ParameterValue) -> ParameterValue {
+    let current = live.lock().unwrap_or_else(|e| e.into_inner()).clone();
+    match validate_change(&current, name, &value) {
+        Ok(converted) if name != USE_SIM_TIME => to_ros(&converted),
+        _ => value,
+    }
+}
+
 fn changes_type(existing: Option<&ParameterValue>, new: &ParameterValue) -> bool {
     match existing {
         Some(existing) if !matches!(existing, ParameterValue::NotSet) && !matches!(new, ParameterValue::NotSet) => {
