@@ -91,9 +91,7 @@ pub fn written_topics(
 ) -> Vec<(String, WrittenKind)> {
     let mut topics = vec![(image_topic.to_string(), WrittenKind::Image(encoding.kind()))];
     if camera.is_some() {
-        let base = image_topic.strip_suffix("/compressed").unwrap_or(image_topic);
-        let namespace = base.rsplit_once('/').map_or("", |(namespace, _)| namespace);
-        topics.push((format!("{namespace}/camera_info"), WrittenKind::CameraInfo));
+        topics.push((super::camera_info_topic_name(image_topic), WrittenKind::CameraInfo));
     }
     topics
 }

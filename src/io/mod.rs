@@ -163,12 +163,17 @@ pub struct SourceIntrinsics {
 /// (`/camera/rgb/image_color` and its `/camera/rgb/image_color/compressed` both have
 /// `/camera/rgb/camera_info`).
 pub(crate) fn camera_info_topic<'a>(topics: &'a [TopicInfo], image: &str) -> Option<&'a TopicInfo> {
-    let base = image.strip_suffix("/compressed").unwrap_or(image);
-    let namespace = base.rsplit_once('/').map_or("", |(namespace, _)| namespace);
-    let wanted = format!("{namespace}/camera_info");
+    let wanted = camera_info_topic_name(image);
     topics.iter().find(|t| {
         t.name == wanted && matches!(t.type_name.as_str(), "sensor_msgs/CameraInfo" | "sensor_msgs/msg/CameraInfo")
     })
+}
+
+/// The name of the image topic `image`'s calibration topic ([`camera_info_topic`]'s convention).
+pub(crate) fn camera_info_topic_name(image: &str) -> String {
+    let base = image.strip_suffix("/compressed").unwrap_or(image);
+    let namespace = base.rsplit_once('/').map_or("", |(namespace, _)| namespace);
+    format!("{namespace}/camera_info")
 }
 
 /// The intrinsics of `decoded`, the first message of `topic` in the bag described by `bag`. A message
